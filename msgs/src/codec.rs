@@ -1,0 +1,94 @@
+//! The one CDR entry point: [`encode`] and [`decode`] for every [`RosMessage`].
+//!
+//! Wire layout (as rclpy's `serialize_message` writes it): a 4-byte encapsulation header
+//! (representation id, big-endian u16, then a u16 options field whose low two bits give the
+//! number of padding bytes at the end), the CDR body, then 0-3 zero bytes padding the body to a
+//! multiple of 4.
+
+use crate::RosMessage;
+use cdr_encoding::{from_bytes, to_vec};
+
+/// Representation identifier of plain CDR, little endian (what ROS 2 writes on x86/ARM).
+pub const CDR_LE: [u8; 2] = [0x00, 0x01];
+/// Representation identifier of plain CDR, big endian.
+pub const CDR_BE: [u8; 2] = [0x00, 0x00];
+
+use byteorder::{BigEndian as BE, LittleEndian as LE};
+
+/// Why a buffer could not be encoded or decoded. Every variant names the message type.
+#[derive(Debug, thiserror::Error)]
+pub enum CodecError {
+    #[error("{type_name}: buffer of {len} bytes is shorter than the 4-byte CDR encapsulation header")]
+    MissingHeader { type_name: &'static str, len: usize },
+    #[error(
+        "{type_name}: unsupported encapsulation {id:02x?} (expected CDR little endian 00 01 or big endian 00 00)"
+    )]
+    UnsupportedEncapsulation { type_name: &'static str, id: [u8; 2] },
+    #[error("{type_name}: malformed or truncated CDR body: {source}")]
+    Malformed {
+        type_name: &'static str,
+        #[source]
+        source: cdr_encoding::Error,
+    },
+    #[error("{type_name}: {extra} unexpected bytes after the end of the message (body is {body} bytes)")]
+    TrailingBytes { type_name: &'static str, extra: usize, body: usize },
+    #[error("{type_name}: invalid value: {reason}")]
+    Invalid { type_name: &'static str, reason: String },
+    #[error("{type_name}: cannot encode: {source}")]
+    Encode {
+        type_name: &'static str,
+        #[source]
+        source: cdr_encoding::Error,
+    },
+}
+
+/// Encodes `msg` exactly as ROS 2 does: encapsulation header, little-endian CDR body, padding.
+pub fn encode<T: RosMessage>(msg: &T) -> Result<Vec<u8>, CodecError> {
+    let body = to_vec::<T, LE>(msg).map_err(|source| CodecError::Encode { type_name: T::TYPE_NAME, source })?;
+    let padding = (4 - body.len() % 4) % 4;
+    let mut out = Vec::with_capacity(4 + body.len() + padding);
+    out.extend_from_slice(&CDR_LE);
+    out.extend_from_slice(&[0x00, padding as u8]);
+    out.extend_from_slice(&body);
+    out.resize(out.len() + padding, 0);
+    Ok(out)
+}
+
+/// Decodes a buffer with its encapsulation header (what `serialize_message` returns, what an
+/// MCAP `cdr` message holds). Trailing bytes beyond the declared alignment padding are an error.
+pub fn decode<T: RosMessage>(bytes: &[u8]) -> Result<T, CodecError> {
+    let type_name = T::TYPE_NAME;
+    if bytes.len() < 4 {
+        return Err(CodecError::MissingHeader { type_name, len: bytes.len() });
+    }
+    let id = [bytes[0], bytes[1]];
+    let declared_padding = (bytes[3] & 0b11) as usize;
+    decode_body::<T>(id, &bytes[4..], Some(declared_padding))
+}
+
+/// Decodes a CDR body without the encapsulation header, given its representation id (what a DDS
+/// reader hands over after stripping the header). Up to 3 zero padding bytes may follow.
+pub fn decode_payload<T: RosMessage>(id: [u8; 2], body: &[u8]) -> Result<T, CodecError> {
+    decode_body::<T>(id, body, None)
+}
+
+fn decode_body<T: RosMessage>(id: [u8; 2], body: &[u8], declared_padding: Option<usize>) -> Result<T, CodecError> {
+    let type_name = T::TYPE_NAME;
+    let (msg, used) = match id {
+        CDR_LE => from_bytes::<T, LE>(body),
+        CDR_BE => from_bytes::<T, BE>(body),
+        _ => return Err(CodecError::UnsupportedEncapsulation { type_name, id }),
+    }
+    .map_err(|source| CodecError::Malformed { type_name, source })?;
+    let rest = &body[used.min(body.len())..];
+    // Only alignment padding may follow: fewer than 4 bytes, all zero, and where the header
+    // declares a padding count, exactly that many.
+    let padding_ok = rest.len() < 4
+        && rest.iter().all(|&b| b == 0)
+        && declared_padding.is_none_or(|p| p == 0 || p == rest.len());
+    if !padding_ok {
+        return Err(CodecError::TrailingBytes { type_name, extra: rest.len(), body: used });
+    }
+    msg.validate().map_err(|reason| CodecError::Invalid { type_name, reason })?;
+    Ok(msg)
+}

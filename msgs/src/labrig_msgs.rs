@@ -1,0 +1,467 @@
+//! `labrig_msgs`: the project's own types.
+//!
+//! Every type starts with a `uint16 version` field holding its schema version, checked on
+//! decode: a file or peer of another schema gets an error naming the type and both versions
+//! instead of silently misread fields. Bump a type's version (and keep a reader for the old one)
+//! whenever its fields change.
+//!
+//! Conventions (DROID's): gripper 0 = open, 1 = closed; cartesian positions are xyz (m) +
+//! euler xyz (rad) in the robot base frame; cartesian velocity actions are in [-1, 1] and scale
+//! to at most 0.075 m and 0.15 rad per control step.
+use crate::geometry_msgs::Pose;
+use crate::std_msgs::Header;
+use crate::RosMessage;
+use serde::{Deserialize, Serialize};
+
+/// The schema version every `labrig_msgs` type carries in its `version` field.
+pub const SCHEMA_VERSION: u16 = 1;
+
+/// The `version` field of every labrig type: a `uint16` on the wire, [`SCHEMA_VERSION`] by default.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct SchemaVersion(pub u16);
+
+impl Default for SchemaVersion {
+    fn default() -> Self {
+        SchemaVersion(SCHEMA_VERSION)
+    }
+}
+
+macro_rules! versioned {
+    ($($ty:ty),* $(,)?) => {$(
+        impl $ty {
+            /// Checks the schema version; called by [`crate::decode`] through `validate`.
+            fn check_version(&self) -> Result<(), String> {
+                if self.version.0 == SCHEMA_VERSION {
+                    Ok(())
+                } else {
+                    Err(format!(
+                        "schema version {} is not supported (this build reads version {SCHEMA_VERSION})",
+                        self.version.0
+                    ))
+                }
+            }
+        }
+    )*};
+}
+
+/// Implements RosMessage for a labrig type with the version check as its validation.
+macro_rules! labrig_message {
+    ($ty:ty, $name:literal, [$($dep:ty),* $(,)?], $text:expr) => {
+        impl RosMessage for $ty {
+            const TYPE_NAME: &'static str = $name;
+            const MSG_TEXT: &'static str = $text;
+            #[allow(unused_variables)]
+            fn dependencies(out: &mut Vec<(&'static str, &'static str)>) {
+                $(
+                    out.push((<$dep as RosMessage>::TYPE_NAME, <$dep as RosMessage>::MSG_TEXT));
+                    <$dep as RosMessage>::dependencies(out);
+                )*
+            }
+            fn validate(&self) -> Result<(), String> {
+                self.check_version()?;
+                self.check_fields()
+            }
+        }
+    };
+}
+
+/// Which representation of the action an [`ArmCommand`] carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum ArmCommandMode {
+    /// `cartesian_velocity` in [-1, 1] (DROID's recorded action space).
+    CartesianVelocity = 0,
+    /// `cartesian_position`: xyz + euler xyz target (DROID's cartesian_position).
+    CartesianPosition = 1,
+    /// `cartesian_position`: xyz + axis-angle target (the paper's action space).
+    CartesianPositionAxisAngle = 2,
+    /// `joint_velocity` in rad/s.
+    JointVelocity = 3,
+    /// `joint_position` target in rad (what IK produces for the arm).
+    JointPosition = 4,
+}
+
+impl TryFrom<u8> for ArmCommandMode {
+    type Error = String;
+    fn try_from(v: u8) -> Result<Self, String> {
+        Ok(match v {
+            0 => Self::CartesianVelocity,
+            1 => Self::CartesianPosition,
+            2 => Self::CartesianPositionAxisAngle,
+            3 => Self::JointVelocity,
+            4 => Self::JointPosition,
+            other => return Err(format!("unknown arm command mode {other} (expected 0..=4)")),
+        })
+    }
+}
+
+/// labrig_msgs/msg/ArmCommand on `/arm/command`: one action for the arm and the gripper.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct ArmCommand {
+    pub version: SchemaVersion,
+    pub header: Header,
+    /// An [`ArmCommandMode`] value.
+    pub mode: u8,
+    pub cartesian_velocity: [f64; 6],
+    pub cartesian_position: [f64; 6],
+    pub joint_velocity: [f64; 7],
+    pub joint_position: [f64; 7],
+    /// Gripper target, 0 = open .. 1 = closed.
+    pub gripper_position: f64,
+    /// Monotonic command counter, so the arm node can tell repeats from fresh commands.
+    pub seq: u64,
+}
+impl ArmCommand {
+    pub fn mode(&self) -> Result<ArmCommandMode, String> {
+        ArmCommandMode::try_from(self.mode)
+    }
+    fn check_fields(&self) -> Result<(), String> {
+        self.mode().map(|_| ())
+    }
+}
+labrig_message!(
+    ArmCommand,
+    "labrig_msgs/msg/ArmCommand",
+    [Header],
+    "uint8 MODE_CARTESIAN_VELOCITY=0\nuint8 MODE_CARTESIAN_POSITION=1\nuint8 MODE_CARTESIAN_POSITION_AXIS_ANGLE=2\nuint8 MODE_JOINT_VELOCITY=3\nuint8 MODE_JOINT_POSITION=4\nuint16 version\nstd_msgs/Header header\nuint8 mode\nfloat64[6] cartesian_velocity\nfloat64[6] cartesian_position\nfloat64[7] joint_velocity\nfloat64[7] joint_position\nfloat64 gripper_position\nuint64 seq\n"
+);
+
+/// labrig_msgs/msg/ActionDict: DROID's recorded action dictionary, every representation of
+/// the action taken at one step.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct ActionDict {
+    pub version: SchemaVersion,
+    pub cartesian_velocity: [f64; 6],
+    pub cartesian_position: [f64; 6],
+    pub joint_velocity: [f64; 7],
+    pub joint_position: [f64; 7],
+    pub gripper_velocity: f64,
+    pub gripper_position: f64,
+    pub target_cartesian_position: [f64; 6],
+    pub target_gripper_position: f64,
+}
+impl ActionDict {
+    fn check_fields(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+labrig_message!(
+    ActionDict,
+    "labrig_msgs/msg/ActionDict",
+    [],
+    "uint16 version\nfloat64[6] cartesian_velocity\nfloat64[6] cartesian_position\nfloat64[7] joint_velocity\nfloat64[7] joint_position\nfloat64 gripper_velocity\nfloat64 gripper_position\nfloat64[6] target_cartesian_position\nfloat64 target_gripper_position\n"
+);
+
+/// labrig_msgs/msg/RobotState on `/arm/state`: DROID's `observation/robot_state` fields plus
+/// the arm's mode and fault text.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct RobotState {
+    pub version: SchemaVersion,
+    pub header: Header,
+    pub cartesian_position: [f64; 6],
+    pub gripper_position: f64,
+    pub joint_positions: [f64; 7],
+    pub joint_velocities: [f64; 7],
+    pub joint_torques_computed: [f64; 7],
+    pub prev_joint_torques_computed: [f64; 7],
+    pub prev_joint_torques_computed_safened: [f64; 7],
+    pub motor_torques_measured: [f64; 7],
+    pub prev_controller_latency_ms: f64,
+    pub prev_command_successful: bool,
+    /// One of the `MODE_*` constants.
+    pub mode: u8,
+    /// Empty unless `mode` is `MODE_FAULT` or `MODE_STOPPED`: what happened, for the operator.
+    pub fault: String,
+}
+impl RobotState {
+    pub const MODE_IDLE: u8 = 0;
+    pub const MODE_MOVING: u8 = 1;
+    pub const MODE_STOPPED: u8 = 2;
+    pub const MODE_FAULT: u8 = 3;
+    fn check_fields(&self) -> Result<(), String> {
+        if self.mode > Self::MODE_FAULT {
+            return Err(format!("unknown robot mode {}", self.mode));
+        }
+        Ok(())
+    }
+}
+labrig_message!(
+    RobotState,
+    "labrig_msgs/msg/RobotState",
+    [Header],
+    "uint8 MODE_IDLE=0\nuint8 MODE_MOVING=1\nuint8 MODE_STOPPED=2\nuint8 MODE_FAULT=3\nuint16 version\nstd_msgs/Header header\nfloat64[6] cartesian_position\nfloat64 gripper_position\nfloat64[7] joint_positions\nfloat64[7] joint_velocities\nfloat64[7] joint_torques_computed\nfloat64[7] prev_joint_torques_computed\nfloat64[7] prev_joint_torques_computed_safened\nfloat64[7] motor_torques_measured\nfloat64 prev_controller_latency_ms\nbool prev_command_successful\nuint8 mode\nstring fault\n"
+);
+
+/// labrig_msgs/msg/GripperCommand on `/gripper/command`: all fields in 0..1.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct GripperCommand {
+    pub version: SchemaVersion,
+    pub header: Header,
+    /// 0 = open .. 1 = closed (the 2F-85's rPR 0..255).
+    pub position: f64,
+    pub speed: f64,
+    pub force: f64,
+}
+impl GripperCommand {
+    fn check_fields(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+labrig_message!(
+    GripperCommand,
+    "labrig_msgs/msg/GripperCommand",
+    [Header],
+    "uint16 version\nstd_msgs/Header header\nfloat64 position\nfloat64 speed\nfloat64 force\n"
+);
+
+/// labrig_msgs/msg/GripperState on `/gripper/state`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct GripperState {
+    pub version: SchemaVersion,
+    pub header: Header,
+    /// Measured opening, 0 = open .. 1 = closed.
+    pub position: f64,
+    /// The last commanded position echoed back.
+    pub requested_position: f64,
+    pub activated: bool,
+    pub object_detected: bool,
+    /// The 2F-85's gFLT code; 0 = no fault.
+    pub fault_code: u8,
+    pub fault: String,
+    pub current_ma: f64,
+}
+impl GripperState {
+    fn check_fields(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+labrig_message!(
+    GripperState,
+    "labrig_msgs/msg/GripperState",
+    [Header],
+    "uint16 version\nstd_msgs/Header header\nfloat64 position\nfloat64 requested_position\nbool activated\nbool object_detected\nuint8 fault_code\nstring fault\nfloat64 current_ma\n"
+);
+
+/// labrig_msgs/msg/TeleopState on `/teleop/state`: the controller as the teleop node sees it.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct TeleopState {
+    pub version: SchemaVersion,
+    pub header: Header,
+    pub controller_connected: bool,
+    /// `"right"` or `"left"`.
+    pub hand: String,
+    /// Controller pose in the robot frame (after the forward redefinition).
+    pub controller_pose: Pose,
+    /// Grip held: the deadman; the arm may move only while true.
+    pub movement_enabled: bool,
+    pub grip: f64,
+    pub trigger: f64,
+    pub joystick: [f64; 2],
+    pub joystick_pressed: bool,
+    pub button_success: bool,
+    pub button_failure: bool,
+}
+impl TeleopState {
+    fn check_fields(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+labrig_message!(
+    TeleopState,
+    "labrig_msgs/msg/TeleopState",
+    [Header, Pose],
+    "uint16 version\nstd_msgs/Header header\nbool controller_connected\nstring hand\ngeometry_msgs/Pose controller_pose\nbool movement_enabled\nfloat64 grip\nfloat64 trigger\nfloat64[2] joystick\nbool joystick_pressed\nbool button_success\nbool button_failure\n"
+);
+
+/// What an [`EpisodeEvent`] announces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum EpisodeEventKind {
+    Start = 0,
+    Stop = 1,
+    Success = 2,
+    Failure = 3,
+    Discard = 4,
+    Reset = 5,
+}
+
+impl TryFrom<u8> for EpisodeEventKind {
+    type Error = String;
+    fn try_from(v: u8) -> Result<Self, String> {
+        Ok(match v {
+            0 => Self::Start,
+            1 => Self::Stop,
+            2 => Self::Success,
+            3 => Self::Failure,
+            4 => Self::Discard,
+            5 => Self::Reset,
+            other => return Err(format!("unknown episode event kind {other} (expected 0..=5)")),
+        })
+    }
+}
+
+/// labrig_msgs/msg/EpisodeEvent on `/episode/events`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct EpisodeEvent {
+    pub version: SchemaVersion,
+    pub header: Header,
+    /// An [`EpisodeEventKind`] value.
+    pub kind: u8,
+    pub episode_id: String,
+    pub note: String,
+}
+impl EpisodeEvent {
+    pub fn kind(&self) -> Result<EpisodeEventKind, String> {
+        EpisodeEventKind::try_from(self.kind)
+    }
+    fn check_fields(&self) -> Result<(), String> {
+        self.kind().map(|_| ())
+    }
+}
+labrig_message!(
+    EpisodeEvent,
+    "labrig_msgs/msg/EpisodeEvent",
+    [Header],
+    "uint8 KIND_START=0\nuint8 KIND_STOP=1\nuint8 KIND_SUCCESS=2\nuint8 KIND_FAILURE=3\nuint8 KIND_DISCARD=4\nuint8 KIND_RESET=5\nuint16 version\nstd_msgs/Header header\nuint8 kind\nstring episode_id\nstring note\n"
+);
+
+/// labrig_msgs/msg/ActionChunk: a policy's prediction, `horizon` actions of `action_dim` each,
+/// row-major in `actions`; the first is meant for the control tick `first_step`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct ActionChunk {
+    pub version: SchemaVersion,
+    pub header: Header,
+    pub policy_id: String,
+    /// The step index of the newest observation the chunk was computed from.
+    pub observation_step: u64,
+    pub first_step: u64,
+    pub horizon: u32,
+    pub action_dim: u32,
+    pub actions: Vec<f64>,
+    pub inference_ms: f64,
+}
+impl ActionChunk {
+    fn check_fields(&self) -> Result<(), String> {
+        let expected = self.horizon as usize * self.action_dim as usize;
+        if self.actions.len() != expected {
+            return Err(format!(
+                "{} action values for horizon {} x action_dim {} (expected {expected})",
+                self.actions.len(),
+                self.horizon,
+                self.action_dim
+            ));
+        }
+        Ok(())
+    }
+    /// The action for row `i` of the chunk.
+    pub fn action(&self, i: usize) -> Option<&[f64]> {
+        let d = self.action_dim as usize;
+        self.actions.get(i * d..(i + 1) * d)
+    }
+}
+labrig_message!(
+    ActionChunk,
+    "labrig_msgs/msg/ActionChunk",
+    [Header],
+    "uint16 version\nstd_msgs/Header header\nstring policy_id\nuint64 observation_step\nuint64 first_step\nuint32 horizon\nuint32 action_dim\nfloat64[] actions\nfloat64 inference_ms\n"
+);
+
+/// labrig_msgs/msg/CameraFrameRef: which frame of one camera went into an observation.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct CameraFrameRef {
+    pub version: SchemaVersion,
+    pub camera_id: String,
+    pub sequence: u64,
+    /// Hardware capture time (or the arrival time where a camera has none), ns.
+    pub capture_ns: i64,
+    pub arrival_ns: i64,
+}
+impl CameraFrameRef {
+    fn check_fields(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+labrig_message!(
+    CameraFrameRef,
+    "labrig_msgs/msg/CameraFrameRef",
+    [],
+    "uint16 version\nstring camera_id\nuint64 sequence\nint64 capture_ns\nint64 arrival_ns\n"
+);
+
+/// labrig_msgs/msg/ControlTiming: DROID's `observation/timestamp/control` keys, ns.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct ControlTiming {
+    pub version: SchemaVersion,
+    pub step_start: i64,
+    pub policy_start: i64,
+    pub sleep_start: i64,
+    pub control_start: i64,
+    pub step_end: i64,
+}
+impl ControlTiming {
+    fn check_fields(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+labrig_message!(
+    ControlTiming,
+    "labrig_msgs/msg/ControlTiming",
+    [],
+    "uint16 version\nint64 step_start\nint64 policy_start\nint64 sleep_start\nint64 control_start\nint64 step_end\n"
+);
+
+/// labrig_msgs/msg/Step on `/rig/step`: one record per control tick — the observation used,
+/// the action taken (DROID's keys) and the tick's timing.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct Step {
+    pub version: SchemaVersion,
+    pub header: Header,
+    pub episode_id: String,
+    pub step_index: u64,
+    pub robot_state: RobotState,
+    pub cameras: Vec<CameraFrameRef>,
+    /// Largest minus smallest `capture_ns` among `cameras`.
+    pub camera_skew_ns: i64,
+    pub timing: ControlTiming,
+    pub action: ActionDict,
+    /// One of the `SOURCE_*` constants.
+    pub action_source: u8,
+    pub movement_enabled: bool,
+}
+impl Step {
+    pub const SOURCE_NONE: u8 = 0;
+    pub const SOURCE_TELEOP: u8 = 1;
+    pub const SOURCE_POLICY: u8 = 2;
+    pub const SOURCE_SCRIPTED: u8 = 3;
+    pub const SOURCE_REPLAY: u8 = 4;
+    fn check_fields(&self) -> Result<(), String> {
+        if self.action_source > Self::SOURCE_REPLAY {
+            return Err(format!("unknown action source {}", self.action_source));
+        }
+        self.robot_state.validate()?;
+        self.timing.validate()?;
+        self.action.validate()?;
+        self.cameras.iter().try_for_each(|c| c.validate())
+    }
+}
+labrig_message!(
+    Step,
+    "labrig_msgs/msg/Step",
+    [Header, RobotState, CameraFrameRef, ControlTiming, ActionDict],
+    "uint8 SOURCE_NONE=0\nuint8 SOURCE_TELEOP=1\nuint8 SOURCE_POLICY=2\nuint8 SOURCE_SCRIPTED=3\nuint8 SOURCE_REPLAY=4\nuint16 version\nstd_msgs/Header header\nstring episode_id\nuint64 step_index\nlabrig_msgs/RobotState robot_state\nlabrig_msgs/CameraFrameRef[] cameras\nint64 camera_skew_ns\nlabrig_msgs/ControlTiming timing\nlabrig_msgs/ActionDict action\nuint8 action_source\nbool movement_enabled\n"
+);
+
+versioned!(
+    ArmCommand,
+    ActionDict,
+    RobotState,
+    GripperCommand,
+    GripperState,
+    TeleopState,
+    EpisodeEvent,
+    ActionChunk,
+    CameraFrameRef,
+    ControlTiming,
+    Step,
+);
