@@ -1,9 +1,10 @@
 //! The one CDR entry point: [`encode`] and [`decode`] for every [`RosMessage`].
 //!
-//! Wire layout (as rclpy's `serialize_message` writes it): a 4-byte encapsulation header
-//! (representation id, big-endian u16, then a u16 options field whose low two bits give the
-//! number of padding bytes at the end), the CDR body, then 0-3 zero bytes padding the body to a
-//! multiple of 4.
+//! Wire layout (what Fast DDS puts on the wire for ROS 2, and rosbag2 records): a 4-byte
+//! encapsulation header (representation id as a big-endian u16, then a u16 options field that
+//! ROS 2 leaves 0), the CDR body, then 0-3 zero bytes padding the body to a multiple of 4.
+//! rclpy's `serialize_message` returns the same body without the final padding (and with
+//! uninitialised alignment bytes); both forms decode.
 
 use crate::RosMessage;
 use cdr_encoding::{from_bytes, to_vec};
@@ -42,13 +43,14 @@ pub enum CodecError {
     },
 }
 
-/// Encodes `msg` exactly as ROS 2 does: encapsulation header, little-endian CDR body, padding.
+/// Encodes `msg` exactly as ROS 2 puts it on the wire: header, little-endian CDR body, zero
+/// padding to a multiple of 4.
 pub fn encode<T: RosMessage>(msg: &T) -> Result<Vec<u8>, CodecError> {
     let body = to_vec::<T, LE>(msg).map_err(|source| CodecError::Encode { type_name: T::TYPE_NAME, source })?;
     let padding = (4 - body.len() % 4) % 4;
     let mut out = Vec::with_capacity(4 + body.len() + padding);
     out.extend_from_slice(&CDR_LE);
-    out.extend_from_slice(&[0x00, padding as u8]);
+    out.extend_from_slice(&[0x00, 0x00]);
     out.extend_from_slice(&body);
     out.resize(out.len() + padding, 0);
     Ok(out)

@@ -1,0 +1,82 @@
+//! Node lifecycle: a shutdown token set by SIGINT/SIGTERM (or by the node itself), so every loop
+//! can end cleanly and flush what it holds.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use tokio::sync::Notify;
+
+/// Cloneable shutdown token.
+#[derive(Debug, Clone, Default)]
+pub struct Shutdown {
+    inner: Arc<Inner>,
+}
+
+#[derive(Debug, Default)]
+struct Inner {
+    triggered: AtomicBool,
+    notify: Notify,
+}
+
+impl Shutdown {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Requests shutdown; every waiter wakes.
+    pub fn trigger(&self) {
+        self.inner.triggered.store(true, Ordering::SeqCst);
+        self.inner.notify.notify_waiters();
+    }
+
+    pub fn is_triggered(&self) -> bool {
+        self.inner.triggered.load(Ordering::SeqCst)
+    }
+
+    /// Resolves once shutdown is requested.
+    pub async fn wait(&self) {
+        loop {
+            let notified = self.inner.notify.notified();
+            if self.is_triggered() {
+                return;
+            }
+            notified.await;
+        }
+    }
+
+    /// Triggers this token on SIGINT or SIGTERM. Must be called inside a tokio runtime.
+    pub fn trigger_on_signals(&self) -> std::io::Result<()> {
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut int = signal(SignalKind::interrupt())?;
+        let mut term = signal(SignalKind::terminate())?;
+        let me = self.clone();
+        tokio::spawn(async move {
+            let name = tokio::select! {
+                _ = int.recv() => "SIGINT",
+                _ = term.recv() => "SIGTERM",
+            };
+            tracing::info!("{name} received, shutting down");
+            me.trigger();
+        });
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn waiters_wake_on_trigger_and_late_waiters_return_at_once() {
+        let s = Shutdown::new();
+        let w = tokio::spawn({
+            let s = s.clone();
+            async move { s.wait().await }
+        });
+        tokio::task::yield_now().await;
+        assert!(!w.is_finished());
+        s.trigger();
+        w.await.unwrap();
+        s.wait().await; // already triggered
+        assert!(s.is_triggered());
+    }
+}
