@@ -177,6 +177,9 @@ pub const SUBSCRIBER_BUFFER: usize = 4;
 
 impl FrameNode {
     pub fn new() -> Result<FrameNode, FrameError> {
+        // iceoryx2 logs to stderr on its own; its warning about running without a config
+        // file is expected (labrig configures services in code).
+        iceoryx2::prelude::set_log_level(LogLevel::Error);
         let node = NodeBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Ipc>()

@@ -278,7 +278,6 @@ impl Ros {
 
 impl Drop for Ros {
     fn drop(&mut self) {
-        self.node.stop_spinner();
         if let Some(s) = self.spinner.take() {
             s.abort();
         }

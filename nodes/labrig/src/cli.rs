@@ -1,0 +1,77 @@
+//! Argument parsing and dispatch.
+
+use clap::{Args, Parser, Subcommand};
+use labrig_runtime::RosConfig;
+use std::process::ExitCode;
+
+#[derive(Debug, Parser)]
+#[command(name = "labrig", version, about = "labrig: a ROS 2-integrated stack for a DROID-style robot rig")]
+pub struct Cli {
+    /// Log at debug level (RUST_LOG overrides).
+    #[arg(long, short, global = true)]
+    pub verbose: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Inspect ROS 2 topics of any node (no ROS installation needed).
+    #[command(subcommand)]
+    Topic(TopicCommand),
+    /// Benchmarks that print figures.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+    /// The main job on a fresh machine: run what the rig has so far and report it.
+    Demo(crate::demo::DemoArgs),
+}
+
+/// How to join ROS 2 (shared by every command that does).
+#[derive(Debug, Clone, Args)]
+pub struct RosArgs {
+    /// DDS domain id (ROS_DOMAIN_ID is read as in every ROS 2 tool).
+    #[arg(long, env = "ROS_DOMAIN_ID", default_value_t = 0)]
+    pub domain_id: u16,
+    /// Let DDS use every network interface instead of 127.0.0.1 only.
+    #[arg(long)]
+    pub allow_network: bool,
+}
+
+impl RosArgs {
+    pub fn config(&self) -> anyhow::Result<RosConfig> {
+        let cfg = RosConfig { domain_id: self.domain_id, loopback_only: !self.allow_network, ..RosConfig::default() };
+        cfg.validate(std::path::Path::new("<command line>"))?;
+        Ok(cfg)
+    }
+}
+
+#[derive(Debug, Subcommand)]
+pub enum TopicCommand {
+    /// List the topics seen on the DDS graph with their types.
+    List(crate::topic::ListArgs),
+    /// Print the messages of a topic.
+    Echo(crate::topic::EchoArgs),
+    /// Measure the publishing rate of a topic.
+    Hz(crate::topic::HzArgs),
+}
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Camera frames over iceoryx2 shared memory between processes.
+    Shm(crate::bench::ShmArgs),
+    /// (internal) one publisher process of `bench shm`.
+    #[command(hide = true)]
+    ShmPublisher(crate::bench::ShmPublisherArgs),
+}
+
+/// Runs a command; the exit code tells scripts what happened.
+pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    match cli.command {
+        Command::Topic(TopicCommand::List(a)) => crate::topic::list(a),
+        Command::Topic(TopicCommand::Echo(a)) => crate::topic::echo(a),
+        Command::Topic(TopicCommand::Hz(a)) => crate::topic::hz(a),
+        Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
+        Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
+        Command::Demo(a) => crate::demo::run(a),
+    }
+}

@@ -1,0 +1,9 @@
+//! The `labrig` command-line interface: the one user-facing entry point (`labrig topic ...`,
+//! `labrig bench ...`, `labrig demo`, and later launch/replay/inspect/export).
+//! `main()` only parses arguments and calls [`cli::run`], so every command is testable.
+
+pub mod bench;
+pub mod cli;
+pub mod demo;
+pub mod json;
+pub mod topic;
