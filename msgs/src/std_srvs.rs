@@ -30,6 +30,7 @@ impl RosService for SetBool {
 /// rosidl's generated `structure_needs_at_least_one_member` field does).
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct TriggerRequest {
+    #[serde(default)]
     pub structure_needs_at_least_one_member: u8,
 }
 ros_message!(TriggerRequest, "std_srvs/srv/Trigger_Request", [], "uint8 structure_needs_at_least_one_member\n");

@@ -329,7 +329,12 @@ def wire_bytes(msg, raw):
 
     def walk(slot, v):
         if isinstance(slot, d.NamespacedType):
-            for fslot, fname in zip(type(v).SLOT_TYPES, v.get_fields_and_field_types()):
+            fields = v.get_fields_and_field_types()
+            if not fields:
+                # rosidl gives an empty message one uint8 member
+                # (structure_needs_at_least_one_member), serialized as one byte.
+                take(1, 1)
+            for fslot, fname in zip(type(v).SLOT_TYPES, fields):
                 walk(fslot, getattr(v, fname))
         elif isinstance(slot, d.AbstractString):
             take(4, 4)

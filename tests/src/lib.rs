@@ -1,1 +1,154 @@
+//! labrig-tests: helpers for end-to-end tests across processes and against real peers
+//! (rclpy from the PyPI ROS 2 wheels, installed by `scripts/setup.sh`).
+//!
+//! Peers are real processes; nothing here stands in for them. Every wait is bounded.
 
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
+use std::time::{Duration, Instant};
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_owned()
+}
+
+/// The setup cache (`$LABRIG_CACHE`, default `~/.cache/labrig`).
+pub fn cache_dir() -> PathBuf {
+    match std::env::var_os("LABRIG_CACHE") {
+        Some(p) => PathBuf::from(p),
+        None => PathBuf::from(std::env::var_os("HOME").expect("HOME is set")).join(".cache/labrig"),
+    }
+}
+
+/// The Python of the rclpy venv made by `scripts/setup.sh`.
+pub fn ros_python() -> PathBuf {
+    let p = match std::env::var_os("LABRIG_ROS_PYTHON") {
+        Some(p) => PathBuf::from(p),
+        None => cache_dir().join("venv-ros/bin/python"),
+    };
+    assert!(p.exists(), "rclpy venv python {} is missing: run `bash scripts/setup.sh` first", p.display());
+    p
+}
+
+/// The `labrig` binary of this build (built on demand if a lone test run lacks it).
+pub fn labrig_bin() -> PathBuf {
+    // Test executables live in target/<profile>/deps; the binary one level up.
+    let exe = std::env::current_exe().expect("current exe");
+    let dir = exe.parent().and_then(Path::parent).expect("target/<profile>");
+    let bin = dir.join("labrig");
+    if !bin.exists() {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let profile = dir.file_name().and_then(|s| s.to_str()).unwrap_or("debug");
+        let mut cmd = Command::new(cargo);
+        cmd.args(["build", "-p", "labrig", "--bin", "labrig"]).current_dir(repo_root());
+        if profile == "release" {
+            cmd.arg("--release");
+        }
+        let status = cmd.status().expect("running cargo build");
+        assert!(status.success(), "building the labrig binary failed");
+    }
+    bin
+}
+
+/// A DDS domain for one test, so tests running in parallel do not see each other's topics.
+pub fn domain_for(test: &str) -> u16 {
+    let h = test.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
+    (10 + h % 200) as u16
+}
+
+/// Environment that keeps a Fast DDS (rclpy) process on loopback: the committed XML profile
+/// (UDPv4 whitelisted to 127.0.0.1, unicast initial peers, no built-in transports) and
+/// discovery range SYSTEM_DEFAULT (anything else makes rmw add multicast or LAN locators).
+pub fn ros_env(cmd: &mut Command, domain: u16) {
+    cmd.env("FASTDDS_DEFAULT_PROFILES_FILE", repo_root().join("scripts/fastdds_loopback.xml"))
+        .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
+        .env("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+        .env("ROS_DOMAIN_ID", domain.to_string());
+}
+
+/// A child process whose stdout lines arrive on a channel; killed on drop.
+pub struct Proc {
+    pub child: Child,
+    lines: Receiver<String>,
+    pub name: String,
+    pub seen: Vec<String>,
+}
+
+impl Proc {
+    pub fn spawn(name: &str, mut cmd: Command) -> Proc {
+        cmd.stdout(Stdio::piped()).stdin(Stdio::null()).stderr(Stdio::inherit());
+        let mut child = cmd.spawn().unwrap_or_else(|e| panic!("starting {name}: {e}"));
+        let stdout = child.stdout.take().expect("piped stdout");
+        let (tx, rx) = channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Proc { child, lines: rx, name: name.to_owned(), seen: Vec::new() }
+    }
+
+    /// The rclpy peer (`tests/peers/ros_peer.py`) with the given arguments on `domain`.
+    pub fn ros_peer(domain: u16, args: &[&str]) -> Proc {
+        let mut cmd = Command::new(ros_python());
+        cmd.arg(repo_root().join("tests/peers/ros_peer.py")).args(args);
+        ros_env(&mut cmd, domain);
+        Proc::spawn(&format!("ros_peer {}", args.first().unwrap_or(&"")), cmd)
+    }
+
+    /// The next stdout line, waiting at most `timeout`.
+    pub fn next_line(&mut self, timeout: Duration) -> Option<String> {
+        match self.lines.recv_timeout(timeout) {
+            Ok(l) => {
+                self.seen.push(l.clone());
+                Some(l)
+            }
+            Err(RecvTimeoutError::Timeout | RecvTimeoutError::Disconnected) => None,
+        }
+    }
+
+    /// Reads lines until one parses as JSON and satisfies `pred`; panics after `timeout`.
+    pub fn wait_json(&mut self, timeout: Duration, what: &str, pred: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let Some(line) = self.next_line(left) else {
+                panic!("{}: no {what} within {timeout:?}; output so far: {:?}", self.name, self.seen);
+            };
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line)
+                && pred(&v)
+            {
+                return v;
+            }
+        }
+    }
+
+    /// Waits (bounded) for the process to exit and returns its code.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Option<i32> {
+        let deadline = Instant::now() + timeout;
+        while Instant::now() < deadline {
+            if let Some(status) = self.child.try_wait().expect("try_wait") {
+                return status.code();
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        None
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A current-thread tokio runtime for a test body.
+pub fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime")
+}
