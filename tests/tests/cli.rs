@@ -1,0 +1,41 @@
+//! The `labrig` binary end to end: demo, shm bench (functional, not timing), argument errors.
+
+use labrig_tests::labrig_bin;
+use serde_json::Value;
+use std::process::Command;
+
+#[test]
+fn demo_delivers_every_state_and_frame() {
+    let out = Command::new(labrig_bin()).args(["demo", "--seconds", "1", "--json", "--domain-id", "201"]).output().unwrap();
+    assert!(out.status.success(), "demo failed: {}", String::from_utf8_lossy(&out.stderr));
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["ok"], true);
+    assert_eq!(r["joint_states"]["received"], r["ticks"]);
+    assert_eq!(r["cameras"].as_array().unwrap().len(), 5);
+}
+
+#[test]
+fn shm_bench_delivers_frames_between_processes() {
+    let out = Command::new(labrig_bin())
+        .args(["bench", "shm", "--streams", "2", "--width", "64", "--height", "48", "--rate", "30", "--seconds", "1", "--json"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "bench failed: {}", String::from_utf8_lossy(&out.stderr));
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    for s in r["streams"].as_array().unwrap() {
+        assert_eq!(s["published"], 30);
+        assert_eq!(s["delivered"], s["published"], "{s}");
+        assert_eq!(s["sequence_gaps"], 0);
+        assert!(s["latency_p50_us"].as_f64().unwrap() > 0.0);
+    }
+}
+
+#[test]
+fn bad_arguments_are_named() {
+    let out = Command::new(labrig_bin()).args(["bench", "shm", "--rate", "0"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--rate 0 is out of range"));
+    let out = Command::new(labrig_bin()).args(["topic", "echo", "/x", "--domain-id", "300"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("ros.domain_id` is 300"), "{}", String::from_utf8_lossy(&out.stderr));
+}
