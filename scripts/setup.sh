@@ -39,6 +39,13 @@ apt_install() {  # apt_install PKG...: install what is missing (apt-get update o
 # tcpdump: tests prove that no DDS packet leaves loopback.
 apt_install tcpdump
 
+# ---------------------------------------------------------------- Rust tools
+# The machine image ships cargo-nextest; install it from crates.io only where it is missing.
+if ! cargo nextest --version >/dev/null 2>&1; then
+    log "installing cargo-nextest"
+    cargo install --locked cargo-nextest >/dev/null
+fi
+
 # ---------------------------------------------------------------- rclpy venv
 # Note: rosidl_runtime_py (set_message_fields, message_to_ordereddict) is NOT on
 # PyPI; tests/peers/ros_peer.py converts messages by hand.

@@ -21,9 +21,7 @@ use byteorder::{BigEndian as BE, LittleEndian as LE};
 pub enum CodecError {
     #[error("{type_name}: buffer of {len} bytes is shorter than the 4-byte CDR encapsulation header")]
     MissingHeader { type_name: &'static str, len: usize },
-    #[error(
-        "{type_name}: unsupported encapsulation {id:02x?} (expected CDR little endian 00 01 or big endian 00 00)"
-    )]
+    #[error("{type_name}: unsupported encapsulation {id:02x?} (expected CDR little endian 00 01 or big endian 00 00)")]
     UnsupportedEncapsulation { type_name: &'static str, id: [u8; 2] },
     #[error("{type_name}: malformed or truncated CDR body: {source}")]
     Malformed {
@@ -85,9 +83,8 @@ fn decode_body<T: RosMessage>(id: [u8; 2], body: &[u8], declared_padding: Option
     let rest = &body[used.min(body.len())..];
     // Only alignment padding may follow: fewer than 4 bytes, all zero, and where the header
     // declares a padding count, exactly that many.
-    let padding_ok = rest.len() < 4
-        && rest.iter().all(|&b| b == 0)
-        && declared_padding.is_none_or(|p| p == 0 || p == rest.len());
+    let padding_ok =
+        rest.len() < 4 && rest.iter().all(|&b| b == 0) && declared_padding.is_none_or(|p| p == 0 || p == rest.len());
     if !padding_ok {
         return Err(CodecError::TrailingBytes { type_name, extra: rest.len(), body: used });
     }

@@ -34,12 +34,7 @@ impl Default for Quaternion {
         Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 }
     }
 }
-ros_message!(
-    Quaternion,
-    "geometry_msgs/msg/Quaternion",
-    [],
-    "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n"
-);
+ros_message!(Quaternion, "geometry_msgs/msg/Quaternion", [], "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n");
 
 /// geometry_msgs/msg/Pose.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]

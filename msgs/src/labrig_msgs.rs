@@ -8,9 +8,9 @@
 //! Conventions (DROID's): gripper 0 = open, 1 = closed; cartesian positions are xyz (m) +
 //! euler xyz (rad) in the robot base frame; cartesian velocity actions are in [-1, 1] and scale
 //! to at most 0.075 m and 0.15 rad per control step.
+use crate::RosMessage;
 use crate::geometry_msgs::Pose;
 use crate::std_msgs::Header;
-use crate::RosMessage;
 use serde::{Deserialize, Serialize};
 
 /// The schema version every `labrig_msgs` type carries in its `version` field.

@@ -8,9 +8,4 @@ use serde::{Deserialize, Serialize};
 pub struct TFMessage {
     pub transforms: Vec<TransformStamped>,
 }
-ros_message!(
-    TFMessage,
-    "tf2_msgs/msg/TFMessage",
-    [TransformStamped],
-    "geometry_msgs/TransformStamped[] transforms\n"
-);
+ros_message!(TFMessage, "tf2_msgs/msg/TFMessage", [TransformStamped], "geometry_msgs/TransformStamped[] transforms\n");

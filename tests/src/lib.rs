@@ -113,7 +113,12 @@ impl Proc {
     }
 
     /// Reads lines until one parses as JSON and satisfies `pred`; panics after `timeout`.
-    pub fn wait_json(&mut self, timeout: Duration, what: &str, pred: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
+    pub fn wait_json(
+        &mut self,
+        timeout: Duration,
+        what: &str,
+        pred: impl Fn(&serde_json::Value) -> bool,
+    ) -> serde_json::Value {
         let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -138,6 +143,12 @@ impl Proc {
             std::thread::sleep(Duration::from_millis(20));
         }
         None
+    }
+}
+
+impl std::fmt::Debug for Proc {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Proc({}, pid {})", self.name, self.child.id())
     }
 }
 

@@ -6,7 +6,8 @@ use std::process::Command;
 
 #[test]
 fn demo_delivers_every_state_and_frame() {
-    let out = Command::new(labrig_bin()).args(["demo", "--seconds", "1", "--json", "--domain-id", "201"]).output().unwrap();
+    let out =
+        Command::new(labrig_bin()).args(["demo", "--seconds", "1", "--json", "--domain-id", "201"]).output().unwrap();
     assert!(out.status.success(), "demo failed: {}", String::from_utf8_lossy(&out.stderr));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["ok"], true);
@@ -17,7 +18,21 @@ fn demo_delivers_every_state_and_frame() {
 #[test]
 fn shm_bench_delivers_frames_between_processes() {
     let out = Command::new(labrig_bin())
-        .args(["bench", "shm", "--streams", "2", "--width", "64", "--height", "48", "--rate", "30", "--seconds", "1", "--json"])
+        .args([
+            "bench",
+            "shm",
+            "--streams",
+            "2",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--rate",
+            "30",
+            "--seconds",
+            "1",
+            "--json",
+        ])
         .output()
         .unwrap();
     assert!(out.status.success(), "bench failed: {}", String::from_utf8_lossy(&out.stderr));
@@ -37,5 +52,33 @@ fn bad_arguments_are_named() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("--rate 0 is out of range"));
     let out = Command::new(labrig_bin()).args(["topic", "echo", "/x", "--domain-id", "300"]).output().unwrap();
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("ros.domain_id` is 300"), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("ros.domain_id` is 300"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn sigint_stops_a_running_command_cleanly() {
+    // `topic echo` with an explicit type waits for messages forever; SIGINT must end it with
+    // exit code 0 (the runtime's Shutdown token), not kill it mid-write.
+    let mut child = Command::new(labrig_bin())
+        .args(["topic", "echo", "/nobody_here", "--type", "std_msgs/msg/String"])
+        .env("ROS_DOMAIN_ID", labrig_tests::domain_for("sigint").to_string())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    assert!(child.try_wait().unwrap().is_none(), "echo exited before SIGINT");
+    Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(std::time::Instant::now() < deadline, "echo did not stop within 10 s of SIGINT");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    assert_eq!(status.code(), Some(0), "{status:?}");
 }

@@ -33,13 +33,19 @@ fn joint_state(i: u64) -> JointState {
 fn rclpy_receives_labrig_joint_states_at_100hz_with_exact_values() {
     const N: u64 = 300;
     let test = "joint_states_100hz";
-    let mut listener = Proc::ros_peer(domain_for(test), &["listen-joint-states", "--topic", "/js_100hz", "--count", &N.to_string(), "--timeout", "40"]);
+    let mut listener = Proc::ros_peer(
+        domain_for(test),
+        &["listen-joint-states", "--topic", "/js_100hz", "--count", &N.to_string(), "--timeout", "40"],
+    );
     listener.wait_json(Duration::from_secs(20), "ready", |v| v["ready"] == true);
     let rt = rt();
     let sent_at = rt.block_on(async {
         let mut ros = Ros::new(&cfg(test), "labrig_js_talker").unwrap();
         let publisher = ros.publisher::<JointState>("/js_100hz", qos::reliable(1000)).unwrap();
-        assert!(ros.wait_for_subscribers("/js_100hz", 1, Duration::from_secs(20)).await, "rclpy listener never matched");
+        assert!(
+            ros.wait_for_subscribers("/js_100hz", 1, Duration::from_secs(20)).await,
+            "rclpy listener never matched"
+        );
         // Discovery of the reader by our writer is complete once matched; give the reverse
         // direction (rclpy's reader learning our writer) a moment too.
         tokio::time::sleep(Duration::from_millis(500)).await;
@@ -56,7 +62,9 @@ fn rclpy_receives_labrig_joint_states_at_100hz_with_exact_values() {
     });
     let mut got = Vec::new();
     while got.len() < N as usize {
-        let v = listener.wait_json(Duration::from_secs(20), "joint state", |v| v.get("position").is_some() || v.get("done").is_some());
+        let v = listener.wait_json(Duration::from_secs(20), "joint state", |v| {
+            v.get("position").is_some() || v.get("done").is_some()
+        });
         if v.get("done").is_some() {
             break;
         }
@@ -87,7 +95,10 @@ fn labrig_receives_rclpy_pose_stamped() {
     rt.block_on(async {
         let mut ros = Ros::new(&cfg(test), "labrig_pose_listener").unwrap();
         let sub = ros.subscription::<PoseStamped>("/pose_from_rclpy", qos::reliable(200)).unwrap();
-        let _talker = Proc::ros_peer(domain_for(test), &["talk-pose", "--topic", "/pose_from_rclpy", "--count", &N.to_string(), "--rate", "50"]);
+        let _talker = Proc::ros_peer(
+            domain_for(test),
+            &["talk-pose", "--topic", "/pose_from_rclpy", "--count", &N.to_string(), "--rate", "50"],
+        );
         let mut got = Vec::new();
         let deadline = Instant::now() + Duration::from_secs(40);
         while got.len() < N && Instant::now() < deadline {
@@ -115,11 +126,21 @@ fn rclpy_calls_a_labrig_service() {
     rt.block_on(async {
         let mut ros = Ros::new(&cfg(test), "labrig_setbool_server").unwrap();
         let server = ros.server::<SetBool>("/labrig_flag", qos::reliable(10)).unwrap();
-        let mut caller = Proc::ros_peer(domain_for(test), &["call-setbool", "--service", "/labrig_flag", "--data", "true", "--timeout", "30"]);
-        let (id, req) = tokio::time::timeout(Duration::from_secs(30), server.receive()).await.expect("no request from rclpy").unwrap();
+        let mut caller = Proc::ros_peer(
+            domain_for(test),
+            &["call-setbool", "--service", "/labrig_flag", "--data", "true", "--timeout", "30"],
+        );
+        let (id, req) = tokio::time::timeout(Duration::from_secs(30), server.receive())
+            .await
+            .expect("no request from rclpy")
+            .unwrap();
         assert!(req.data);
         server.respond(id, SetBoolResponse { success: true, message: "labrig got true".into() }).await.unwrap();
-        let answer = tokio::task::spawn_blocking(move || caller.wait_json(Duration::from_secs(20), "response", |v| v.get("success").is_some())).await.unwrap();
+        let answer = tokio::task::spawn_blocking(move || {
+            caller.wait_json(Duration::from_secs(20), "response", |v| v.get("success").is_some())
+        })
+        .await
+        .unwrap();
         assert_eq!(answer["success"], true);
         assert_eq!(answer["message"], "labrig got true");
     });
@@ -128,7 +149,10 @@ fn rclpy_calls_a_labrig_service() {
 #[test]
 fn labrig_calls_an_rclpy_service() {
     let test = "labrig_calls_rclpy";
-    let mut server = Proc::ros_peer(domain_for(test), &["serve-setbool", "--service", "/rclpy_flag", "--max-seconds", "40", "--max-requests", "2"]);
+    let mut server = Proc::ros_peer(
+        domain_for(test),
+        &["serve-setbool", "--service", "/rclpy_flag", "--max-seconds", "40", "--max-requests", "2"],
+    );
     server.wait_json(Duration::from_secs(20), "ready", |v| v["ready"] == true);
     let rt = rt();
     rt.block_on(async {
@@ -149,7 +173,10 @@ fn labrig_calls_an_rclpy_service() {
 fn labrig_topic_echo_prints_what_an_rclpy_talker_publishes() {
     let test = "topic_echo_rclpy";
     let domain = domain_for(test);
-    let _talker = Proc::ros_peer(domain, &["talk-string-forever", "--topic", "/chatter_echo", "--rate", "20", "--max-seconds", "40"]);
+    let _talker = Proc::ros_peer(
+        domain,
+        &["talk-string-forever", "--topic", "/chatter_echo", "--rate", "20", "--max-seconds", "40"],
+    );
     let out = std::process::Command::new(labrig_tests::labrig_bin())
         .args(["topic", "echo", "/chatter_echo", "--count", "3", "--json", "--wait", "20", "--timeout", "30"])
         .env("ROS_DOMAIN_ID", domain.to_string())

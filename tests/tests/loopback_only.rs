@@ -74,7 +74,8 @@ fn no_dds_packet_leaves_loopback_during_a_labrig_rclpy_exchange() {
 
     let test = "loopback_capture";
     let domain = domain_for(test);
-    let mut listener = Proc::ros_peer(domain, &["listen-joint-states", "--topic", "/lo_js", "--count", "20", "--timeout", "30"]);
+    let mut listener =
+        Proc::ros_peer(domain, &["listen-joint-states", "--topic", "/lo_js", "--count", "20", "--timeout", "30"]);
     listener.wait_json(Duration::from_secs(20), "ready", |v| v["ready"] == true);
     let rt = rt();
     rt.block_on(async {
@@ -86,7 +87,9 @@ fn no_dds_packet_leaves_loopback_during_a_labrig_rclpy_exchange() {
         assert!(ros.wait_for_subscribers("/lo_js", 1, Duration::from_secs(20)).await);
         tokio::time::sleep(Duration::from_millis(300)).await;
         for i in 0..20 {
-            publisher.publish(JointState { position: vec![i as f64], name: vec!["j".into()], ..Default::default() }).unwrap();
+            publisher
+                .publish(JointState { position: vec![i as f64], name: vec!["j".into()], ..Default::default() })
+                .unwrap();
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
         let deadline = Instant::now() + Duration::from_secs(30);

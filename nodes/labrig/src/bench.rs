@@ -277,11 +277,21 @@ fn print_report(r: &ShmReport) {
         r.seconds,
         r.poll_us
     );
-    println!("{:<16} {:>9} {:>9} {:>5} {:>9} {:>9} {:>9} {:>8}", "stream", "delivered", "expected", "gaps", "p50 us", "p99 us", "max us", "pub cpu");
+    println!(
+        "{:<16} {:>9} {:>9} {:>5} {:>9} {:>9} {:>9} {:>8}",
+        "stream", "delivered", "expected", "gaps", "p50 us", "p99 us", "max us", "pub cpu"
+    );
     for s in &r.streams {
         println!(
             "{:<16} {:>9} {:>9} {:>5} {:>9.1} {:>9.1} {:>9.1} {:>7.2}%",
-            s.camera, s.delivered, s.expected, s.sequence_gaps, s.latency_p50_us, s.latency_p99_us, s.latency_max_us, s.publisher_cpu_percent
+            s.camera,
+            s.delivered,
+            s.expected,
+            s.sequence_gaps,
+            s.latency_p50_us,
+            s.latency_p99_us,
+            s.latency_max_us,
+            s.publisher_cpu_percent
         );
     }
     println!(

@@ -25,7 +25,15 @@ pub const CAMERAS: [&str; 5] = ["ext1", "ext2", "wrist", "rs1", "rs2"];
 pub const JOINTS: [&str; 8] =
     ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7", "finger_joint"];
 /// DROID's reset pose.
-const RESET: [f64; 7] = [0.0, -std::f64::consts::PI / 5.0, 0.0, -4.0 * std::f64::consts::PI / 5.0, 0.0, 3.0 * std::f64::consts::PI / 5.0, 0.0];
+const RESET: [f64; 7] = [
+    0.0,
+    -std::f64::consts::PI / 5.0,
+    0.0,
+    -4.0 * std::f64::consts::PI / 5.0,
+    0.0,
+    3.0 * std::f64::consts::PI / 5.0,
+    0.0,
+];
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
@@ -44,7 +52,7 @@ pub struct DemoArgs {
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
-    if !(args.seconds > 0.0 && args.seconds <= 600.0) || !(args.rate > 0.0 && args.rate <= 200.0) {
+    if !(args.seconds > 0.0 && args.seconds <= 600.0 && args.rate > 0.0 && args.rate <= 200.0) {
         bail!("--seconds must be in (0, 600] and --rate in (0, 200]");
     }
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
@@ -71,7 +79,8 @@ async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
     let ticks = (args.seconds * args.rate).round() as u64;
     let period = Duration::from_secs_f64(1.0 / args.rate);
     let clock = Clock::Wall;
-    let bar = ProgressBar::new(ticks).with_style(ProgressStyle::with_template("{spinner} demo {bar:30} {pos}/{len} ticks")?);
+    let bar =
+        ProgressBar::new(ticks).with_style(ProgressStyle::with_template("{spinner} demo {bar:30} {pos}/{len} ticks")?);
     let mut pixels = vec![0u8; fmt.frame_bytes()];
     let mut frames_received = [0u64; 5];
     let mut skews_us = Vec::new();
@@ -127,7 +136,8 @@ async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
     }
     bar.finish_and_clear();
     skews_us.sort_by(f64::total_cmp);
-    let p = |q: f64| skews_us.get(((q * (skews_us.len().max(1) - 1) as f64).round()) as usize).copied().unwrap_or(f64::NAN);
+    let p =
+        |q: f64| skews_us.get(((q * (skews_us.len().max(1) - 1) as f64).round()) as usize).copied().unwrap_or(f64::NAN);
     let ok = states_received == ticks && frames_received.iter().all(|&n| n == ticks);
     let report = json!({
         "ticks": ticks,

@@ -139,10 +139,9 @@ async fn open(
                     .map(|t| t.name)
                     .collect();
                 eprintln!(
-                    "topic {topic} not found on domain {} within {:.1} s (DDS on {}); topics seen: {}",
+                    "topic {topic} not found on domain {} within {:.1} s (DDS on loopback unless --allow-network); topics seen: {}",
                     ros.domain_id(),
                     wait.as_secs_f64(),
-                    "loopback unless --allow-network",
                     if seen.is_empty() { "none".to_owned() } else { seen.join(", ") }
                 );
                 return Ok(None);

@@ -32,7 +32,8 @@ pub fn load_config<T: DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {
 
 /// Parses TOML text into `T`; `origin` names the source in errors.
 pub fn parse_config<T: DeserializeOwned>(text: &str, origin: &Path) -> Result<T, ConfigError> {
-    toml::from_str(text).map_err(|e| ConfigError::Parse { path: origin.to_owned(), message: e.to_string().trim_end().to_owned() })
+    toml::from_str(text)
+        .map_err(|e| ConfigError::Parse { path: origin.to_owned(), message: e.to_string().trim_end().to_owned() })
 }
 
 /// How a node joins ROS 2.
@@ -72,9 +73,13 @@ impl RosConfig {
 
     /// Checks the values serde cannot: the domain id range and the namespace form.
     pub fn validate(&self, origin: &Path) -> Result<(), ConfigError> {
-        let invalid = |key: &str, reason: String| ConfigError::Invalid { path: origin.to_owned(), key: key.to_owned(), reason };
+        let invalid =
+            |key: &str, reason: String| ConfigError::Invalid { path: origin.to_owned(), key: key.to_owned(), reason };
         if self.domain_id > Self::MAX_DOMAIN_ID {
-            return Err(invalid("ros.domain_id", format!("is {}, must be 0..={}", self.domain_id, Self::MAX_DOMAIN_ID)));
+            return Err(invalid(
+                "ros.domain_id",
+                format!("is {}, must be 0..={}", self.domain_id, Self::MAX_DOMAIN_ID),
+            ));
         }
         if !self.namespace.starts_with('/') {
             return Err(invalid("ros.namespace", format!("is {:?}, must start with '/'", self.namespace)));
@@ -105,8 +110,7 @@ mod tests {
 
     #[test]
     fn unknown_nested_key_is_rejected_with_the_key_named() {
-        let err =
-            parse_config::<NodeCfg>("rate_hz = 20.0\n[ros]\ndomian_id = 3\n", Path::new("n.toml")).unwrap_err();
+        let err = parse_config::<NodeCfg>("rate_hz = 20.0\n[ros]\ndomian_id = 3\n", Path::new("n.toml")).unwrap_err();
         assert!(err.to_string().contains("unknown field `domian_id`"), "{err}");
     }
 

@@ -190,9 +190,11 @@ impl FrameNode {
     fn service(
         &self,
         camera_id: &str,
-    ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], FrameHeader>, FrameError> {
+    ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], FrameHeader>, FrameError>
+    {
         let shm = |what, e: String| FrameError::Shm { camera: camera_id.to_owned(), what, message: e };
-        let name: ServiceName = service_name(camera_id).as_str().try_into().map_err(|e| shm("service name", format!("{e:?}")))?;
+        let name: ServiceName =
+            service_name(camera_id).as_str().try_into().map_err(|e| shm("service name", format!("{e:?}")))?;
         self.node
             .service_builder(&name)
             .publish_subscribe::<[u8]>()
@@ -218,7 +220,11 @@ impl FrameNode {
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .max_loaned_samples(2)
             .create()
-            .map_err(|e| FrameError::Shm { camera: camera_id.to_owned(), what: "create publisher", message: format!("{e:?}") })?;
+            .map_err(|e| FrameError::Shm {
+                camera: camera_id.to_owned(),
+                what: "create publisher",
+                message: format!("{e:?}"),
+            })?;
         Ok(FramePublisher { publisher, camera: camera_id.to_owned(), id, format, sequence: 0 })
     }
 
@@ -226,11 +232,9 @@ impl FrameNode {
     pub fn subscriber(&self, camera_id: &str) -> Result<FrameSubscriber, FrameError> {
         check_camera_id(camera_id)?;
         let service = self.service(camera_id)?;
-        let subscriber = service
-            .subscriber_builder()
-            .buffer_size(SUBSCRIBER_BUFFER)
-            .create()
-            .map_err(|e| FrameError::Shm { camera: camera_id.to_owned(), what: "create subscriber", message: format!("{e:?}") })?;
+        let subscriber = service.subscriber_builder().buffer_size(SUBSCRIBER_BUFFER).create().map_err(|e| {
+            FrameError::Shm { camera: camera_id.to_owned(), what: "create subscriber", message: format!("{e:?}") }
+        })?;
         Ok(FrameSubscriber { subscriber, camera: camera_id.to_owned() })
     }
 }
@@ -253,7 +257,13 @@ impl std::fmt::Debug for FramePublisher {
 impl FramePublisher {
     /// Copies `pixels` into shared memory once and publishes it with a header; returns the
     /// frame's sequence number. Raw encodings must match the format's size exactly.
-    pub fn publish(&mut self, pixels: &[u8], capture: Nanos, arrival: Nanos, publish: Nanos) -> Result<u64, FrameError> {
+    pub fn publish(
+        &mut self,
+        pixels: &[u8],
+        capture: Nanos,
+        arrival: Nanos,
+        publish: Nanos,
+    ) -> Result<u64, FrameError> {
         let f = &self.format;
         if f.encoding.bytes_per_pixel().is_some() && pixels.len() != f.frame_bytes() {
             return Err(FrameError::SizeMismatch {
@@ -322,10 +332,11 @@ impl Frame {
 impl FrameSubscriber {
     /// The next waiting frame, if any. Frames with an unknown header version are refused.
     pub fn receive(&self) -> Result<Option<Frame>, FrameError> {
-        let sample = self
-            .subscriber
-            .receive()
-            .map_err(|e| FrameError::Shm { camera: self.camera.clone(), what: "receive", message: format!("{e:?}") })?;
+        let sample = self.subscriber.receive().map_err(|e| FrameError::Shm {
+            camera: self.camera.clone(),
+            what: "receive",
+            message: format!("{e:?}"),
+        })?;
         match sample {
             None => Ok(None),
             Some(sample) => {
@@ -357,7 +368,10 @@ mod tests {
         for i in 0..3 {
             let frame = subscriber.receive().unwrap().expect("frame");
             let h = frame.header();
-            assert_eq!((h.camera_id(), h.sequence, h.capture_ns, h.width, h.height), (cam.as_str(), i, 10 + i as i64, 4, 2));
+            assert_eq!(
+                (h.camera_id(), h.sequence, h.capture_ns, h.width, h.height),
+                (cam.as_str(), i, 10 + i as i64, 4, 2)
+            );
             assert_eq!(h.encoding(), Some(FrameEncoding::Rgb8));
             assert_eq!(frame.pixels(), &pixels[..]);
         }

@@ -11,8 +11,7 @@ use crate::config::RosConfig;
 use futures::{Stream, StreamExt};
 use labrig_msgs::{CodecError, Nanos, RosMessage, RosService, decode_payload};
 use ros2_client::{
-    Context, MessageTypeName, Name, Node, NodeName, NodeOptions, ServiceMapping, ServiceTypeName,
-    qos::QosProfile,
+    Context, MessageTypeName, Name, Node, NodeName, NodeOptions, ServiceMapping, ServiceTypeName, qos::QosProfile,
 };
 use rustdds::no_key::{DeserializerAdapter, SimpleDataReader};
 use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, RepresentationIdentifier, TopicKind};
@@ -123,8 +122,7 @@ impl Ros {
         } else {
             tracing::warn!("ros.loopback_only = false: DDS discovery will use every network interface");
         }
-        let participant =
-            builder.build().map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
+        let participant = builder.build().map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
         let context = Context::from_domain_participant(participant.clone())
             .map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
         let node_name = NodeName::new(&cfg.namespace, name)
@@ -166,13 +164,18 @@ impl Ros {
     pub fn publisher<T: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<RosPublisher<T>, RosError> {
         let create = |message: String| RosError::Create { what: "publisher", topic: topic.to_owned(), message };
         let name = self.parse_name(topic)?;
-        let ros_topic = self.node.create_topic(&name, message_type_name::<T>(), &qos).map_err(|e| create(e.to_string()))?;
+        let ros_topic =
+            self.node.create_topic(&name, message_type_name::<T>(), &qos).map_err(|e| create(e.to_string()))?;
         let publisher = self.node.create_publisher::<T>(&ros_topic, Some(qos)).map_err(|e| create(e.to_string()))?;
         Ok(RosPublisher { publisher, topic: topic.to_owned() })
     }
 
     /// A typed subscription with explicit QoS, decoding with labrig-msgs' strict codec.
-    pub fn subscription<T: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<RosSubscription<T>, RosError> {
+    pub fn subscription<T: RosMessage>(
+        &mut self,
+        topic: &str,
+        qos: QosProfile,
+    ) -> Result<RosSubscription<T>, RosError> {
         let raw = self.raw_subscription(topic, &labrig_msgs::dds_type_name(T::TYPE_NAME), qos)?;
         Ok(RosSubscription { raw, _type: PhantomData })
     }
@@ -180,7 +183,12 @@ impl Ros {
     /// A subscription that hands over undecoded CDR payloads: for tools that learn a topic's
     /// type at run time (`labrig topic echo/hz`). `dds_type_name` as discovered
     /// (`pkg::msg::dds_::Name_`).
-    pub fn raw_subscription(&mut self, topic: &str, dds_type_name: &str, qos: QosProfile) -> Result<RawSubscription, RosError> {
+    pub fn raw_subscription(
+        &mut self,
+        topic: &str,
+        dds_type_name: &str,
+        qos: QosProfile,
+    ) -> Result<RawSubscription, RosError> {
         let create = |message: String| RosError::Create { what: "subscription", topic: topic.to_owned(), message };
         let policies: QosPolicies = (&qos).into();
         let dds_topic = self
@@ -206,7 +214,11 @@ impl Ros {
                 qos.clone(),
                 qos,
             )
-            .map_err(|e| RosError::Create { what: "service server", topic: service.to_owned(), message: e.to_string() })?;
+            .map_err(|e| RosError::Create {
+                what: "service server",
+                topic: service.to_owned(),
+                message: e.to_string(),
+            })?;
         Ok(RosServer { server, service: service.to_owned() })
     }
 
@@ -222,18 +234,18 @@ impl Ros {
                 qos.clone(),
                 qos,
             )
-            .map_err(|e| RosError::Create { what: "service client", topic: service.to_owned(), message: e.to_string() })?;
+            .map_err(|e| RosError::Create {
+                what: "service client",
+                topic: service.to_owned(),
+                message: e.to_string(),
+            })?;
         Ok(RosClient { client, service: service.to_owned() })
     }
 
     /// Topics discovered on the DDS graph so far (ours included), in ROS form, sorted.
     pub fn discovered_topics(&self) -> Vec<TopicInfo> {
-        let mut topics: Vec<TopicInfo> = self
-            .context
-            .discovered_topics()
-            .into_iter()
-            .map(|t| ros_topic_info(&t.name, &t.type_name))
-            .collect();
+        let mut topics: Vec<TopicInfo> =
+            self.context.discovered_topics().into_iter().map(|t| ros_topic_info(&t.name, &t.type_name)).collect();
         topics.sort();
         topics.dedup();
         topics
@@ -253,7 +265,9 @@ impl Ros {
     pub async fn wait_for_topic(&self, topic: &str, timeout: Duration) -> Option<TopicInfo> {
         let deadline = tokio::time::Instant::now() + timeout;
         loop {
-            if let Some(t) = self.discovered_topics().into_iter().find(|t| t.name == topic && t.kind == TopicKindInfo::Topic) {
+            if let Some(t) =
+                self.discovered_topics().into_iter().find(|t| t.name == topic && t.kind == TopicKindInfo::Topic)
+            {
                 return Some(t);
             }
             if tokio::time::Instant::now() >= deadline {
@@ -378,7 +392,11 @@ pub struct RawDecoder;
 
 impl<'de> rustdds::no_key::Decode<'de, RawSample> for RawDecoder {
     type Error = std::convert::Infallible;
-    fn decode_bytes(self, input_bytes: &'de [u8], encoding: RepresentationIdentifier) -> Result<RawSample, Self::Error> {
+    fn decode_bytes(
+        self,
+        input_bytes: &'de [u8],
+        encoding: RepresentationIdentifier,
+    ) -> Result<RawSample, Self::Error> {
         Ok(RawSample { encoding: encoding.to_bytes(), payload: input_bytes.to_vec() })
     }
 }
@@ -574,7 +592,11 @@ mod tests {
     fn dds_names_map_back_to_ros_names() {
         assert_eq!(
             ros_topic_info("rt/joint_states", "sensor_msgs::msg::dds_::JointState_"),
-            TopicInfo { name: "/joint_states".into(), type_name: "sensor_msgs/msg/JointState".into(), kind: TopicKindInfo::Topic }
+            TopicInfo {
+                name: "/joint_states".into(),
+                type_name: "sensor_msgs/msg/JointState".into(),
+                kind: TopicKindInfo::Topic
+            }
         );
         let rq = ros_topic_info("rq/set_flagRequest", "std_srvs::srv::dds_::SetBool_Request_");
         assert_eq!((rq.name.as_str(), rq.kind), ("/set_flag", TopicKindInfo::ServiceRequest));

@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# The whole labrig test suite, as CI runs it (README: `bash scripts/test.sh`).
+#
+# 1. setup (idempotent): system packages, the rclpy peer venv, the Fast DDS loopback profile;
+# 2. build everything (persistent target dir outside the clone, so repeat runs are warm),
+#    rustfmt and clippy with warnings as errors;
+# 3. run every test with cargo-nextest while tcpdump watches all interfaces: the run fails if
+#    a single RTPS (DDS) packet goes to or comes from an address outside 127.0.0.0/8.
+set -euo pipefail
+REPO_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$REPO_DIR"
+bash scripts/setup.sh >/dev/null
+# shellcheck disable=SC1091
+source "${LABRIG_CACHE:-$HOME/.cache/labrig}/env.sh"
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$LABRIG_CACHE/target}"
+export RUST_BACKTRACE=1
+
+echo "== build"
+cargo build --workspace --all-targets --locked
+echo "== lint"
+cargo fmt --all --check
+cargo clippy --workspace --all-targets --locked -q -- -D warnings
+
+capture_dir="$(mktemp -d)"
+pcap="$capture_dir/suite.pcap"
+tcpdump_pid=""
+if [ "$(id -u)" -eq 0 ]; then
+    tcpdump -i any -nn -U -w "$pcap" 'udp and udp[8:4] = 0x52545053' 2>"$capture_dir/tcpdump.log" &
+    tcpdump_pid=$!
+    for _ in $(seq 100); do grep -q "listening on" "$capture_dir/tcpdump.log" 2>/dev/null && break; sleep 0.1; done
+else
+    echo "note: not root, so the suite-wide DDS packet capture is skipped (the loopback test needs root too)"
+fi
+
+echo "== test"
+status=0
+cargo nextest run --workspace --locked --no-fail-fast || status=$?
+
+if [ -n "$tcpdump_pid" ]; then
+    sleep 0.5
+    kill -INT "$tcpdump_pid" 2>/dev/null || true
+    wait "$tcpdump_pid" 2>/dev/null || true
+    total=$(tcpdump -nn -r "$pcap" 2>/dev/null | wc -l)
+    # A packet is fine only if both ends are loopback addresses.
+    leaked=$(tcpdump -nn -r "$pcap" 2>/dev/null \
+        | awk '{for (i = 1; i <= NF; i++) if ($i == "IP" || $i == "IP6") { s = $(i+1); d = $(i+3); break }
+                if (!((s ~ /^127\./ || s ~ /^::1\./) && (d ~ /^127\./ || d ~ /^::1\./))) print}')
+    if [ -n "$leaked" ]; then
+        echo "FAIL: DDS packets left loopback during the test suite:"
+        echo "$leaked" | head -20
+        status=1
+    else
+        echo "DDS capture: $total RTPS packets during the suite, all on loopback"
+    fi
+fi
+rm -rf "$capture_dir"
+exit "$status"
