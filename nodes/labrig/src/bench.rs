@@ -139,7 +139,7 @@ pub fn shm_publisher(args: ShmPublisherArgs) -> anyhow::Result<ExitCode> {
         }
         pixels[0] = i as u8;
         let now = clock.now();
-        publisher.publish(&pixels, now, now, now)?;
+        publisher.publish(&pixels, now, now)?;
     }
     let report = PublisherReport {
         published: frames,

@@ -103,7 +103,7 @@ async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
         for (i, cam) in cams.iter_mut().enumerate() {
             pixels.iter_mut().for_each(|p| *p = (tick as u8).wrapping_add(i as u8 * 40));
             let capture = clock.now();
-            cam.publish(&pixels, capture, capture, capture)?;
+            cam.publish(&pixels, capture, capture)?;
         }
         // One observation per tick: the newest frame of each camera, and their skew.
         let mut captures = Vec::new();

@@ -84,7 +84,8 @@ pub struct FrameHeader {
     pub capture_ns: i64,
     /// When the frame reached the camera node, ns.
     pub arrival_ns: i64,
-    /// When it was published on shared memory, ns.
+    /// Wall time when it was handed to shared memory (after the copy, just before send), ns:
+    /// subscribers subtract it from their receive time for transport latency.
     pub publish_ns: i64,
 }
 
@@ -257,13 +258,7 @@ impl std::fmt::Debug for FramePublisher {
 impl FramePublisher {
     /// Copies `pixels` into shared memory once and publishes it with a header; returns the
     /// frame's sequence number. Raw encodings must match the format's size exactly.
-    pub fn publish(
-        &mut self,
-        pixels: &[u8],
-        capture: Nanos,
-        arrival: Nanos,
-        publish: Nanos,
-    ) -> Result<u64, FrameError> {
+    pub fn publish(&mut self, pixels: &[u8], capture: Nanos, arrival: Nanos) -> Result<u64, FrameError> {
         let f = &self.format;
         if f.encoding.bytes_per_pixel().is_some() && pixels.len() != f.frame_bytes() {
             return Err(FrameError::SizeMismatch {
@@ -288,9 +283,10 @@ impl FramePublisher {
             sequence: seq,
             capture_ns: capture.0,
             arrival_ns: arrival.0,
-            publish_ns: publish.0,
+            publish_ns: 0,
         };
-        let sample = sample.write_from_slice(pixels);
+        let mut sample = sample.write_from_slice(pixels);
+        sample.user_header_mut().publish_ns = crate::Clock::Wall.now().0;
         sample.send().map_err(|e| shm("send", format!("{e:?}")))?;
         self.sequence += 1;
         Ok(seq)
@@ -363,7 +359,7 @@ mod tests {
         let subscriber = node.subscriber(&cam).unwrap();
         let pixels: Vec<u8> = (0..24).collect();
         for i in 0..3 {
-            assert_eq!(publisher.publish(&pixels, Nanos(10 + i), Nanos(20 + i), Nanos(30 + i)).unwrap(), i as u64);
+            assert_eq!(publisher.publish(&pixels, Nanos(10 + i), Nanos(20 + i)).unwrap(), i as u64);
         }
         for i in 0..3 {
             let frame = subscriber.receive().unwrap().expect("frame");
@@ -376,7 +372,7 @@ mod tests {
             assert_eq!(frame.pixels(), &pixels[..]);
         }
         assert!(subscriber.receive().unwrap().is_none());
-        let err = publisher.publish(&pixels[..5], Nanos(0), Nanos(0), Nanos(0)).unwrap_err();
+        let err = publisher.publish(&pixels[..5], Nanos(0), Nanos(0)).unwrap_err();
         assert!(err.to_string().contains("does not match 4x2"), "{err}");
     }
 
