@@ -60,9 +60,15 @@ fn bad_arguments_are_named() {
 }
 
 #[test]
-fn sigint_stops_a_running_command_cleanly() {
-    // `topic echo` with an explicit type waits for messages forever; SIGINT must end it with
-    // exit code 0 (the runtime's Shutdown token), not kill it mid-write.
+fn sigint_and_sigterm_stop_a_running_command_cleanly() {
+    for signal in ["-INT", "-TERM"] {
+        stops_cleanly_on(signal);
+    }
+}
+
+/// `topic echo` with an explicit type waits for messages forever; the signal must end it with
+/// exit code 0 (the runtime's Shutdown token), not kill it mid-write.
+fn stops_cleanly_on(signal: &str) {
     let mut child = Command::new(labrig_bin())
         .args(["topic", "echo", "/nobody_here", "--type", "std_msgs/msg/String"])
         .env("ROS_DOMAIN_ID", labrig_tests::domain_for("sigint").to_string())
@@ -70,15 +76,15 @@ fn sigint_stops_a_running_command_cleanly() {
         .spawn()
         .unwrap();
     std::thread::sleep(std::time::Duration::from_millis(1500));
-    assert!(child.try_wait().unwrap().is_none(), "echo exited before SIGINT");
-    Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(child.try_wait().unwrap().is_none(), "echo exited before the signal");
+    Command::new("kill").args([signal, &child.id().to_string()]).status().unwrap();
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
     let status = loop {
         if let Some(s) = child.try_wait().unwrap() {
             break s;
         }
-        assert!(std::time::Instant::now() < deadline, "echo did not stop within 10 s of SIGINT");
+        assert!(std::time::Instant::now() < deadline, "echo did not stop within 10 s of {signal}");
         std::thread::sleep(std::time::Duration::from_millis(20));
     };
-    assert_eq!(status.code(), Some(0), "{status:?}");
+    assert_eq!(status.code(), Some(0), "{signal}: {status:?}");
 }
