@@ -118,14 +118,29 @@ pub fn list(args: ListArgs) -> anyhow::Result<ExitCode> {
     })
 }
 
-/// Resolves the topic's type (given or discovered) and subscribes to its raw samples.
+/// A subscription opened for `echo`/`hz`: the node, the topic's type and its raw samples.
+struct Opened {
+    shutdown: Shutdown,
+    // Kept alive for the subscription's lifetime (dropping it stops the node).
+    _ros: Ros,
+    type_name: String,
+    sub: labrig_runtime::ros::RawSubscription,
+}
+
+/// Joins ROS 2 as `labrig_topic_<role>`, resolves the topic's type (given or discovered within
+/// `wait`) and subscribes to its raw samples. `None` (after saying why) if the topic is not found.
 async fn open(
-    ros: &mut Ros,
+    role: &str,
+    ros_args: &RosArgs,
     topic: &str,
     type_name: Option<&str>,
-    wait: Duration,
+    wait: f64,
     reliable: bool,
-) -> anyhow::Result<Option<(String, labrig_runtime::ros::RawSubscription)>> {
+) -> anyhow::Result<Option<Opened>> {
+    let wait = secs(wait, "wait")?;
+    let shutdown = Shutdown::new();
+    shutdown.trigger_on_signals()?;
+    let mut ros = Ros::new(&ros_args.config()?, &format!("labrig_topic_{role}_{}", std::process::id()))?;
     let topic = if topic.starts_with('/') { topic.to_owned() } else { format!("/{topic}") };
     let type_name = match type_name {
         Some(t) => t.to_owned(),
@@ -150,17 +165,14 @@ async fn open(
     };
     let q = if reliable { qos::reliable(100) } else { qos::best_effort(100) };
     let sub = ros.raw_subscription(&topic, &labrig_msgs::dds_type_name(&type_name), q)?;
-    Ok(Some((type_name, sub)))
+    Ok(Some(Opened { shutdown, _ros: ros, type_name, sub }))
 }
 
 pub fn echo(args: EchoArgs) -> anyhow::Result<ExitCode> {
     let rt = runtime()?;
     rt.block_on(async {
-        let shutdown = Shutdown::new();
-        shutdown.trigger_on_signals()?;
-        let mut ros = Ros::new(&args.ros.config()?, &format!("labrig_topic_echo_{}", std::process::id()))?;
-        let Some((type_name, sub)) =
-            open(&mut ros, &args.topic, args.type_name.as_deref(), secs(args.wait, "wait")?, args.reliable).await?
+        let Some(Opened { shutdown, _ros, type_name, sub }) =
+            open("echo", &args.ros, &args.topic, args.type_name.as_deref(), args.wait, args.reliable).await?
         else {
             return Ok(ExitCode::from(EXIT_NOT_FOUND));
         };
@@ -287,11 +299,8 @@ pub fn hz(args: HzArgs) -> anyhow::Result<ExitCode> {
     }
     let rt = runtime()?;
     rt.block_on(async {
-        let shutdown = Shutdown::new();
-        shutdown.trigger_on_signals()?;
-        let mut ros = Ros::new(&args.ros.config()?, &format!("labrig_topic_hz_{}", std::process::id()))?;
-        let Some((type_name, sub)) =
-            open(&mut ros, &args.topic, args.type_name.as_deref(), secs(args.wait, "wait")?, args.reliable).await?
+        let Some(Opened { shutdown, _ros, type_name, sub }) =
+            open("hz", &args.ros, &args.topic, args.type_name.as_deref(), args.wait, args.reliable).await?
         else {
             return Ok(ExitCode::from(EXIT_NOT_FOUND));
         };
