@@ -1,0 +1,210 @@
+//! The rig's MJCF, composed from the extracted Menagerie models.
+
+use std::path::{Path, PathBuf};
+
+/// Where `scripts/setup.sh` puts the models, relative to the repository root.
+pub const DEFAULT_ASSETS: &str = ".labrig/mujoco/assets";
+
+/// The rig's five cameras, named like the real ones: two ZED 2 on the platform (left images),
+/// the wrist ZED Mini, two RealSense D435.
+pub const CAMERAS: [&str; 5] = ["ext1", "ext2", "wrist", "rs1", "rs2"];
+
+/// The FR3's joints and position actuators (same names in the model).
+pub const ARM_JOINTS: [&str; 7] =
+    ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7"];
+
+/// The 2F-85's actuator after attaching it with prefix `gripper_`.
+pub const GRIPPER_ACTUATOR: &str = "gripper_fingers_actuator";
+/// One of the 2F-85's driver joints (0 open .. ~0.8 rad closed).
+pub const GRIPPER_DRIVER_JOINT: &str = "gripper_right_driver_joint";
+
+/// DROID's reset pose.
+pub const RESET_POSE: [f64; 7] = [
+    0.0,
+    -std::f64::consts::PI / 5.0,
+    0.0,
+    -4.0 * std::f64::consts::PI / 5.0,
+    0.0,
+    3.0 * std::f64::consts::PI / 5.0,
+    0.0,
+];
+
+/// Why the rig model could not be composed.
+#[derive(Debug, thiserror::Error)]
+pub enum RigError {
+    #[error("rig assets missing: cannot read {path}: {source} (run `bash scripts/setup.sh`)")]
+    Missing {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path} is not the FR3 model labrig expects: {what}")]
+    Unexpected { path: PathBuf, what: String },
+}
+
+/// The `<body name="hand" ...>` subtree span (the Franka Hand), matched by nesting depth.
+fn body_span(xml: &str, start: usize) -> Option<usize> {
+    let mut depth = 0usize;
+    let mut i = start;
+    loop {
+        let open = xml[i..].find("<body").map(|p| p + i);
+        let close = xml[i..].find("</body>").map(|p| p + i);
+        match (open, close) {
+            (Some(o), Some(c)) if o < c => {
+                let tag_end = xml[o..].find('>').map(|e| o + e)?;
+                if !xml[..tag_end].ends_with('/') {
+                    depth += 1;
+                }
+                i = tag_end + 1;
+            }
+            (_, Some(c)) => {
+                depth = depth.checked_sub(1)?;
+                i = c + 7;
+                if depth == 0 {
+                    return Some(i);
+                }
+            }
+            _ => return None,
+        }
+    }
+}
+
+/// Removes every `<tag>...</tag>` block.
+fn drop_blocks(xml: &str, tag: &str) -> String {
+    let (open, close) = (format!("<{tag}>"), format!("</{tag}>"));
+    let mut out = xml.to_owned();
+    while let Some(s) = out.find(&open) {
+        let Some(e) = out[s..].find(&close).map(|e| s + e + close.len()) else { break };
+        out.replace_range(s..e, "");
+    }
+    out
+}
+
+/// Removes every self-closing element on its own line that contains all of `needles`.
+fn drop_lines(xml: &str, needles: &[&str]) -> String {
+    xml.lines().filter(|l| !needles.iter().all(|n| l.contains(n))).collect::<Vec<_>>().join("\n")
+}
+
+/// Composes the rig's MJCF from the assets folder (absolute paths inside, so the text loads
+/// from anywhere).
+pub fn compose(assets: &Path) -> Result<String, RigError> {
+    let fr3_path = assets.join("fr3/fr3.xml");
+    let gripper = assets.join("robotiq_2f85/2f85.xml");
+    let fr3 =
+        std::fs::read_to_string(&fr3_path).map_err(|source| RigError::Missing { path: fr3_path.clone(), source })?;
+    if !gripper.exists() {
+        return Err(RigError::Missing {
+            path: gripper,
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "not found"),
+        });
+    }
+    let unexpected = |what: &str| RigError::Unexpected { path: fr3_path.clone(), what: what.to_owned() };
+    let meshes = assets.join("fr3/meshes");
+    let mut xml = fr3;
+    // The wheel's meshdir names a folder that does not exist; point at the real one.
+    xml = xml.replace(r#"meshdir="assets""#, &format!(r#"meshdir="{}" autolimits="true""#, meshes.display()));
+    // The Franka Hand comes off; a flange with the 2F-85 and the wrist camera goes on.
+    let hand = xml.find(r#"<body name="hand""#).ok_or_else(|| unexpected("no body `hand`"))?;
+    let end = body_span(&xml, hand).ok_or_else(|| unexpected("unbalanced <body> tags"))?;
+    xml.replace_range(hand..end, FLANGE);
+    xml = drop_blocks(&xml, "tendon");
+    xml = drop_blocks(&xml, "equality");
+    xml = drop_blocks(&xml, "keyframe");
+    xml = drop_lines(&xml, &["<general", r#"name="hand""#]);
+    xml = drop_lines(&xml, &["<mesh", r#"name="hand_"#]);
+    xml = drop_lines(&xml, &["<mesh", r#"name="finger_"#]);
+    let option = xml.find("<option").ok_or_else(|| unexpected("no <option>"))?;
+    let option_end = xml[option..].find("/>").map(|e| option + e + 2).ok_or_else(|| unexpected("unclosed <option>"))?;
+    xml.replace_range(option_end..option_end, VISUAL);
+    xml.replace_range(option..option_end, OPTION);
+    let asset_tag = xml.find("<asset>").ok_or_else(|| unexpected("no <asset>"))?;
+    let gripper_model = format!("\n    <model name=\"robotiq_2f85\" file=\"{}\"/>{SCENE_ASSETS}", gripper.display());
+    xml.insert_str(asset_tag + "<asset>".len(), &gripper_model);
+    let wb_end = xml.rfind("</worldbody>").ok_or_else(|| unexpected("no </worldbody>"))?;
+    xml.insert_str(wb_end, SCENE);
+    let end = xml.rfind("</mujoco>").ok_or_else(|| unexpected("no </mujoco>"))?;
+    xml.insert_str(end, TAIL);
+    Ok(xml)
+}
+
+const OPTION: &str = r#"<option timestep="0.002" integrator="implicitfast" cone="elliptic" impratio="10"/>"#;
+
+// Shadows off (mujoco-rs's renderer cannot switch them off, and they cost ~27 ms a frame).
+const VISUAL: &str = r#"
+  <visual>
+    <global offwidth="1280" offheight="720"/>
+    <quality shadowsize="0"/>
+    <headlight ambient="0.4 0.4 0.4" diffuse="0.6 0.6 0.6" specular="0.1 0.1 0.1"/>
+  </visual>"#;
+
+// +90 deg about link7's z: at q7 = 0 the fingers open along the base's y axis.
+const FLANGE: &str = r#"<body name="flange" pos="0 0 0.107" quat="0.7071068 0 0 0.7071068">
+              <site name="attachment_site"/>
+              <attach model="robotiq_2f85" body="base_mount" prefix="gripper_"/>
+              <camera name="wrist" pos="0 0.09 0.03" xyaxes="-1 0 0 0 0.966 0.259" fovy="80"/>
+            </body>"#;
+
+const SCENE_ASSETS: &str = r#"
+    <texture name="floor_tex" type="2d" builtin="checker" rgb1="0.3 0.3 0.35" rgb2="0.4 0.4 0.45" width="256" height="256"/>
+    <material name="floor_mat" texture="floor_tex" texrepeat="8 8"/>
+    <material name="table_mat" rgba="0.55 0.42 0.3 1"/>
+    <material name="bin_mat" rgba="0.2 0.35 0.7 1"/>
+    <material name="cube_mat" rgba="0.85 0.15 0.15 1"/>"#;
+
+// Table top at z = 0 (the robot base's height), a 5 cm cube, a bin, four external cameras
+// aimed at the workspace.
+const SCENE: &str = r#"
+    <light name="sun" pos="0.5 0 2.0" dir="0 0 -1" directional="true" castshadow="false" diffuse="0.6 0.6 0.6"/>
+    <geom name="floor" type="plane" size="3 3 0.1" pos="0 0 -0.75" material="floor_mat"/>
+    <geom name="table" type="box" pos="0.6 0 -0.025" size="0.4 0.6 0.025" material="table_mat"/>
+    <body name="table_center" pos="0.6 0 0"/>
+    <body name="cam_target" pos="0.45 0 0.2"/>
+    <body name="cube" pos="0.5 0.12 0.025">
+      <freejoint name="cube_joint"/>
+      <geom name="cube" type="box" size="0.025 0.025 0.025" mass="0.05" material="cube_mat"/>
+    </body>
+    <body name="bin" pos="0.55 -0.22 0">
+      <geom name="bin_floor" type="box" pos="0 0 0.005" size="0.1 0.08 0.005" material="bin_mat"/>
+      <geom name="bin_wall_px" type="box" pos="0.095 0 0.04" size="0.005 0.08 0.04" material="bin_mat"/>
+      <geom name="bin_wall_nx" type="box" pos="-0.095 0 0.04" size="0.005 0.08 0.04" material="bin_mat"/>
+      <geom name="bin_wall_py" type="box" pos="0 0.075 0.04" size="0.1 0.005 0.04" material="bin_mat"/>
+      <geom name="bin_wall_ny" type="box" pos="0 -0.075 0.04" size="0.1 0.005 0.04" material="bin_mat"/>
+    </body>
+    <camera name="ext1" pos="0.1 0.9 0.75" mode="targetbody" target="cam_target" fovy="60"/>
+    <camera name="ext2" pos="0.1 -0.9 0.75" mode="targetbody" target="cam_target" fovy="60"/>
+    <camera name="rs1" pos="1.45 0.35 0.6" mode="targetbody" target="cam_target" fovy="58"/>
+    <camera name="rs2" pos="1.25 -0.7 0.95" mode="targetbody" target="cam_target" fovy="58"/>
+  "#;
+
+// DROID's reset pose as keyframe `reset`: qpos = 7 arm + 8 gripper + cube free joint (7).
+const TAIL: &str = r#"
+  <sensor>
+    <framepos name="pinch_pos" objtype="site" objname="gripper_pinch"/>
+    <framepos name="cube_pos" objtype="body" objname="cube"/>
+  </sensor>
+  <keyframe>
+    <key name="reset"
+         qpos="0 -0.6283185307179586 0 -2.5132741228718345 0 1.8849555921538759 0  0 0 0 0 0 0 0 0  0.5 0.12 0.025 1 0 0 0"
+         ctrl="0 -0.6283185307179586 0 -2.5132741228718345 0 1.8849555921538759 0  0"/>
+  </keyframe>
+"#;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn body_span_matches_nested_bodies() {
+        let xml = r#"<a><body name="hand"><body name="x"></body><body name="y"/></body><b/></a>"#;
+        let start = xml.find("<body").unwrap();
+        let end = body_span(xml, start).unwrap();
+        assert_eq!(&xml[end..], "<b/></a>");
+    }
+
+    #[test]
+    fn missing_assets_name_the_file_and_the_fix() {
+        let err = compose(Path::new("/nonexistent")).unwrap_err();
+        let text = err.to_string();
+        assert!(text.contains("/nonexistent/fr3/fr3.xml") && text.contains("scripts/setup.sh"), "{text}");
+    }
+}
