@@ -13,6 +13,21 @@ use crate::geometry_msgs::Pose;
 use crate::std_msgs::Header;
 use serde::{Deserialize, Serialize};
 
+/// DROID's reset pose of the FR3 (rad): `[0, -pi/5, 0, -4pi/5, 0, 3pi/5, 0]`.
+pub const DROID_RESET_POSE: [f64; 7] = [
+    0.0,
+    -std::f64::consts::PI / 5.0,
+    0.0,
+    -4.0 * std::f64::consts::PI / 5.0,
+    0.0,
+    3.0 * std::f64::consts::PI / 5.0,
+    0.0,
+];
+
+/// The rig's five cameras, named like the real ones: two ZED 2 on the platform (left images),
+/// the wrist ZED Mini, two RealSense D435. Camera ids on the wire and in recordings.
+pub const RIG_CAMERAS: [&str; 5] = ["ext1", "ext2", "wrist", "rs1", "rs2"];
+
 /// The schema version every `labrig_msgs` type carries in its `version` field.
 pub const SCHEMA_VERSION: u16 = 1;
 

@@ -5,9 +5,8 @@ use std::path::{Path, PathBuf};
 /// Where `scripts/setup.sh` puts the models, relative to the repository root.
 pub const DEFAULT_ASSETS: &str = ".labrig/mujoco/assets";
 
-/// The rig's five cameras, named like the real ones: two ZED 2 on the platform (left images),
-/// the wrist ZED Mini, two RealSense D435.
-pub const CAMERAS: [&str; 5] = ["ext1", "ext2", "wrist", "rs1", "rs2"];
+/// The rig's five cameras (see [`labrig_msgs::labrig_msgs::RIG_CAMERAS`]).
+pub use labrig_msgs::labrig_msgs::RIG_CAMERAS as CAMERAS;
 
 /// The FR3's joints and position actuators (same names in the model).
 pub const ARM_JOINTS: [&str; 7] =
@@ -18,16 +17,7 @@ pub const GRIPPER_ACTUATOR: &str = "gripper_fingers_actuator";
 /// One of the 2F-85's driver joints (0 open .. ~0.8 rad closed).
 pub const GRIPPER_DRIVER_JOINT: &str = "gripper_right_driver_joint";
 
-/// DROID's reset pose.
-pub const RESET_POSE: [f64; 7] = [
-    0.0,
-    -std::f64::consts::PI / 5.0,
-    0.0,
-    -4.0 * std::f64::consts::PI / 5.0,
-    0.0,
-    3.0 * std::f64::consts::PI / 5.0,
-    0.0,
-];
+pub use labrig_msgs::labrig_msgs::DROID_RESET_POSE as RESET_POSE;
 
 /// Why the rig model could not be composed.
 #[derive(Debug, thiserror::Error)]

@@ -19,22 +19,11 @@ use serde_json::json;
 use std::process::ExitCode;
 use std::time::Duration;
 
-/// The rig's five cameras: two ZED 2 on the platform, the wrist ZED Mini, two RealSense D435.
-pub const CAMERAS: [&str; 5] = ["ext1", "ext2", "wrist", "rs1", "rs2"];
+use labrig_msgs::labrig_msgs::{DROID_RESET_POSE as RESET, RIG_CAMERAS as CAMERAS};
+
 /// FR3 joints + the 2F-85's driving joint, as the sim bridge will name them.
 pub const JOINTS: [&str; 8] =
     ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7", "finger_joint"];
-/// DROID's reset pose.
-const RESET: [f64; 7] = [
-    0.0,
-    -std::f64::consts::PI / 5.0,
-    0.0,
-    -4.0 * std::f64::consts::PI / 5.0,
-    0.0,
-    3.0 * std::f64::consts::PI / 5.0,
-    0.0,
-];
-
 #[derive(Debug, Args)]
 pub struct DemoArgs {
     /// Seconds to run.
