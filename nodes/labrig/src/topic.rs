@@ -32,27 +32,34 @@ pub struct ListArgs {
     pub json: bool,
 }
 
+/// How `echo` and `hz` join ROS 2 and subscribe.
 #[derive(Debug, Args)]
-pub struct EchoArgs {
-    /// Topic name, e.g. /joint_states.
-    pub topic: String,
+pub struct SubscribeArgs {
     #[command(flatten)]
     pub ros: RosArgs,
     /// Message type (pkg/msg/Name); discovered from the graph when omitted.
     #[arg(long = "type")]
     pub type_name: Option<String>,
-    /// Stop after this many messages.
-    #[arg(long)]
-    pub count: Option<usize>,
-    /// Stop after this many seconds (exit code 3 if --count was not reached).
-    #[arg(long)]
-    pub timeout: Option<f64>,
     /// Seconds to wait for the topic to be discovered (exit code 2 if it is not).
     #[arg(long, default_value_t = 5.0)]
     pub wait: f64,
     /// Subscribe reliable (default best effort, which matches every publisher).
     #[arg(long)]
     pub reliable: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct EchoArgs {
+    /// Topic name, e.g. /joint_states.
+    pub topic: String,
+    #[command(flatten)]
+    pub sub: SubscribeArgs,
+    /// Stop after this many messages.
+    #[arg(long)]
+    pub count: Option<usize>,
+    /// Stop after this many seconds (exit code 3 if --count was not reached).
+    #[arg(long)]
+    pub timeout: Option<f64>,
     /// One JSON object per line: topic, type, receive/source time, message.
     #[arg(long)]
     pub json: bool,
@@ -66,21 +73,13 @@ pub struct HzArgs {
     /// Topic name.
     pub topic: String,
     #[command(flatten)]
-    pub ros: RosArgs,
-    /// Message type (pkg/msg/Name); discovered from the graph when omitted.
-    #[arg(long = "type")]
-    pub type_name: Option<String>,
+    pub sub: SubscribeArgs,
     /// Number of most recent periods the statistics cover.
     #[arg(long, default_value_t = 10_000)]
     pub window: usize,
     /// Stop after this many seconds (default: run until Ctrl-C).
     #[arg(long)]
     pub duration: Option<f64>,
-    /// Seconds to wait for the topic to be discovered.
-    #[arg(long, default_value_t = 5.0)]
-    pub wait: f64,
-    #[arg(long)]
-    pub reliable: bool,
     /// Print one JSON summary at the end instead of text once a second.
     #[arg(long)]
     pub json: bool,
@@ -129,15 +128,9 @@ struct Opened {
 
 /// Joins ROS 2 as `labrig_topic_<role>`, resolves the topic's type (given or discovered within
 /// `wait`) and subscribes to its raw samples. `None` (after saying why) if the topic is not found.
-async fn open(
-    role: &str,
-    ros_args: &RosArgs,
-    topic: &str,
-    type_name: Option<&str>,
-    wait: f64,
-    reliable: bool,
-) -> anyhow::Result<Option<Opened>> {
-    let wait = secs(wait, "wait")?;
+async fn open(role: &str, topic: &str, args: &SubscribeArgs) -> anyhow::Result<Option<Opened>> {
+    let (ros_args, type_name, reliable) = (&args.ros, args.type_name.as_deref(), args.reliable);
+    let wait = secs(args.wait, "wait")?;
     let shutdown = Shutdown::new();
     shutdown.trigger_on_signals()?;
     let mut ros = Ros::new(&ros_args.config()?, &format!("labrig_topic_{role}_{}", std::process::id()))?;
@@ -171,9 +164,7 @@ async fn open(
 pub fn echo(args: EchoArgs) -> anyhow::Result<ExitCode> {
     let rt = runtime()?;
     rt.block_on(async {
-        let Some(Opened { shutdown, _ros, type_name, sub }) =
-            open("echo", &args.ros, &args.topic, args.type_name.as_deref(), args.wait, args.reliable).await?
-        else {
+        let Some(Opened { shutdown, _ros, type_name, sub }) = open("echo", &args.topic, &args.sub).await? else {
             return Ok(ExitCode::from(EXIT_NOT_FOUND));
         };
         let known = labrig_msgs::visit_type(&type_name, KnownType).is_some();
@@ -299,9 +290,7 @@ pub fn hz(args: HzArgs) -> anyhow::Result<ExitCode> {
     }
     let rt = runtime()?;
     rt.block_on(async {
-        let Some(Opened { shutdown, _ros, type_name, sub }) =
-            open("hz", &args.ros, &args.topic, args.type_name.as_deref(), args.wait, args.reliable).await?
-        else {
+        let Some(Opened { shutdown, _ros, type_name, sub }) = open("hz", &args.topic, &args.sub).await? else {
             return Ok(ExitCode::from(EXIT_NOT_FOUND));
         };
         let end = match args.duration {
