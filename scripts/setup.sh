@@ -38,6 +38,8 @@ apt_install() {  # apt_install PKG...: install what is missing (apt-get update o
 }
 # tcpdump: tests prove that no DDS packet leaves loopback.
 apt_install tcpdump
+# Offscreen rendering for the sim (EGL + Mesa llvmpipe, no display needed).
+apt_install libegl1 libegl-mesa0 libgl1-mesa-dri
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.

@@ -1,5 +1,6 @@
 //! The rig's MJCF, composed from the extracted Menagerie models.
 
+use crate::scene::{BIN_HALF, OBJECT_SIZE, SceneValues, TABLE_CENTRE, TABLE_HALF};
 use std::path::{Path, PathBuf};
 
 /// Where `scripts/setup.sh` puts the models, relative to the repository root.
@@ -22,12 +23,8 @@ pub use labrig_msgs::labrig_msgs::DROID_RESET_POSE as RESET_POSE;
 /// Why the rig model could not be composed.
 #[derive(Debug, thiserror::Error)]
 pub enum RigError {
-    #[error("rig assets missing: cannot read {path}: {source} (run `bash scripts/setup.sh`)")]
-    Missing {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error("rig assets missing: cannot read {path}: {error} (run `bash scripts/setup.sh`)")]
+    Missing { path: PathBuf, error: std::io::Error },
     #[error("{path} is not the FR3 model labrig expects: {what}")]
     Unexpected { path: PathBuf, what: String },
 }
@@ -75,17 +72,17 @@ fn drop_lines(xml: &str, needles: &[&str]) -> String {
     xml.lines().filter(|l| !needles.iter().all(|n| l.contains(n))).collect::<Vec<_>>().join("\n")
 }
 
-/// Composes the rig's MJCF from the assets folder (absolute paths inside, so the text loads
-/// from anywhere).
-pub fn compose(assets: &Path) -> Result<String, RigError> {
+/// Composes the rig's MJCF for one scene from the assets folder (absolute paths inside, so the
+/// text loads from anywhere). Textures are declared flat here and filled by [`crate::Sim`].
+pub fn compose(assets: &Path, scene: &SceneValues) -> Result<String, RigError> {
     let fr3_path = assets.join("fr3/fr3.xml");
     let gripper = assets.join("robotiq_2f85/2f85.xml");
     let fr3 =
-        std::fs::read_to_string(&fr3_path).map_err(|source| RigError::Missing { path: fr3_path.clone(), source })?;
+        std::fs::read_to_string(&fr3_path).map_err(|error| RigError::Missing { path: fr3_path.clone(), error })?;
     if !gripper.exists() {
         return Err(RigError::Missing {
             path: gripper,
-            source: std::io::Error::new(std::io::ErrorKind::NotFound, "not found"),
+            error: std::io::Error::new(std::io::ErrorKind::NotFound, "not found"),
         });
     }
     let unexpected = |what: &str| RigError::Unexpected { path: fr3_path.clone(), what: what.to_owned() };
@@ -111,10 +108,63 @@ pub fn compose(assets: &Path) -> Result<String, RigError> {
     let gripper_model = format!("\n    <model name=\"robotiq_2f85\" file=\"{}\"/>{SCENE_ASSETS}", gripper.display());
     xml.insert_str(asset_tag + "<asset>".len(), &gripper_model);
     let wb_end = xml.rfind("</worldbody>").ok_or_else(|| unexpected("no </worldbody>"))?;
-    xml.insert_str(wb_end, SCENE);
+    xml.insert_str(wb_end, &scene_bodies(scene));
     let end = xml.rfind("</mujoco>").ok_or_else(|| unexpected("no </mujoco>"))?;
-    xml.insert_str(end, TAIL);
+    xml.insert_str(end, &tail(scene));
     Ok(xml)
+}
+
+fn v3(v: [f64; 3]) -> String {
+    format!("{} {} {}", v[0], v[1], v[2])
+}
+
+/// The object's orientation: `yaw_deg` about z, as a MuJoCo quaternion (w x y z).
+pub fn yaw_quat(yaw_deg: f64) -> [f64; 4] {
+    let h = yaw_deg.to_radians() / 2.0;
+    [h.cos(), 0.0, 0.0, h.sin()]
+}
+
+/// Table, object, bin and the four external cameras, placed as the scene says.
+fn scene_bodies(scene: &SceneValues) -> String {
+    let [cx, cy, _] = TABLE_CENTRE;
+    let [hx, hy] = TABLE_HALF;
+    let half = OBJECT_SIZE / 2.0;
+    let [bx, by] = BIN_HALF;
+    let wall = 0.005;
+    let wall_h = 0.04;
+    let mut out = format!(
+        r#"
+    <light name="sun" pos="0.5 0 2.0" dir="0 0 -1" directional="true" castshadow="false" diffuse="0.6 0.6 0.6"/>
+    <geom name="floor" type="plane" size="3 3 0.1" pos="0 0 -0.75" material="floor_mat"/>
+    <geom name="table" type="box" pos="{cx} {cy} -0.025" size="{hx} {hy} 0.025" material="table_mat"/>
+    <body name="cam_target" pos="{look}"/>
+    <body name="object" pos="{obj}">
+      <freejoint name="object_joint"/>
+      <geom name="object" type="box" size="{half} {half} {half}" mass="0.05" material="object_mat" friction="1.5 0.01 0.001"/>
+    </body>
+    <body name="bin" pos="{bin}">
+      <geom name="bin_floor" type="box" pos="0 0 {wall}" size="{bx} {by} {wall}" material="bin_mat"/>
+      <geom name="bin_wall_px" type="box" pos="{bxw} 0 {wall_h}" size="{wall} {by} {wall_h}" material="bin_mat"/>
+      <geom name="bin_wall_nx" type="box" pos="-{bxw} 0 {wall_h}" size="{wall} {by} {wall_h}" material="bin_mat"/>
+      <geom name="bin_wall_py" type="box" pos="0 {byw} {wall_h}" size="{bx} {wall} {wall_h}" material="bin_mat"/>
+      <geom name="bin_wall_ny" type="box" pos="0 -{byw} {wall_h}" size="{bx} {wall} {wall_h}" material="bin_mat"/>
+    </body>"#,
+        look = v3(TABLE_CENTRE),
+        obj = v3(scene.object_position),
+        bin = v3(scene.receptacle_position),
+        bxw = bx - wall,
+        byw = by - wall,
+    );
+    for (id, pose) in &scene.cameras {
+        out.push_str(&format!(
+            r#"
+    <camera name="{id}" pos="{}" mode="targetbody" target="cam_target" fovy="{}"/>"#,
+            v3(pose.position),
+            pose.fovy_deg
+        ));
+    }
+    out.push_str("\n  ");
+    out
 }
 
 const OPTION: &str = r#"<option timestep="0.002" integrator="implicitfast" cone="elliptic" impratio="10"/>"#;
@@ -137,47 +187,33 @@ const FLANGE: &str = r#"<body name="flange" pos="0 0 0.107" quat="0.7071068 0 0 
 const SCENE_ASSETS: &str = r#"
     <texture name="floor_tex" type="2d" builtin="checker" rgb1="0.3 0.3 0.35" rgb2="0.4 0.4 0.45" width="256" height="256"/>
     <material name="floor_mat" texture="floor_tex" texrepeat="8 8"/>
-    <material name="table_mat" rgba="0.55 0.42 0.3 1"/>
+    <texture name="table_tex" type="2d" builtin="flat" rgb1="0.5 0.4 0.3" width="64" height="64"/>
+    <material name="table_mat" texture="table_tex" texuniform="true" texrepeat="6 6"/>
     <material name="bin_mat" rgba="0.2 0.35 0.7 1"/>
-    <material name="cube_mat" rgba="0.85 0.15 0.15 1"/>"#;
+    <texture name="object_tex" type="cube" builtin="flat" rgb1="0.8 0.2 0.2" width="64" height="64"/>
+    <material name="object_mat" texture="object_tex"/>"#;
 
-// Table top at z = 0 (the robot base's height), a 5 cm cube, a bin, four external cameras
-// aimed at the workspace.
-const SCENE: &str = r#"
-    <light name="sun" pos="0.5 0 2.0" dir="0 0 -1" directional="true" castshadow="false" diffuse="0.6 0.6 0.6"/>
-    <geom name="floor" type="plane" size="3 3 0.1" pos="0 0 -0.75" material="floor_mat"/>
-    <geom name="table" type="box" pos="0.6 0 -0.025" size="0.4 0.6 0.025" material="table_mat"/>
-    <body name="table_center" pos="0.6 0 0"/>
-    <body name="cam_target" pos="0.45 0 0.2"/>
-    <body name="cube" pos="0.5 0.12 0.025">
-      <freejoint name="cube_joint"/>
-      <geom name="cube" type="box" size="0.025 0.025 0.025" mass="0.05" material="cube_mat"/>
-    </body>
-    <body name="bin" pos="0.55 -0.22 0">
-      <geom name="bin_floor" type="box" pos="0 0 0.005" size="0.1 0.08 0.005" material="bin_mat"/>
-      <geom name="bin_wall_px" type="box" pos="0.095 0 0.04" size="0.005 0.08 0.04" material="bin_mat"/>
-      <geom name="bin_wall_nx" type="box" pos="-0.095 0 0.04" size="0.005 0.08 0.04" material="bin_mat"/>
-      <geom name="bin_wall_py" type="box" pos="0 0.075 0.04" size="0.1 0.005 0.04" material="bin_mat"/>
-      <geom name="bin_wall_ny" type="box" pos="0 -0.075 0.04" size="0.1 0.005 0.04" material="bin_mat"/>
-    </body>
-    <camera name="ext1" pos="0.1 0.9 0.75" mode="targetbody" target="cam_target" fovy="60"/>
-    <camera name="ext2" pos="0.1 -0.9 0.75" mode="targetbody" target="cam_target" fovy="60"/>
-    <camera name="rs1" pos="1.45 0.35 0.6" mode="targetbody" target="cam_target" fovy="58"/>
-    <camera name="rs2" pos="1.25 -0.7 0.95" mode="targetbody" target="cam_target" fovy="58"/>
-  "#;
+/// Texture names [`crate::Sim`] fills from the scene.
+pub const OBJECT_TEXTURE: &str = "object_tex";
+pub const TABLE_TEXTURE: &str = "table_tex";
 
-// DROID's reset pose as keyframe `reset`: qpos = 7 arm + 8 gripper + cube free joint (7).
-const TAIL: &str = r#"
+// DROID's reset pose as keyframe `reset`: qpos = 7 arm + 8 gripper + object free joint (7).
+fn tail(scene: &SceneValues) -> String {
+    let arm = RESET_POSE.map(|q| q.to_string()).join(" ");
+    let [w, x, y, z] = yaw_quat(scene.object_yaw_deg);
+    format!(
+        r#"
   <sensor>
     <framepos name="pinch_pos" objtype="site" objname="gripper_pinch"/>
-    <framepos name="cube_pos" objtype="body" objname="cube"/>
+    <framepos name="object_pos" objtype="body" objname="object"/>
   </sensor>
   <keyframe>
-    <key name="reset"
-         qpos="0 -0.6283185307179586 0 -2.5132741228718345 0 1.8849555921538759 0  0 0 0 0 0 0 0 0  0.5 0.12 0.025 1 0 0 0"
-         ctrl="0 -0.6283185307179586 0 -2.5132741228718345 0 1.8849555921538759 0  0"/>
+    <key name="reset" qpos="{arm}  0 0 0 0 0 0 0 0  {obj} {w} {x} {y} {z}" ctrl="{arm}  0"/>
   </keyframe>
-"#;
+"#,
+        obj = v3(scene.object_position),
+    )
+}
 
 #[cfg(test)]
 mod tests {
@@ -193,7 +229,8 @@ mod tests {
 
     #[test]
     fn missing_assets_name_the_file_and_the_fix() {
-        let err = compose(Path::new("/nonexistent")).unwrap_err();
+        let scene = crate::scene::SceneSpec::default_pick_place().sample(0).unwrap();
+        let err = compose(Path::new("/nonexistent"), &scene).unwrap_err();
         let text = err.to_string();
         assert!(text.contains("/nonexistent/fr3/fr3.xml") && text.contains("scripts/setup.sh"), "{text}");
     }

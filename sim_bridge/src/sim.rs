@@ -1,10 +1,29 @@
 //! The rig's physics in lockstep: each [`Sim::step`] advances exactly one control period.
 
+use crate::render::{Cameras, Meshes, RenderError, RenderedFrame};
 use crate::rig::{self, ARM_JOINTS, GRIPPER_ACTUATOR, GRIPPER_DRIVER_JOINT};
+use crate::scene::{self, SceneSpec, SceneValues};
 use labrig_msgs::Nanos;
 use mujoco_rs::prelude::*;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, Once};
+
+/// The gripper's tool centre point: the 2F-85's pinch site, between the finger pads.
+pub const TCP_SITE: &str = "gripper_pinch";
+
+/// Routes MuJoCo's warnings to `log` (and so to tracing) instead of `MUJOCO_LOG.TXT` in the
+/// working directory. Done once, before any model loads.
+fn route_mujoco_log() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // SAFETY: called once, before this process loads a model, so no other thread is inside
+        // MuJoCo while the handler is swapped.
+        #[allow(unsafe_code)]
+        unsafe {
+            mujoco_rs::logging::install_logging_hook()
+        };
+    });
+}
 
 /// Closing range of the 2F-85's driver joint (rad), for the 0..1 gripper position.
 const DRIVER_CLOSED_RAD: f64 = 0.8;
@@ -13,6 +32,12 @@ const DRIVER_CLOSED_RAD: f64 = 0.8;
 pub enum SimError {
     #[error(transparent)]
     Rig(#[from] rig::RigError),
+    #[error(transparent)]
+    Scene(#[from] scene::SceneError),
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error("cameras are not enabled: call Sim::enable_cameras first")]
+    NoCameras,
     #[error("MuJoCo could not load the rig: {0}")]
     Load(String),
     #[error("the rig model lacks {kind} `{name}`")]
@@ -35,6 +60,11 @@ pub struct ArmTarget {
 /// The simulated rig.
 pub struct Sim {
     data: MjData<Arc<MjModel>>,
+    scene: SceneValues,
+    cameras: Option<Cameras>,
+    tcp_site: usize,
+    object_body: usize,
+    arm_dofs: [usize; 7],
     arm_actuators: [usize; 7],
     arm_qpos: [usize; 7],
     arm_limits: [[f64; 2]; 7],
@@ -53,11 +83,17 @@ impl std::fmt::Debug for Sim {
 }
 
 impl Sim {
-    /// Loads the rig from `assets` (see [`rig::DEFAULT_ASSETS`]) and resets it to DROID's
-    /// reset pose. `period` is the control period each [`Sim::step`] advances.
-    pub fn new(assets: &Path, period: Nanos) -> Result<Sim, SimError> {
-        let xml = rig::compose(assets)?;
-        let model = Arc::new(MjModel::from_xml_string(&xml).map_err(|e| SimError::Load(format!("{e:?}")))?);
+    /// Loads the rig from `assets` (see [`rig::DEFAULT_ASSETS`]) set up as `spec` + `seed`
+    /// say, and resets it to DROID's reset pose. `period` is the control period each
+    /// [`Sim::step`] advances.
+    pub fn new(assets: &Path, spec: &SceneSpec, seed: u64, period: Nanos) -> Result<Sim, SimError> {
+        route_mujoco_log();
+        let scene = spec.sample(seed)?;
+        let xml = rig::compose(assets, &scene)?;
+        let mut model = MjModel::from_xml_string(&xml).map_err(|e| SimError::Load(format!("{e:?}")))?;
+        fill_texture(&mut model, rig::OBJECT_TEXTURE, &scene::object_texture(&scene, spec.object.noise_octaves))?;
+        fill_texture(&mut model, rig::TABLE_TEXTURE, &scene::table_texture(&scene, spec.table.jitter))?;
+        let model = Arc::new(model);
         let timestep = model.opt().timestep;
         let ratio = period.as_secs_f64() / timestep;
         if period.0 <= 0 || (ratio - ratio.round()).abs() > 1e-6 {
@@ -69,19 +105,28 @@ impl Sim {
         let mut arm_actuators = [0; 7];
         let mut arm_qpos = [0; 7];
         let mut arm_limits = [[0.0; 2]; 7];
+        let mut arm_dofs = [0; 7];
         for (i, name) in ARM_JOINTS.iter().enumerate() {
             arm_actuators[i] = id(MjtObjBase::mjOBJ_ACTUATOR, "actuator", name)?;
             let joint = id(MjtObjBase::mjOBJ_JOINT, "joint", name)?;
             arm_qpos[i] = model.jnt_qposadr()[joint] as usize;
+            arm_dofs[i] = model.jnt_dofadr()[joint] as usize;
             arm_limits[i] = model.jnt_range()[joint];
         }
         let gripper_actuator = id(MjtObjBase::mjOBJ_ACTUATOR, "actuator", GRIPPER_ACTUATOR)?;
         let driver = id(MjtObjBase::mjOBJ_JOINT, "joint", GRIPPER_DRIVER_JOINT)?;
         let gripper_qpos = model.jnt_qposadr()[driver] as usize;
         let reset_key = id(MjtObjBase::mjOBJ_KEY, "keyframe", "reset")?;
+        let tcp_site = id(MjtObjBase::mjOBJ_SITE, "site", TCP_SITE)?;
+        let object_body = id(MjtObjBase::mjOBJ_BODY, "body", "object")?;
         let data = MjData::new(model.clone());
         let mut sim = Sim {
             data,
+            scene,
+            cameras: None,
+            tcp_site,
+            object_body,
+            arm_dofs,
             arm_actuators,
             arm_qpos,
             arm_limits,
@@ -162,4 +207,89 @@ impl Sim {
     pub fn qpos(&self) -> &[f64] {
         self.data.qpos()
     }
+
+    /// The FR3's joint position limits from the model, [lower, upper] per joint (rad).
+    pub fn joint_limits(&self) -> [[f64; 2]; 7] {
+        self.arm_limits
+    }
+
+    pub fn joint_velocities(&self) -> [f64; 7] {
+        let qvel = self.data.qvel();
+        std::array::from_fn(|i| qvel[self.arm_dofs[i]])
+    }
+
+    /// The arm's last commanded joint targets (the actuators' ctrl).
+    pub fn joint_targets(&self) -> [f64; 7] {
+        let ctrl = self.data.ctrl();
+        std::array::from_fn(|i| ctrl[self.arm_actuators[i]])
+    }
+
+    /// The TCP (pinch site) position and rotation matrix (row-major) in the robot base frame.
+    pub fn tcp_pose(&self) -> ([f64; 3], [f64; 9]) {
+        (self.data.site_xpos()[self.tcp_site], self.data.site_xmat()[self.tcp_site])
+    }
+
+    /// The TCP's 6x7 geometric Jacobian over the arm joints: rows vx vy vz wx wy wz.
+    pub fn tcp_jacobian(&self) -> [[f64; 7]; 6] {
+        let (jacp, jacr) = self.data.jac_site(true, true, self.tcp_site);
+        let nv = self.data.qvel().len();
+        std::array::from_fn(|r| {
+            let (m, row) = if r < 3 { (&jacp, r) } else { (&jacr, r - 3) };
+            std::array::from_fn(|c| m[row * nv + self.arm_dofs[c]])
+        })
+    }
+
+    /// The object's centre in the robot base frame.
+    pub fn object_position(&self) -> [f64; 3] {
+        self.data.xpos()[self.object_body]
+    }
+
+    /// The values this scene was built from.
+    pub fn scene(&self) -> &SceneValues {
+        &self.scene
+    }
+
+    /// The physics model (names, sizes, camera intrinsics).
+    pub fn model(&self) -> &MjModel {
+        self.data.model()
+    }
+
+    /// Opens the offscreen renderer for the five cameras at `width` x `height`.
+    pub fn enable_cameras(&mut self, width: usize, height: usize, meshes: Meshes) -> Result<(), SimError> {
+        self.cameras = Some(Cameras::new(self.data.model(), width, height, meshes)?);
+        Ok(())
+    }
+
+    /// Renders one camera for the current state into `out` (RGB8, top row first).
+    pub fn render_into(&mut self, camera: &'static str, out: &mut Vec<u8>) -> Result<(), SimError> {
+        let cameras = self.cameras.as_mut().ok_or(SimError::NoCameras)?;
+        Ok(cameras.render_into(&mut self.data, camera, out)?)
+    }
+
+    /// Renders all five cameras for the current state.
+    pub fn render_all(&mut self) -> Result<Vec<RenderedFrame>, SimError> {
+        let cameras = self.cameras.as_mut().ok_or(SimError::NoCameras)?;
+        Ok(cameras.render_all(&mut self.data)?)
+    }
+}
+
+/// Overwrites texture `name` (declared flat in the MJCF) with `texels` (a square RGB tile,
+/// repeated over the texture's rows and columns, e.g. over each face of a cube texture).
+fn fill_texture(model: &mut MjModel, name: &str, texels: &[u8]) -> Result<(), SimError> {
+    let id = model
+        .name_to_id(MjtObjBase::mjOBJ_TEXTURE, name)
+        .ok_or_else(|| SimError::MissingName { kind: "texture", name: name.to_owned() })?;
+    let (w, h) = (model.tex_width()[id] as usize, model.tex_height()[id] as usize);
+    let channels = model.tex_nchannel()[id] as usize;
+    let adr = model.tex_adr()[id] as usize;
+    let tile = scene::TEXTURE_SIZE;
+    let data = &mut model.tex_data_mut()[adr..adr + w * h * channels];
+    for r in 0..h {
+        for c in 0..w {
+            let src = ((r % tile) * tile + (c % tile)) * 3;
+            let dst = (r * w + c) * channels;
+            data[dst..dst + 3].copy_from_slice(&texels[src..src + 3]);
+        }
+    }
+    Ok(())
 }

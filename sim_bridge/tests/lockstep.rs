@@ -3,7 +3,7 @@
 
 use labrig_msgs::Nanos;
 use labrig_sim::rig::{DEFAULT_ASSETS, RESET_POSE};
-use labrig_sim::{ArmTarget, Sim, SimError};
+use labrig_sim::{ArmTarget, SceneSpec, Sim, SimError};
 use std::path::PathBuf;
 
 fn assets() -> PathBuf {
@@ -11,7 +11,7 @@ fn assets() -> PathBuf {
 }
 
 fn sim() -> Sim {
-    Sim::new(&assets(), Nanos::from_millis(50)).unwrap()
+    Sim::new(&assets(), &SceneSpec::default_pick_place(), 0, Nanos::from_millis(50)).unwrap()
 }
 
 /// A scripted sequence: move joints 1 and 4, close the gripper half way through.
@@ -86,6 +86,6 @@ fn nan_and_out_of_limit_targets_never_reach_the_physics() {
 
 #[test]
 fn a_period_that_is_not_a_multiple_of_the_timestep_is_refused() {
-    let err = Sim::new(&assets(), Nanos(1_000_100)).unwrap_err();
+    let err = Sim::new(&assets(), &SceneSpec::default_pick_place(), 0, Nanos(1_000_100)).unwrap_err();
     assert!(matches!(err, SimError::Period { .. }), "{err}");
 }

@@ -24,6 +24,39 @@ pub enum Command {
     Bench(BenchCommand),
     /// The main job on a fresh machine: run what the rig has so far and report it.
     Demo(crate::demo::DemoArgs),
+    /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
+    #[command(disable_help_flag = true)]
+    Sim {
+        /// Arguments for labrig-sim.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+}
+
+/// Runs `labrig-sim` (built beside this binary; the only program that links MuJoCo) with `args`.
+pub fn sim(args: &[String]) -> anyhow::Result<ExitCode> {
+    let exe = sibling_binary("labrig-sim")?;
+    let status = std::process::Command::new(&exe)
+        .args(args)
+        .status()
+        .map_err(|e| anyhow::anyhow!("cannot run {}: {e}", exe.display()))?;
+    Ok(match status.code() {
+        Some(c) => ExitCode::from(c.clamp(0, 255) as u8),
+        None => ExitCode::from(1),
+    })
+}
+
+/// A labrig program installed next to the running `labrig` binary.
+pub fn sibling_binary(name: &str) -> anyhow::Result<std::path::PathBuf> {
+    let me = std::env::current_exe()?;
+    let path = me.with_file_name(name);
+    anyhow::ensure!(
+        path.exists(),
+        "{} not found next to {}: build it with `cargo build -p labrig-sim` (scripts/labrig does)",
+        path.display(),
+        me.display()
+    );
+    Ok(path)
 }
 
 /// How to join ROS 2 (shared by every command that does).
@@ -73,5 +106,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
         Command::Demo(a) => crate::demo::run(a),
+        Command::Sim { args } => sim(&args),
     }
 }

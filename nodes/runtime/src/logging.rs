@@ -9,6 +9,6 @@ use tracing_subscriber::EnvFilter;
 /// practice, not a config channel). Calling it twice is harmless.
 pub fn init(default_filter: &str) {
     let filter = EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| EnvFilter::new(format!("{default_filter},rustdds=off,ros2_client=error")));
+        .unwrap_or_else(|_| EnvFilter::new(format!("{default_filter},rustdds=off,ros2_client=error,mujoco=warn")));
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
 }

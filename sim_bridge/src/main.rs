@@ -1,0 +1,179 @@
+//! `labrig-sim` (run as `labrig sim ...`): the simulated rig's commands.
+
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand};
+use labrig_msgs::Nanos;
+use labrig_sim::expert::{self, EpisodeResult};
+use labrig_sim::{Meshes, Sim};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "labrig sim",
+    bin_name = "labrig sim",
+    version,
+    about = "The simulated rig: MuJoCo FR3 + 2F-85 + five cameras"
+)]
+struct Cli {
+    /// Log at debug level (RUST_LOG overrides).
+    #[arg(long, short, global = true)]
+    verbose: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Render the five cameras of a scene to PNGs, with the scene's sampled values as JSON.
+    Snapshot(SnapshotArgs),
+    /// Run the scripted pick-and-place expert on many seeded scenes and report its success rate.
+    Eval(EvalArgs),
+}
+
+/// Which scene: a spec file (default: the built-in pick-and-place scene) and a seed.
+#[derive(Debug, Clone, Args)]
+pub struct SceneArgs {
+    /// Scene spec (TOML); default: sim_bridge/scenes/pick_place.toml (built in).
+    #[arg(long)]
+    scene: Option<PathBuf>,
+    /// Where setup extracted the MuJoCo models (default: $LABRIG_MUJOCO_DIR/assets, else
+    /// .labrig/mujoco/assets in the repository).
+    #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    assets: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct SnapshotArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output folder (created).
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, default_value_t = 320)]
+    width: usize,
+    #[arg(long, default_value_t = 240)]
+    height: usize,
+    #[arg(long, value_enum, default_value_t = Meshes::Visual)]
+    meshes: Meshes,
+}
+
+#[derive(Debug, Args)]
+struct EvalArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Number of seeded scenes (seeds first..first+episodes).
+    #[arg(long, default_value_t = 50)]
+    episodes: u64,
+    #[arg(long, default_value_t = 0)]
+    first_seed: u64,
+    /// Tick budget per episode (20 Hz).
+    #[arg(long, default_value_t = 400)]
+    max_ticks: u64,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    json: bool,
+    /// Exit non-zero when the success rate is below this (0..1).
+    #[arg(long)]
+    min_success: Option<f64>,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    labrig_runtime::logging::init(if cli.verbose { "debug" } else { "info" });
+    let result = match cli.command {
+        Command::Snapshot(a) => snapshot(a),
+        Command::Eval(a) => eval(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+fn snapshot(a: SnapshotArgs) -> anyhow::Result<ExitCode> {
+    let (spec, assets) = labrig_sim::resolve_scene(a.scene.scene.as_deref(), a.scene.assets.as_deref())?;
+    let shot = labrig_sim::snapshot::snapshot(&assets, &spec, a.seed, &a.out, (a.width, a.height), a.meshes)?;
+    for p in &shot.images {
+        println!("{}", p.display());
+    }
+    println!("{}  (all five cameras)", shot.sheet.display());
+    println!("{}  (scene values)", shot.values.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+fn eval(a: EvalArgs) -> anyhow::Result<ExitCode> {
+    let (spec, assets) = labrig_sim::resolve_scene(a.scene.scene.as_deref(), a.scene.assets.as_deref())?;
+    let bar = indicatif::ProgressBar::new(a.episodes);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} scenes, {msg} [{elapsed}]")
+            .expect("static template"),
+    );
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let mut results: Vec<EpisodeResult> = Vec::new();
+    for seed in a.first_seed..a.first_seed + a.episodes {
+        let mut sim = Sim::new(&assets, &spec, seed, Nanos::from_millis(50)).with_context(|| format!("seed {seed}"))?;
+        let r = expert::run_episode(&mut sim, a.max_ticks, |_, _| Ok(()))?;
+        results.push(r);
+        let ok = results.iter().filter(|r| r.success).count();
+        bar.set_message(format!("{ok} succeeded"));
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let ok = results.iter().filter(|r| r.success).count();
+    let rate = ok as f64 / results.len().max(1) as f64;
+    // Success per camera bin of ext1 (the camera that draws from all five bins).
+    let mut per_bin: std::collections::BTreeMap<String, (u32, u32)> = Default::default();
+    for r in &results {
+        for b in &r.camera_bins {
+            let e = per_bin.entry(b.clone()).or_default();
+            e.1 += 1;
+            e.0 += r.success as u32;
+        }
+    }
+    if a.json {
+        let json = serde_json::json!({
+            "scene": spec.name, "episodes": results.len(), "successes": ok, "success_rate": rate,
+            "per_camera_bin": per_bin.iter().map(|(k, (s, n))| (k.clone(), serde_json::json!({"successes": s, "episodes": n}))).collect::<serde_json::Map<_, _>>(),
+            "results": results,
+        });
+        println!("{}", serde_json::to_string_pretty(&json)?);
+    } else {
+        println!("scene {}: {ok}/{} episodes succeeded ({:.0}%)", spec.name, results.len(), rate * 100.0);
+        let ticks: Vec<u64> = results.iter().filter(|r| r.success).map(|r| r.ticks).collect();
+        if !ticks.is_empty() {
+            let mean = ticks.iter().sum::<u64>() as f64 / ticks.len() as f64;
+            println!("successful episodes take {mean:.0} ticks on average ({:.1} s at 20 Hz)", mean / 20.0);
+        }
+        for r in results.iter().filter(|r| !r.success) {
+            println!(
+                "  failed: seed {} (phase {:?}, object at [{:.3}, {:.3}, {:.3}], bin at [{:.3}, {:.3}])",
+                r.seed,
+                r.final_phase,
+                r.object_position[0],
+                r.object_position[1],
+                r.object_position[2],
+                r.receptacle_position[0],
+                r.receptacle_position[1]
+            );
+        }
+        println!("per camera bin (successes/episodes):");
+        for (k, (s, n)) in &per_bin {
+            println!("  {k:24} {s}/{n}");
+        }
+    }
+    if let Some(min) = a.min_success
+        && rate < min
+    {
+        eprintln!("success rate {rate:.2} is below --min-success {min}");
+        return Ok(ExitCode::from(4));
+    }
+    Ok(ExitCode::SUCCESS)
+}
