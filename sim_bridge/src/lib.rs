@@ -12,6 +12,8 @@
 //!
 //! Only this crate links MuJoCo.
 
+pub mod bench;
+pub mod bridge;
 pub mod expert;
 pub mod render;
 pub mod rig;

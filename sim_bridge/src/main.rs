@@ -29,6 +29,10 @@ enum Command {
     Snapshot(SnapshotArgs),
     /// Run the scripted pick-and-place expert on many seeded scenes and report its success rate.
     Eval(EvalArgs),
+    /// Run the bridge: the rig behind the franka, gripper and camera nodes' ROS 2 topics.
+    Run(labrig_sim::bridge::BridgeArgs),
+    /// Physics steps per second, render time per frame, real-time factor.
+    Bench(labrig_sim::bench::BenchArgs),
 }
 
 /// Which scene: a spec file (default: the built-in pick-and-place scene) and a seed.
@@ -86,6 +90,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Snapshot(a) => snapshot(a),
         Command::Eval(a) => eval(a),
+        Command::Bench(a) => labrig_sim::bench::run(a),
+        Command::Run(a) => labrig_sim::bridge::run(a),
     };
     match result {
         Ok(code) => code,

@@ -69,6 +69,9 @@ impl Cameras {
             let opts = renderer.opts_mut();
             opts.geomgroup[2] = 0;
             opts.geomgroup[3] = 1;
+            // The 2F-85's collision geoms are its full visual meshes (~70k triangles): draw
+            // their convex hulls (MuJoCo computes them for collision anyway).
+            opts.flags[mujoco_rs::mujoco_c::mjtVisFlag::mjVIS_CONVEXHULL as usize] = 1;
         }
         let ids = CAMERAS
             .iter()

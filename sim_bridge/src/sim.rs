@@ -208,6 +208,16 @@ impl Sim {
         self.data.qpos()
     }
 
+    /// Physics steps per control period.
+    pub fn substeps(&self) -> u32 {
+        self.substeps
+    }
+
+    /// The control period each [`Sim::step`] advances.
+    pub fn period(&self) -> Nanos {
+        self.period
+    }
+
     /// The FR3's joint position limits from the model, [lower, upper] per joint (rad).
     pub fn joint_limits(&self) -> [[f64; 2]; 7] {
         self.arm_limits
@@ -237,6 +247,24 @@ impl Sim {
             let (m, row) = if r < 3 { (&jacp, r) } else { (&jacr, r - 3) };
             std::array::from_fn(|c| m[row * nv + self.arm_dofs[c]])
         })
+    }
+
+    /// The 2F-85's driver joint angle (rad; 0 open .. ~0.8 closed).
+    pub fn gripper_driver_angle(&self) -> f64 {
+        self.data.qpos()[self.gripper_qpos]
+    }
+
+    /// A camera's id in the model.
+    pub fn camera_id(&self, name: &str) -> Option<usize> {
+        self.data.model().name_to_id(MjtObjBase::mjOBJ_CAMERA, name)
+    }
+
+    /// A camera's position and rotation (MuJoCo convention: looks along -z, y up) in the
+    /// robot base frame, for the current state.
+    pub fn camera_pose(&self, name: &str) -> Option<([f64; 3], nalgebra::Matrix3<f64>)> {
+        let id = self.camera_id(name)?;
+        let m = self.data.cam_xmat()[id];
+        Some((self.data.cam_xpos()[id], nalgebra::Matrix3::from_row_slice(&m)))
     }
 
     /// The object's centre in the robot base frame.

@@ -443,6 +443,29 @@ def cmd_listen_joint_states(args):
     return 0
 
 
+def cmd_listen(args):
+    """Any message type: one JSON line per message (its fields), then a summary."""
+    cls = resolve_type(args.type)
+    rclpy, node = make_node("listen_any")
+    received = 0
+
+    def on_msg(m):
+        nonlocal received
+        received += 1
+        emit({"topic": args.topic, "msg": msg_to_dict(m), "recv_ns": time.time_ns()})
+
+    node.create_subscription(cls, args.topic, on_msg, qos(1000))
+    emit({"ready": True})
+    deadline = time.monotonic() + args.timeout
+    try:
+        while received < args.count and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
+    finally:
+        emit({"done": True, "received": received})
+        shutdown(rclpy, node)
+    return 0
+
+
 def _flush_reliable(pub, timeout_s=5.0):
     # let reliable writers get their samples acknowledged before the process exits
     from rclpy.duration import Duration
@@ -580,6 +603,13 @@ def main(argv=None):
     c.add_argument("--count", type=int, required=True)
     c.add_argument("--timeout", type=float, required=True)
     c.set_defaults(fn=cmd_listen_joint_states)
+
+    c = sub.add_parser("listen", help="subscribe to any topic of a standard type, print messages as JSON")
+    c.add_argument("--topic", required=True)
+    c.add_argument("--type", required=True, help="e.g. sensor_msgs/msg/CameraInfo")
+    c.add_argument("--count", type=int, required=True)
+    c.add_argument("--timeout", type=float, required=True)
+    c.set_defaults(fn=cmd_listen)
 
     c = sub.add_parser("talk-pose")
     c.add_argument("--topic", required=True)

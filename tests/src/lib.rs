@@ -34,20 +34,30 @@ pub fn ros_python() -> PathBuf {
 
 /// The `labrig` binary of this build (built on demand if a lone test run lacks it).
 pub fn labrig_bin() -> PathBuf {
+    workspace_bin("labrig", "labrig")
+}
+
+/// The `labrig-sim` binary (the sim bridge; the only program linking MuJoCo).
+pub fn sim_bin() -> PathBuf {
+    workspace_bin("labrig-sim", "labrig-sim")
+}
+
+/// A binary of this workspace's build, built on demand if a lone test run lacks it.
+pub fn workspace_bin(name: &str, package: &str) -> PathBuf {
     // Test executables live in target/<profile>/deps; the binary one level up.
     let exe = std::env::current_exe().expect("current exe");
     let dir = exe.parent().and_then(Path::parent).expect("target/<profile>");
-    let bin = dir.join("labrig");
+    let bin = dir.join(name);
     if !bin.exists() {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let profile = dir.file_name().and_then(|s| s.to_str()).unwrap_or("debug");
         let mut cmd = Command::new(cargo);
-        cmd.args(["build", "-p", "labrig", "--bin", "labrig"]).current_dir(repo_root());
+        cmd.args(["build", "-p", package, "--bin", name]).current_dir(repo_root());
         if profile == "release" {
             cmd.arg("--release");
         }
         let status = cmd.status().expect("running cargo build");
-        assert!(status.success(), "building the labrig binary failed");
+        assert!(status.success(), "building the {name} binary failed");
     }
     bin
 }

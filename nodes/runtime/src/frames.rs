@@ -144,9 +144,27 @@ pub enum FrameError {
     Version { camera: String, found: u16 },
 }
 
-/// The iceoryx2 service name of a camera's frames.
+/// Environment variable that puts every frame channel of a process under its own namespace
+/// (`labrig/<ns>/camera/<id>/frames`), so two rigs (or two tests) on one machine stay apart,
+/// as ROS_DOMAIN_ID does for DDS.
+pub const NAMESPACE_ENV: &str = "LABRIG_FRAMES_NAMESPACE";
+
+/// The frame namespace this process uses by default ([`NAMESPACE_ENV`], empty = none).
+pub fn default_namespace() -> Option<String> {
+    std::env::var(NAMESPACE_ENV).ok().filter(|ns| !ns.is_empty())
+}
+
+/// The iceoryx2 service name of a camera's frames in `namespace`.
+pub fn service_name_in(namespace: Option<&str>, camera_id: &str) -> String {
+    match namespace {
+        Some(ns) => format!("labrig/{ns}/camera/{camera_id}/frames"),
+        None => format!("labrig/camera/{camera_id}/frames"),
+    }
+}
+
+/// The iceoryx2 service name of a camera's frames (in this process's default namespace).
 pub fn service_name(camera_id: &str) -> String {
-    format!("labrig/camera/{camera_id}/frames")
+    service_name_in(default_namespace().as_deref(), camera_id)
 }
 
 fn check_camera_id(id: &str) -> Result<[u8; CAMERA_ID_LEN], FrameError> {
@@ -165,6 +183,7 @@ fn check_camera_id(id: &str) -> Result<[u8; CAMERA_ID_LEN], FrameError> {
 /// runtime handles SIGINT/SIGTERM ([`crate::lifecycle`]).
 pub struct FrameNode {
     node: Node<Ipc>,
+    namespace: Option<String>,
 }
 
 impl std::fmt::Debug for FrameNode {
@@ -177,7 +196,17 @@ impl std::fmt::Debug for FrameNode {
 pub const SUBSCRIBER_BUFFER: usize = 4;
 
 impl FrameNode {
+    /// A node in the default namespace ([`NAMESPACE_ENV`]).
     pub fn new() -> Result<FrameNode, FrameError> {
+        FrameNode::with_namespace(default_namespace())
+    }
+
+    /// A node whose channels live under `namespace`.
+    pub fn new_in(namespace: &str) -> Result<FrameNode, FrameError> {
+        FrameNode::with_namespace(Some(namespace.to_owned()).filter(|ns| !ns.is_empty()))
+    }
+
+    fn with_namespace(namespace: Option<String>) -> Result<FrameNode, FrameError> {
         // iceoryx2 logs to stderr on its own; its warning about running without a config
         // file is expected (labrig configures services in code).
         iceoryx2::prelude::set_log_level(LogLevel::Error);
@@ -185,7 +214,7 @@ impl FrameNode {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Ipc>()
             .map_err(|e| FrameError::Shm { camera: String::new(), what: "create node", message: format!("{e:?}") })?;
-        Ok(FrameNode { node })
+        Ok(FrameNode { node, namespace })
     }
 
     fn service(
@@ -194,8 +223,10 @@ impl FrameNode {
     ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], FrameHeader>, FrameError>
     {
         let shm = |what, e: String| FrameError::Shm { camera: camera_id.to_owned(), what, message: e };
-        let name: ServiceName =
-            service_name(camera_id).as_str().try_into().map_err(|e| shm("service name", format!("{e:?}")))?;
+        let name: ServiceName = service_name_in(self.namespace.as_deref(), camera_id)
+            .as_str()
+            .try_into()
+            .map_err(|e| shm("service name", format!("{e:?}")))?;
         self.node
             .service_builder(&name)
             .publish_subscribe::<[u8]>()

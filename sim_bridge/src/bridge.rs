@@ -1,0 +1,403 @@
+//! The bridge process (`labrig sim run`): the simulated rig behind the franka, gripper and
+//! camera nodes' own interfaces, so every other node runs against it unchanged.
+//!
+//! Publishes (stamped with sim time):
+//! - `/joint_states` (sensor_msgs/JointState): fr3_joint1..7 and the 2F-85's `finger_joint`;
+//! - `/arm/state` (labrig_msgs/RobotState): DROID's robot_state fields; `cartesian_position` is
+//!   the TCP (2F-85 pinch point) as xyz + extrinsic xyz euler, in the robot base frame;
+//! - `/gripper/state` (labrig_msgs/GripperState);
+//! - `/tf` (tf2_msgs/TFMessage): `base` -> `tcp` and `base` -> `wrist_optical` every tick;
+//!   `/tf_static`: `base` -> `<camera>_optical` for the four external cameras (latched);
+//! - `/cameras/<id>/camera_info` (sensor_msgs/CameraInfo) with each frame, and the frames
+//!   themselves (RGB8) on the camera node's iceoryx2 channels `labrig/camera/<id>/frames`;
+//! - `/clock` (rosgraph_msgs/Clock); `/sim/scene` (std_msgs/String, latched): the scene's
+//!   sampled values as JSON, for recordings.
+//!
+//! Subscribes: `/arm/command` (labrig_msgs/ArmCommand: joint_position targets — what the franka
+//! node's IK produces — or an absolute cartesian_position, solved by the sim's own IK step) and
+//! `/gripper/command` (labrig_msgs/GripperCommand, 0 open .. 1 closed -> the 2F-85's 0..255).
+//! The gripper follows the most recent of the two sources.
+//!
+//! Modes: `lockstep` advances exactly one control period per arm command received (so results
+//! do not depend on machine speed); `realtime` advances one period per wall-clock period with
+//! the latest command. A NaN or out-of-limit command is refused, reported in `/arm/state`
+//! (`fault`, `prev_command_successful = false`) and never reaches the physics.
+
+use crate::expert::{CartesianIk, euler_xyz};
+use crate::scene::SceneValues;
+use crate::{ArmTarget, Meshes, Sim};
+use labrig_msgs::Nanos;
+use labrig_msgs::builtin_interfaces::Time;
+use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
+use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, GripperCommand, GripperState, RobotState};
+use labrig_msgs::rosgraph_msgs::Clock as ClockMsg;
+use labrig_msgs::sensor_msgs::{CameraInfo, JointState};
+use labrig_msgs::std_msgs::{Header, StringMsg};
+use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode, FramePublisher};
+use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
+use labrig_runtime::{RosConfig, Shutdown};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+/// The joints `/joint_states` names (the FR3's seven and the 2F-85's driver).
+pub const JOINT_NAMES: [&str; 8] =
+    ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7", "finger_joint"];
+/// Robot base frame id.
+pub const BASE_FRAME: &str = "base";
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Mode {
+    /// One control period per arm command received: deterministic, independent of machine speed.
+    Lockstep,
+    /// One control period per wall-clock period, with the latest commands.
+    Realtime,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct BridgeArgs {
+    /// Scene spec (TOML); default: the built-in pick-and-place scene.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
+    pub mode: Mode,
+    /// Control period (ms).
+    #[arg(long, default_value_t = 50)]
+    pub period_ms: i64,
+    /// Camera image size.
+    #[arg(long, default_value_t = 128)]
+    pub width: usize,
+    #[arg(long, default_value_t = 128)]
+    pub height: usize,
+    #[arg(long, value_enum, default_value_t = Meshes::Collision)]
+    pub meshes: Meshes,
+    /// Run without cameras (physics and state only).
+    #[arg(long)]
+    pub no_cameras: bool,
+    /// Stop after this many ticks (default: run until Ctrl-C).
+    #[arg(long)]
+    pub max_ticks: Option<u64>,
+    /// DDS domain id (ROS_DOMAIN_ID is read as in every ROS 2 tool).
+    #[arg(long, env = "ROS_DOMAIN_ID", default_value_t = 0)]
+    pub domain_id: u16,
+    /// Let DDS use every network interface instead of 127.0.0.1 only.
+    #[arg(long)]
+    pub allow_network: bool,
+    /// Where setup extracted the MuJoCo models.
+    #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    pub assets: Option<PathBuf>,
+}
+
+pub fn run(a: BridgeArgs) -> anyhow::Result<ExitCode> {
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    let shutdown = Shutdown::new();
+    rt.block_on(async {
+        shutdown.trigger_on_signals()?;
+        bridge(a, shutdown).await
+    })
+}
+
+struct Publishers {
+    joint_states: RosPublisher<JointState>,
+    arm_state: RosPublisher<RobotState>,
+    gripper_state: RosPublisher<GripperState>,
+    tf: RosPublisher<TFMessage>,
+    clock: RosPublisher<ClockMsg>,
+    camera_info: Vec<RosPublisher<CameraInfo>>,
+}
+
+/// What the bridge last heard and did.
+#[derive(Debug, Default)]
+struct CommandState {
+    arm: Option<ArmTarget>,
+    gripper: f64,
+    fault: String,
+    last_ok: bool,
+    refused: u64,
+    commands: u64,
+}
+
+fn header(t: Nanos, frame: &str) -> Header {
+    Header { stamp: Time::from(t), frame_id: frame.to_owned() }
+}
+
+fn transform(t: Nanos, parent: &str, child: &str, pos: [f64; 3], rot: &Matrix3<f64>) -> TransformStamped {
+    let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*rot));
+    TransformStamped {
+        header: header(t, parent),
+        child_frame_id: child.to_owned(),
+        transform: Transform {
+            translation: RosVector3 { x: pos[0], y: pos[1], z: pos[2] },
+            rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+        },
+    }
+}
+
+/// A MuJoCo camera looks along its -z with y up; ROS optical frames look along +z with y down.
+fn optical(rot: &Matrix3<f64>) -> Matrix3<f64> {
+    rot * Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, -1.0, -1.0))
+}
+
+/// Pinhole intrinsics of a MuJoCo camera (square pixels; the vertical field of view spans
+/// the image height; ROS pixel-centre convention).
+pub fn camera_info(t: Nanos, camera: &str, width: usize, height: usize, fovy_deg: f64) -> CameraInfo {
+    let f = height as f64 / 2.0 / (fovy_deg.to_radians() / 2.0).tan();
+    let (cx, cy) = ((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
+    CameraInfo {
+        header: header(t, &format!("{camera}_optical")),
+        height: height as u32,
+        width: width as u32,
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.0; 5],
+        k: [f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
+        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        ..CameraInfo::default()
+    }
+}
+
+/// Turns an arm command into a checked target, or says why not.
+fn target_from(cmd: &ArmCommand, sim: &Sim, ik: &CartesianIk) -> Result<ArmTarget, String> {
+    let gripper = cmd.gripper_position;
+    match cmd.mode()? {
+        ArmCommandMode::JointPosition => Ok(ArmTarget { joints: cmd.joint_position, gripper }),
+        ArmCommandMode::CartesianPosition => {
+            if cmd.cartesian_position.iter().any(|v| !v.is_finite()) {
+                return Err(format!("cartesian_position {:?} is not finite", cmd.cartesian_position));
+            }
+            Ok(ArmTarget { joints: ik.solve(sim, &cmd.cartesian_position), gripper })
+        }
+        other => Err(format!(
+            "mode {other:?} is not taken by the sim bridge: send joint_position (the franka node's IK output) \
+             or cartesian_position"
+        )),
+    }
+}
+
+async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!(a.period_ms > 0 && a.period_ms <= 1000, "--period-ms must be in 1..=1000");
+    let (spec, assets) = crate::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
+    let period = Nanos::from_millis(a.period_ms);
+    let mut sim = Sim::new(&assets, &spec, a.seed, period)?;
+    if !a.no_cameras {
+        sim.enable_cameras(a.width, a.height, a.meshes)?;
+    }
+    let ik = CartesianIk::new(&sim);
+    let scene: SceneValues = sim.scene().clone();
+
+    let cfg = RosConfig { domain_id: a.domain_id, loopback_only: !a.allow_network, ..RosConfig::default() };
+    cfg.validate(std::path::Path::new("<command line>"))?;
+    let mut ros = Ros::new(&cfg, "labrig_sim")?;
+    let cameras: Vec<&'static str> = if a.no_cameras { vec![] } else { crate::rig::CAMERAS.to_vec() };
+    let pubs = Publishers {
+        joint_states: ros.publisher("/joint_states", qos::reliable(10))?,
+        arm_state: ros.publisher("/arm/state", qos::reliable(10))?,
+        gripper_state: ros.publisher("/gripper/state", qos::reliable(10))?,
+        tf: ros.publisher("/tf", qos::reliable(10))?,
+        clock: ros.publisher("/clock", qos::reliable(10))?,
+        camera_info: cameras
+            .iter()
+            .map(|c| ros.publisher(&format!("/cameras/{c}/camera_info"), qos::reliable(10)))
+            .collect::<Result<_, _>>()?,
+    };
+    let tf_static = ros.publisher::<TFMessage>("/tf_static", qos::latched(1))?;
+    let scene_pub = ros.publisher::<StringMsg>("/sim/scene", qos::latched(1))?;
+    let arm_sub: RosSubscription<ArmCommand> = ros.subscription("/arm/command", qos::reliable(100))?;
+    let gripper_sub: RosSubscription<GripperCommand> = ros.subscription("/gripper/command", qos::reliable(100))?;
+    let frames = FrameNode::new()?;
+    let mut frame_pubs: Vec<FramePublisher> = cameras
+        .iter()
+        .map(|c| {
+            frames.publisher(
+                c,
+                FrameFormat { width: a.width as u32, height: a.height as u32, encoding: FrameEncoding::Rgb8 },
+            )
+        })
+        .collect::<Result<_, _>>()?;
+
+    scene_pub.publish(StringMsg { data: serde_json::to_string(&scene)? })?;
+    let statics: Vec<TransformStamped> = scene
+        .cameras
+        .keys()
+        .map(|id| {
+            let cam = sim.camera_pose(id).expect("scene cameras exist in the model");
+            transform(Nanos::ZERO, BASE_FRAME, &format!("{id}_optical"), cam.0, &optical(&cam.1))
+        })
+        .collect();
+    tf_static.publish(TFMessage { transforms: statics })?;
+    tracing::info!(
+        mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.domain_id,
+        "sim bridge up"
+    );
+
+    let mut state = CommandState { gripper: 0.0, last_ok: true, ..Default::default() };
+    let mut rgb = Vec::with_capacity(a.width * a.height * 3);
+    let mut ticks = 0u64;
+    let started = Instant::now();
+    let mut next_deadline = Instant::now();
+    let mut idle_publish = Instant::now();
+    let mut late_ticks = 0u64;
+    publish_state(&sim, &pubs, &state)?;
+    while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
+        // Gripper commands first, so an arm command of the same tick can override them.
+        while let Some(g) = gripper_sub.try_take()? {
+            let p = g.msg.position;
+            if p.is_finite() && (0.0..=1.0).contains(&p) {
+                state.gripper = p;
+            } else {
+                state.refused += 1;
+                state.fault = format!("refused gripper command: position {p} is outside 0..1");
+                tracing::warn!("{}", state.fault);
+            }
+        }
+        let step_now = match a.mode {
+            Mode::Lockstep => match arm_sub.try_take()? {
+                Some(cmd) => {
+                    accept(&cmd.msg, &sim, &ik, &mut state);
+                    true
+                }
+                None => false,
+            },
+            Mode::Realtime => {
+                while let Some(cmd) = arm_sub.try_take()? {
+                    accept(&cmd.msg, &sim, &ik, &mut state);
+                }
+                let now = Instant::now();
+                if now >= next_deadline {
+                    if now > next_deadline + Duration::from_nanos(period.0 as u64) {
+                        late_ticks += 1;
+                        next_deadline = now;
+                    }
+                    next_deadline += Duration::from_nanos(period.0 as u64);
+                    true
+                } else {
+                    false
+                }
+            }
+        };
+        if !step_now {
+            // Lockstep and idle: repeat the current state now and then, for late joiners.
+            if a.mode == Mode::Lockstep && idle_publish.elapsed() > Duration::from_millis(200) {
+                publish_state(&sim, &pubs, &state)?;
+                idle_publish = Instant::now();
+            }
+            let wait = match a.mode {
+                Mode::Lockstep => Duration::from_micros(200),
+                Mode::Realtime => next_deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(1)),
+            };
+            tokio::time::sleep(wait).await;
+            continue;
+        }
+        let target =
+            ArmTarget { joints: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints), gripper: state.gripper };
+        if let Err(e) = sim.step(&target) {
+            // Checked on accept; a failure here is a bug, reported, never silently stepped.
+            state.fault = e.to_string();
+            state.last_ok = false;
+            tracing::error!("{e}");
+            sim.step(&ArmTarget { joints: sim.joint_targets(), gripper: state.gripper.clamp(0.0, 1.0) })?;
+        }
+        ticks += 1;
+        let t = sim.time();
+        for (i, camera) in cameras.iter().enumerate() {
+            sim.render_into(camera, &mut rgb)?;
+            frame_pubs[i].publish(&rgb, t, t)?;
+            let fovy = sim.model().cam_fovy()[sim.camera_id(camera).expect("rig camera")];
+            pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovy))?;
+        }
+        publish_state(&sim, &pubs, &state)?;
+        idle_publish = Instant::now();
+    }
+    let wall = started.elapsed().as_secs_f64();
+    let sim_s = sim.time().as_secs_f64();
+    tracing::info!(
+        ticks,
+        sim_seconds = sim_s,
+        wall_seconds = wall,
+        realtime_factor = sim_s / wall.max(1e-9),
+        late_ticks,
+        commands = state.commands,
+        refused = state.refused,
+        "sim bridge stopped"
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn accept(cmd: &ArmCommand, sim: &Sim, ik: &CartesianIk, state: &mut CommandState) {
+    state.commands += 1;
+    let checked = target_from(cmd, sim, ik).and_then(|t| sim.check(&t).map(|()| t).map_err(|e| e.to_string()));
+    match checked {
+        Ok(t) => {
+            state.arm = Some(t);
+            state.gripper = t.gripper;
+            state.last_ok = true;
+            state.fault.clear();
+        }
+        Err(reason) => {
+            state.refused += 1;
+            state.last_ok = false;
+            state.fault = format!("refused arm command seq {}: {reason}", cmd.seq);
+            tracing::warn!("{}", state.fault);
+        }
+    }
+}
+
+fn publish_state(sim: &Sim, pubs: &Publishers, state: &CommandState) -> Result<(), anyhow::Error> {
+    let t = sim.time();
+    let q = sim.joint_positions();
+    let qd = sim.joint_velocities();
+    let gripper = sim.gripper_position();
+    let driver = sim.gripper_driver_angle();
+    let mut position: Vec<f64> = q.to_vec();
+    position.push(driver);
+    let mut velocity: Vec<f64> = qd.to_vec();
+    velocity.push(0.0);
+    pubs.joint_states.publish(JointState {
+        header: header(t, BASE_FRAME),
+        name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+        position,
+        velocity,
+        effort: vec![],
+    })?;
+    let (p, r) = sim.tcp_pose();
+    let rot = Matrix3::from_row_slice(&r);
+    let e = euler_xyz(&rot);
+    let moving = qd.iter().any(|v| v.abs() > 1e-3);
+    pubs.arm_state.publish(RobotState {
+        header: header(t, BASE_FRAME),
+        cartesian_position: [p[0], p[1], p[2], e[0], e[1], e[2]],
+        gripper_position: gripper,
+        joint_positions: q,
+        joint_velocities: qd,
+        prev_command_successful: state.last_ok,
+        mode: if !state.fault.is_empty() {
+            RobotState::MODE_FAULT
+        } else if moving {
+            RobotState::MODE_MOVING
+        } else {
+            RobotState::MODE_IDLE
+        },
+        fault: state.fault.clone(),
+        ..RobotState::default()
+    })?;
+    pubs.gripper_state.publish(GripperState {
+        header: header(t, BASE_FRAME),
+        position: gripper,
+        requested_position: state.gripper,
+        activated: true,
+        // Stalled short of a closing request: the fingers hold something.
+        object_detected: state.gripper > 0.5 && gripper < state.gripper - 0.1 && gripper > 0.05,
+        ..GripperState::default()
+    })?;
+    let mut tf = vec![transform(t, BASE_FRAME, "tcp", p, &rot)];
+    if let Some((pos, rot)) = sim.camera_pose("wrist") {
+        tf.push(transform(t, BASE_FRAME, "wrist_optical", pos, &optical(&rot)));
+    }
+    pubs.tf.publish(TFMessage { transforms: tf })?;
+    pubs.clock.publish(ClockMsg { clock: Time::from(t) })?;
+    Ok(())
+}

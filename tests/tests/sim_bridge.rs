@@ -1,0 +1,190 @@
+//! The sim bridge (`labrig-sim run`) behind the hardware's interfaces: a real rclpy node (PyPI
+//! ros-* wheels) reads its /joint_states and camera_info with standard types; in lockstep the
+//! same command sequence over ROS 2 gives bit-identical joint trajectories and identical
+//! frames on the camera node's iceoryx2 channels; bad commands are refused and reported.
+
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE as RESET, RobotState};
+use labrig_runtime::RosConfig;
+use labrig_runtime::frames::{FrameNode, NAMESPACE_ENV};
+use labrig_runtime::ros::{Ros, qos};
+use labrig_tests::{Proc, domain_for, rt, sim_bin};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+fn bridge(domain: u16, frames_ns: &str, args: &[&str]) -> Proc {
+    let mut cmd = Command::new(sim_bin());
+    cmd.args(["run", "--domain-id", &domain.to_string()]).args(args).env(NAMESPACE_ENV, frames_ns);
+    Proc::spawn("labrig-sim run", cmd)
+}
+
+#[test]
+fn rclpy_sees_the_bridges_joint_states_and_camera_info() {
+    let domain = domain_for("rclpy_sees_the_bridges_joint_states_and_camera_info");
+    let _bridge = bridge(domain, "rclpy", &["--mode", "realtime", "--max-ticks", "1200"]);
+    let mut joints = Proc::ros_peer(
+        domain,
+        &[
+            "listen",
+            "--topic",
+            "/joint_states",
+            "--type",
+            "sensor_msgs/msg/JointState",
+            "--count",
+            "20",
+            "--timeout",
+            "45",
+        ],
+    );
+    let mut info = Proc::ros_peer(
+        domain,
+        &[
+            "listen",
+            "--topic",
+            "/cameras/ext1/camera_info",
+            "--type",
+            "sensor_msgs/msg/CameraInfo",
+            "--count",
+            "5",
+            "--timeout",
+            "45",
+        ],
+    );
+    let mut stamps = Vec::new();
+    for _ in 0..20 {
+        let m = joints.wait_json(Duration::from_secs(60), "a JointState", |v| v.get("msg").is_some())["msg"].clone();
+        let names: Vec<&str> = m["name"].as_array().unwrap().iter().map(|n| n.as_str().unwrap()).collect();
+        assert_eq!(
+            names[..7],
+            ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7"]
+        );
+        assert_eq!(names[7], "finger_joint");
+        let pos: Vec<f64> = m["position"].as_array().unwrap().iter().map(|p| p.as_f64().unwrap()).collect();
+        for (i, (q, r)) in pos.iter().zip(RESET).enumerate() {
+            assert!((q - r).abs() < 0.02, "joint {} at {q}, reset pose {r}", i + 1);
+        }
+        stamps.push(
+            m["header"]["stamp"]["sec"].as_i64().unwrap() * 1_000_000_000
+                + m["header"]["stamp"]["nanosec"].as_i64().unwrap(),
+        );
+    }
+    // Sim time advances in whole control periods.
+    assert!(stamps.windows(2).all(|w| w[1] > w[0] && (w[1] - w[0]) % 50_000_000 == 0), "{stamps:?}");
+    let m = info.wait_json(Duration::from_secs(60), "a CameraInfo", |v| v.get("msg").is_some())["msg"].clone();
+    assert_eq!((m["width"].as_u64(), m["height"].as_u64()), (Some(128), Some(128)));
+    assert_eq!(m["header"]["frame_id"], "ext1_optical");
+    let k: Vec<f64> = m["k"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    // fovy 60 deg over 128 rows: f = 64 / tan(30 deg).
+    assert!((k[0] - 64.0 / 30f64.to_radians().tan()).abs() < 1e-9 && k[0] == k[4], "{k:?}");
+    assert_eq!((k[2], k[5], k[8]), (63.5, 63.5, 1.0));
+}
+
+/// One lockstep run over ROS 2: sends `commands` one per tick, waits for the state of each
+/// tick, and returns (joint positions per tick as bits, wrist frames, final state).
+fn lockstep_run(test: &str, commands: &[ArmCommand]) -> (Vec<Vec<u64>>, Vec<Vec<u8>>, RobotState) {
+    let domain = domain_for(test);
+    let ns = format!("{test}_{}", std::process::id());
+    let _bridge = bridge(domain, &ns, &["--mode", "lockstep", "--seed", "3", "--width", "64", "--height", "48"]);
+    let frames_ns = ns.clone();
+    rt().block_on(async move {
+        let cfg = RosConfig { domain_id: domain, ..RosConfig::default() };
+        let mut ros = Ros::new(&cfg, "lockstep_driver").unwrap();
+        let cmd_pub = ros.publisher::<ArmCommand>("/arm/command", qos::reliable(100)).unwrap();
+        let state_sub = ros.subscription::<RobotState>("/arm/state", qos::reliable(100)).unwrap();
+        assert!(ros.wait_for_subscribers("/arm/command", 1, Duration::from_secs(60)).await, "bridge did not come up");
+        let frames = FrameNode::new_in(&frames_ns).unwrap();
+        let wrist = frames.subscriber("wrist").unwrap();
+        let mut traj = Vec::new();
+        let mut images = Vec::new();
+        let mut last = RobotState::default();
+        for (k, cmd) in commands.iter().enumerate() {
+            cmd_pub.publish(cmd.clone()).unwrap();
+            let want = Nanos::from_millis(50 * (k as i64 + 1));
+            let deadline = Instant::now() + Duration::from_secs(30);
+            loop {
+                assert!(Instant::now() < deadline, "no /arm/state for tick {}", k + 1);
+                if let Some(s) = state_sub.try_take().unwrap() {
+                    if Nanos::from(s.msg.header.stamp) == want {
+                        last = s.msg;
+                        break;
+                    }
+                } else {
+                    tokio::time::sleep(Duration::from_millis(1)).await;
+                }
+            }
+            traj.push(last.joint_positions.iter().map(|q| q.to_bits()).collect());
+            // The frame of this tick, captured at the tick's sim time.
+            let deadline = Instant::now() + Duration::from_secs(30);
+            loop {
+                assert!(Instant::now() < deadline, "no wrist frame for tick {}", k + 1);
+                match wrist.receive().unwrap() {
+                    Some(f) if f.header().capture_ns == want.0 => {
+                        images.push(f.pixels().to_vec());
+                        break;
+                    }
+                    Some(_) => {}
+                    None => tokio::time::sleep(Duration::from_millis(1)).await,
+                }
+            }
+        }
+        (traj, images, last)
+    })
+}
+
+fn joint_command(seq: u64, joints: [f64; 7], gripper: f64) -> ArmCommand {
+    ArmCommand {
+        mode: ArmCommandMode::JointPosition as u8,
+        joint_position: joints,
+        gripper_position: gripper,
+        seq,
+        ..ArmCommand::default()
+    }
+}
+
+fn script() -> Vec<ArmCommand> {
+    (0..30)
+        .map(|k| {
+            let t = k as f64 * 0.05;
+            let mut q = RESET;
+            q[0] = 0.4 * (0.8 * t).sin();
+            q[3] = RESET[3] + 0.3 * (0.6 * t).sin();
+            joint_command(k, q, if k > 15 { 1.0 } else { 0.0 })
+        })
+        .collect()
+}
+
+#[test]
+fn lockstep_over_ros_is_bit_identical_frames_included() {
+    let (a, fa, _) = lockstep_run("lockstep_a", &script());
+    let (b, fb, _) = lockstep_run("lockstep_b", &script());
+    assert_eq!(a.len(), 30);
+    assert!(a == b, "joint trajectories differ between two lockstep runs");
+    assert!(fa == fb, "wrist frames differ between two lockstep runs");
+    assert_ne!(a[0], a[29], "the arm did not move");
+    assert_ne!(fa[0], fa[29], "the wrist camera did not see the motion");
+}
+
+#[test]
+fn nan_and_out_of_limit_commands_are_refused_and_reported() {
+    let mut cmds: Vec<ArmCommand> = (0..4).map(|k| joint_command(k, RESET, 0.0)).collect();
+    let mut nan = RESET;
+    nan[1] = f64::NAN;
+    cmds.push(joint_command(4, nan, 0.0));
+    let (traj, _, last) = lockstep_run("refused_nan", &cmds);
+    assert_eq!(last.mode, RobotState::MODE_FAULT);
+    assert!(!last.prev_command_successful);
+    assert!(last.fault.contains("seq 4") && last.fault.contains("fr3_joint2 is NaN"), "{}", last.fault);
+    // The arm held its last good target: no NaN reached the physics.
+    assert!(traj.last().unwrap().iter().all(|b| f64::from_bits(*b).is_finite()));
+    let mut far = RESET;
+    far[3] = 0.5;
+    let mut cmds: Vec<ArmCommand> = (0..2).map(|k| joint_command(k, RESET, 0.0)).collect();
+    cmds.push(joint_command(2, far, 0.0));
+    let (_, _, last) = lockstep_run("refused_limit", &cmds);
+    assert!(last.fault.contains("fr3_joint4 = 0.5000 rad is outside its limits"), "{}", last.fault);
+    // A good command clears the fault.
+    let mut cmds: Vec<ArmCommand> = vec![joint_command(0, nan, 0.0)];
+    cmds.push(joint_command(1, RESET, 0.0));
+    let (_, _, last) = lockstep_run("refused_then_ok", &cmds);
+    assert!(last.prev_command_successful && last.fault.is_empty(), "{last:?}");
+}
