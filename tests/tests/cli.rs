@@ -1,18 +1,27 @@
 //! The `labrig` binary end to end: demo, shm bench (functional, not timing), argument errors.
 
-use labrig_tests::labrig_bin;
+use labrig_tests::{labrig_bin, sim_bin};
 use serde_json::Value;
 use std::process::Command;
 
 #[test]
-fn demo_delivers_every_state_and_frame() {
-    let out =
-        Command::new(labrig_bin()).args(["demo", "--seconds", "1", "--json", "--domain-id", "201"]).output().unwrap();
+fn demo_delivers_every_state_and_frame_and_runs_the_sim_expert() {
+    sim_bin(); // `labrig demo` runs the sim binary built beside it
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(labrig_bin())
+        .args(["demo", "--seconds", "1", "--json", "--domain-id", "201", "--episodes", "2", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
     assert!(out.status.success(), "demo failed: {}", String::from_utf8_lossy(&out.stderr));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["ok"], true);
     assert_eq!(r["joint_states"]["received"], r["ticks"]);
     assert_eq!(r["cameras"].as_array().unwrap().len(), 5);
+    assert_eq!(r["sim"]["eval"]["episodes"], 2);
+    assert_eq!(r["sim"]["eval"]["successes"], 2);
+    let sheet = dir.path().join("snapshot_seed0/cameras.png");
+    assert!(std::fs::metadata(&sheet).unwrap().len() > 10_000, "contact sheet {} too small", sheet.display());
 }
 
 #[test]

@@ -38,6 +38,15 @@ pub struct DemoArgs {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Skip the simulated rig (transport only).
+    #[arg(long)]
+    pub no_sim: bool,
+    /// Seeded pick-and-place scenes the scripted expert runs in the sim.
+    #[arg(long, default_value_t = 3)]
+    pub episodes: u64,
+    /// Where the demo writes its pictures.
+    #[arg(long, default_value = "out/demo")]
+    pub out: std::path::PathBuf,
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
@@ -127,13 +136,17 @@ async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
     skews_us.sort_by(f64::total_cmp);
     let p =
         |q: f64| skews_us.get(((q * (skews_us.len().max(1) - 1) as f64).round()) as usize).copied().unwrap_or(f64::NAN);
-    let ok = states_received == ticks && frames_received.iter().all(|&n| n == ticks);
+    let transport_ok = states_received == ticks && frames_received.iter().all(|&n| n == ticks);
+    let sim = if args.no_sim { None } else { Some(sim_part(&args)?) };
+    let sim_ok = sim.as_ref().is_none_or(|s| s["ok"] == true);
+    let ok = transport_ok && sim_ok;
     let report = json!({
         "ticks": ticks,
         "rate_hz": args.rate,
         "joint_states": { "published": ticks, "received": states_received },
         "cameras": CAMERAS.iter().zip(frames_received).map(|(c, n)| json!({"camera": c, "published": ticks, "received": n})).collect::<Vec<_>>(),
         "camera_skew_us": { "p50": p(0.5), "p99": p(0.99) },
+        "sim": sim,
         "ok": ok,
     });
     if args.json {
@@ -145,8 +158,58 @@ async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
             println!("  camera {c:<6} 128x128 rgb8 over iceoryx2  {n}/{ticks} frames");
         }
         println!("  camera skew per observation: p50 {:.0} us, p99 {:.0} us", p(0.5), p(0.99));
-        println!("  {}", if ok { "all data arrived" } else { "DATA WAS LOST (see counts above)" });
-        println!("The MuJoCo rig (sim bridge, scripted operator, recording) joins this demo as it lands.");
+        println!("  {}", if transport_ok { "all data arrived" } else { "DATA WAS LOST (see counts above)" });
+        if let Some(sim) = &sim {
+            println!(
+                "simulated rig (MuJoCo): scripted pick-and-place expert {}/{} seeded scenes succeeded",
+                sim["eval"]["successes"], sim["eval"]["episodes"]
+            );
+            for r in sim["eval"]["results"].as_array().into_iter().flatten() {
+                println!(
+                    "  seed {}: {} in {} ticks, cameras {}",
+                    r["seed"],
+                    if r["success"] == true { "success" } else { "FAILED" },
+                    r["ticks"],
+                    r["camera_bins"]
+                        .as_array()
+                        .map(|b| b.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(" "))
+                        .unwrap_or_default()
+                );
+            }
+            println!("  the five cameras of seed 0: {}", sim["snapshot"]);
+        }
+        println!("Recording these episodes as DROID-format MCAP comes with the rig loop and recorder (issue 5).");
     }
     Ok(if ok { ExitCode::SUCCESS } else { ExitCode::from(1) })
+}
+
+/// The simulated rig's part: the scripted expert on seeded scenes (`labrig sim eval`) and a
+/// snapshot of the five cameras (`labrig sim snapshot`), run by the sim binary.
+fn sim_part(args: &DemoArgs) -> anyhow::Result<serde_json::Value> {
+    let exe = crate::cli::sibling_binary("labrig-sim")?;
+    let bar = ProgressBar::new_spinner().with_message(format!("simulated rig: expert on {} scenes", args.episodes));
+    bar.enable_steady_tick(Duration::from_millis(120));
+    let out = std::process::Command::new(&exe)
+        .args(["eval", "--json", "--episodes", &args.episodes.to_string()])
+        .stderr(std::process::Stdio::inherit())
+        .output()?;
+    if !out.status.success() {
+        bar.finish_and_clear();
+        bail!("labrig sim eval failed ({})", out.status);
+    }
+    let eval: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+    bar.set_message("simulated rig: snapshot");
+    let snap_dir = args.out.join("snapshot_seed0");
+    let status = std::process::Command::new(&exe)
+        .args(["snapshot", "--seed", "0", "--out"])
+        .arg(&snap_dir)
+        .stdout(std::process::Stdio::null())
+        .status()?;
+    bar.finish_and_clear();
+    if !status.success() {
+        bail!("labrig sim snapshot failed ({status})");
+    }
+    let sheet = snap_dir.join("cameras.png");
+    let ok = eval["successes"] == eval["episodes"] && sheet.exists();
+    Ok(json!({ "eval": eval, "snapshot": sheet.display().to_string(), "ok": ok }))
 }
