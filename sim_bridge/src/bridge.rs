@@ -234,6 +234,8 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         "sim bridge up"
     );
 
+    let fovys: Vec<f64> =
+        cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect();
     let mut state = CommandState { gripper: 0.0, last_ok: true, ..Default::default() };
     let mut rgb = Vec::with_capacity(a.width * a.height * 3);
     let mut ticks = 0u64;
@@ -306,8 +308,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         for (i, camera) in cameras.iter().enumerate() {
             sim.render_into(camera, &mut rgb)?;
             frame_pubs[i].publish(&rgb, t, t)?;
-            let fovy = sim.model().cam_fovy()[sim.camera_id(camera).expect("rig camera")];
-            pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovy))?;
+            pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovys[i]))?;
         }
         publish_state(&sim, &pubs, &state)?;
         idle_publish = Instant::now();

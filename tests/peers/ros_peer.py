@@ -417,8 +417,8 @@ def wait_for_subscribers(pub, timeout_s):
     return True
 
 
-def cmd_listen_joint_states(args):
-    from sensor_msgs.msg import JointState
+def _listen(topic, cls, to_json, count, timeout):
+    """Subscribe, emit {"ready"}, then one JSON line per message until count or timeout."""
     rclpy, node = make_node("listen")
     received = 0
 
@@ -426,44 +426,36 @@ def cmd_listen_joint_states(args):
         nonlocal received
         recv_ns = time.time_ns()
         received += 1
-        emit({"name": list(m.name), "position": list(m.position),
-              "velocity": list(m.velocity), "effort": list(m.effort),
-              "stamp": {"sec": m.header.stamp.sec, "nanosec": m.header.stamp.nanosec},
-              "frame_id": m.header.frame_id, "recv_ns": recv_ns})
+        emit({**to_json(m), "recv_ns": recv_ns})
 
-    node.create_subscription(JointState, args.topic, on_msg, qos(1000))
+    node.create_subscription(cls, topic, on_msg, qos(1000))
     emit({"ready": True})
-    deadline = time.monotonic() + args.timeout
+    deadline = time.monotonic() + timeout
     try:
-        while received < args.count and time.monotonic() < deadline:
+        while received < count and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
     finally:
         emit({"done": True, "received": received})
         shutdown(rclpy, node)
     return 0
+
+
+def cmd_listen_joint_states(args):
+    from sensor_msgs.msg import JointState
+
+    def to_json(m):
+        return {"name": list(m.name), "position": list(m.position),
+                "velocity": list(m.velocity), "effort": list(m.effort),
+                "stamp": {"sec": m.header.stamp.sec, "nanosec": m.header.stamp.nanosec},
+                "frame_id": m.header.frame_id}
+
+    return _listen(args.topic, JointState, to_json, args.count, args.timeout)
 
 
 def cmd_listen(args):
     """Any message type: one JSON line per message (its fields), then a summary."""
-    cls = resolve_type(args.type)
-    rclpy, node = make_node("listen_any")
-    received = 0
-
-    def on_msg(m):
-        nonlocal received
-        received += 1
-        emit({"topic": args.topic, "msg": msg_to_dict(m), "recv_ns": time.time_ns()})
-
-    node.create_subscription(cls, args.topic, on_msg, qos(1000))
-    emit({"ready": True})
-    deadline = time.monotonic() + args.timeout
-    try:
-        while received < args.count and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
-    finally:
-        emit({"done": True, "received": received})
-        shutdown(rclpy, node)
-    return 0
+    return _listen(args.topic, resolve_type(args.type),
+                   lambda m: {"topic": args.topic, "msg": msg_to_dict(m)}, args.count, args.timeout)
 
 
 def _flush_reliable(pub, timeout_s=5.0):
