@@ -249,7 +249,8 @@ impl CartesianIk {
         let target = from_euler_xyz([pose[3], pose[4], pose[5]]);
         let dr = UnitQuaternion::from_matrix(&(target * row_major(r).transpose())).scaled_axis();
         let err = SVector::<f64, 6>::new(dp.x, dp.y, dp.z, dr.x, dr.y, dr.z);
-        let j = SMatrix::<f64, 6, 7>::from_fn(|row, col| sim.tcp_jacobian()[row][col]);
+        let jac = sim.tcp_jacobian();
+        let j = SMatrix::<f64, 6, 7>::from_fn(|row, col| jac[row][col]);
         let jjt = j * j.transpose() + Matrix6::identity() * self.damping.powi(2);
         let pinv = j.transpose() * jjt.try_inverse().unwrap_or_else(Matrix6::identity);
         let dq_task = pinv * err;
