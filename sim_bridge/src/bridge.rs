@@ -58,7 +58,7 @@ pub enum Mode {
 
 #[derive(Debug, clap::Args)]
 pub struct BridgeArgs {
-    /// Scene spec (TOML); default: the built-in pick-and-place scene.
+    /// Scene spec (TOML file) or a built-in scene: pick_place (default), drawer_open, drawer_close.
     #[arg(long)]
     pub scene: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]

@@ -1,12 +1,12 @@
-//! The scripted expert: solves pick-and-place into the bin from the scene's ground truth,
-//! producing DROID actions (absolute end-effector pose as xyz + extrinsic xyz euler, and a 0..1
-//! gripper position), plus the task's success predicate.
+//! The scripted experts: solve pick-and-place into the bin and drawer open/close from the
+//! scene's ground truth, producing DROID actions (absolute end-effector pose as xyz + extrinsic
+//! xyz euler, and a 0..1 gripper position), plus each task's success predicate.
 //!
 //! In the sim, [`CartesianIk`] turns the pose action into joint position targets with one
 //! damped-least-squares step per tick on MuJoCo's own Jacobian — a stand-in for the franka
 //! node's URDF-based IK (issue 4) so the expert can be evaluated inside this crate.
 
-use crate::scene::{BIN_HALF, OBJECT_SIZE};
+use crate::scene::{BIN_HALF, DRAWER_CLOSED_M, DRAWER_OPEN_M, DRAWER_TRAVEL, OBJECT_SIZE, Task};
 use crate::{ArmTarget, Sim, SimError};
 use nalgebra::{Matrix3, Matrix6, Rotation3, SMatrix, SVector, UnitQuaternion, Vector3};
 use serde::Serialize;
@@ -26,6 +26,9 @@ pub enum Phase {
     Lift,
     Carry,
     Lower,
+    /// Drawer tasks: slide the gripped handle out / in.
+    Pull,
+    Push,
     Release,
     Retreat,
     Done,
@@ -54,6 +57,37 @@ pub fn from_euler_xyz(e: [f64; 3]) -> Matrix3<f64> {
 
 fn row_major(m: [f64; 9]) -> Matrix3<f64> {
     Matrix3::from_row_slice(&m)
+}
+
+/// Moves a goal pose toward `target` by at most one step per tick ([`MAX_STEP_M`],
+/// [`MAX_STEP_RAD`]).
+fn lead(
+    (goal_p, goal_r): (Vector3<f64>, Matrix3<f64>),
+    target: Vector3<f64>,
+    target_rot: Matrix3<f64>,
+) -> (Vector3<f64>, Matrix3<f64>) {
+    let dp = target - goal_p;
+    let next_p = goal_p + dp * (MAX_STEP_M / dp.norm().max(MAX_STEP_M));
+    let dr = UnitQuaternion::from_matrix(&(target_rot * goal_r.transpose()));
+    let angle = dr.angle();
+    let next_r = if angle > MAX_STEP_RAD {
+        *UnitQuaternion::identity().slerp(&dr, MAX_STEP_RAD / angle).to_rotation_matrix().matrix() * goal_r
+    } else {
+        target_rot
+    };
+    (next_p, next_r)
+}
+
+/// The turn about world z (rad, smallest) that brings the fingers' closing axis (the TCP's y)
+/// of `down` to the yaw `axis_yaw`, modulo `symmetry` (pi/2 for a cube, pi for a bar).
+fn turn_to(down: &Matrix3<f64>, axis_yaw: f64, symmetry: f64) -> f64 {
+    let finger = down * Vector3::y();
+    let finger_yaw = finger.y.atan2(finger.x);
+    let mut turn = (axis_yaw - finger_yaw).rem_euclid(symmetry);
+    if turn > symmetry / 2.0 {
+        turn -= symmetry;
+    }
+    turn
 }
 
 /// Pick-and-place from ground truth: approach above the object, descend, close, lift, carry
@@ -92,18 +126,11 @@ impl PickPlaceExpert {
         // The fingers close along the TCP's y axis: align it with a face of the cube. The
         // cube's symmetry lets the yaw be taken modulo 90 deg, into the smallest turn.
         let obj_yaw = sim.scene().object_yaw_deg.to_radians();
-        let finger = down * Vector3::y();
-        let finger_yaw = finger.y.atan2(finger.x);
-        let quarter = std::f64::consts::FRAC_PI_2;
-        let mut turn = (obj_yaw - finger_yaw).rem_euclid(quarter);
-        if turn > quarter / 2.0 {
-            turn -= quarter;
-        }
         PickPlaceExpert {
             phase: Phase::Approach,
             ticks_in_phase: 0,
             down,
-            grasp_yaw: turn,
+            grasp_yaw: turn_to(&down, obj_yaw, std::f64::consts::FRAC_PI_2),
             bin: sim.scene().receptacle_position,
             goal: None,
             carried: Vector3::zeros(),
@@ -123,7 +150,7 @@ impl PickPlaceExpert {
             Phase::Grasp => Phase::Lift,
             Phase::Lift => Phase::Carry,
             Phase::Carry => Phase::Lower,
-            Phase::Lower => Phase::Release,
+            Phase::Lower | Phase::Pull | Phase::Push => Phase::Release,
             Phase::Release => Phase::Retreat,
             Phase::Retreat | Phase::Done => Phase::Done,
         };
@@ -150,19 +177,11 @@ impl PickPlaceExpert {
             Phase::Carry => (Vector3::new(bin.x, bin.y, CARRY_Z), grasp_rot, 1.0),
             Phase::Lower => (Vector3::new(bin.x, bin.y, RELEASE_Z), grasp_rot, 1.0),
             Phase::Release => (Vector3::new(bin.x, bin.y, RELEASE_Z), grasp_rot, 0.0),
-            Phase::Retreat | Phase::Done => (Vector3::new(bin.x, bin.y, CARRY_Z + 0.05), grasp_rot, 0.0),
+            Phase::Retreat | Phase::Done | Phase::Pull | Phase::Push => {
+                (Vector3::new(bin.x, bin.y, CARRY_Z + 0.05), grasp_rot, 0.0)
+            }
         };
-        // Lead the goal toward the target by at most one step per tick.
-        let (goal_p, goal_r) = self.goal.unwrap_or((pos, rot));
-        let dp = target - goal_p;
-        let next_p = goal_p + dp * (MAX_STEP_M / dp.norm().max(MAX_STEP_M));
-        let dr = UnitQuaternion::from_matrix(&(target_rot * goal_r.transpose()));
-        let angle = dr.angle();
-        let next_r = if angle > MAX_STEP_RAD {
-            *UnitQuaternion::identity().slerp(&dr, MAX_STEP_RAD / angle).to_rotation_matrix().matrix() * goal_r
-        } else {
-            target_rot
-        };
+        let (next_p, next_r) = lead(self.goal.unwrap_or((pos, rot)), target, target_rot);
         self.goal = Some((next_p, next_r));
         self.ticks_in_phase += 1;
         let reached = (target - pos).norm() < 0.006 && (next_p - target).norm() < 1e-9;
@@ -199,6 +218,182 @@ impl PickPlaceExpert {
             phase: self.phase,
         }
     }
+}
+
+/// Drawer open/close from ground truth: approach above the handle, descend, close on it,
+/// slide it out (open) or in (close), let go, retreat upward.
+#[derive(Debug, Clone)]
+pub struct DrawerExpert {
+    task: Task,
+    phase: Phase,
+    ticks_in_phase: u32,
+    /// Fingers down, closing across the handle (along world y).
+    grasp_rot: Matrix3<f64>,
+    /// The handle's x when the drawer is shut.
+    shut_x: f64,
+    goal: Option<(Vector3<f64>, Matrix3<f64>)>,
+    held: Vector3<f64>,
+    attempts: u32,
+    last_gripper: f64,
+}
+
+/// The pinch point sits this far above the handle bar's centre.
+const HANDLE_GRIP_ABOVE: f64 = 0.004;
+/// Pull the drawer to this far short of its travel.
+const PULL_SHORT_OF_END: f64 = 0.012;
+
+impl DrawerExpert {
+    /// `sim` must be at the reset pose of a scene with a drawer.
+    pub fn new(sim: &Sim) -> Option<DrawerExpert> {
+        let drawer = sim.scene().drawer.as_ref()?;
+        let (_, rot) = sim.tcp_pose();
+        let down = row_major(rot);
+        // The handle is a bar along x: close the fingers across it (along y; a bar is
+        // symmetric under a half turn).
+        let turn = turn_to(&down, std::f64::consts::FRAC_PI_2, std::f64::consts::PI);
+        Some(DrawerExpert {
+            task: sim.scene().task,
+            phase: Phase::Approach,
+            ticks_in_phase: 0,
+            grasp_rot: *Rotation3::from_axis_angle(&Vector3::z_axis(), turn).matrix() * down,
+            shut_x: drawer.handle_position(0.0)[0],
+            goal: None,
+            held: Vector3::zeros(),
+            attempts: 1,
+            last_gripper: 0.0,
+        })
+    }
+
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    pub fn act(&mut self, sim: &Sim) -> Action {
+        let (p, r) = sim.tcp_pose();
+        let pos = Vector3::from(p);
+        let rot = row_major(r);
+        let handle = Vector3::from(sim.handle_position().expect("a drawer scene"));
+        let opening = sim.drawer_opening().expect("a drawer scene");
+        let grip = Vector3::new(handle.x, handle.y, handle.z + HANDLE_GRIP_ABOVE);
+        let slide = match self.task {
+            Task::DrawerClose => Phase::Push,
+            _ => Phase::Pull,
+        };
+        let (target, gripper) = match self.phase {
+            Phase::Approach => (grip + Vector3::z() * HOVER_Z, 0.0),
+            Phase::Descend => (grip, 0.0),
+            Phase::Grasp => {
+                self.held = pos;
+                (pos, 1.0)
+            }
+            Phase::Pull => {
+                (Vector3::new(self.shut_x - (DRAWER_TRAVEL - PULL_SHORT_OF_END), self.held.y, self.held.z), 1.0)
+            }
+            Phase::Push => (Vector3::new(self.shut_x, self.held.y, self.held.z), 1.0),
+            Phase::Release => (self.held_now(pos), 0.0),
+            _ => (Vector3::new(handle.x, handle.y, grip.z + HOVER_Z), 0.0),
+        };
+        let (next_p, next_r) = lead(self.goal.unwrap_or((pos, rot)), target, self.grasp_rot);
+        self.goal = Some((next_p, next_r));
+        self.ticks_in_phase += 1;
+        let reached = (target - pos).norm() < 0.006 && (next_p - target).norm() < 1e-9;
+        let done = match self.phase {
+            Phase::Grasp => {
+                self.ticks_in_phase >= GRIP_TICKS && (sim.gripper_position() - self.last_gripper).abs() < 2e-3
+            }
+            Phase::Pull => reached || opening >= DRAWER_TRAVEL - PULL_SHORT_OF_END,
+            Phase::Push => reached || opening <= 0.002,
+            Phase::Release => self.ticks_in_phase >= GRIP_TICKS,
+            Phase::Done => false,
+            _ => reached,
+        };
+        self.last_gripper = sim.gripper_position();
+        // The handle slipped out of the fingers while sliding: let go and grasp again.
+        let slipped = matches!(self.phase, Phase::Pull | Phase::Push) && (handle - pos).norm() > 0.03;
+        if slipped && self.attempts < MAX_ATTEMPTS {
+            tracing::debug!(attempt = self.attempts, "expert: the handle slipped; grasping again");
+            self.attempts += 1;
+            self.phase = Phase::Approach;
+            self.ticks_in_phase = 0;
+        } else if done || (self.ticks_in_phase > PHASE_TIMEOUT && self.phase != Phase::Done) {
+            tracing::debug!(phase = ?self.phase, ticks = self.ticks_in_phase, timed_out = !done, opening, "expert phase done");
+            self.phase = if self.phase == Phase::Grasp { slide } else { self.next_phase() };
+            self.ticks_in_phase = 0;
+        }
+        let e = euler_xyz(&next_r);
+        Action {
+            cartesian_position: [next_p.x, next_p.y, next_p.z, e[0], e[1], e[2]],
+            gripper_position: gripper,
+            phase: self.phase,
+        }
+    }
+
+    /// Where to hold still while the fingers open: where the TCP is.
+    fn held_now(&self, pos: Vector3<f64>) -> Vector3<f64> {
+        self.goal.map_or(pos, |(p, _)| p)
+    }
+
+    fn next_phase(&self) -> Phase {
+        match self.phase {
+            Phase::Approach => Phase::Descend,
+            Phase::Descend => Phase::Grasp,
+            Phase::Pull | Phase::Push => Phase::Release,
+            Phase::Release => Phase::Retreat,
+            _ => Phase::Done,
+        }
+    }
+}
+
+/// The expert for a scene's task.
+#[derive(Debug, Clone)]
+pub enum Expert {
+    PickPlace(PickPlaceExpert),
+    Drawer(DrawerExpert),
+}
+
+impl Expert {
+    /// The expert for `sim`'s task; `sim` must be at its reset pose.
+    pub fn new(sim: &Sim) -> Expert {
+        match sim.scene().task {
+            Task::PickPlace => Expert::PickPlace(PickPlaceExpert::new(sim)),
+            Task::DrawerOpen | Task::DrawerClose => {
+                Expert::Drawer(DrawerExpert::new(sim).expect("the spec validated a drawer for the drawer tasks"))
+            }
+        }
+    }
+
+    pub fn act(&mut self, sim: &Sim) -> Action {
+        match self {
+            Expert::PickPlace(e) => e.act(sim),
+            Expert::Drawer(e) => e.act(sim),
+        }
+    }
+
+    pub fn phase(&self) -> Phase {
+        match self {
+            Expert::PickPlace(e) => e.phase(),
+            Expert::Drawer(e) => e.phase(),
+        }
+    }
+}
+
+/// Whether the scene's task is solved, judged on the physics.
+pub fn task_success(sim: &Sim) -> bool {
+    match sim.scene().task {
+        Task::PickPlace => pick_place_success(sim),
+        Task::DrawerOpen => drawer_open_success(sim),
+        Task::DrawerClose => drawer_close_success(sim),
+    }
+}
+
+/// drawer_open: the drawer is out by at least [`DRAWER_OPEN_M`] and the gripper has let go.
+pub fn drawer_open_success(sim: &Sim) -> bool {
+    sim.drawer_opening().is_some_and(|o| o >= DRAWER_OPEN_M) && sim.gripper_position() < 0.3
+}
+
+/// drawer_close: the drawer is in to at most [`DRAWER_CLOSED_M`] and the gripper has let go.
+pub fn drawer_close_success(sim: &Sim) -> bool {
+    sim.drawer_opening().is_some_and(|o| o <= DRAWER_CLOSED_M) && sim.gripper_position() < 0.3
 }
 
 /// The pick-and-place success predicate: the object rests inside the bin's walls and the
@@ -269,11 +464,15 @@ impl CartesianIk {
 #[derive(Debug, Clone, Serialize)]
 pub struct EpisodeResult {
     pub seed: u64,
+    pub task: Task,
     pub success: bool,
     pub ticks: u64,
     pub final_phase: Phase,
     pub object_position: [f64; 3],
     pub receptacle_position: [f64; 3],
+    /// The drawer's opening (m) at the start and at the end, when the scene has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drawer_opening: Option<[f64; 2]>,
     pub camera_bins: Vec<String>,
 }
 
@@ -284,8 +483,9 @@ pub fn run_episode(
     max_ticks: u64,
     mut on_tick: impl FnMut(&mut Sim, &Action) -> Result<(), SimError>,
 ) -> Result<EpisodeResult, SimError> {
-    let mut expert = PickPlaceExpert::new(sim);
+    let mut expert = Expert::new(sim);
     let ik = CartesianIk::new(sim);
+    let opening_at_start = sim.drawer_opening();
     let mut ticks = 0;
     while ticks < max_ticks {
         let action = expert.act(sim);
@@ -305,11 +505,13 @@ pub fn run_episode(
     let scene = sim.scene();
     Ok(EpisodeResult {
         seed: scene.seed,
-        success: pick_place_success(sim),
+        task: scene.task,
+        success: task_success(sim),
         ticks,
         final_phase: expert.phase(),
         object_position: sim.object_position(),
         receptacle_position: scene.receptacle_position,
+        drawer_opening: opening_at_start.zip(sim.drawer_opening()).map(|(a, b)| [a, b]),
         camera_bins: scene
             .cameras
             .iter()

@@ -44,11 +44,16 @@ pub fn assets_dir(assets: Option<&Path>) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(rig::DEFAULT_ASSETS)
 }
 
-/// The scene spec (file, or the built-in pick-and-place scene) and the assets folder.
+/// The scene spec (a file, or the name of a built-in scene: `pick_place` when none is given,
+/// `drawer_open`, `drawer_close`) and the assets folder. A file of that name wins over a
+/// built-in one.
 pub fn resolve_scene(scene: Option<&Path>, assets: Option<&Path>) -> Result<(SceneSpec, PathBuf), scene::SceneError> {
     let spec = match scene {
-        Some(path) => SceneSpec::load(path)?,
         None => SceneSpec::default_pick_place(),
+        Some(path) => match path.to_str().and_then(SceneSpec::builtin) {
+            Some(spec) if !path.exists() => spec,
+            _ => SceneSpec::load(path)?,
+        },
     };
     Ok((spec, assets_dir(assets)))
 }

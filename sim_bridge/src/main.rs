@@ -27,7 +27,7 @@ struct Cli {
 enum Command {
     /// Render the five cameras of a scene to PNGs, with the scene's sampled values as JSON.
     Snapshot(SnapshotArgs),
-    /// Run the scripted pick-and-place expert on many seeded scenes and report its success rate.
+    /// Run the scripted expert of the scene's task on many seeded scenes; report its success rate.
     Eval(EvalArgs),
     /// Run the bridge: the rig behind the franka, gripper and camera nodes' ROS 2 topics.
     Run(labrig_sim::bridge::BridgeArgs),
@@ -38,7 +38,7 @@ enum Command {
 /// Which scene: a spec file (default: the built-in pick-and-place scene) and a seed.
 #[derive(Debug, Clone, Args)]
 pub struct SceneArgs {
-    /// Scene spec (TOML); default: sim_bridge/scenes/pick_place.toml (built in).
+    /// Scene spec (TOML file) or a built-in scene: pick_place (default), drawer_open, drawer_close.
     #[arg(long)]
     scene: Option<PathBuf>,
     /// Where setup extracted the MuJoCo models (default: $LABRIG_MUJOCO_DIR/assets, else
@@ -159,16 +159,17 @@ fn eval(a: EvalArgs) -> anyhow::Result<ExitCode> {
             println!("successful episodes take {mean:.0} ticks on average ({:.1} s at 20 Hz)", mean / 20.0);
         }
         for r in results.iter().filter(|r| !r.success) {
-            println!(
-                "  failed: seed {} (phase {:?}, object at [{:.3}, {:.3}, {:.3}], bin at [{:.3}, {:.3}])",
-                r.seed,
-                r.final_phase,
-                r.object_position[0],
-                r.object_position[1],
-                r.object_position[2],
-                r.receptacle_position[0],
-                r.receptacle_position[1]
-            );
+            let [x, y, z] = r.object_position;
+            let state = match r.drawer_opening {
+                Some([from, to]) if r.task != labrig_sim::scene::Task::PickPlace => {
+                    format!("drawer opening {from:.3} m -> {to:.3} m")
+                }
+                _ => format!(
+                    "object at [{x:.3}, {y:.3}, {z:.3}], bin at [{:.3}, {:.3}]",
+                    r.receptacle_position[0], r.receptacle_position[1]
+                ),
+            };
+            println!("  failed: seed {} (phase {:?}, {state})", r.seed, r.final_phase);
         }
         println!("per camera bin (successes/episodes):");
         for (k, (s, n)) in &per_bin {

@@ -1,6 +1,9 @@
 //! The rig's MJCF, composed from the extracted Menagerie models.
 
-use crate::scene::{BIN_HALF, OBJECT_SIZE, SceneValues, TABLE_CENTRE, TABLE_HALF};
+use crate::scene::{
+    BIN_HALF, CABINET_HALF, CABINET_HEIGHT, DRAWER_TRAVEL, DrawerValues, HANDLE_LENGTH, OBJECT_SIZE, SceneValues,
+    TABLE_CENTRE, TABLE_HALF,
+};
 use std::path::{Path, PathBuf};
 
 /// Where `scripts/setup.sh` puts the models, relative to the repository root.
@@ -155,6 +158,9 @@ fn scene_bodies(scene: &SceneValues) -> String {
         bxw = bx - wall,
         byw = by - wall,
     );
+    if let Some(drawer) = &scene.drawer {
+        out.push_str(&cabinet(drawer));
+    }
     for (id, pose) in &scene.cameras {
         out.push_str(&format!(
             r#"
@@ -165,6 +171,59 @@ fn scene_bodies(scene: &SceneValues) -> String {
     }
     out.push_str("\n  ");
     out
+}
+
+/// The drawer's slide joint and the handle's grip site.
+pub const DRAWER_JOINT: &str = "drawer_slide";
+pub const HANDLE_SITE: &str = "drawer_handle";
+
+/// A cabinet (open-fronted shell) with a drawer on a slide joint along -x (toward the robot;
+/// qpos = opening in m) and a bar handle along x on the drawer's front, gripped from above.
+/// The shell and the drawer do not collide with each other (contype bits 2 and 4; everything
+/// else collides with both), the joint's range keeps the drawer in its shell.
+fn cabinet(d: &DrawerValues) -> String {
+    let [hx, hy] = CABINET_HALF;
+    let h = CABINET_HEIGHT;
+    let t = 0.01; // wall
+    let (ht, hh) = (t / 2.0, h / 2.0);
+    // The drawer: front panel flush with the shell's front, a tray behind it.
+    let depth = 2.0 * hx - 2.0 * t - 0.01;
+    let tray_x = -hx + t + depth / 2.0;
+    let (iy, wall_h) = (hy - t - 0.003, 0.035);
+    let handle_x = -hx - HANDLE_LENGTH / 2.0;
+    format!(
+        r#"
+    <body name="cabinet" pos="{pos}">
+      <geom name="cabinet_bottom" type="box" pos="0 0 {ht}" size="{hx} {hy} {ht}" material="cabinet_mat" contype="2" conaffinity="1"/>
+      <geom name="cabinet_top" type="box" pos="0 0 {top}" size="{hx} {hy} {ht}" material="cabinet_mat" contype="2" conaffinity="1"/>
+      <geom name="cabinet_side_py" type="box" pos="0 {side} {hh}" size="{hx} {ht} {hh}" material="cabinet_mat" contype="2" conaffinity="1"/>
+      <geom name="cabinet_side_ny" type="box" pos="0 -{side} {hh}" size="{hx} {ht} {hh}" material="cabinet_mat" contype="2" conaffinity="1"/>
+      <geom name="cabinet_back" type="box" pos="{back} 0 {hh}" size="{ht} {hy} {hh}" material="cabinet_mat" contype="2" conaffinity="1"/>
+      <body name="drawer" pos="0 0 0">
+        <joint name="{DRAWER_JOINT}" type="slide" axis="-1 0 0" range="0 {DRAWER_TRAVEL}" damping="4" frictionloss="0.5" armature="0.05"/>
+        <geom name="drawer_front" type="box" pos="{front} 0 {hh}" size="{ht} {iy} {front_h}" material="drawer_mat" mass="0.3" contype="4" conaffinity="1"/>
+        <geom name="drawer_floor" type="box" pos="{tray_x} 0 {floor}" size="{tray_hx} {iy} 0.003" material="drawer_mat" mass="0.2" contype="4" conaffinity="1"/>
+        <geom name="drawer_back" type="box" pos="{tray_back} 0 {wall_z}" size="0.003 {iy} {wall_hh}" material="drawer_mat" mass="0.05" contype="4" conaffinity="1"/>
+        <geom name="drawer_side_py" type="box" pos="{tray_x} {iy_w} {wall_z}" size="{tray_hx} 0.003 {wall_hh}" material="drawer_mat" mass="0.05" contype="4" conaffinity="1"/>
+        <geom name="drawer_side_ny" type="box" pos="{tray_x} -{iy_w} {wall_z}" size="{tray_hx} 0.003 {wall_hh}" material="drawer_mat" mass="0.05" contype="4" conaffinity="1"/>
+        <geom name="drawer_handle" type="box" pos="{handle_x} 0 {hh}" size="{hl} 0.008 0.01" material="handle_mat" mass="0.05" friction="1.5 0.01 0.001" contype="4" conaffinity="1"/>
+        <site name="{HANDLE_SITE}" pos="{handle_x} 0 {hh}" size="0.005"/>
+      </body>
+    </body>"#,
+        pos = v3(d.position),
+        top = h - ht,
+        side = hy - ht,
+        back = hx - ht,
+        front = -hx + ht,
+        front_h = hh - t - 0.003,
+        floor = t + 0.006,
+        tray_hx = depth / 2.0,
+        tray_back = -hx + t + depth - 0.003,
+        wall_z = t + 0.006 + wall_h / 2.0,
+        wall_hh = wall_h / 2.0,
+        iy_w = iy - 0.003,
+        hl = HANDLE_LENGTH / 2.0,
+    )
 }
 
 const OPTION: &str = r#"<option timestep="0.002" integrator="implicitfast" cone="elliptic" impratio="10"/>"#;
@@ -190,6 +249,9 @@ const SCENE_ASSETS: &str = r#"
     <texture name="table_tex" type="2d" builtin="flat" rgb1="0.5 0.4 0.3" width="64" height="64"/>
     <material name="table_mat" texture="table_tex" texuniform="true" texrepeat="6 6"/>
     <material name="bin_mat" rgba="0.2 0.35 0.7 1"/>
+    <material name="cabinet_mat" rgba="0.55 0.42 0.3 1"/>
+    <material name="drawer_mat" rgba="0.7 0.58 0.42 1"/>
+    <material name="handle_mat" rgba="0.3 0.3 0.32 1" specular="0.6"/>
     <texture name="object_tex" type="cube" builtin="flat" rgb1="0.8 0.2 0.2" width="64" height="64"/>
     <material name="object_mat" texture="object_tex"/>"#;
 
@@ -197,10 +259,12 @@ const SCENE_ASSETS: &str = r#"
 pub const OBJECT_TEXTURE: &str = "object_tex";
 pub const TABLE_TEXTURE: &str = "table_tex";
 
-// DROID's reset pose as keyframe `reset`: qpos = 7 arm + 8 gripper + object free joint (7).
+// DROID's reset pose as keyframe `reset`: qpos = 7 arm + 8 gripper + object free joint (7)
+// (+ the drawer's opening).
 fn tail(scene: &SceneValues) -> String {
     let arm = RESET_POSE.map(|q| q.to_string()).join(" ");
     let [w, x, y, z] = yaw_quat(scene.object_yaw_deg);
+    let drawer = scene.drawer.as_ref().map_or(String::new(), |d| format!("  {}", d.opening_m));
     format!(
         r#"
   <sensor>
@@ -208,7 +272,7 @@ fn tail(scene: &SceneValues) -> String {
     <framepos name="object_pos" objtype="body" objname="object"/>
   </sensor>
   <keyframe>
-    <key name="reset" qpos="{arm}  0 0 0 0 0 0 0 0  {obj} {w} {x} {y} {z}" ctrl="{arm}  0"/>
+    <key name="reset" qpos="{arm}  0 0 0 0 0 0 0 0  {obj} {w} {x} {y} {z}{drawer}" ctrl="{arm}  0"/>
   </keyframe>
 "#,
         obj = v3(scene.object_position),

@@ -25,6 +25,16 @@ pub const OBJECT_SIZE: f64 = 0.05;
 pub const BIN_HALF: [f64; 2] = [0.1, 0.08];
 /// Side of the square textures generated for the object and the table (texels).
 pub const TEXTURE_SIZE: usize = 64;
+/// The drawer cabinet's outer half extents in x and y (m) and its height; its front (with the
+/// drawer and its handle) faces the robot (-x).
+pub const CABINET_HALF: [f64; 2] = [0.12, 0.15];
+pub const CABINET_HEIGHT: f64 = 0.14;
+/// How far the drawer slides out (m), and how far its handle stands off the drawer's front.
+pub const DRAWER_TRAVEL: f64 = 0.14;
+pub const HANDLE_LENGTH: f64 = 0.07;
+/// drawer_open succeeds at this opening or more, drawer_close at [`DRAWER_CLOSED_M`] or less (m).
+pub const DRAWER_OPEN_M: f64 = 0.10;
+pub const DRAWER_CLOSED_M: f64 = 0.02;
 
 /// A camera-pose bin: 15 deg of polar angle x 30 deg of azimuth around the table centre.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -131,6 +141,17 @@ pub struct ReceptacleSpec {
     pub boxes: Vec<[f64; 4]>,
 }
 
+/// A cabinet with one drawer on the table, its front (drawer and handle) toward the robot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DrawerSpec {
+    /// Union of boxes `[x0, y0, x1, y1]` the cabinet's centre is drawn from.
+    pub boxes: Vec<[f64; 4]>,
+    /// How far the drawer is open at the start (m, 0 = closed .. [`DRAWER_TRAVEL`]).
+    #[serde(default)]
+    pub opening_m: Range,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TableSpec {
@@ -150,6 +171,20 @@ fn default_jitter() -> [f64; 3] {
 pub enum Task {
     /// Pick the object up and put it in the receptacle.
     PickPlace,
+    /// Pull the drawer open (to at least [`DRAWER_OPEN_M`]).
+    DrawerOpen,
+    /// Push the drawer shut (to at most [`DRAWER_CLOSED_M`]).
+    DrawerClose,
+}
+
+impl Task {
+    pub fn name(self) -> &'static str {
+        match self {
+            Task::PickPlace => "pick_place",
+            Task::DrawerOpen => "drawer_open",
+            Task::DrawerClose => "drawer_close",
+        }
+    }
 }
 
 /// A scene spec file.
@@ -163,6 +198,9 @@ pub struct SceneSpec {
     pub table: TableSpec,
     pub object: ObjectSpec,
     pub receptacle: ReceptacleSpec,
+    /// The cabinet and its drawer (required by the drawer tasks, a distractor otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drawer: Option<DrawerSpec>,
     /// The external cameras (`ext1`, `ext2`, `rs1`, `rs2`); the wrist camera rides the gripper.
     pub cameras: BTreeMap<String, CameraSpec>,
 }
@@ -215,6 +253,41 @@ pub struct SceneValues {
     pub receptacle_position: [f64; 3],
     pub table_hsv: [f64; 3],
     pub table_rgb: [f64; 3],
+    /// The cabinet, when the spec has one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drawer: Option<DrawerValues>,
+}
+
+/// The sampled cabinet: its centre on the table top and the drawer's opening at the start.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DrawerValues {
+    pub position: [f64; 3],
+    pub opening_m: f64,
+}
+
+impl DrawerValues {
+    /// The handle's grip point (robot base frame) when the drawer is open by `opening` (m).
+    pub fn handle_position(&self, opening: f64) -> [f64; 3] {
+        let [x, y, _] = self.position;
+        [x - CABINET_HALF[0] - HANDLE_LENGTH / 2.0 - opening, y, CABINET_HEIGHT / 2.0]
+    }
+
+    /// The area the cabinet, its open drawer and a gripper on the handle take on the table,
+    /// `[x0, y0, x1, y1]`: other things are kept out of it.
+    pub fn footprint(&self) -> [f64; 4] {
+        let [x, y, _] = self.position;
+        let reach = CABINET_HALF[0] + DRAWER_TRAVEL + HANDLE_LENGTH + 0.03;
+        [x - reach, y - CABINET_HALF[1], x + CABINET_HALF[0], y + CABINET_HALF[1]]
+    }
+}
+
+/// Whether two rectangles `[x0, y0, x1, y1]` are at least `gap` apart.
+fn apart(a: [f64; 4], b: [f64; 4], gap: f64) -> bool {
+    a[2] + gap <= b[0] || b[2] + gap <= a[0] || a[3] + gap <= b[1] || b[3] + gap <= a[1]
+}
+
+fn around(centre: [f64; 2], half: [f64; 2]) -> [f64; 4] {
+    [centre[0] - half[0], centre[1] - half[1], centre[0] + half[0], centre[1] + half[1]]
 }
 
 fn invalid(origin: &str, field: impl Into<String>, reason: impl Into<String>) -> SceneError {
@@ -284,7 +357,13 @@ impl SceneSpec {
 
     /// The scene labrig uses when none is given (`sim_bridge/scenes/pick_place.toml`).
     pub fn default_pick_place() -> SceneSpec {
-        SceneSpec::parse(DEFAULT_SPEC, "built-in pick_place").expect("the built-in spec is valid")
+        SceneSpec::builtin("pick_place").expect("pick_place is built in")
+    }
+
+    /// A built-in scene by name (see [`BUILTIN_SCENES`]).
+    pub fn builtin(name: &str) -> Option<SceneSpec> {
+        let (_, text) = BUILTIN_SCENES.iter().find(|(n, _)| *n == name)?;
+        Some(SceneSpec::parse(text, &format!("built-in {name}")).expect("the built-in specs are valid"))
     }
 
     pub fn validate(&self, origin: &str) -> Result<(), SceneError> {
@@ -306,6 +385,49 @@ impl SceneSpec {
         let half = OBJECT_SIZE / 2.0;
         check_boxes(origin, "object.boxes", &self.object.boxes, [half, half])?;
         check_boxes(origin, "receptacle.boxes", &self.receptacle.boxes, BIN_HALF)?;
+        match (&self.drawer, self.task) {
+            (None, Task::DrawerOpen | Task::DrawerClose) => {
+                return Err(invalid(
+                    origin,
+                    "drawer",
+                    format!("is missing: task {} needs a [drawer] section", self.task.name()),
+                ));
+            }
+            (None, Task::PickPlace) => {}
+            (Some(d), task) => {
+                check_boxes(origin, "drawer.boxes", &d.boxes, CABINET_HALF)?;
+                check_range(origin, "drawer.opening_m", d.opening_m, 0.0, DRAWER_TRAVEL)?;
+                // The open drawer and its handle must stay over the table.
+                let table_x0 = TABLE_CENTRE[0] - TABLE_HALF[0];
+                for (i, b) in d.boxes.iter().enumerate() {
+                    let front = b[0] - CABINET_HALF[0] - DRAWER_TRAVEL - HANDLE_LENGTH;
+                    if front < table_x0 {
+                        return Err(invalid(
+                            origin,
+                            format!("drawer.boxes[{i}]"),
+                            format!("puts the open drawer's handle off the table (x = {front:.3} < {table_x0:.3})"),
+                        ));
+                    }
+                }
+                if task == Task::DrawerOpen && d.opening_m[1] >= DRAWER_OPEN_M {
+                    return Err(invalid(
+                        origin,
+                        "drawer.opening_m",
+                        format!("reaches {} m: drawer_open would start solved (>= {DRAWER_OPEN_M} m)", d.opening_m[1]),
+                    ));
+                }
+                if task == Task::DrawerClose && d.opening_m[0] <= DRAWER_CLOSED_M {
+                    return Err(invalid(
+                        origin,
+                        "drawer.opening_m",
+                        format!(
+                            "starts at {} m: drawer_close would start solved (<= {DRAWER_CLOSED_M} m)",
+                            d.opening_m[0]
+                        ),
+                    ));
+                }
+            }
+        }
         for id in self.cameras.keys() {
             if !EXTERNAL_CAMERAS.contains(&id.as_str()) {
                 return Err(invalid(
@@ -380,13 +502,20 @@ impl SceneSpec {
         let table_hsv = [uniform(self.table.hsv.h), uniform(self.table.hsv.s), uniform(self.table.hsv.v)];
         let object_hsv = [uniform(self.object.hsv.h), uniform(self.object.hsv.s), uniform(self.object.hsv.v)];
         let object_yaw_deg = uniform(self.object.yaw_deg);
-        // Object and receptacle must not overlap: redraw both (bounded) until they are apart.
+        // Object, receptacle (and cabinet) must not overlap: redraw (bounded) until apart.
         for _ in 0..200 {
             let [ox, oy] = sample_union(&self.object.boxes, &mut uniform);
             let [rx, ry] = sample_union(&self.receptacle.boxes, &mut uniform);
             let gap = OBJECT_SIZE;
-            let apart = (ox - rx).abs() > BIN_HALF[0] + gap || (oy - ry).abs() > BIN_HALF[1] + gap;
-            if apart {
+            let object = around([ox, oy], [OBJECT_SIZE / 2.0; 2]);
+            let bin = around([rx, ry], BIN_HALF);
+            let drawer = self.drawer.as_ref().map(|d| {
+                let [dx, dy] = sample_union(&d.boxes, &mut uniform);
+                DrawerValues { position: [dx, dy, 0.0], opening_m: uniform(d.opening_m) }
+            });
+            let clear =
+                drawer.as_ref().is_none_or(|d| apart(d.footprint(), object, gap) && apart(d.footprint(), bin, gap));
+            if apart(object, bin, gap - OBJECT_SIZE / 2.0) && clear {
                 return Ok(SceneValues {
                     spec_name: self.name.clone(),
                     seed,
@@ -400,13 +529,14 @@ impl SceneSpec {
                     receptacle_position: [rx, ry, 0.0],
                     table_rgb: hsv_to_rgb(table_hsv),
                     table_hsv,
+                    drawer,
                 });
             }
         }
         Err(SceneError::Sample {
             name: self.name.clone(),
             seed,
-            reason: "object.boxes and receptacle.boxes leave no room for the object beside the bin (200 draws)".into(),
+            reason: "the object, receptacle and drawer boxes leave no room to place them apart (200 draws)".into(),
         })
     }
 }
@@ -503,6 +633,14 @@ pub fn table_texture(values: &SceneValues, jitter: [f64; 3]) -> Vec<u8> {
 
 /// The built-in pick-and-place spec (also `sim_bridge/scenes/pick_place.toml`).
 pub const DEFAULT_SPEC: &str = include_str!("../scenes/pick_place.toml");
+
+/// The scenes built into the binary, by name (`--scene drawer_open`); the files are in
+/// `sim_bridge/scenes/`.
+pub const BUILTIN_SCENES: [(&str, &str); 3] = [
+    ("pick_place", DEFAULT_SPEC),
+    ("drawer_open", include_str!("../scenes/drawer_open.toml")),
+    ("drawer_close", include_str!("../scenes/drawer_close.toml")),
+];
 
 #[cfg(test)]
 mod tests {
@@ -623,5 +761,84 @@ mod tests {
         let distinct: std::collections::BTreeSet<_> = t.chunks(3).collect();
         assert!(distinct.len() > 50, "fractal noise gives many shades, got {}", distinct.len());
         assert_eq!(table_texture(&v, [0.01, 0.05, 0.06]), table_texture(&v, [0.01, 0.05, 0.06]));
+    }
+
+    fn drawer_spec_with(name: &str, edit: impl FnOnce(&mut toml::Table)) -> Result<SceneSpec, SceneError> {
+        let text = BUILTIN_SCENES.iter().find(|(n, _)| *n == name).unwrap().1;
+        let mut table: toml::Table = toml::from_str(text).unwrap();
+        edit(&mut table);
+        SceneSpec::parse(&toml::to_string(&table).unwrap(), "test")
+    }
+
+    #[test]
+    fn the_built_in_scenes_parse_and_keep_the_cabinet_clear() {
+        for (name, _) in BUILTIN_SCENES {
+            let spec = SceneSpec::builtin(name).unwrap();
+            assert_eq!(spec.task.name(), name);
+            for seed in 0..200 {
+                let v = spec.sample(seed).unwrap();
+                let Some(d) = &v.drawer else {
+                    assert_eq!(spec.task, Task::PickPlace);
+                    continue;
+                };
+                let range = spec.drawer.as_ref().unwrap().opening_m;
+                assert!((range[0]..=range[1]).contains(&d.opening_m));
+                let [ox, oy, _] = v.object_position;
+                let [rx, ry, _] = v.receptacle_position;
+                assert!(apart(d.footprint(), around([ox, oy], [OBJECT_SIZE / 2.0; 2]), 0.0), "{name} {seed}");
+                assert!(apart(d.footprint(), around([rx, ry], BIN_HALF), 0.0), "{name} {seed}");
+                // The handle is in front of the cabinet, at mid height, in the footprint.
+                let h = d.handle_position(d.opening_m);
+                let f = d.footprint();
+                assert!(h[0] > f[0] && h[0] < d.position[0] - CABINET_HALF[0] && (h[1] - d.position[1]).abs() < 1e-12);
+            }
+        }
+        assert!(SceneSpec::builtin("no_such_scene").is_none());
+    }
+
+    #[test]
+    fn a_drawer_task_without_a_drawer_names_the_section() {
+        let err = drawer_spec_with("drawer_open", |t| {
+            t.remove("drawer");
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("`drawer`") && err.contains("drawer_open needs a [drawer] section"), "{err}");
+    }
+
+    #[test]
+    fn a_drawer_task_that_would_start_solved_is_refused() {
+        let err = drawer_spec_with("drawer_open", |t| {
+            let d = t["drawer"].as_table_mut().unwrap();
+            d.insert("opening_m".into(), toml::Value::try_from([0.05, 0.12]).unwrap());
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("`drawer.opening_m`") && err.contains("start solved"), "{err}");
+        let err = drawer_spec_with("drawer_close", |t| {
+            let d = t["drawer"].as_table_mut().unwrap();
+            d.insert("opening_m".into(), toml::Value::try_from([0.0, 0.1]).unwrap());
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("`drawer.opening_m`") && err.contains("start solved"), "{err}");
+        let err = drawer_spec_with("drawer_close", |t| {
+            let d = t["drawer"].as_table_mut().unwrap();
+            d.insert("opening_m".into(), toml::Value::try_from([0.05, 0.3]).unwrap());
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("`drawer.opening_m`") && err.contains("leaves the possible range"), "{err}");
+    }
+
+    #[test]
+    fn a_cabinet_whose_open_drawer_leaves_the_table_is_refused() {
+        let err = drawer_spec_with("drawer_open", |t| {
+            let boxes = toml::Value::try_from(vec![[0.30, -0.1, 0.40, 0.1]]).unwrap();
+            t["drawer"].as_table_mut().unwrap().insert("boxes".into(), boxes);
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("`drawer.boxes[0]`") && err.contains("off the table"), "{err}");
     }
 }

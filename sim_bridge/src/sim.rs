@@ -64,6 +64,8 @@ pub struct Sim {
     cameras: Option<Cameras>,
     tcp_site: usize,
     object_body: usize,
+    /// The drawer's slide joint qpos address and the handle site, when the scene has a cabinet.
+    drawer: Option<(usize, usize)>,
     arm_dofs: [usize; 7],
     arm_actuators: [usize; 7],
     arm_qpos: [usize; 7],
@@ -119,6 +121,13 @@ impl Sim {
         let reset_key = id(MjtObjBase::mjOBJ_KEY, "keyframe", "reset")?;
         let tcp_site = id(MjtObjBase::mjOBJ_SITE, "site", TCP_SITE)?;
         let object_body = id(MjtObjBase::mjOBJ_BODY, "body", "object")?;
+        let drawer = match scene.drawer {
+            None => None,
+            Some(_) => {
+                let joint = id(MjtObjBase::mjOBJ_JOINT, "joint", rig::DRAWER_JOINT)?;
+                Some((model.jnt_qposadr()[joint] as usize, id(MjtObjBase::mjOBJ_SITE, "site", rig::HANDLE_SITE)?))
+            }
+        };
         let data = MjData::new(model.clone());
         let mut sim = Sim {
             data,
@@ -126,6 +135,7 @@ impl Sim {
             cameras: None,
             tcp_site,
             object_body,
+            drawer,
             arm_dofs,
             arm_actuators,
             arm_qpos,
@@ -270,6 +280,16 @@ impl Sim {
     /// The object's centre in the robot base frame.
     pub fn object_position(&self) -> [f64; 3] {
         self.data.xpos()[self.object_body]
+    }
+
+    /// How far the drawer is open (m; 0 = shut), if the scene has one.
+    pub fn drawer_opening(&self) -> Option<f64> {
+        self.drawer.map(|(qpos, _)| self.data.qpos()[qpos])
+    }
+
+    /// The drawer handle's grip point in the robot base frame, if the scene has one.
+    pub fn handle_position(&self) -> Option<[f64; 3]> {
+        self.drawer.map(|(_, site)| self.data.site_xpos()[site])
     }
 
     /// The values this scene was built from.

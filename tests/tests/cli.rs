@@ -18,10 +18,16 @@ fn demo_delivers_every_state_and_frame_and_runs_the_sim_expert() {
     assert_eq!(r["ok"], true);
     assert_eq!(r["joint_states"]["received"], r["ticks"]);
     assert_eq!(r["cameras"].as_array().unwrap().len(), 5);
-    assert_eq!(r["sim"]["eval"]["episodes"], 2);
-    assert_eq!(r["sim"]["eval"]["successes"], 2);
-    let sheet = dir.path().join("snapshot_seed0/cameras.png");
-    assert!(std::fs::metadata(&sheet).unwrap().len() > 10_000, "contact sheet {} too small", sheet.display());
+    for task in ["pick_place", "drawer_open", "drawer_close"] {
+        let eval = &r["sim"]["tasks"][task];
+        assert_eq!(eval["episodes"], 2, "{task}: {eval}");
+        assert_eq!(eval["successes"], 2, "{task}: {eval}");
+        assert_eq!(eval["results"][0]["task"], task);
+    }
+    for task in ["pick_place", "drawer_open"] {
+        let sheet = dir.path().join(format!("snapshot_{task}_seed0/cameras.png"));
+        assert!(std::fs::metadata(&sheet).unwrap().len() > 10_000, "contact sheet {} too small", sheet.display());
+    }
 }
 
 #[test]

@@ -160,56 +160,73 @@ async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
         println!("  camera skew per observation: p50 {:.0} us, p99 {:.0} us", p(0.5), p(0.99));
         println!("  {}", if transport_ok { "all data arrived" } else { "DATA WAS LOST (see counts above)" });
         if let Some(sim) = &sim {
-            println!(
-                "simulated rig (MuJoCo): scripted pick-and-place expert {}/{} seeded scenes succeeded",
-                sim["eval"]["successes"], sim["eval"]["episodes"]
-            );
-            for r in sim["eval"]["results"].as_array().into_iter().flatten() {
-                println!(
-                    "  seed {}: {} in {} ticks, cameras {}",
-                    r["seed"],
-                    if r["success"] == true { "success" } else { "FAILED" },
-                    r["ticks"],
-                    r["camera_bins"]
-                        .as_array()
-                        .map(|b| b.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(" "))
-                        .unwrap_or_default()
-                );
+            println!("simulated rig (MuJoCo): scripted experts on seeded scenes");
+            for (task, eval) in sim["tasks"].as_object().into_iter().flatten() {
+                println!("  {task}: {}/{} succeeded", eval["successes"], eval["episodes"]);
+                for r in eval["results"].as_array().into_iter().flatten() {
+                    println!(
+                        "    seed {}: {} in {} ticks, cameras {}",
+                        r["seed"],
+                        if r["success"] == true { "success" } else { "FAILED" },
+                        r["ticks"],
+                        r["camera_bins"]
+                            .as_array()
+                            .map(|b| b.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(" "))
+                            .unwrap_or_default()
+                    );
+                }
             }
-            println!("  the five cameras of seed 0: {}", sim["snapshot"]);
+            for shot in sim["snapshots"].as_array().into_iter().flatten() {
+                println!("  the five cameras: {}", shot.as_str().unwrap_or_default());
+            }
         }
         println!("Recording these episodes as DROID-format MCAP comes with the rig loop and recorder (issue 5).");
     }
     Ok(if ok { ExitCode::SUCCESS } else { ExitCode::from(1) })
 }
 
-/// The simulated rig's part: the scripted expert on seeded scenes (`labrig sim eval`) and a
-/// snapshot of the five cameras (`labrig sim snapshot`), run by the sim binary.
+/// The scenes the demo runs the experts on (built into labrig-sim).
+const DEMO_TASKS: [&str; 3] = ["pick_place", "drawer_open", "drawer_close"];
+
+/// The simulated rig's part: the scripted experts on seeded scenes of each task (`labrig sim
+/// eval`) and snapshots of the five cameras (`labrig sim snapshot`), run by the sim binary.
 fn sim_part(args: &DemoArgs) -> anyhow::Result<serde_json::Value> {
     let exe = crate::cli::sibling_binary("labrig-sim")?;
-    let bar = ProgressBar::new_spinner().with_message(format!("simulated rig: expert on {} scenes", args.episodes));
+    let bar = ProgressBar::new_spinner();
     bar.enable_steady_tick(Duration::from_millis(120));
-    let out = std::process::Command::new(&exe)
-        .args(["eval", "--json", "--episodes", &args.episodes.to_string()])
-        .stderr(std::process::Stdio::inherit())
-        .output()?;
-    if !out.status.success() {
-        bar.finish_and_clear();
-        bail!("labrig sim eval failed ({})", out.status);
+    let mut tasks = serde_json::Map::new();
+    let mut ok = true;
+    for task in DEMO_TASKS {
+        bar.set_message(format!("simulated rig: {task} expert on {} scenes", args.episodes));
+        let out = std::process::Command::new(&exe)
+            .args(["eval", "--json", "--scene", task, "--episodes", &args.episodes.to_string()])
+            .stderr(std::process::Stdio::inherit())
+            .output()?;
+        if !out.status.success() {
+            bar.finish_and_clear();
+            bail!("labrig sim eval --scene {task} failed ({})", out.status);
+        }
+        let eval: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+        ok &= eval["successes"] == eval["episodes"];
+        tasks.insert(task.to_owned(), eval);
     }
-    let eval: serde_json::Value = serde_json::from_slice(&out.stdout)?;
-    bar.set_message("simulated rig: snapshot");
-    let snap_dir = args.out.join("snapshot_seed0");
-    let status = std::process::Command::new(&exe)
-        .args(["snapshot", "--seed", "0", "--out"])
-        .arg(&snap_dir)
-        .stdout(std::process::Stdio::null())
-        .status()?;
+    let mut snapshots = Vec::new();
+    for task in ["pick_place", "drawer_open"] {
+        bar.set_message(format!("simulated rig: snapshot of {task}"));
+        let dir = args.out.join(format!("snapshot_{task}_seed0"));
+        let status = std::process::Command::new(&exe)
+            .args(["snapshot", "--scene", task, "--seed", "0", "--out"])
+            .arg(&dir)
+            .stdout(std::process::Stdio::null())
+            .status()?;
+        if !status.success() {
+            bar.finish_and_clear();
+            bail!("labrig sim snapshot --scene {task} failed ({status})");
+        }
+        let sheet = dir.join("cameras.png");
+        ok &= sheet.exists();
+        snapshots.push(sheet.display().to_string());
+    }
     bar.finish_and_clear();
-    if !status.success() {
-        bail!("labrig sim snapshot failed ({status})");
-    }
-    let sheet = snap_dir.join("cameras.png");
-    let ok = eval["successes"] == eval["episodes"] && sheet.exists();
-    Ok(json!({ "eval": eval, "snapshot": sheet.display().to_string(), "ok": ok }))
+    Ok(json!({ "tasks": tasks, "snapshots": snapshots, "ok": ok }))
 }
