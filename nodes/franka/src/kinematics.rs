@@ -133,7 +133,9 @@ impl Fr3Kinematics {
                     let axis = Vector3::from(j.axis.xyz.0);
                     let axis = Unit::try_new(axis, 1e-9)
                         .ok_or_else(|| chain_err(format!("joint `{}` has a zero axis", j.name)))?;
-                    if !(j.limit.lower < j.limit.upper) || j.limit.velocity <= 0.0 {
+                    if j.limit.lower.partial_cmp(&j.limit.upper) != Some(std::cmp::Ordering::Less)
+                        || j.limit.velocity <= 0.0
+                    {
                         return Err(chain_err(format!("joint `{}` has no usable limits", j.name)));
                     }
                     joints.push(ChainJoint {
