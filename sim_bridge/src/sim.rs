@@ -192,10 +192,22 @@ impl Sim {
         // The 2F-85 takes 0..255 (the real gripper's rPR scale).
         ctrl[self.gripper_actuator] = (target.gripper * 255.0).round();
         for _ in 0..self.substeps {
+            self.compensate_gravity();
             self.data.step();
         }
         self.ticks += 1;
         Ok(())
+    }
+
+    /// The FR3's controller compensates gravity (and the tool's weight) itself; the sim does the
+    /// same: the arm joints get the bias forces (gravity + Coriolis) of the last physics step
+    /// as applied torques, so the position servos only track.
+    fn compensate_gravity(&mut self) {
+        let bias: [f64; 7] = std::array::from_fn(|i| self.data.qfrc_bias()[self.arm_dofs[i]]);
+        let applied = self.data.qfrc_applied_mut();
+        for (i, &dof) in self.arm_dofs.iter().enumerate() {
+            applied[dof] = bias[i];
+        }
     }
 
     /// Simulated time: ticks x control period (exact, no float accumulation).
