@@ -3,9 +3,12 @@
 //! - [`kinematics`]: forward kinematics and the geometric Jacobian from the FR3's URDF.
 //! - [`ik`]: damped-least-squares IK steps (nullspace pull to the reset pose, joint-limit
 //!   margins) and DROID's action spaces (cartesian velocity scaling, absolute poses).
+//! - [`safety`]: the safety layer every command passes (NaN/stale refusal, workspace box,
+//!   joint limits and margins, per-step limits) and the watchdog.
 
 pub mod ik;
 pub mod kinematics;
+pub mod safety;
 
 pub use kinematics::{Fr3Kinematics, Joints, TcpOffset};
 
