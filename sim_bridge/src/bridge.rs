@@ -13,23 +13,30 @@
 //! - `/clock` (rosgraph_msgs/Clock); `/sim/scene` (std_msgs/String, latched): the scene's
 //!   sampled values as JSON, for recordings.
 //!
-//! Subscribes: `/arm/command` (labrig_msgs/ArmCommand: joint_position targets — what the franka
-//! node's IK produces — or an absolute cartesian_position, solved by the sim's own IK step) and
+//! Subscribes: `/arm/command` (labrig_msgs/ArmCommand, any of its five modes) and
 //! `/gripper/command` (labrig_msgs/GripperCommand, 0 open .. 1 closed -> the 2F-85's 0..255).
-//! The gripper follows the most recent of the two sources.
+//! The gripper follows the most recent of the two sources. Every arm command passes the franka
+//! node's safety layer and IK (labrig-franka: NaN refused, workspace box, joint limits and
+//! margins, per-step limits, DROID velocity scaling) before it reaches the physics, as it
+//! would before reaching the FR3. Command stamps are not age-checked here: the bridge's sim
+//! time is its own (the franka node checks them against its clock).
 //!
 //! Modes: `lockstep` advances exactly one control period per arm command received (so results
 //! do not depend on machine speed); `realtime` advances one period per wall-clock period with
-//! the latest command. A NaN or out-of-limit command is refused, reported in `/arm/state`
-//! (`fault`, `prev_command_successful = false`) and never reaches the physics.
+//! the latest command, and its watchdog holds the arm at its measured joints (`/arm/state`
+//! mode STOPPED, with the reason) at the first tick 100 ms (two periods) or more after the
+//! last accepted command. A refused command is reported in `/arm/state` (`fault`, mode FAULT,
+//! `prev_command_successful = false`) and never reaches the physics.
 
-use crate::expert::{CartesianIk, euler_xyz};
+use crate::expert::euler_xyz;
 use crate::scene::SceneValues;
 use crate::{ArmTarget, Meshes, Sim};
+use labrig_franka::safety::{ArmView, SafetyConfig, SafetyFilter, Watchdog};
+use labrig_franka::{Fr3Kinematics, TcpOffset};
 use labrig_msgs::Nanos;
 use labrig_msgs::builtin_interfaces::Time;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, GripperCommand, GripperState, RobotState};
+use labrig_msgs::labrig_msgs::{ArmCommand, GripperCommand, GripperState, RobotState};
 use labrig_msgs::rosgraph_msgs::Clock as ClockMsg;
 use labrig_msgs::sensor_msgs::{CameraInfo, JointState};
 use labrig_msgs::std_msgs::{Header, StringMsg};
@@ -118,7 +125,10 @@ struct CommandState {
     fault: String,
     last_ok: bool,
     refused: u64,
+    clipped: u64,
     commands: u64,
+    /// The watchdog tripped: the arm holds until a fresh command.
+    holding: bool,
 }
 
 fn header(t: Nanos, frame: &str) -> Header {
@@ -160,22 +170,13 @@ pub fn camera_info(t: Nanos, camera: &str, width: usize, height: usize, fovy_deg
     }
 }
 
-/// Turns an arm command into a checked target, or says why not.
-fn target_from(cmd: &ArmCommand, sim: &Sim, ik: &CartesianIk) -> Result<ArmTarget, String> {
-    let gripper = cmd.gripper_position;
-    match cmd.mode()? {
-        ArmCommandMode::JointPosition => Ok(ArmTarget { joints: cmd.joint_position, gripper }),
-        ArmCommandMode::CartesianPosition => {
-            if cmd.cartesian_position.iter().any(|v| !v.is_finite()) {
-                return Err(format!("cartesian_position {:?} is not finite", cmd.cartesian_position));
-            }
-            Ok(ArmTarget { joints: ik.solve(sim, &cmd.cartesian_position), gripper })
-        }
-        other => Err(format!(
-            "mode {other:?} is not taken by the sim bridge: send joint_position (the franka node's IK output) \
-             or cartesian_position"
-        )),
-    }
+/// The safety layer of the franka node, on the FR3's URDF, for the sim's control period.
+fn safety_filter(period: Nanos, urdf: Option<&std::path::Path>) -> anyhow::Result<SafetyFilter> {
+    let urdf = labrig_franka::urdf_path(urdf);
+    let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)?;
+    let ik = labrig_franka::ik::Ik::new(kin, labrig_franka::ik::IkConfig::default());
+    let cfg = SafetyConfig { period_s: period.as_secs_f64(), max_command_age_s: 0.0, ..SafetyConfig::default() };
+    SafetyFilter::new(ik, cfg).map_err(|e| anyhow::anyhow!(e))
 }
 
 async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
@@ -186,7 +187,8 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     if !a.no_cameras {
         sim.enable_cameras(a.width, a.height, a.meshes)?;
     }
-    let ik = CartesianIk::new(&sim);
+    let safety = safety_filter(period, None)?;
+    let mut watchdog = Watchdog::new(safety.config().watchdog_ns());
     let scene: SceneValues = sim.scene().clone();
 
     let cfg = RosConfig { domain_id: a.domain_id, loopback_only: !a.allow_network, ..RosConfig::default() };
@@ -243,6 +245,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     let mut next_deadline = Instant::now();
     let mut idle_publish = Instant::now();
     let mut late_ticks = 0u64;
+    let mut last_tick = Instant::now();
     publish_state(&sim, &pubs, &state)?;
     while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
         // Gripper commands first, so an arm command of the same tick can override them.
@@ -259,14 +262,16 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         let step_now = match a.mode {
             Mode::Lockstep => match arm_sub.try_take()? {
                 Some(cmd) => {
-                    accept(&cmd.msg, &sim, &ik, &mut state);
+                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0);
                     true
                 }
                 None => false,
             },
             Mode::Realtime => {
                 while let Some(cmd) = arm_sub.try_take()? {
-                    accept(&cmd.msg, &sim, &ik, &mut state);
+                    // Arrival on the sim's time line: the last tick's time + wall time since it.
+                    let since_tick = (last_tick.elapsed().as_nanos() as i64).min(period.0 - 1);
+                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0 + since_tick);
                 }
                 let now = Instant::now();
                 if now >= next_deadline {
@@ -294,6 +299,14 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             tokio::time::sleep(wait).await;
             continue;
         }
+        if let Some(silence) = watchdog.check(sim.time().0) {
+            // Commands stopped: hold where the arm is (it decelerates on the servos).
+            state.arm = Some(ArmTarget { joints: sim.joint_positions(), gripper: state.gripper });
+            state.holding = true;
+            state.fault =
+                format!("watchdog: no arm command for {:.0} ms; holding at the measured joints", silence as f64 / 1e6);
+            tracing::warn!("{}", state.fault);
+        }
         let target =
             ArmTarget { joints: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints), gripper: state.gripper };
         if let Err(e) = sim.step(&target) {
@@ -304,6 +317,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             sim.step(&ArmTarget { joints: sim.joint_targets(), gripper: state.gripper.clamp(0.0, 1.0) })?;
         }
         ticks += 1;
+        last_tick = Instant::now();
         let t = sim.time();
         for (i, camera) in cameras.iter().enumerate() {
             sim.render_into(camera, &mut rgb)?;
@@ -323,20 +337,41 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         late_ticks,
         commands = state.commands,
         refused = state.refused,
+        clipped = state.clipped,
         "sim bridge stopped"
     );
     Ok(ExitCode::SUCCESS)
 }
 
-fn accept(cmd: &ArmCommand, sim: &Sim, ik: &CartesianIk, state: &mut CommandState) {
+fn accept(
+    cmd: &ArmCommand,
+    sim: &Sim,
+    safety: &SafetyFilter,
+    state: &mut CommandState,
+    watchdog: &mut Watchdog,
+    arrival_ns: i64,
+) {
     state.commands += 1;
-    let checked = target_from(cmd, sim, ik).and_then(|t| sim.check(&t).map(|()| t).map_err(|e| e.to_string()));
+    let view = ArmView {
+        measured: sim.joint_positions(),
+        commanded: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints),
+    };
+    let checked = safety.filter(cmd, &view, sim.time().0).map_err(|e| e.to_string()).and_then(|ok| {
+        let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+        sim.check(&t).map(|()| (t, ok.clipped)).map_err(|e| e.to_string())
+    });
     match checked {
-        Ok(t) => {
+        Ok((t, clipped)) => {
+            if !clipped.is_empty() {
+                state.clipped += 1;
+                tracing::debug!(seq = cmd.seq, ?clipped, "arm command clipped");
+            }
             state.arm = Some(t);
             state.gripper = t.gripper;
             state.last_ok = true;
+            state.holding = false;
             state.fault.clear();
+            watchdog.feed(arrival_ns);
         }
         Err(reason) => {
             state.refused += 1;
@@ -375,7 +410,9 @@ fn publish_state(sim: &Sim, pubs: &Publishers, state: &CommandState) -> Result<(
         joint_positions: q,
         joint_velocities: qd,
         prev_command_successful: state.last_ok,
-        mode: if !state.fault.is_empty() {
+        mode: if state.holding {
+            RobotState::MODE_STOPPED
+        } else if !state.fault.is_empty() {
             RobotState::MODE_FAULT
         } else if moving {
             RobotState::MODE_MOVING

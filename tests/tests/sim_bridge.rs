@@ -1,7 +1,8 @@
 //! The sim bridge (`labrig-sim run`) behind the hardware's interfaces: a real rclpy node (PyPI
 //! ros-* wheels) reads its /joint_states and camera_info with standard types; in lockstep the
 //! same command sequence over ROS 2 gives bit-identical joint trajectories and identical
-//! frames on the camera node's iceoryx2 channels; bad commands are refused and reported.
+//! frames on the camera node's iceoryx2 channels; bad commands are refused and reported; in
+//! real time the watchdog holds the arm when commands stop.
 
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE as RESET, RobotState};
@@ -173,7 +174,7 @@ fn nan_and_out_of_limit_commands_are_refused_and_reported() {
     let (traj, _, last) = lockstep_run("refused_nan", &cmds);
     assert_eq!(last.mode, RobotState::MODE_FAULT);
     assert!(!last.prev_command_successful);
-    assert!(last.fault.contains("seq 4") && last.fault.contains("fr3_joint2 is NaN"), "{}", last.fault);
+    assert!(last.fault.contains("seq 4") && last.fault.contains("joint_position[1] is NaN"), "{}", last.fault);
     // The arm held its last good target: no NaN reached the physics.
     assert!(traj.last().unwrap().iter().all(|b| f64::from_bits(*b).is_finite()));
     let mut far = RESET;
@@ -181,10 +182,74 @@ fn nan_and_out_of_limit_commands_are_refused_and_reported() {
     let mut cmds: Vec<ArmCommand> = (0..2).map(|k| joint_command(k, RESET, 0.0)).collect();
     cmds.push(joint_command(2, far, 0.0));
     let (_, _, last) = lockstep_run("refused_limit", &cmds);
-    assert!(last.fault.contains("fr3_joint4 = 0.5000 rad is outside its limits"), "{}", last.fault);
+    assert!(last.fault.contains("fr3_joint4 target 0.5000 rad is outside its limits"), "{}", last.fault);
     // A good command clears the fault.
     let mut cmds: Vec<ArmCommand> = vec![joint_command(0, nan, 0.0)];
     cmds.push(joint_command(1, RESET, 0.0));
     let (_, _, last) = lockstep_run("refused_then_ok", &cmds);
     assert!(last.prev_command_successful && last.fault.is_empty(), "{last:?}");
+}
+
+/// Real time: joint commands sweep joint 1 at 20 Hz (1.2 rad/s), then stop. The watchdog holds
+/// the arm (target = its measured joints) at the first tick 100 ms or more after the last
+/// command, reports it in /arm/state (mode STOPPED, with the silence), and the arm stays at
+/// rest where the hold found it until a fresh command.
+#[test]
+fn the_watchdog_holds_the_arm_when_commands_stop() {
+    let domain = domain_for("the_watchdog_holds_the_arm_when_commands_stop");
+    let ns = format!("watchdog_{}", std::process::id());
+    let _bridge = bridge(domain, &ns, &["--mode", "realtime", "--no-cameras", "--max-ticks", "400"]);
+    rt().block_on(async move {
+        let cfg = RosConfig { domain_id: domain, ..RosConfig::default() };
+        let mut ros = Ros::new(&cfg, "watchdog_driver").unwrap();
+        let cmd_pub = ros.publisher::<ArmCommand>("/arm/command", qos::reliable(100)).unwrap();
+        let state_sub = ros.subscription::<RobotState>("/arm/state", qos::reliable(1000)).unwrap();
+        assert!(ros.wait_for_subscribers("/arm/command", 1, Duration::from_secs(60)).await, "bridge did not come up");
+        let mut states = Vec::new();
+        // 0.75 s of commands: joint 1 sweeping at 1.2 rad/s.
+        for k in 0..15u64 {
+            let mut q = RESET;
+            q[0] = 0.06 * (k + 1) as f64;
+            cmd_pub.publish(joint_command(k, q, 0.0)).unwrap();
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            while let Some(s) = state_sub.try_take().unwrap() {
+                states.push(s.msg);
+            }
+        }
+        // Silence: collect 1 s of states.
+        let quiet = Instant::now();
+        while quiet.elapsed() < Duration::from_secs(1) {
+            while let Some(s) = state_sub.try_take().unwrap() {
+                states.push(s.msg);
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        let moving = states.iter().filter(|s| s.joint_velocities[0] > 0.5).count();
+        assert!(moving > 5, "the sweep never moved joint 1: {moving} moving states");
+        let hold = states.iter().position(|s| s.mode == RobotState::MODE_STOPPED).expect("the watchdog never held");
+        let held = &states[hold];
+        let silence_ms: f64 = held
+            .fault
+            .strip_prefix("watchdog: no arm command for ")
+            .and_then(|r| r.split(' ').next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("unexpected hold report: {}", held.fault));
+        // Two periods, and the hold lands on the first tick after them.
+        assert!((100.0..150.0).contains(&silence_ms), "held after {silence_ms} ms");
+        // From the hold on, the arm stays put: 0.3 s later and after, joint 1 is at rest where
+        // the hold found it.
+        let t_hold = Nanos::from(held.header.stamp);
+        let later: Vec<&RobotState> =
+            states[hold..].iter().filter(|s| Nanos::from(s.header.stamp).0 >= t_hold.0 + 300_000_000).collect();
+        assert!(!later.is_empty(), "no state 0.3 s after the hold");
+        for s in &later {
+            assert_eq!(s.mode, RobotState::MODE_STOPPED);
+            assert!(s.joint_velocities[0].abs() < 0.02, "still moving: {:?}", s.joint_velocities);
+            assert!((s.joint_positions[0] - held.joint_positions[0]).abs() < 0.03);
+        }
+        eprintln!(
+            "hold after {silence_ms:.0} ms of silence at q1 = {:.3} rad (velocity {:.2} rad/s); at rest at {:.3}",
+            held.joint_positions[0], held.joint_velocities[0], later[0].joint_positions[0]
+        );
+    });
 }

@@ -373,12 +373,12 @@ impl Watchdog {
         self.tripped = false;
     }
 
-    /// Whether the arm must hold at `now_ns`: commands were flowing and stopped for longer than
-    /// the timeout. Returns `Some(silence_ns)` the first time it trips, for the fault report.
+    /// Whether the arm must hold at `now_ns`: commands were flowing and stopped for the
+    /// timeout or longer. Returns `Some(silence_ns)` the first time it trips, for the report.
     pub fn check(&mut self, now_ns: i64) -> Option<i64> {
         let last = self.last_ns?;
         let silence = now_ns - last;
-        if silence > self.timeout_ns && !self.tripped {
+        if silence >= self.timeout_ns && !self.tripped {
             self.tripped = true;
             return Some(silence);
         }

@@ -142,7 +142,7 @@ fn the_watchdog_trips_after_two_periods_once() {
     assert_eq!(w.check(NOW), None, "no command yet: nothing to hold");
     w.feed(NOW);
     assert_eq!(w.check(NOW + 99_000_000), None);
-    assert_eq!(w.check(NOW + 101_000_000), Some(101_000_000));
+    assert_eq!(w.check(NOW + 100_000_000), Some(100_000_000));
     assert!(w.tripped());
     assert_eq!(w.check(NOW + 150_000_000), None, "reported once");
     w.feed(NOW + 200_000_000);
