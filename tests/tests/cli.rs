@@ -103,3 +103,15 @@ fn stops_cleanly_on(signal: &str) {
     };
     assert_eq!(status.code(), Some(0), "{signal}: {status:?}");
 }
+
+#[test]
+fn ik_bench_reports_every_series() {
+    let out = Command::new(labrig_bin()).args(["bench", "ik", "--ticks", "50", "--json"]).output().unwrap();
+    assert!(out.status.success(), "bench ik failed: {}", String::from_utf8_lossy(&out.stderr));
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    for key in ["fk_and_jacobian", "ik_solve", "safety_filter_cartesian_position", "safety_filter_cartesian_velocity"] {
+        assert_eq!(r[key]["n"], 50, "{key}: {r}");
+        assert!(r[key]["p50_us"].as_f64().unwrap() > 0.0);
+    }
+    assert!(r["ik_worst_residual_m"].as_f64().unwrap() < 1e-4, "{r}");
+}

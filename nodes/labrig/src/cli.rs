@@ -92,6 +92,8 @@ pub enum TopicCommand {
 pub enum BenchCommand {
     /// Camera frames over iceoryx2 shared memory between processes.
     Shm(crate::bench::ShmArgs),
+    /// The franka node's command path per tick: URDF FK + Jacobian, IK, the safety filter.
+    Ik(crate::bench_ik::IkArgs),
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -105,6 +107,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Topic(TopicCommand::Hz(a)) => crate::topic::hz(a),
         Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
+        Command::Bench(BenchCommand::Ik(a)) => crate::bench_ik::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
     }
