@@ -78,6 +78,12 @@ fn lead(
     (next_p, next_r)
 }
 
+/// A closing grasp is done once the fingers have had [`GRIP_TICKS`] and stopped moving (on the
+/// object, or on nothing: the next phase checks).
+fn grip_settled(ticks_in_phase: u32, gripper: f64, last_gripper: f64) -> bool {
+    ticks_in_phase >= GRIP_TICKS && (gripper - last_gripper).abs() < 2e-3
+}
+
 /// The turn about world z (rad, smallest) that brings the fingers' closing axis (the TCP's y)
 /// of `down` to the yaw `axis_yaw`, modulo `symmetry` (pi/2 for a cube, pi for a bar).
 fn turn_to(down: &Matrix3<f64>, axis_yaw: f64, symmetry: f64) -> f64 {
@@ -187,9 +193,7 @@ impl PickPlaceExpert {
         let reached = (target - pos).norm() < 0.006 && (next_p - target).norm() < 1e-9;
         let done = match self.phase {
             // Closed once the fingers stop moving (on the cube, or on nothing: Lift checks).
-            Phase::Grasp => {
-                self.ticks_in_phase >= GRIP_TICKS && (sim.gripper_position() - self.last_gripper).abs() < 2e-3
-            }
+            Phase::Grasp => grip_settled(self.ticks_in_phase, sim.gripper_position(), self.last_gripper),
             Phase::Release => self.ticks_in_phase >= GRIP_TICKS,
             Phase::Done => false,
             _ => reached,
@@ -298,9 +302,7 @@ impl DrawerExpert {
         self.ticks_in_phase += 1;
         let reached = (target - pos).norm() < 0.006 && (next_p - target).norm() < 1e-9;
         let done = match self.phase {
-            Phase::Grasp => {
-                self.ticks_in_phase >= GRIP_TICKS && (sim.gripper_position() - self.last_gripper).abs() < 2e-3
-            }
+            Phase::Grasp => grip_settled(self.ticks_in_phase, sim.gripper_position(), self.last_gripper),
             Phase::Pull => reached || opening >= DRAWER_TRAVEL - PULL_SHORT_OF_END,
             Phase::Push => reached || opening <= 0.002,
             Phase::Release => self.ticks_in_phase >= GRIP_TICKS,
