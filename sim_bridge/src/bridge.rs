@@ -24,8 +24,8 @@
 //! Modes: `lockstep` advances exactly one control period per arm command received (so results
 //! do not depend on machine speed); `realtime` advances one period per wall-clock period with
 //! the latest command, and its watchdog holds the arm at its measured joints (`/arm/state`
-//! mode STOPPED, with the reason) at the first tick 100 ms (two periods) or more after the
-//! last accepted command. A refused command is reported in `/arm/state` (`fault`, mode FAULT,
+//! mode STOPPED, with the reason) 100 ms (two periods) after the last accepted command, from
+//! the physics step at that deadline on (mid-tick). A refused command is reported in `/arm/state` (`fault`, mode FAULT,
 //! `prev_command_successful = false`) and never reaches the physics.
 
 use crate::expert::euler_xyz;
@@ -299,17 +299,30 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             tokio::time::sleep(wait).await;
             continue;
         }
-        if let Some(silence) = watchdog.check(sim.time().0) {
-            // Commands stopped: hold where the arm is (it decelerates on the servos).
-            state.arm = Some(ArmTarget { joints: sim.joint_positions(), gripper: state.gripper });
-            state.holding = true;
-            state.fault =
-                format!("watchdog: no arm command for {:.0} ms; holding at the measured joints", silence as f64 / 1e6);
-            tracing::warn!("{}", state.fault);
-        }
         let target =
             ArmTarget { joints: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints), gripper: state.gripper };
-        if let Err(e) = sim.step(&target) {
+        // Commands stopped: the watchdog's deadline falls in this tick, so the arm is held
+        // where it is (it decelerates on the servos) from the physics step at the deadline on,
+        // not at the next tick.
+        let t0 = sim.time().0;
+        let stop_at = watchdog.deadline().filter(|&d| d < t0 + period.0).map(|d| {
+            let substep = sim.substep().0.max(1);
+            ((d - t0).max(0) + substep - 1) / substep
+        });
+        let stepped = match stop_at {
+            Some(after) => sim.step_then_hold(&target, after as u32).map(|held| {
+                let silence = watchdog.check(t0 + after * sim.substep().0).unwrap_or(0);
+                state.arm = Some(ArmTarget { joints: held, gripper: state.gripper });
+                state.holding = true;
+                state.fault = format!(
+                    "watchdog: no arm command for {:.1} ms; holding at the measured joints",
+                    silence as f64 / 1e6
+                );
+                tracing::warn!("{}", state.fault);
+            }),
+            None => sim.step(&target),
+        };
+        if let Err(e) = stepped {
             // Checked on accept; a failure here is a bug, reported, never silently stepped.
             state.fault = e.to_string();
             state.last_ok = false;

@@ -199,6 +199,44 @@ impl Sim {
         Ok(())
     }
 
+    /// One control period in which a stop lands mid-tick: `target` for the first `after`
+    /// physics steps, then the arm is held where it is (its measured joints become the
+    /// target) for the rest of the period. Returns the joints it holds at. `after` at or past
+    /// the period's physics steps is a plain [`Sim::step`] followed by the hold.
+    pub fn step_then_hold(&mut self, target: &ArmTarget, after: u32) -> Result<[f64; 7], SimError> {
+        self.check(target)?;
+        let ctrl = self.data.ctrl_mut();
+        for (i, &a) in self.arm_actuators.iter().enumerate() {
+            ctrl[a] = target.joints[i];
+        }
+        ctrl[self.gripper_actuator] = (target.gripper * 255.0).round();
+        let mut hold = None;
+        for k in 0..self.substeps {
+            if k == after {
+                hold = Some(self.hold_here());
+            }
+            self.compensate_gravity();
+            self.data.step();
+        }
+        self.ticks += 1;
+        Ok(hold.unwrap_or_else(|| self.hold_here()))
+    }
+
+    /// Makes the measured arm joints the position targets; returns them.
+    fn hold_here(&mut self) -> [f64; 7] {
+        let q = self.joint_positions();
+        let ctrl = self.data.ctrl_mut();
+        for (i, &a) in self.arm_actuators.iter().enumerate() {
+            ctrl[a] = q[i];
+        }
+        q
+    }
+
+    /// Length of one physics step.
+    pub fn substep(&self) -> Nanos {
+        Nanos(self.period.0 / self.substeps.max(1) as i64)
+    }
+
     /// The FR3's controller compensates gravity (and the tool's weight) itself; the sim does the
     /// same: the arm joints get the bias forces (gravity + Coriolis) of the last physics step
     /// as applied torques, so the position servos only track.

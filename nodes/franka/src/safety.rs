@@ -385,6 +385,16 @@ impl Watchdog {
         None
     }
 
+    /// When the watchdog trips if no command comes first: `None` before the first command
+    /// and while it is holding. A control loop that steps in coarse ticks uses it to stop
+    /// mid-tick, on time, rather than at the next tick.
+    pub fn deadline(&self) -> Option<i64> {
+        match (self.last_ns, self.tripped) {
+            (Some(last), false) => Some(last + self.timeout_ns),
+            _ => None,
+        }
+    }
+
     /// Holding: commands stopped and no fresh one has come since.
     pub fn tripped(&self) -> bool {
         self.tripped

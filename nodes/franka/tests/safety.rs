@@ -140,13 +140,17 @@ fn the_watchdog_trips_after_two_periods_once() {
     assert_eq!(cfg.watchdog_ns(), 100_000_000);
     let mut w = Watchdog::new(cfg.watchdog_ns());
     assert_eq!(w.check(NOW), None, "no command yet: nothing to hold");
+    assert_eq!(w.deadline(), None);
     w.feed(NOW);
+    assert_eq!(w.deadline(), Some(NOW + 100_000_000));
     assert_eq!(w.check(NOW + 99_000_000), None);
     assert_eq!(w.check(NOW + 100_000_000), Some(100_000_000));
     assert!(w.tripped());
+    assert_eq!(w.deadline(), None, "holding: no deadline until a fresh command");
     assert_eq!(w.check(NOW + 150_000_000), None, "reported once");
     w.feed(NOW + 200_000_000);
     assert!(!w.tripped());
+    assert_eq!(w.deadline(), Some(NOW + 300_000_000));
 }
 
 #[test]
