@@ -8,6 +8,7 @@
 
 pub mod driver;
 pub mod emulator;
+pub mod node;
 pub mod registers;
 
 pub use driver::{DriverConfig, GripperError, Robotiq2F85};

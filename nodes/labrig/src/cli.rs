@@ -31,11 +31,24 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The Robotiq 2F-85 node: `labrig gripper run --port /dev/ttyUSB0`, or `labrig gripper
+    /// emulate` for a 2F-85 on a pseudo-terminal (see `labrig gripper --help`).
+    #[command(disable_help_flag = true)]
+    Gripper {
+        /// Arguments for labrig-gripper.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
 }
 
 /// Runs `labrig-sim` (built beside this binary; the only program that links MuJoCo) with `args`.
 pub fn sim(args: &[String]) -> anyhow::Result<ExitCode> {
-    let exe = sibling_binary("labrig-sim")?;
+    node("labrig-sim", args)
+}
+
+/// Runs the node program `name` (built beside this binary) with `args`.
+pub fn node(name: &str, args: &[String]) -> anyhow::Result<ExitCode> {
+    let exe = sibling_binary(name)?;
     let status = std::process::Command::new(&exe)
         .args(args)
         .status()
@@ -52,7 +65,7 @@ pub fn sibling_binary(name: &str) -> anyhow::Result<std::path::PathBuf> {
     let path = me.with_file_name(name);
     anyhow::ensure!(
         path.exists(),
-        "{} not found next to {}: build it with `cargo build -p labrig-sim` (scripts/labrig does)",
+        "{} not found next to {}: build it with `cargo build -p {name}` (scripts/labrig does)",
         path.display(),
         me.display()
     );
@@ -110,5 +123,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Ik(a)) => crate::bench_ik::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
+        Command::Gripper { args } => node("labrig-gripper", &args),
     }
 }

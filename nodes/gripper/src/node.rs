@@ -1,0 +1,290 @@
+//! The gripper node: `/gripper/command` (labrig_msgs/GripperCommand, DROID's 0 open .. 1
+//! closed) in, `/gripper/state` (labrig_msgs/GripperState) out at `rate_hz`, and a
+//! `/gripper/activate` service (std_srvs/Trigger) that re-runs the activation after a fault.
+//!
+//! The gripper is activated once at start. Each tick the newest valid command is written when
+//! it differs from the last one written (a 20 Hz rig repeating its action does not flood the
+//! RS-485 line), then the status is read and published. A refused command (NaN, outside 0..1),
+//! a gripper fault or a silent gripper is reported in `/gripper/state.fault` with the reason
+//! and the node keeps running; it never re-activates on its own (activation moves the fingers).
+
+use crate::driver::{DriverConfig, GripperError, Robotiq2F85};
+use crate::emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};
+use crate::registers::{Status, counts_to_droid, droid_to_counts, fault_meaning};
+use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
+use labrig_msgs::std_srvs::{Trigger, TriggerResponse};
+use labrig_runtime::ros::{Ros, qos};
+use labrig_runtime::{Clock, RosConfig, Shutdown};
+use serde::Deserialize;
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Backend {
+    /// A Robotiq 2F-85 on `port`.
+    Robotiq,
+    /// An emulated 2F-85 on a pseudo-terminal inside the node (no hardware needed).
+    Emulated,
+}
+
+/// The node's config (TOML; every key optional, unknown keys refused).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GripperNodeConfig {
+    pub ros: RosConfig,
+    pub backend: Backend,
+    /// Serial device of the 2F-85 (robotiq backend).
+    pub port: String,
+    pub slave: u8,
+    pub baud: u32,
+    /// Deadline of one Modbus exchange.
+    pub request_timeout_ms: u64,
+    pub activation_timeout_s: f64,
+    /// Status reads and `/gripper/state` per second.
+    pub rate_hz: f64,
+    /// Speed and force (0..1) for commands that leave theirs at 0.
+    pub speed: f64,
+    pub force: f64,
+}
+
+impl Default for GripperNodeConfig {
+    fn default() -> Self {
+        GripperNodeConfig {
+            ros: RosConfig::default(),
+            backend: Backend::Robotiq,
+            port: "/dev/ttyUSB0".into(),
+            slave: crate::registers::SLAVE_ID,
+            baud: crate::registers::BAUD_RATE,
+            request_timeout_ms: 100,
+            activation_timeout_s: 10.0,
+            rate_hz: 50.0,
+            speed: 1.0,
+            force: 0.5,
+        }
+    }
+}
+
+impl GripperNodeConfig {
+    /// Checks what serde cannot, naming the key.
+    pub fn validate(&self) -> Result<(), String> {
+        self.ros.validate(std::path::Path::new("gripper config")).map_err(|e| e.to_string())?;
+        let bad = |k: &str, why: String| Err(format!("gripper config: `{k}` {why}"));
+        if !(self.rate_hz.is_finite() && (1.0..=200.0).contains(&self.rate_hz)) {
+            return bad("rate_hz", format!("is {}, must be 1..=200", self.rate_hz));
+        }
+        for (k, v) in [("speed", self.speed), ("force", self.force)] {
+            if !(v.is_finite() && (0.0..=1.0).contains(&v)) {
+                return bad(k, format!("is {v}, must be 0..=1"));
+            }
+        }
+        if self.request_timeout_ms == 0 || self.request_timeout_ms > 5000 {
+            return bad("request_timeout_ms", format!("is {}, must be 1..=5000", self.request_timeout_ms));
+        }
+        if !(self.activation_timeout_s.is_finite() && self.activation_timeout_s > 0.0) {
+            return bad("activation_timeout_s", format!("is {}, must be > 0", self.activation_timeout_s));
+        }
+        if self.backend == Backend::Robotiq && self.port.is_empty() {
+            return bad("port", "is empty: name the 2F-85's serial device".into());
+        }
+        Ok(())
+    }
+}
+
+/// A command as written to the gripper (counts).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Wanted {
+    position: u8,
+    speed: u8,
+    force: u8,
+}
+
+/// Checks a `/gripper/command`; fills in the default speed and force for zeros.
+fn wanted(cmd: &GripperCommand, cfg: &GripperNodeConfig) -> Result<Wanted, String> {
+    for (name, v) in [("position", cmd.position), ("speed", cmd.speed), ("force", cmd.force)] {
+        if !v.is_finite() || !(0.0..=1.0).contains(&v) {
+            return Err(format!("refused gripper command: {name} {v} is outside 0..1"));
+        }
+    }
+    let or_default = |v: f64, d: f64| droid_to_counts(if v == 0.0 { d } else { v });
+    Ok(Wanted {
+        position: droid_to_counts(cmd.position),
+        speed: or_default(cmd.speed, cfg.speed),
+        force: or_default(cmd.force, cfg.force),
+    })
+}
+
+fn state(now: labrig_msgs::Nanos, s: Option<Status>, fault: &str) -> GripperState {
+    let mut msg = GripperState::default();
+    msg.header.stamp = now.into();
+    msg.header.frame_id = "robotiq_2f85".into();
+    if let Some(s) = s {
+        msg.position = counts_to_droid(s.position);
+        msg.requested_position = counts_to_droid(s.requested);
+        msg.activated = s.ready();
+        msg.object_detected = s.going && s.object.detected();
+        msg.fault_code = s.fault;
+        msg.current_ma = s.current_ma();
+    }
+    msg.fault = if !fault.is_empty() {
+        fault.to_owned()
+    } else if let Some(s) = s.filter(|s| s.fault != 0) {
+        format!("2F-85 fault 0x{:02X}: {}", s.fault, fault_meaning(s.fault).unwrap_or("unlisted code"))
+    } else {
+        String::new()
+    };
+    msg
+}
+
+/// Runs the node until `shutdown`.
+pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    // The emulated backend serves a 2F-85 on a pty inside the node; the driver is the same.
+    let _emulator: Option<PtyEmulator>;
+    let port = match cfg.backend {
+        Backend::Robotiq => {
+            _emulator = None;
+            cfg.port.clone()
+        }
+        Backend::Emulated => {
+            let emu = Emulated2F85::new(EmulatorConfig { slave: cfg.slave, ..EmulatorConfig::default() });
+            let pty = emu.serve_on_pty()?;
+            let path = pty.path().to_owned();
+            tracing::info!(port = %path, "emulated 2F-85 on a pseudo-terminal");
+            _emulator = Some(pty);
+            path
+        }
+    };
+    let mut gripper = Robotiq2F85::open(DriverConfig {
+        port,
+        slave: cfg.slave,
+        baud: cfg.baud,
+        request_timeout: Duration::from_millis(cfg.request_timeout_ms),
+    })?;
+
+    let mut ros = Ros::new(&cfg.ros, "labrig_gripper")?;
+    let state_pub = ros.publisher::<GripperState>("/gripper/state", qos::reliable(10))?;
+    let cmd_sub = ros.subscription::<GripperCommand>("/gripper/command", qos::reliable(100))?;
+    let server = ros.server::<Trigger>("/gripper/activate", qos::reliable(10))?;
+    // The service runs on its own task; the control loop answers its requests between ticks.
+    let (activate_tx, mut activate_rx) = mpsc::channel::<oneshot::Sender<TriggerResponse>>(4);
+    let service = tokio::spawn(async move {
+        while let Ok((id, _)) = server.receive().await {
+            let (tx, rx) = oneshot::channel();
+            if activate_tx.send(tx).await.is_err() {
+                break;
+            }
+            let response = rx.await.unwrap_or_default();
+            if let Err(e) = server.respond(id, response).await {
+                tracing::warn!("/gripper/activate: {e}");
+            }
+        }
+    });
+    let clock = Clock::Wall;
+    let activation_timeout = Duration::from_secs_f64(cfg.activation_timeout_s);
+
+    tracing::info!(port = %gripper.config().port, slave = cfg.slave, "activating the 2F-85");
+    let mut fault = match gripper.activate(activation_timeout).await {
+        Ok(s) => {
+            tracing::info!(status = %s.describe(), "2F-85 activated");
+            String::new()
+        }
+        Err(e) => {
+            tracing::error!("{e}");
+            e.to_string()
+        }
+    };
+    let mut written: Option<Wanted> = None;
+    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let (mut commands, mut refused) = (0u64, 0u64);
+    while !shutdown.is_triggered() {
+        tokio::select! {
+            _ = ticker.tick() => {}
+            _ = shutdown.wait() => break,
+        }
+        if let Ok(reply) = activate_rx.try_recv() {
+            tracing::info!("/gripper/activate: re-running the activation");
+            written = None;
+            let response = match gripper.activate(activation_timeout).await {
+                Ok(s) => {
+                    fault.clear();
+                    TriggerResponse { success: true, message: format!("activated: {}", s.describe()) }
+                }
+                Err(e) => {
+                    fault = e.to_string();
+                    TriggerResponse { success: false, message: fault.clone() }
+                }
+            };
+            let _ = reply.send(response);
+        }
+        let mut latest = None;
+        while let Some(c) = cmd_sub.try_take()? {
+            commands += 1;
+            match wanted(&c.msg, &cfg) {
+                Ok(w) => latest = Some(w),
+                Err(why) => {
+                    refused += 1;
+                    tracing::warn!("{why}");
+                    fault = why;
+                }
+            }
+        }
+        if let Some(w) = latest.filter(|w| written != Some(*w)) {
+            match gripper.go_to(w.position, w.speed, w.force).await {
+                Ok(()) => {
+                    written = Some(w);
+                    fault.clear();
+                }
+                Err(e) => {
+                    tracing::warn!("{e}");
+                    fault = e.to_string();
+                }
+            }
+        }
+        // A link problem is reported while it lasts; a refused command or a failed activation
+        // until the next good command or activation.
+        let (status, link) = match gripper.status().await {
+            Ok(s) => (Some(s), String::new()),
+            // Stale: the last status read, with the reason it is stale.
+            Err(e @ (GripperError::Timeout { .. } | GripperError::Link { .. })) => {
+                (gripper.last_status(), e.to_string())
+            }
+            Err(e) => (None, e.to_string()),
+        };
+        let reason = if link.is_empty() { &fault } else { &link };
+        state_pub.publish(state(clock.now(), status, reason))?;
+    }
+    service.abort();
+    tracing::info!(commands, refused, "gripper node stopped");
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_keys_are_checked_and_named() {
+        let cfg: GripperNodeConfig =
+            labrig_runtime::config::parse_config("backend = \"emulated\"\nrate_hz = 20.0\n", "g.toml".as_ref())
+                .unwrap();
+        assert_eq!((cfg.backend, cfg.rate_hz, cfg.slave), (Backend::Emulated, 20.0, 9));
+        cfg.validate().unwrap();
+        let err =
+            labrig_runtime::config::parse_config::<GripperNodeConfig>("prot = \"/dev/ttyUSB1\"\n", "g.toml".as_ref())
+                .unwrap_err();
+        assert!(err.to_string().contains("unknown field `prot`"), "{err}");
+        let cfg = GripperNodeConfig { force: 1.5, ..Default::default() };
+        assert_eq!(cfg.validate().unwrap_err(), "gripper config: `force` is 1.5, must be 0..=1");
+    }
+
+    #[test]
+    fn commands_take_the_default_speed_and_force_for_zero() {
+        let cfg = GripperNodeConfig::default();
+        let w = wanted(&GripperCommand { position: 1.0, ..Default::default() }, &cfg).unwrap();
+        assert_eq!(w, Wanted { position: 255, speed: 255, force: 128 });
+        let err = wanted(&GripperCommand { position: 0.5, speed: -0.1, ..Default::default() }, &cfg).unwrap_err();
+        assert_eq!(err, "refused gripper command: speed -0.1 is outside 0..1");
+    }
+}
