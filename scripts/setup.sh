@@ -163,6 +163,39 @@ fi
 mkdir -p "$REPO_DIR/.labrig"
 ln -sfn "$MJ_DIR" "$REPO_DIR/.labrig/mujoco"
 
+# ---------------------------------------------------------------- franka-sim (issue 4)
+# The FCI simulator the franka node's fci backend is tested against: PyPI franka-sim 1.1.7
+# in a venv of its own (it pins numpy 1.26 and mujoco < 3.3), wheels kept in a wheelhouse.
+# It would fetch its FR3 model from GitHub: FR3_MJCF points it at franky-sim's fr3.xml
+# (extracted above) with the mesh directory made absolute.
+FS_VENV="$LABRIG_CACHE/venv-franka-sim"
+FS_WHEELS="$LABRIG_CACHE/wheels-franka-sim"
+FS_REQS=(franka-sim==1.1.7)
+FS_STAMP="$FS_VENV/.labrig-stamp"
+fs_want="$("$PYTHON" -c 'import sys; print(sys.version)' | head -n1)|${FS_REQS[*]}"
+if [ ! -f "$FS_STAMP" ] || [ "$(cat "$FS_STAMP")" != "$fs_want" ] \
+    || ! "$FS_VENV/bin/python" -c 'import franka_sim' >/dev/null 2>&1; then
+    log "creating $FS_VENV"
+    rm -rf "$FS_VENV"
+    "$PYTHON" -m venv "$FS_VENV"
+    if [ ! -f "$FS_WHEELS/.labrig-stamp" ] || [ "$(cat "$FS_WHEELS/.labrig-stamp")" != "$fs_want" ]; then
+        rm -rf "$FS_WHEELS"
+        mkdir -p "$FS_WHEELS"
+        PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$FS_VENV/bin/python" -m pip wheel -q \
+            --disable-pip-version-check -w "$FS_WHEELS" "${FS_REQS[@]}"
+        printf '%s' "$fs_want" > "$FS_WHEELS/.labrig-stamp"
+    fi
+    "$FS_VENV/bin/python" -m pip install -q --disable-pip-version-check \
+        --no-index --find-links "$FS_WHEELS" "${FS_REQS[@]}"
+    "$FS_VENV/bin/python" -c 'import franka_sim'
+    printf '%s' "$fs_want" > "$FS_STAMP"
+fi
+FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
+mkdir -p "$(dirname "$FS_MJCF")"
+fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
+grep -q "meshdir=\"$MJ_DIR/assets/fr3/meshes\"" <<<"$fs_xml" || { echo "setup: fr3.xml has no meshdir to point at $MJ_DIR" >&2; exit 1; }
+[ -f "$FS_MJCF" ] && [ "$(cat "$FS_MJCF")" = "$fs_xml" ] || printf '%s\n' "$fs_xml" > "$FS_MJCF"
+
 # ---------------------------------------------------------------- Fast DDS profile
 XML_SRC="$REPO_DIR/scripts/fastdds_loopback.xml"
 XML="$LABRIG_CACHE/fastdds_loopback.xml"
@@ -176,6 +209,8 @@ export LABRIG_ROS_PYTHON=\"$VENV/bin/python\"
 export FASTDDS_DEFAULT_PROFILES_FILE=\"$XML\"
 export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 export LABRIG_MUJOCO_DIR=\"$MJ_DIR\"
+export LABRIG_FRANKA_SIM_PYTHON=\"$FS_VENV/bin/python\"
+export FR3_MJCF=\"$FS_MJCF\"
 # SYSTEM_DEFAULT: rmw_fastrtps uses the XML profile as is (unset/SUBNET would add
 # the 239.255.0.1 multicast SPDP peer; LOCALHOST would bind the LAN address too)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT

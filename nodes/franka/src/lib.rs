@@ -32,3 +32,10 @@ pub fn urdf_path(path: Option<&Path>) -> PathBuf {
     }
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(DEFAULT_URDF)
 }
+
+#[cfg(feature = "node")]
+pub mod backend;
+#[cfg(feature = "fci")]
+pub mod fci;
+#[cfg(feature = "node")]
+pub mod node;

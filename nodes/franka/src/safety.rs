@@ -46,6 +46,12 @@ pub struct SafetyConfig {
     pub watchdog_periods: f64,
     /// Refuse commands stamped this long ago (s); 0 turns the check off.
     pub max_command_age_s: f64,
+    /// Velocity commands step from the last *commanded* pose while the arm tracks it within
+    /// this lead (m for the TCP, rad for its rotation and for joints), so a lagging arm
+    /// follows a straight line instead of re-basing each step on where it lags; beyond the
+    /// lead (a hold, a contact) they step from the measured pose, as DROID does.
+    pub max_lead_m: f64,
+    pub max_lead_rad: f64,
 }
 
 impl Default for SafetyConfig {
@@ -60,6 +66,8 @@ impl Default for SafetyConfig {
             max_step_rad: ik::MAX_ROT_DELTA,
             watchdog_periods: 2.0,
             max_command_age_s: 0.1,
+            max_lead_m: 0.02,
+            max_lead_rad: 0.1,
         }
     }
 }
@@ -75,6 +83,8 @@ impl SafetyConfig {
         pos("max_step_m", self.max_step_m)?;
         pos("max_step_rad", self.max_step_rad)?;
         pos("watchdog_periods", self.watchdog_periods)?;
+        pos("max_lead_m", self.max_lead_m)?;
+        pos("max_lead_rad", self.max_lead_rad)?;
         if self.velocity_fraction > 1.0 {
             return Err(format!("safety.velocity_fraction = {} must be <= 1", self.velocity_fraction));
         }
@@ -235,12 +245,20 @@ impl SafetyFilter {
                     }
                 }
                 if mode == ArmCommandMode::JointVelocity {
-                    let q: Joints =
-                        std::array::from_fn(|i| arm.measured[i] + v[i].clamp(-1.0, 1.0) * self.max_joint_step[i]);
+                    let lead = (0..7).map(|i| (arm.commanded[i] - arm.measured[i]).abs()).fold(0.0, f64::max);
+                    let base = if lead <= self.cfg.max_lead_rad { &arm.commanded } else { &arm.measured };
+                    let q: Joints = std::array::from_fn(|i| base[i] + v[i].clamp(-1.0, 1.0) * self.max_joint_step[i]);
                     self.check_joint_targets(&q, false, &mut clipped)?
                 } else {
                     let v6: [f64; 6] = std::array::from_fn(|i| v[i].clamp(-1.0, 1.0));
-                    let target = ik::apply_velocity(&here, &v6);
+                    let commanded = kin.tcp_pose(&arm.commanded);
+                    let (dp, dr) = ik::pose_error(&here, &commanded);
+                    let base = if dp.norm() <= self.cfg.max_lead_m && dr.norm() <= self.cfg.max_lead_rad {
+                        commanded
+                    } else {
+                        here
+                    };
+                    let target = ik::apply_velocity(&base, &v6);
                     self.cartesian(target, arm, &mut clipped)
                 }
             }

@@ -1,0 +1,93 @@
+//! `labrig-franka`: the FR3 arm node (safety layer + IK -> franka-rs over the FCI).
+
+use clap::{Parser, Subcommand};
+use labrig_franka::fci::FciArm;
+use labrig_franka::node::FrankaNodeConfig;
+use labrig_runtime::Shutdown;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Debug, Parser)]
+#[command(name = "labrig-franka", about = "The FR3 arm node: /arm/command -> safety layer -> FCI")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the node: /arm/command in; /arm/state, /arm/target, /joint_states, /tf out;
+    /// /arm/recover service.
+    Run {
+        /// Node config (TOML, see launch_configs/franka_fr3.toml); the flags below override it.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// The FR3's FCI address (franka-sim: 127.0.0.1).
+        #[arg(long)]
+        robot_ip: Option<String>,
+        /// Run without a realtime kernel (franka-sim, a development machine).
+        #[arg(long)]
+        no_realtime: bool,
+        /// DDS domain id.
+        #[arg(long, env = "ROS_DOMAIN_ID")]
+        domain_id: Option<u16>,
+        /// Keep trying to reach the FCI this long at start (a booting robot or simulator).
+        #[arg(long, default_value_t = 30.0)]
+        connect_timeout_s: f64,
+    },
+}
+
+fn main() -> ExitCode {
+    labrig_runtime::logging::init("info");
+    let cli = Cli::parse();
+    let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("labrig-franka: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let result = rt.block_on(async {
+        let shutdown = Shutdown::new();
+        shutdown.trigger_on_signals()?;
+        match cli.command {
+            Command::Run { config, robot_ip, no_realtime, domain_id, connect_timeout_s } => {
+                let mut cfg: FrankaNodeConfig = match &config {
+                    Some(p) => labrig_runtime::load_config(p)?,
+                    None => FrankaNodeConfig::default(),
+                };
+                if let Some(ip) = robot_ip {
+                    cfg.robot_ip = ip;
+                }
+                if no_realtime {
+                    cfg.fci.realtime = false;
+                }
+                if let Some(d) = domain_id {
+                    cfg.ros.domain_id = d;
+                }
+                cfg.validate().map_err(anyhow::Error::msg)?;
+                let deadline =
+                    std::time::Instant::now() + std::time::Duration::from_secs_f64(connect_timeout_s.max(0.0));
+                let arm = loop {
+                    let (ip, fci) = (cfg.robot_ip.clone(), cfg.fci.clone());
+                    match tokio::task::spawn_blocking(move || FciArm::connect(&ip, fci)).await? {
+                        Ok(arm) => break arm,
+                        Err(e) if std::time::Instant::now() < deadline && !shutdown.is_triggered() => {
+                            tracing::info!("waiting for the FCI at {}: {e}", cfg.robot_ip);
+                            tokio::time::sleep(std::time::Duration::from_millis(250)).await;
+                        }
+                        Err(e) => anyhow::bail!("{e} (FCI at {})", cfg.robot_ip),
+                    }
+                };
+                labrig_franka::node::run(cfg, Box::new(arm), shutdown).await
+            }
+        }
+    });
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("labrig-franka: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,322 @@
+//! The franka node: `/arm/command` (labrig_msgs/ArmCommand, any of DROID's modes, 20 Hz) ->
+//! the safety layer (refusals, clips, IK to joint targets) -> an [`ArmBackend`] (the FCI's
+//! 1 kHz loop interpolates between targets). Publishes `/arm/state` (DROID's RobotState:
+//! cartesian_position as xyz + euler XYZ of the 2F-85's TCP, joints, torques, the command's
+//! latency, mode and fault), `/arm/target` (the joint targets sent, sensor_msgs/JointState),
+//! `/joint_states` and `/tf` (base -> tcp) at `rate_hz`, and serves `/arm/recover`
+//! (std_srvs/Trigger) to clear a reflex or reconnect.
+//!
+//! The watchdog runs on the node's monotonic clock: when no accepted command arrives for
+//! `safety.watchdog_periods` control periods (100 ms at 20 Hz), the arm is held at its
+//! measured joints at that deadline, not at the next state tick.
+
+use crate::backend::{ArmBackend, ArmReading, BackendError};
+use crate::ik::{Ik, IkConfig, xyz_euler};
+use crate::safety::{ArmView, SafetyConfig, SafetyFilter, Watchdog};
+use crate::{Fr3Kinematics, Joints, TcpOffset};
+use futures::StreamExt;
+use labrig_msgs::Nanos;
+use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
+use labrig_msgs::labrig_msgs::{ArmCommand, RobotState};
+use labrig_msgs::sensor_msgs::JointState;
+use labrig_msgs::std_msgs::Header;
+use labrig_msgs::std_srvs::{Trigger, TriggerResponse};
+use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_runtime::ros::{Ros, qos};
+use labrig_runtime::{Clock, RosConfig, Shutdown};
+use serde::Deserialize;
+use std::path::PathBuf;
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot};
+use tokio::time::Instant;
+
+pub const JOINT_NAMES: [&str; 7] =
+    ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7"];
+const BASE_FRAME: &str = "base";
+
+/// Which arm the node drives.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum BackendKind {
+    /// A real FR3 (or franka-sim) through franka-rs over the FCI.
+    Fci,
+}
+
+/// The node's config (TOML; every key optional, unknown keys refused).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FrankaNodeConfig {
+    pub ros: RosConfig,
+    pub backend: BackendKind,
+    /// The FR3's FCI address (franka-sim: 127.0.0.1).
+    pub robot_ip: String,
+    /// The FR3 URDF (default: the one setup extracts).
+    pub urdf: Option<PathBuf>,
+    /// `/arm/state`, `/joint_states`, `/tf` per second.
+    pub rate_hz: f64,
+    pub safety: SafetyConfig,
+    #[cfg(feature = "fci")]
+    pub fci: crate::fci::FciConfig,
+}
+
+impl Default for FrankaNodeConfig {
+    fn default() -> Self {
+        FrankaNodeConfig {
+            ros: RosConfig::default(),
+            backend: BackendKind::Fci,
+            robot_ip: "172.16.0.2".into(),
+            urdf: None,
+            rate_hz: 50.0,
+            safety: SafetyConfig::default(),
+            #[cfg(feature = "fci")]
+            fci: crate::fci::FciConfig::default(),
+        }
+    }
+}
+
+impl FrankaNodeConfig {
+    pub fn validate(&self) -> Result<(), String> {
+        self.ros.validate(std::path::Path::new("franka config")).map_err(|e| e.to_string())?;
+        self.safety.validate()?;
+        if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
+            return Err(format!("franka config: `rate_hz` is {}, must be 1..=1000", self.rate_hz));
+        }
+        if self.robot_ip.is_empty() {
+            return Err("franka config: `robot_ip` is empty".into());
+        }
+        #[cfg(feature = "fci")]
+        self.fci.validate()?;
+        Ok(())
+    }
+}
+
+/// What the node last did, for `/arm/state`.
+#[derive(Debug, Default)]
+struct Report {
+    commanded: Option<Joints>,
+    gripper: f64,
+    last_ok: bool,
+    holding: bool,
+    /// A refusal, a watchdog hold or a backend fault, for the operator.
+    fault: String,
+    /// The arm itself is in a reflex or gone: commands are refused until `/arm/recover`.
+    backend_down: Option<BackendError>,
+    latency_ms: f64,
+    commands: u64,
+    refused: u64,
+    clipped: u64,
+}
+
+fn header(t: Nanos, frame: &str) -> Header {
+    Header { stamp: t.into(), frame_id: frame.to_owned() }
+}
+
+/// Runs the node on `backend` until `shutdown`.
+pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdown: Shutdown) -> anyhow::Result<()> {
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    let kin = Fr3Kinematics::from_urdf_file(&crate::urdf_path(cfg.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
+    let filter =
+        SafetyFilter::new(Ik::new(kin.clone(), IkConfig::default()), cfg.safety.clone()).map_err(anyhow::Error::msg)?;
+    let mut watchdog = Watchdog::new(cfg.safety.watchdog_ns());
+    let clock = Clock::Wall;
+
+    let mut ros = Ros::new(&cfg.ros, "labrig_franka")?;
+    let arm_state = ros.publisher::<RobotState>("/arm/state", qos::reliable(10))?;
+    let arm_target = ros.publisher::<JointState>("/arm/target", qos::reliable(10))?;
+    let joint_states = ros.publisher::<JointState>("/joint_states", qos::reliable(10))?;
+    let tf = ros.publisher::<TFMessage>("/tf", qos::reliable(10))?;
+    let commands = ros.subscription::<ArmCommand>("/arm/command", qos::reliable(100))?;
+    let server = ros.server::<Trigger>("/arm/recover", qos::reliable(10))?;
+    let (recover_tx, mut recover_rx) = mpsc::channel::<oneshot::Sender<TriggerResponse>>(4);
+    let service = tokio::spawn(async move {
+        while let Ok((id, _)) = server.receive().await {
+            let (tx, rx) = oneshot::channel();
+            if recover_tx.send(tx).await.is_err() {
+                break;
+            }
+            let response = rx.await.unwrap_or_default();
+            if let Err(e) = server.respond(id, response).await {
+                tracing::warn!("/arm/recover: {e}");
+            }
+        }
+    });
+
+    let mut report = Report { last_ok: true, ..Report::default() };
+    let mut reading: ArmReading = backend.read()?;
+    tracing::info!(backend = backend.name(), q = ?reading.q, "franka node up");
+    let started = Instant::now();
+    let mono_ns = move || started.elapsed().as_nanos() as i64;
+    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut stream = Box::pin(commands.stream());
+    loop {
+        let deadline = watchdog.deadline().map(|d| started + Duration::from_nanos(d.max(0) as u64));
+        tokio::select! {
+            _ = shutdown.wait() => break,
+            Some(reply) = recover_rx.recv() => {
+                let response = match backend.recover().and_then(|()| backend.read()) {
+                    Ok(r) => {
+                        reading = r;
+                        report.backend_down = None;
+                        report.fault.clear();
+                        report.commanded = None;
+                        TriggerResponse { success: true, message: format!("{} recovered", backend.name()) }
+                    }
+                    Err(e) => TriggerResponse { success: false, message: e.to_string() },
+                };
+                tracing::info!("/arm/recover: {}", response.message);
+                let _ = reply.send(response);
+            }
+            _ = async { tokio::time::sleep_until(deadline.expect("guarded")).await }, if deadline.is_some() => {
+                if let Some(silence) = watchdog.check(mono_ns()) {
+                    match backend.hold() {
+                        Ok(q) => {
+                            report.commanded = Some(q);
+                            report.holding = true;
+                            report.fault = format!(
+                                "watchdog: no arm command for {:.1} ms; holding at the measured joints",
+                                silence as f64 / 1e6
+                            );
+                            tracing::warn!("{}", report.fault);
+                        }
+                        Err(e) => down(&mut report, e),
+                    }
+                    publish(&clock, &kin, &reading, &report, &arm_state, &arm_target, &joint_states, &tf)?;
+                }
+            }
+            msg = stream.next() => {
+                let Some(msg) = msg else { break };
+                let received = Instant::now();
+                let cmd = msg?.msg;
+                report.commands += 1;
+                if let Some(e) = &report.backend_down {
+                    report.refused += 1;
+                    report.last_ok = false;
+                    report.fault = format!("refused arm command seq {}: {e}; call /arm/recover", cmd.seq);
+                    continue;
+                }
+                let view = ArmView { measured: reading.q, commanded: report.commanded.unwrap_or(reading.q) };
+                match filter.filter(&cmd, &view, clock.now().0) {
+                    Ok(ok) => {
+                        if !ok.clipped.is_empty() {
+                            report.clipped += 1;
+                            tracing::debug!(seq = cmd.seq, clipped = ?ok.clipped, "arm command clipped");
+                        }
+                        match backend.set_target(&ok.joints) {
+                            Ok(()) => {
+                                report.latency_ms = received.elapsed().as_secs_f64() * 1e3;
+                                report.commanded = Some(ok.joints);
+                                report.gripper = ok.gripper;
+                                report.last_ok = true;
+                                report.holding = false;
+                                report.fault.clear();
+                                watchdog.feed(mono_ns());
+                            }
+                            Err(e) => down(&mut report, e),
+                        }
+                    }
+                    Err(refusal) => {
+                        report.refused += 1;
+                        report.last_ok = false;
+                        report.fault = format!("refused arm command seq {}: {refusal}", cmd.seq);
+                        tracing::warn!("{}", report.fault);
+                    }
+                }
+            }
+            _ = ticker.tick() => {
+                match backend.read() {
+                    Ok(r) => reading = r,
+                    Err(e) => down(&mut report, e),
+                }
+                publish(&clock, &kin, &reading, &report, &arm_state, &arm_target, &joint_states, &tf)?;
+            }
+        }
+    }
+    service.abort();
+    backend.stop();
+    tracing::info!(
+        commands = report.commands,
+        refused = report.refused,
+        clipped = report.clipped,
+        "franka node stopped"
+    );
+    Ok(())
+}
+
+/// The arm faulted or is gone: the first reason is kept until a recovery.
+fn down(report: &mut Report, e: BackendError) {
+    if report.backend_down.is_some() {
+        return;
+    }
+    tracing::error!("{e}");
+    report.fault = format!("{e}; call /arm/recover");
+    report.last_ok = false;
+    report.backend_down = Some(e);
+}
+
+#[allow(clippy::too_many_arguments)]
+fn publish(
+    clock: &Clock,
+    kin: &Fr3Kinematics,
+    r: &ArmReading,
+    report: &Report,
+    arm_state: &labrig_runtime::ros::RosPublisher<RobotState>,
+    arm_target: &labrig_runtime::ros::RosPublisher<JointState>,
+    joint_states: &labrig_runtime::ros::RosPublisher<JointState>,
+    tf: &labrig_runtime::ros::RosPublisher<TFMessage>,
+) -> anyhow::Result<()> {
+    let t = clock.now();
+    let tcp = kin.tcp_pose(&r.q);
+    let names: Vec<String> = JOINT_NAMES.iter().map(|s| s.to_string()).collect();
+    let moving = r.dq.iter().any(|v| v.abs() > 1e-3);
+    arm_state.publish(RobotState {
+        header: header(t, BASE_FRAME),
+        cartesian_position: xyz_euler(&tcp),
+        gripper_position: report.gripper,
+        joint_positions: r.q,
+        joint_velocities: r.dq,
+        joint_torques_computed: r.tau_commanded,
+        motor_torques_measured: r.tau_measured,
+        prev_controller_latency_ms: report.latency_ms,
+        prev_command_successful: report.last_ok,
+        mode: if report.backend_down.is_some() || (!report.fault.is_empty() && !report.holding) {
+            RobotState::MODE_FAULT
+        } else if report.holding {
+            RobotState::MODE_STOPPED
+        } else if moving {
+            RobotState::MODE_MOVING
+        } else {
+            RobotState::MODE_IDLE
+        },
+        fault: report.fault.clone(),
+        ..RobotState::default()
+    })?;
+    if let Some(q) = report.commanded {
+        arm_target.publish(JointState {
+            header: header(t, BASE_FRAME),
+            name: names.clone(),
+            position: q.to_vec(),
+            velocity: vec![],
+            effort: vec![],
+        })?;
+    }
+    joint_states.publish(JointState {
+        header: header(t, BASE_FRAME),
+        name: names,
+        position: r.q.to_vec(),
+        velocity: r.dq.to_vec(),
+        effort: r.tau_measured.to_vec(),
+    })?;
+    let q = tcp.rotation;
+    tf.publish(TFMessage {
+        transforms: vec![TransformStamped {
+            header: header(t, BASE_FRAME),
+            child_frame_id: "tcp".into(),
+            transform: Transform {
+                translation: RosVector3 { x: tcp.translation.x, y: tcp.translation.y, z: tcp.translation.z },
+                rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+            },
+        }],
+    })?;
+    Ok(())
+}

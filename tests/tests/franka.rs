@@ -1,0 +1,289 @@
+//! The franka node's fci backend against franka-sim (PyPI franka-sim 1.1.7, speaking the
+//! libfranka FCI protocol on 127.0.0.1): the node (`labrig-franka run`, its own process)
+//! moves the simulated FR3 along commanded paths at 20 Hz in joint position and cartesian
+//! velocity modes, its watchdog holds the arm 100 ms after the last command, and a reflex
+//! (a stalled host: the FCI's communication constraints) and a killed simulator are reported
+//! in /arm/state as faults while the node keeps running.
+
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState};
+use labrig_msgs::std_srvs::{Trigger, TriggerRequest};
+use labrig_runtime::RosConfig;
+use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
+use labrig_tests::{Proc, cache_dir, domain_for, repo_root, rt, workspace_bin};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+/// franka-sim on 127.0.0.1:`port` (see scripts/franka_sim_loopback.py).
+fn franka_sim(port: u16, flags: &[&str]) -> Proc {
+    let python = std::env::var_os("LABRIG_FRANKA_SIM_PYTHON")
+        .map(Into::into)
+        .unwrap_or_else(|| cache_dir().join("venv-franka-sim/bin/python"));
+    assert!(python.exists(), "franka-sim venv {} is missing: run `bash scripts/setup.sh`", python.display());
+    let mut cmd = Command::new(python);
+    cmd.arg("-u")
+        .arg(repo_root().join("scripts/franka_sim_loopback.py"))
+        .args(["--no-gripper", "--port", &port.to_string()])
+        .args(flags)
+        .env("FR3_MJCF", cache_dir().join("franka-sim/fr3.xml"))
+        .stdout(std::process::Stdio::null());
+    Proc::spawn("franka-sim", cmd)
+}
+
+fn franka_node(domain: u16, port: u16, config: Option<&std::path::Path>) -> Proc {
+    let mut cmd = Command::new(workspace_bin("labrig-franka", "labrig-franka"));
+    if let Some(c) = config {
+        cmd.args(["run", "--config"]).arg(c).args([
+            "--robot-ip",
+            &format!("127.0.0.1:{port}"),
+            "--no-realtime",
+            "--domain-id",
+            &domain.to_string(),
+        ]);
+        return Proc::spawn("labrig-franka run", cmd);
+    }
+    cmd.args([
+        "run",
+        "--robot-ip",
+        &format!("127.0.0.1:{port}"),
+        "--no-realtime",
+        "--domain-id",
+        &domain.to_string(),
+        "--connect-timeout-s",
+        "60",
+    ]);
+    Proc::spawn("labrig-franka run", cmd)
+}
+
+fn now() -> Nanos {
+    Nanos(std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as i64)
+}
+
+fn stamped(mut c: ArmCommand, seq: u64) -> ArmCommand {
+    c.header.stamp = now().into();
+    c.seq = seq;
+    c
+}
+
+fn joints(q: [f64; 7]) -> ArmCommand {
+    ArmCommand { mode: ArmCommandMode::JointPosition as u8, joint_position: q, ..ArmCommand::default() }
+}
+
+fn velocity(v: [f64; 6]) -> ArmCommand {
+    ArmCommand { mode: ArmCommandMode::CartesianVelocity as u8, cartesian_velocity: v, ..ArmCommand::default() }
+}
+
+struct Rig {
+    ros: Ros,
+    cmd: RosPublisher<ArmCommand>,
+    state: RosSubscription<RobotState>,
+    seq: u64,
+}
+
+impl Rig {
+    async fn new(domain: u16) -> Rig {
+        let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "franka_test").unwrap();
+        let cmd = ros.publisher::<ArmCommand>("/arm/command", qos::reliable(100)).unwrap();
+        let state = ros.subscription::<RobotState>("/arm/state", qos::reliable(1000)).unwrap();
+        assert!(
+            ros.wait_for_subscribers("/arm/command", 1, Duration::from_secs(90)).await,
+            "the franka node did not come up"
+        );
+        Rig { ros, cmd, state, seq: 0 }
+    }
+
+    fn drain(&self, into: &mut Vec<RobotState>) {
+        while let Some(s) = self.state.try_take().unwrap() {
+            into.push(s.msg);
+        }
+    }
+
+    /// The first state satisfying `pred` within `secs`.
+    async fn wait(&self, secs: u64, what: &str, pred: impl Fn(&RobotState) -> bool) -> RobotState {
+        let deadline = Instant::now() + Duration::from_secs(secs);
+        let mut last = None;
+        while Instant::now() < deadline {
+            while let Some(s) = self.state.try_take().unwrap() {
+                if pred(&s.msg) {
+                    return s.msg;
+                }
+                last = Some(s.msg);
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        panic!("no /arm/state with {what} within {secs} s; last: {last:?}");
+    }
+
+    /// Sends `commands` at 20 Hz, collecting states.
+    async fn play(&mut self, commands: impl IntoIterator<Item = ArmCommand>, states: &mut Vec<RobotState>) {
+        let mut next = tokio::time::Instant::now();
+        for c in commands {
+            self.seq += 1;
+            self.cmd.publish(stamped(c, self.seq)).unwrap();
+            next += Duration::from_millis(50);
+            tokio::time::sleep_until(next).await;
+            self.drain(states);
+        }
+    }
+}
+
+#[test]
+fn the_fci_backend_moves_franka_sims_fr3_along_commanded_paths() {
+    let domain = domain_for("the_fci_backend_moves_franka_sims_fr3_along_commanded_paths");
+    let port = 20_000 + domain;
+    let _sim = franka_sim(port, &["--enforce-motion-limits"]);
+    let _node = franka_node(domain, port, None);
+    rt().block_on(async move {
+        let mut rig = Rig::new(domain).await;
+        let start = rig.wait(90, "a reading", |_| true).await;
+        let q0 = start.joint_positions;
+
+        // Joint position mode: joint 1 through a 0.25 rad sine (2 s period), 3 s of commands.
+        let target = |k: usize| {
+            let mut q = q0;
+            q[0] += 0.25 * (2.0 * std::f64::consts::PI * 0.5 * k as f64 * 0.05).sin();
+            q
+        };
+        let mut states = Vec::new();
+        rig.play((1..=60).map(|k| joints(target(k))), &mut states).await;
+        let q1: Vec<f64> = states.iter().map(|s| s.joint_positions[0] - q0[0]).collect();
+        let (lo, hi) = q1.iter().fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        assert!(hi > 0.2 && lo < -0.2, "joint 1 swept {lo:.3}..{hi:.3} rad of the +-0.25 rad sine");
+        assert!(hi < 0.27 && lo > -0.27, "overshoot: {lo:.3}..{hi:.3}");
+        // Then the last target, held for 1 s: the arm settles on it.
+        let end = target(60);
+        rig.play((0..20).map(|_| joints(end)), &mut states).await;
+        let last = states.last().unwrap();
+        let err = (0..7).map(|i| (last.joint_positions[i] - end[i]).abs()).fold(0.0, f64::max);
+        assert!(err < 0.005, "the arm rests {err:.4} rad from a target held for 1 s");
+        assert!(states.iter().all(|s| s.mode != RobotState::MODE_FAULT), "a fault on a safe path");
+        let latency: Vec<f64> = states.iter().map(|s| s.prev_controller_latency_ms).collect();
+        eprintln!(
+            "joint sine: swept {lo:.3}..{hi:.3} rad, settled {err:.5} rad from the target, \
+             command-to-backend latency max {:.3} ms",
+            latency.iter().cloned().fold(0.0, f64::max)
+        );
+
+        // To DROID's reset pose over 3 s, held for 1 s.
+        let reset = labrig_msgs::labrig_msgs::DROID_RESET_POSE;
+        let here = rig.wait(10, "a reading", |_| true).await.joint_positions;
+        let mut states = Vec::new();
+        let way = |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (reset[i] - here[i]) * (k as f64 / 60.0)) };
+        rig.play((1..=60).map(|k| joints(way(k))).chain((0..20).map(|_| joints(reset))), &mut states).await;
+        let at = states.last().unwrap().joint_positions;
+        let err = (0..7).map(|i| (at[i] - reset[i]).abs()).fold(0.0, f64::max);
+        assert!(err < 0.005, "{err} rad from DROID's reset pose");
+
+        // Cartesian velocity mode: DROID's +y at 0.1 (7.5 mm per step) for 1 s = 15 cm.
+        let before = states.last().unwrap().cartesian_position;
+        let mut states = Vec::new();
+        rig.play((0..20).map(|_| velocity([0.0, 0.1, 0.0, 0.0, 0.0, 0.0])), &mut states).await;
+        // Silence: the watchdog holds the arm 100 ms after the last command.
+        let held = rig.wait(5, "the watchdog's hold", |s| s.mode == RobotState::MODE_STOPPED).await;
+        let silence: f64 = held
+            .fault
+            .strip_prefix("watchdog: no arm command for ")
+            .and_then(|r| r.split(' ').next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("unexpected hold report: {}", held.fault));
+        assert!((100.0..102.0).contains(&silence), "held after {silence} ms");
+        // The arm comes to rest where the hold found it (the trajectory generator brakes it):
+        // no joint moves more than 0.5 mrad over 200 ms. (Positions, not franka-sim's velocity
+        // readings: its joint 7 reports ~0.08 rad/s at rest.)
+        let t_hold = Nanos::from(held.header.stamp).0;
+        let mut rest = vec![held.clone()];
+        let deadline = Instant::now() + Duration::from_secs(5);
+        let after = loop {
+            assert!(Instant::now() < deadline, "the arm did not come to rest within 5 s of the hold");
+            rig.drain(&mut rest);
+            let last = rest.last().unwrap();
+            let t_last = Nanos::from(last.header.stamp).0;
+            let earlier = rest.iter().rev().find(|s| Nanos::from(s.header.stamp).0 <= t_last - 200_000_000);
+            if let Some(e) = earlier
+                && (0..7).all(|i| (e.joint_positions[i] - last.joint_positions[i]).abs() < 5e-4)
+            {
+                break e.clone();
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        };
+        assert_eq!(after.mode, RobotState::MODE_STOPPED);
+        let to_rest_ms = (Nanos::from(after.header.stamp).0 - t_hold) as f64 / 1e6;
+        let dy = after.cartesian_position[1] - before[1];
+        let drift = (after.cartesian_position[0] - before[0]).hypot(after.cartesian_position[2] - before[2]);
+        // Never farther than commanded, and on the line.
+        assert!(dy > 0.07 && dy < 0.151, "the TCP moved {dy:.3} m along y for 15 cm of commands");
+        assert!(drift < 0.01, "the TCP drifted {drift:.4} m off the y line: {before:?} -> {:?}", after.cartesian_position);
+        eprintln!(
+            "cartesian +y: {dy:.3} m of 0.15 m commanded, off-line drift {drift:.4} m, watchdog hold after {silence:.1} ms, \
+             at rest {to_rest_ms:.0} ms later"
+        );
+    });
+}
+
+#[test]
+fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
+    let domain = domain_for("a_reflex_and_a_killed_franka_sim_are_reported_as_faults");
+    let port = 20_000 + domain;
+    let mut sim = franka_sim(port, &["--enforce-motion-limits"]);
+    // The default workspace box keeps the TCP in front of the robot, which also keeps the arm
+    // out of its own way; an operator's wider box lets a folding path through, and then the
+    // FR3's own self-collision reflex stops it.
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("franka.toml");
+    std::fs::write(&config, "[safety]\nworkspace_min = [-0.9, -0.9, -0.3]\n").unwrap();
+    let mut node = franka_node(domain, port, Some(&config));
+    rt().block_on(async move {
+        let mut rig = Rig::new(domain).await;
+        let start = rig.wait(90, "a reading", |_| true).await.joint_positions;
+        // Fold the elbow and wrist onto the upper arm over 4 s.
+        let fold = [0.0, 0.5, 0.0, -3.0, 0.0, 0.6, 0.785];
+        let way =
+            |k: usize| -> [f64; 7] { std::array::from_fn(|i| start[i] + (fold[i] - start[i]) * (k as f64 / 80.0)) };
+        let mut states = Vec::new();
+        rig.play((1..=80).map(|k| joints(way(k))), &mut states).await;
+        let fault = states
+            .iter()
+            .find(|s| s.mode == RobotState::MODE_FAULT)
+            .cloned()
+            .unwrap_or_else(|| panic!("no reflex on the folding path; last: {:?}", states.last()));
+        assert!(fault.fault.contains("reflex"), "{}", fault.fault);
+        assert!(fault.fault.contains("self_collision_avoidance_violation"), "{}", fault.fault);
+        assert!(fault.fault.ends_with("call /arm/recover"), "{}", fault.fault);
+        // Later commands are refused with the reason, until a recovery.
+        let last = states.last().unwrap();
+        assert!(last.fault.starts_with("refused arm command"), "{}", last.fault);
+        assert!(last.fault.contains("self_collision_avoidance_violation"), "the first reason is kept: {}", last.fault);
+        let recover = rig.ros.client::<Trigger>("/arm/recover", qos::reliable(10)).unwrap();
+        recover.wait_for_service(&rig.ros, Duration::from_secs(30)).await.unwrap();
+        let r = recover.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
+        assert!(r.success, "{}", r.message);
+        // Back out the way it came.
+        let here =
+            rig.wait(5, "a reading after the recovery", |s| s.mode != RobotState::MODE_FAULT).await.joint_positions;
+        let back =
+            |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (start[i] - here[i]) * (k as f64 / 60.0)) };
+        let mut states = Vec::new();
+        rig.play((1..=60).map(|k| joints(back(k))).chain((0..10).map(|_| joints(start))), &mut states).await;
+        let at = states.last().unwrap();
+        assert_ne!(at.mode, RobotState::MODE_FAULT, "{}", at.fault);
+        let err = (0..7).map(|i| (at.joint_positions[i] - start[i]).abs()).fold(0.0, f64::max);
+        assert!(err < 0.01, "after the recovery the arm is {err:.4} rad from where it started");
+        eprintln!("reflex reported as: {}", fault.fault);
+
+        // The simulator dies: a fault naming the lost arm; the node lives on.
+        let _ = sim.child.kill();
+        let _ = sim.child.wait();
+        let lost = rig.wait(15, "the lost arm", |s| s.mode == RobotState::MODE_FAULT).await;
+        assert!(lost.fault.ends_with("call /arm/recover"), "{}", lost.fault);
+        eprintln!("killed simulator reported as: {}", lost.fault);
+        rig.play((0..5).map(|_| joints(start)), &mut states).await;
+        assert!(node.child.try_wait().unwrap().is_none(), "the node exited when its simulator died");
+        // /arm/recover cannot bring a dead simulator back, and says so.
+        let r = recover.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
+        assert!(!r.success && r.message.contains("cannot start the arm"), "{}", r.message);
+        // A clean stop on SIGTERM.
+        let pid = node.child.id().to_string();
+        assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+        assert_eq!(node.wait_exit(Duration::from_secs(20)), Some(0), "the node did not stop cleanly");
+    });
+}
