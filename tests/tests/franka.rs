@@ -287,3 +287,26 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
         assert_eq!(node.wait_exit(Duration::from_secs(20)), Some(0), "the node did not stop cleanly");
     });
 }
+
+#[test]
+fn the_franka_bench_reports_command_latencies() {
+    let domain = domain_for("the_franka_bench_reports_command_latencies");
+    let out = Command::new(labrig_tests::labrig_bin())
+        .args(["bench", "franka", "--commands", "40", "--json"])
+        .args(["--port", &(20_000 + domain).to_string(), "--domain-id", &domain.to_string()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["echoed"], 40, "every command's target echoed: {v}");
+    for series in ["node_command_to_backend", "round_trip_publish_to_echo"] {
+        let s = &v[series];
+        assert!(s["n"].as_u64().unwrap() >= 35, "{series}: {s}");
+        let (p50, max) = (s["p50_ms"].as_f64().unwrap(), s["max_ms"].as_f64().unwrap());
+        assert!(p50 > 0.0 && p50 <= max, "{series}: {s}");
+    }
+    assert!(
+        v["node_command_to_backend"]["p50_ms"].as_f64() < v["round_trip_publish_to_echo"]["p50_ms"].as_f64(),
+        "the node's share is part of the round trip: {v}"
+    );
+}

@@ -2,8 +2,9 @@
 //! the safety layer (refusals, clips, IK to joint targets) -> an [`ArmBackend`] (the FCI's
 //! 1 kHz loop interpolates between targets). Publishes `/arm/state` (DROID's RobotState:
 //! cartesian_position as xyz + euler XYZ of the 2F-85's TCP, joints, torques, the command's
-//! latency, mode and fault), `/arm/target` (the joint targets sent, sensor_msgs/JointState),
-//! `/joint_states` and `/tf` (base -> tcp) at `rate_hz`, and serves `/arm/recover`
+//! latency, mode and fault), `/joint_states` and `/tf` (base -> tcp) at `rate_hz`;
+//! `/arm/target` (sensor_msgs/JointState: the joint targets sent, stamped with the command's
+//! stamp) once per accepted command; and serves `/arm/recover`
 //! (std_srvs/Trigger) to clear a reflex or reconnect.
 //!
 //! The watchdog runs on the node's monotonic clock: when no accepted command arrives for
@@ -181,7 +182,7 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                         }
                         Err(e) => down(&mut report, e),
                     }
-                    publish(&clock, &kin, &reading, &report, &arm_state, &arm_target, &joint_states, &tf)?;
+                    publish(&clock, &kin, &reading, &report, &arm_state, &joint_states, &tf)?;
                 }
             }
             msg = stream.next() => {
@@ -205,6 +206,15 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                         match backend.set_target(&ok.joints) {
                             Ok(()) => {
                                 report.latency_ms = received.elapsed().as_secs_f64() * 1e3;
+                                // Each accepted command's joint targets, stamped with the
+                                // command's own stamp (what the recorder pairs them by).
+                                arm_target.publish(JointState {
+                                    header: Header { stamp: cmd.header.stamp, frame_id: BASE_FRAME.into() },
+                                    name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+                                    position: ok.joints.to_vec(),
+                                    velocity: vec![],
+                                    effort: vec![],
+                                })?;
                                 report.commanded = Some(ok.joints);
                                 report.gripper = ok.gripper;
                                 report.last_ok = true;
@@ -228,7 +238,7 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                     Ok(r) => reading = r,
                     Err(e) => down(&mut report, e),
                 }
-                publish(&clock, &kin, &reading, &report, &arm_state, &arm_target, &joint_states, &tf)?;
+                publish(&clock, &kin, &reading, &report, &arm_state, &joint_states, &tf)?;
             }
         }
     }
@@ -254,14 +264,12 @@ fn down(report: &mut Report, e: BackendError) {
     report.backend_down = Some(e);
 }
 
-#[allow(clippy::too_many_arguments)]
 fn publish(
     clock: &Clock,
     kin: &Fr3Kinematics,
     r: &ArmReading,
     report: &Report,
     arm_state: &labrig_runtime::ros::RosPublisher<RobotState>,
-    arm_target: &labrig_runtime::ros::RosPublisher<JointState>,
     joint_states: &labrig_runtime::ros::RosPublisher<JointState>,
     tf: &labrig_runtime::ros::RosPublisher<TFMessage>,
 ) -> anyhow::Result<()> {
@@ -291,15 +299,6 @@ fn publish(
         fault: report.fault.clone(),
         ..RobotState::default()
     })?;
-    if let Some(q) = report.commanded {
-        arm_target.publish(JointState {
-            header: header(t, BASE_FRAME),
-            name: names.clone(),
-            position: q.to_vec(),
-            velocity: vec![],
-            effort: vec![],
-        })?;
-    }
     joint_states.publish(JointState {
         header: header(t, BASE_FRAME),
         name: names,
@@ -319,4 +318,31 @@ fn publish(
         }],
     })?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_config_parses_and_bad_keys_are_named() {
+        let text = include_str!("../../../launch_configs/franka_fr3.toml");
+        let cfg: FrankaNodeConfig = labrig_runtime::config::parse_config(text, "franka_fr3.toml".as_ref()).unwrap();
+        cfg.validate().unwrap();
+        assert_eq!(cfg.safety, SafetyConfig::default(), "the example lists the defaults");
+        let err = labrig_runtime::config::parse_config::<FrankaNodeConfig>(
+            "[safety]\nworkspace_mn = [0, 0, 0]\n",
+            "f.toml".as_ref(),
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("unknown field `workspace_mn`"), "{err}");
+        #[cfg(feature = "fci")]
+        {
+            let cfg = FrankaNodeConfig {
+                fci: crate::fci::FciConfig { limit_fraction: 1.5, ..Default::default() },
+                ..Default::default()
+            };
+            assert!(cfg.validate().unwrap_err().contains("fci.limit_fraction"));
+        }
+    }
 }

@@ -280,6 +280,14 @@ mod tests {
     }
 
     #[test]
+    fn the_example_config_parses() {
+        let text = include_str!("../../../launch_configs/gripper_2f85.toml");
+        let cfg: GripperNodeConfig = labrig_runtime::config::parse_config(text, "gripper_2f85.toml".as_ref()).unwrap();
+        cfg.validate().unwrap();
+        assert_eq!((cfg.backend, cfg.port.as_str(), cfg.slave), (Backend::Robotiq, "/dev/ttyUSB0", 9));
+    }
+
+    #[test]
     fn commands_take_the_default_speed_and_force_for_zero() {
         let cfg = GripperNodeConfig::default();
         let w = wanted(&GripperCommand { position: 1.0, ..Default::default() }, &cfg).unwrap();

@@ -105,6 +105,8 @@ pub enum TopicCommand {
 pub enum BenchCommand {
     /// Camera frames over iceoryx2 shared memory between processes.
     Shm(crate::bench::ShmArgs),
+    /// The franka node against franka-sim: command-to-backend latency (in the node and round trip).
+    Franka(crate::bench_franka::FrankaArgs),
     /// The franka node's command path per tick: URDF FK + Jacobian, IK, the safety filter.
     Ik(crate::bench_ik::IkArgs),
     /// (internal) one publisher process of `bench shm`.
@@ -121,6 +123,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
         Command::Bench(BenchCommand::Ik(a)) => crate::bench_ik::run(a),
+        Command::Bench(BenchCommand::Franka(a)) => crate::bench_franka::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
