@@ -3,7 +3,6 @@
 use clap::{Parser, Subcommand};
 use labrig_franka::fci::FciArm;
 use labrig_franka::node::FrankaNodeConfig;
-use labrig_runtime::Shutdown;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -38,18 +37,8 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    labrig_runtime::logging::init("info");
     let cli = Cli::parse();
-    let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("labrig-franka: cannot start the runtime: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let result = rt.block_on(async {
-        let shutdown = Shutdown::new();
-        shutdown.trigger_on_signals()?;
+    labrig_runtime::main_node("labrig-franka", |shutdown| async move {
         match cli.command {
             Command::Run { config, robot_ip, no_realtime, domain_id, connect_timeout_s } => {
                 let mut cfg: FrankaNodeConfig = match &config {
@@ -82,12 +71,5 @@ fn main() -> ExitCode {
                 labrig_franka::node::run(cfg, Box::new(arm), shutdown).await
             }
         }
-    });
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("labrig-franka: {e:#}");
-            ExitCode::FAILURE
-        }
-    }
+    })
 }

@@ -28,7 +28,6 @@ use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use std::path::PathBuf;
 use std::time::Duration;
-use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 
 pub const JOINT_NAMES: [&str; 7] =
@@ -127,20 +126,7 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
     let joint_states = ros.publisher::<JointState>("/joint_states", qos::reliable(10))?;
     let tf = ros.publisher::<TFMessage>("/tf", qos::reliable(10))?;
     let commands = ros.subscription::<ArmCommand>("/arm/command", qos::reliable(100))?;
-    let server = ros.server::<Trigger>("/arm/recover", qos::reliable(10))?;
-    let (recover_tx, mut recover_rx) = mpsc::channel::<oneshot::Sender<TriggerResponse>>(4);
-    let service = tokio::spawn(async move {
-        while let Ok((id, _)) = server.receive().await {
-            let (tx, rx) = oneshot::channel();
-            if recover_tx.send(tx).await.is_err() {
-                break;
-            }
-            let response = rx.await.unwrap_or_default();
-            if let Err(e) = server.respond(id, response).await {
-                tracing::warn!("/arm/recover: {e}");
-            }
-        }
-    });
+    let mut recover_rx = ros.server::<Trigger>("/arm/recover", qos::reliable(10))?.forward();
 
     let mut report = Report { last_ok: true, ..Report::default() };
     let mut reading: ArmReading = backend.read()?;
@@ -154,7 +140,7 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
         let deadline = watchdog.deadline().map(|d| started + Duration::from_nanos(d.max(0) as u64));
         tokio::select! {
             _ = shutdown.wait() => break,
-            Some(reply) = recover_rx.recv() => {
+            Some(served) = recover_rx.recv() => {
                 let response = match backend.recover().and_then(|()| backend.read()) {
                     Ok(r) => {
                         reading = r;
@@ -166,7 +152,7 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                     Err(e) => TriggerResponse { success: false, message: e.to_string() },
                 };
                 tracing::info!("/arm/recover: {}", response.message);
-                let _ = reply.send(response);
+                served.respond(response);
             }
             _ = async { tokio::time::sleep_until(deadline.expect("guarded")).await }, if deadline.is_some() => {
                 if let Some(silence) = watchdog.check(mono_ns()) {
@@ -242,7 +228,6 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
             }
         }
     }
-    service.abort();
     backend.stop();
     tracing::info!(
         commands = report.commands,

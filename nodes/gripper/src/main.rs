@@ -3,7 +3,6 @@
 use clap::{Parser, Subcommand};
 use labrig_gripper::node::{Backend, GripperNodeConfig};
 use labrig_gripper::{Emulated2F85, EmulatorConfig};
-use labrig_runtime::Shutdown;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -39,18 +38,8 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    labrig_runtime::logging::init("info");
     let cli = Cli::parse();
-    let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("labrig-gripper: cannot start the runtime: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let result = rt.block_on(async {
-        let shutdown = Shutdown::new();
-        shutdown.trigger_on_signals()?;
+    labrig_runtime::main_node("labrig-gripper", |shutdown| async move {
         match cli.command {
             Command::Run { config, backend, port, domain_id } => {
                 let mut cfg: GripperNodeConfig = match &config {
@@ -77,12 +66,5 @@ fn main() -> ExitCode {
                 Ok(())
             }
         }
-    });
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("labrig-gripper: {e:#}");
-            ExitCode::FAILURE
-        }
-    }
+    })
 }

@@ -17,7 +17,6 @@ use labrig_runtime::ros::{Ros, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use std::time::Duration;
-use tokio::sync::{mpsc, oneshot};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
@@ -165,21 +164,8 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
     let mut ros = Ros::new(&cfg.ros, "labrig_gripper")?;
     let state_pub = ros.publisher::<GripperState>("/gripper/state", qos::reliable(10))?;
     let cmd_sub = ros.subscription::<GripperCommand>("/gripper/command", qos::reliable(100))?;
-    let server = ros.server::<Trigger>("/gripper/activate", qos::reliable(10))?;
-    // The service runs on its own task; the control loop answers its requests between ticks.
-    let (activate_tx, mut activate_rx) = mpsc::channel::<oneshot::Sender<TriggerResponse>>(4);
-    let service = tokio::spawn(async move {
-        while let Ok((id, _)) = server.receive().await {
-            let (tx, rx) = oneshot::channel();
-            if activate_tx.send(tx).await.is_err() {
-                break;
-            }
-            let response = rx.await.unwrap_or_default();
-            if let Err(e) = server.respond(id, response).await {
-                tracing::warn!("/gripper/activate: {e}");
-            }
-        }
-    });
+    // Answered by the loop between ticks.
+    let mut activate_rx = ros.server::<Trigger>("/gripper/activate", qos::reliable(10))?.forward();
     let clock = Clock::Wall;
     let activation_timeout = Duration::from_secs_f64(cfg.activation_timeout_s);
 
@@ -203,7 +189,7 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
             _ = ticker.tick() => {}
             _ = shutdown.wait() => break,
         }
-        if let Ok(reply) = activate_rx.try_recv() {
+        if let Ok(served) = activate_rx.try_recv() {
             tracing::info!("/gripper/activate: re-running the activation");
             written = None;
             let response = match gripper.activate(activation_timeout).await {
@@ -216,7 +202,7 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
                     TriggerResponse { success: false, message: fault.clone() }
                 }
             };
-            let _ = reply.send(response);
+            served.respond(response);
         }
         let mut latest = None;
         while let Some(c) = cmd_sub.try_take()? {
@@ -255,7 +241,6 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
         let reason = if link.is_empty() { &fault } else { &link };
         state_pub.publish(state(clock.now(), status, reason))?;
     }
-    service.abort();
     tracing::info!(commands, refused, "gripper node stopped");
     Ok(())
 }

@@ -81,6 +81,36 @@ mod tests {
     }
 }
 
+/// A node binary's `main` in one call: logging at `info` (RUST_LOG overrides), a two-worker
+/// tokio runtime, SIGINT/SIGTERM -> the [`Shutdown`] token handed to `body`, and the exit code:
+/// success, or the error printed as `<name>: <error chain>` and failure.
+pub fn main_node<F, Fut>(name: &str, body: F) -> std::process::ExitCode
+where
+    F: FnOnce(Shutdown) -> Fut,
+    Fut: std::future::Future<Output = anyhow::Result<()>>,
+{
+    crate::logging::init("info");
+    let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("{name}: cannot start the runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let result = rt.block_on(async {
+        let shutdown = Shutdown::new();
+        shutdown.trigger_on_signals()?;
+        body(shutdown).await
+    });
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("{name}: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
 /// What a node's `run` gets besides its config.
 #[derive(Debug, Clone)]
 pub struct NodeContext {

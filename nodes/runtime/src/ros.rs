@@ -554,6 +554,47 @@ impl<S: RosService> RosServer<S> {
     }
 }
 
+/// A request a node's control loop answers: reply through `respond`.
+#[derive(Debug)]
+pub struct Served<S: RosService> {
+    pub request: S::Request,
+    respond: tokio::sync::oneshot::Sender<S::Response>,
+}
+
+impl<S: RosService> Served<S> {
+    pub fn respond(self, response: S::Response) {
+        // The client may have given up; nothing to do then.
+        let _ = self.respond.send(response);
+    }
+}
+
+impl<S: RosService> RosServer<S>
+where
+    S: Send + Sync + 'static,
+    S::Request: Send + Sync + 'static,
+    S::Response: Send + Sync + Default + 'static,
+{
+    /// Serves on a task of its own and hands each request to the caller's loop (`try_recv`
+    /// between ticks, or `recv` in a `select!`); the loop answers with [`Served::respond`]. A
+    /// request dropped unanswered gets the default response. The task ends with the receiver.
+    pub fn forward(self) -> tokio::sync::mpsc::Receiver<Served<S>> {
+        let (tx, rx) = tokio::sync::mpsc::channel::<Served<S>>(4);
+        tokio::spawn(async move {
+            while let Ok((id, request)) = self.receive().await {
+                let (respond, answer) = tokio::sync::oneshot::channel();
+                if tx.send(Served { request, respond }).await.is_err() {
+                    break;
+                }
+                let response = answer.await.unwrap_or_default();
+                if let Err(e) = self.respond(id, response).await {
+                    tracing::warn!("{}: {e}", self.service);
+                }
+            }
+        });
+        rx
+    }
+}
+
 /// A service client.
 pub struct RosClient<S: RosService> {
     client: ros2_client::Client<Wire<S::Request>, Wire<S::Response>>,
