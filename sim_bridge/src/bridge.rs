@@ -97,6 +97,14 @@ pub struct BridgeArgs {
     /// Where setup extracted the MuJoCo models.
     #[arg(long, env = "LABRIG_SIM_ASSETS")]
     pub assets: Option<PathBuf>,
+    /// Serve the arm and gripper topics under this prefix (`/sim` -> `/sim/arm/command`,
+    /// `/sim/arm/state`, `/sim/gripper/command`, `/sim/gripper/state`), for the franka and
+    /// gripper nodes' `sim` backends, which then own the unprefixed topics. /joint_states,
+    /// /tf, /clock and the cameras stay as they are. With a prefix the gripper follows
+    /// `<prefix>/gripper/command` only (arm commands' `gripper_position` is ignored, as the
+    /// real FR3 ignores it: the gripper node owns the gripper).
+    #[arg(long, default_value = "")]
+    pub hardware_prefix: String,
 }
 
 pub fn run(a: BridgeArgs) -> anyhow::Result<ExitCode> {
@@ -193,12 +201,19 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
 
     let cfg = RosConfig { domain_id: a.domain_id, loopback_only: !a.allow_network, ..RosConfig::default() };
     cfg.validate(std::path::Path::new("<command line>"))?;
+    let hw = a.hardware_prefix.trim_end_matches('/');
+    anyhow::ensure!(
+        hw.is_empty() || (hw.starts_with('/') && hw[1..].split('/').all(|p| !p.is_empty())),
+        "--hardware-prefix {:?} must look like /sim",
+        a.hardware_prefix
+    );
+    let arm_sets_gripper = hw.is_empty();
     let mut ros = Ros::new(&cfg, "labrig_sim")?;
     let cameras: Vec<&'static str> = if a.no_cameras { vec![] } else { crate::rig::CAMERAS.to_vec() };
     let pubs = Publishers {
         joint_states: ros.publisher("/joint_states", qos::reliable(10))?,
-        arm_state: ros.publisher("/arm/state", qos::reliable(10))?,
-        gripper_state: ros.publisher("/gripper/state", qos::reliable(10))?,
+        arm_state: ros.publisher(&format!("{hw}/arm/state"), qos::reliable(10))?,
+        gripper_state: ros.publisher(&format!("{hw}/gripper/state"), qos::reliable(10))?,
         tf: ros.publisher("/tf", qos::reliable(10))?,
         clock: ros.publisher("/clock", qos::reliable(10))?,
         camera_info: cameras
@@ -208,8 +223,9 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     };
     let tf_static = ros.publisher::<TFMessage>("/tf_static", qos::latched(1))?;
     let scene_pub = ros.publisher::<StringMsg>("/sim/scene", qos::latched(1))?;
-    let arm_sub: RosSubscription<ArmCommand> = ros.subscription("/arm/command", qos::reliable(100))?;
-    let gripper_sub: RosSubscription<GripperCommand> = ros.subscription("/gripper/command", qos::reliable(100))?;
+    let arm_sub: RosSubscription<ArmCommand> = ros.subscription(&format!("{hw}/arm/command"), qos::reliable(100))?;
+    let gripper_sub: RosSubscription<GripperCommand> =
+        ros.subscription(&format!("{hw}/gripper/command"), qos::reliable(100))?;
     let frames = FrameNode::new()?;
     let mut frame_pubs: Vec<FramePublisher> = cameras
         .iter()
@@ -262,7 +278,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         let step_now = match a.mode {
             Mode::Lockstep => match arm_sub.try_take()? {
                 Some(cmd) => {
-                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0);
+                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0, arm_sets_gripper);
                     true
                 }
                 None => false,
@@ -271,7 +287,8 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                 while let Some(cmd) = arm_sub.try_take()? {
                     // Arrival on the sim's time line: the last tick's time + wall time since it.
                     let since_tick = (last_tick.elapsed().as_nanos() as i64).min(period.0 - 1);
-                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0 + since_tick);
+                    let at = sim.time().0 + since_tick;
+                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, at, arm_sets_gripper);
                 }
                 let now = Instant::now();
                 if now >= next_deadline {
@@ -363,6 +380,7 @@ fn accept(
     state: &mut CommandState,
     watchdog: &mut Watchdog,
     arrival_ns: i64,
+    arm_sets_gripper: bool,
 ) {
     state.commands += 1;
     let view = ArmView {
@@ -370,7 +388,8 @@ fn accept(
         commanded: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints),
     };
     let checked = safety.filter(cmd, &view, sim.time().0).map_err(|e| e.to_string()).and_then(|ok| {
-        let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+        let gripper = if arm_sets_gripper { ok.gripper } else { state.gripper };
+        let t = ArmTarget { joints: ok.joints, gripper };
         sim.check(&t).map(|()| (t, ok.clipped)).map_err(|e| e.to_string())
     });
     match checked {

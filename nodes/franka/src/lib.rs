@@ -39,3 +39,5 @@ pub mod backend;
 pub mod fci;
 #[cfg(feature = "node")]
 pub mod node;
+#[cfg(feature = "node")]
+pub mod sim;

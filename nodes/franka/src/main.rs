@@ -2,7 +2,8 @@
 
 use clap::{Parser, Subcommand};
 use labrig_franka::fci::FciArm;
-use labrig_franka::node::FrankaNodeConfig;
+use labrig_franka::node::{BackendKind, FrankaNodeConfig};
+use labrig_franka::sim::SimArm;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -21,6 +22,9 @@ enum Command {
         /// Node config (TOML, see launch_configs/franka_fr3.toml); the flags below override it.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// fci: a real FR3 or franka-sim; sim: the sim bridge run with `--hardware-prefix /sim`.
+        #[arg(long, value_enum)]
+        backend: Option<BackendKind>,
         /// The FR3's FCI address (franka-sim: 127.0.0.1).
         #[arg(long)]
         robot_ip: Option<String>,
@@ -40,11 +44,14 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     labrig_runtime::main_node("labrig-franka", |shutdown| async move {
         match cli.command {
-            Command::Run { config, robot_ip, no_realtime, domain_id, connect_timeout_s } => {
+            Command::Run { config, backend, robot_ip, no_realtime, domain_id, connect_timeout_s } => {
                 let mut cfg: FrankaNodeConfig = match &config {
                     Some(p) => labrig_runtime::load_config(p)?,
                     None => FrankaNodeConfig::default(),
                 };
+                if let Some(b) = backend {
+                    cfg.backend = b;
+                }
                 if let Some(ip) = robot_ip {
                     cfg.robot_ip = ip;
                 }
@@ -55,6 +62,15 @@ fn main() -> ExitCode {
                     cfg.ros.domain_id = d;
                 }
                 cfg.validate().map_err(anyhow::Error::msg)?;
+                if cfg.backend == BackendKind::Sim {
+                    let prefix = cfg.sim_prefix.clone();
+                    return labrig_franka::node::run(
+                        cfg,
+                        |ros, clock| Ok(Box::new(SimArm::new(ros, &prefix, clock.clone())?)),
+                        shutdown,
+                    )
+                    .await;
+                }
                 let deadline =
                     std::time::Instant::now() + std::time::Duration::from_secs_f64(connect_timeout_s.max(0.0));
                 let arm = loop {
@@ -68,7 +84,7 @@ fn main() -> ExitCode {
                         Err(e) => anyhow::bail!("{e} (FCI at {})", cfg.robot_ip),
                     }
                 };
-                labrig_franka::node::run(cfg, Box::new(arm), shutdown).await
+                labrig_franka::node::run(cfg, |_, _| Ok(Box::new(arm)), shutdown).await
             }
         }
     })

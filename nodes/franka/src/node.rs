@@ -40,6 +40,8 @@ const BASE_FRAME: &str = "base";
 pub enum BackendKind {
     /// A real FR3 (or franka-sim) through franka-rs over the FCI.
     Fci,
+    /// The sim bridge's FR3, served under `sim_prefix` (`labrig-sim run --hardware-prefix /sim`).
+    Sim,
 }
 
 /// The node's config (TOML; every key optional, unknown keys refused).
@@ -50,6 +52,8 @@ pub struct FrankaNodeConfig {
     pub backend: BackendKind,
     /// The FR3's FCI address (franka-sim: 127.0.0.1).
     pub robot_ip: String,
+    /// The sim backend's bridge topics (`<sim_prefix>/arm/command`, `.../arm/state`).
+    pub sim_prefix: String,
     /// The FR3 URDF (default: the one setup extracts).
     pub urdf: Option<PathBuf>,
     /// `/arm/state`, `/joint_states`, `/tf` per second.
@@ -65,6 +69,7 @@ impl Default for FrankaNodeConfig {
             ros: RosConfig::default(),
             backend: BackendKind::Fci,
             robot_ip: "172.16.0.2".into(),
+            sim_prefix: "/sim".into(),
             urdf: None,
             rate_hz: 50.0,
             safety: SafetyConfig::default(),
@@ -111,16 +116,30 @@ fn header(t: Nanos, frame: &str) -> Header {
     Header { stamp: t.into(), frame_id: frame.to_owned() }
 }
 
-/// Runs the node on `backend` until `shutdown`.
-pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdown: Shutdown) -> anyhow::Result<()> {
+/// Runs the node until `shutdown` on the backend `make` builds (it gets the node's ROS handle
+/// and clock: wall time for `fci`, the bridge's `/clock` for `sim`).
+pub async fn run(
+    cfg: FrankaNodeConfig,
+    make: impl FnOnce(&mut Ros, &Clock) -> anyhow::Result<Box<dyn ArmBackend>>,
+    shutdown: Shutdown,
+) -> anyhow::Result<()> {
     cfg.validate().map_err(anyhow::Error::msg)?;
     let kin = Fr3Kinematics::from_urdf_file(&crate::urdf_path(cfg.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
     let filter =
         SafetyFilter::new(Ik::new(kin.clone(), IkConfig::default()), cfg.safety.clone()).map_err(anyhow::Error::msg)?;
     let mut watchdog = Watchdog::new(cfg.safety.watchdog_ns());
-    let clock = Clock::Wall;
+    // In sim, time is the bridge's: commands are stamped in it and, in lockstep, it stands
+    // still between commands, so the watchdog runs on it too (checked each state tick).
+    let sim = cfg.backend == BackendKind::Sim;
+    let clock = if sim { Clock::manual(Nanos::ZERO) } else { Clock::Wall };
 
     let mut ros = Ros::new(&cfg.ros, "labrig_franka")?;
+    let sim_clock = if sim {
+        Some(ros.subscription::<labrig_msgs::rosgraph_msgs::Clock>("/clock", qos::reliable(10))?)
+    } else {
+        None
+    };
+    let mut backend = make(&mut ros, &clock)?;
     let arm_state = ros.publisher::<RobotState>("/arm/state", qos::reliable(10))?;
     let arm_target = ros.publisher::<JointState>("/arm/target", qos::reliable(10))?;
     let joint_states = ros.publisher::<JointState>("/joint_states", qos::reliable(10))?;
@@ -129,15 +148,35 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
     let mut recover_rx = ros.server::<Trigger>("/arm/recover", qos::reliable(10))?.forward();
 
     let mut report = Report { last_ok: true, ..Report::default() };
-    let mut reading: ArmReading = backend.read()?;
+    // The first reading (the sim bridge may still be starting).
+    let waited = Instant::now();
+    let mut reading: ArmReading = loop {
+        match backend.read() {
+            Ok(r) => break r,
+            Err(e) if waited.elapsed() < Duration::from_secs(60) && !shutdown.is_triggered() => {
+                tracing::debug!("waiting for the arm: {e}");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    };
     tracing::info!(backend = backend.name(), q = ?reading.q, "franka node up");
     let started = Instant::now();
-    let mono_ns = move || started.elapsed().as_nanos() as i64;
+    let sync_clock = || -> anyhow::Result<()> {
+        if let Some(sub) = &sim_clock {
+            while let Some(c) = sub.try_take()? {
+                clock.set(Nanos::from(c.msg.clock));
+            }
+        }
+        Ok(())
+    };
+    // The watchdog's time line: the node's monotonic clock, or sim time.
+    let watch_ns = |clock: &Clock| if sim { clock.now().0 } else { started.elapsed().as_nanos() as i64 };
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut stream = Box::pin(commands.stream());
     loop {
-        let deadline = watchdog.deadline().map(|d| started + Duration::from_nanos(d.max(0) as u64));
+        let deadline = watchdog.deadline().filter(|_| !sim).map(|d| started + Duration::from_nanos(d.max(0) as u64));
         tokio::select! {
             _ = shutdown.wait() => break,
             Some(served) = recover_rx.recv() => {
@@ -155,26 +194,16 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                 served.respond(response);
             }
             _ = async { tokio::time::sleep_until(deadline.expect("guarded")).await }, if deadline.is_some() => {
-                if let Some(silence) = watchdog.check(mono_ns()) {
-                    match backend.hold() {
-                        Ok(q) => {
-                            report.commanded = Some(q);
-                            report.holding = true;
-                            report.fault = format!(
-                                "watchdog: no arm command for {:.1} ms; holding at the measured joints",
-                                silence as f64 / 1e6
-                            );
-                            tracing::warn!("{}", report.fault);
-                        }
-                        Err(e) => down(&mut report, e),
-                    }
-                    publish(&clock, &kin, &reading, &report, &arm_state, &joint_states, &tf)?;
+                if let Some(silence) = watchdog.check(watch_ns(&clock)) {
+                    hold(&mut *backend, &mut report, silence);
+                    publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf)?;
                 }
             }
             msg = stream.next() => {
                 let Some(msg) = msg else { break };
                 let received = Instant::now();
                 let cmd = msg?.msg;
+                sync_clock()?;
                 report.commands += 1;
                 if let Some(e) = &report.backend_down {
                     report.refused += 1;
@@ -206,7 +235,7 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                                 report.last_ok = true;
                                 report.holding = false;
                                 report.fault.clear();
-                                watchdog.feed(mono_ns());
+                                watchdog.feed(watch_ns(&clock));
                             }
                             Err(e) => down(&mut report, e),
                         }
@@ -220,11 +249,15 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
                 }
             }
             _ = ticker.tick() => {
+                sync_clock()?;
                 match backend.read() {
                     Ok(r) => reading = r,
                     Err(e) => down(&mut report, e),
                 }
-                publish(&clock, &kin, &reading, &report, &arm_state, &joint_states, &tf)?;
+                if sim && let Some(silence) = watchdog.check(watch_ns(&clock)) {
+                    hold(&mut *backend, &mut report, silence);
+                }
+                publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf)?;
             }
         }
     }
@@ -238,6 +271,20 @@ pub async fn run(cfg: FrankaNodeConfig, mut backend: Box<dyn ArmBackend>, shutdo
     Ok(())
 }
 
+/// The watchdog tripped after `silence` ns: hold the arm where it is.
+fn hold(backend: &mut dyn ArmBackend, report: &mut Report, silence: i64) {
+    match backend.hold() {
+        Ok(q) => {
+            report.commanded = Some(q);
+            report.holding = true;
+            report.fault =
+                format!("watchdog: no arm command for {:.1} ms; holding at the measured joints", silence as f64 / 1e6);
+            tracing::warn!("{}", report.fault);
+        }
+        Err(e) => down(report, e),
+    }
+}
+
 /// The arm faulted or is gone: the first reason is kept until a recovery.
 fn down(report: &mut Report, e: BackendError) {
     if report.backend_down.is_some() {
@@ -249,12 +296,14 @@ fn down(report: &mut Report, e: BackendError) {
     report.backend_down = Some(e);
 }
 
+#[allow(clippy::too_many_arguments)]
 fn publish(
     clock: &Clock,
     kin: &Fr3Kinematics,
     r: &ArmReading,
     report: &Report,
     arm_state: &labrig_runtime::ros::RosPublisher<RobotState>,
+    sim: bool,
     joint_states: &labrig_runtime::ros::RosPublisher<JointState>,
     tf: &labrig_runtime::ros::RosPublisher<TFMessage>,
 ) -> anyhow::Result<()> {
@@ -284,6 +333,10 @@ fn publish(
         fault: report.fault.clone(),
         ..RobotState::default()
     })?;
+    if sim {
+        // The bridge publishes the whole rig's joints (arm and gripper) and frames.
+        return Ok(());
+    }
     joint_states.publish(JointState {
         header: header(t, BASE_FRAME),
         name: names,
