@@ -98,3 +98,39 @@ fn the_gripper_node_drives_an_emulated_2f85() {
         wait_state(&states, "recovery", |s| s.fault.is_empty() && s.activated).await;
     });
 }
+
+/// The gripper node's `sim` backend: in front of the sim bridge's 2F-85 (arm and gripper
+/// topics under /sim). /gripper/command closes and opens the simulated fingers through the
+/// node, whose /gripper/state follows the physics.
+#[test]
+fn the_gripper_node_drives_the_sim_bridges_2f85() {
+    let domain = domain_for("the_gripper_node_drives_the_sim_bridges_2f85");
+    let mut bridge = Command::new(labrig_tests::sim_bin());
+    bridge.args(["run", "--mode", "realtime", "--no-cameras", "--hardware-prefix", "/sim"]).args([
+        "--domain-id",
+        &domain.to_string(),
+        "--max-ticks",
+        "1200",
+    ]);
+    let _bridge = Proc::spawn("labrig-sim run", bridge);
+    let mut cmd = Command::new(workspace_bin("labrig-gripper", "labrig-gripper"));
+    cmd.args(["run", "--backend", "sim", "--domain-id", &domain.to_string()]);
+    let _node = Proc::spawn("labrig-gripper run --backend sim", cmd);
+    rt().block_on(async move {
+        let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "gripper_sim_test").unwrap();
+        let cmd_pub = ros.publisher::<GripperCommand>("/gripper/command", qos::reliable(10)).unwrap();
+        let states = ros.subscription::<GripperState>("/gripper/state", qos::reliable(100)).unwrap();
+        assert!(ros.wait_for_subscribers("/gripper/command", 1, Duration::from_secs(60)).await, "node did not come up");
+        let s = wait_state(&states, "activated", |s| s.activated && s.fault.is_empty()).await;
+        assert!(s.position < 0.05, "starts open: {s:?}");
+        cmd_pub.publish(command(1.0)).unwrap();
+        let s = wait_state(&states, "closed", |s| s.position > 0.9).await;
+        assert_eq!(s.requested_position, 1.0);
+        assert!(!s.object_detected, "nothing between the fingers: {s:?}");
+        cmd_pub.publish(command(0.0)).unwrap();
+        wait_state(&states, "open again", |s| s.position < 0.05 && s.requested_position == 0.0).await;
+        cmd_pub.publish(command(f64::INFINITY)).unwrap();
+        let s = wait_state(&states, "the refusal", |s| !s.fault.is_empty()).await;
+        assert_eq!(s.fault, "refused gripper command: position inf is outside 0..1");
+    });
+}

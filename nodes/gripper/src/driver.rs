@@ -45,6 +45,8 @@ pub enum GripperError {
     ActivationTimeout { after: Duration, status: String },
     #[error("the 2F-85 is not activated (status: {status}); activate it first")]
     NotActivated { status: String },
+    #[error("the simulated 2F-85 ({0})")]
+    Sim(String),
     #[error("the 2F-85's fingers did not stop within {after:?} (last status: {status})")]
     MotionTimeout { after: Duration, status: String },
 }

@@ -10,6 +10,7 @@ pub mod driver;
 pub mod emulator;
 pub mod node;
 pub mod registers;
+pub mod sim;
 
 pub use driver::{DriverConfig, GripperError, Robotiq2F85};
 pub use emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};

@@ -11,6 +11,7 @@
 use crate::driver::{DriverConfig, GripperError, Robotiq2F85};
 use crate::emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};
 use crate::registers::{Status, counts_to_droid, droid_to_counts, fault_meaning};
+use crate::sim::SimGripper;
 use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
 use labrig_msgs::std_srvs::{Trigger, TriggerResponse};
 use labrig_runtime::ros::{Ros, qos};
@@ -25,6 +26,8 @@ pub enum Backend {
     Robotiq,
     /// An emulated 2F-85 on a pseudo-terminal inside the node (no hardware needed).
     Emulated,
+    /// The sim bridge's 2F-85 under `sim_prefix` (`labrig-sim run --hardware-prefix /sim`).
+    Sim,
 }
 
 /// The node's config (TOML; every key optional, unknown keys refused).
@@ -35,6 +38,8 @@ pub struct GripperNodeConfig {
     pub backend: Backend,
     /// Serial device of the 2F-85 (robotiq backend).
     pub port: String,
+    /// The sim backend's bridge topics (`<sim_prefix>/gripper/command`, `.../gripper/state`).
+    pub sim_prefix: String,
     pub slave: u8,
     pub baud: u32,
     /// Deadline of one Modbus exchange.
@@ -53,6 +58,7 @@ impl Default for GripperNodeConfig {
             ros: RosConfig::default(),
             backend: Backend::Robotiq,
             port: "/dev/ttyUSB0".into(),
+            sim_prefix: "/sim".into(),
             slave: crate::registers::SLAVE_ID,
             baud: crate::registers::BAUD_RATE,
             request_timeout_ms: 100,
@@ -135,33 +141,78 @@ fn state(now: labrig_msgs::Nanos, s: Option<Status>, fault: &str) -> GripperStat
     msg
 }
 
+/// The gripper behind the node: the 2F-85 over Modbus (hardware or emulated), or the sim's.
+#[derive(Debug)]
+enum Gripper {
+    Robotiq(Robotiq2F85),
+    Sim(Box<SimGripper>),
+}
+
+impl Gripper {
+    fn describe(&self) -> String {
+        match self {
+            Gripper::Robotiq(g) => format!("{} (slave {})", g.config().port, g.config().slave),
+            Gripper::Sim(g) => format!("{g:?}"),
+        }
+    }
+
+    async fn activate(&mut self, within: Duration) -> Result<Status, GripperError> {
+        match self {
+            Gripper::Robotiq(g) => g.activate(within).await,
+            Gripper::Sim(g) => g.activate(within).await,
+        }
+    }
+
+    async fn go_to(&mut self, position: u8, speed: u8, force: u8) -> Result<(), GripperError> {
+        match self {
+            Gripper::Robotiq(g) => g.go_to(position, speed, force).await,
+            Gripper::Sim(g) => g.go_to(position, speed, force).await,
+        }
+    }
+
+    async fn status(&mut self) -> Result<Status, GripperError> {
+        match self {
+            Gripper::Robotiq(g) => g.status().await,
+            Gripper::Sim(g) => g.status().await,
+        }
+    }
+
+    fn last_status(&self) -> Option<Status> {
+        match self {
+            Gripper::Robotiq(g) => g.last_status(),
+            Gripper::Sim(g) => g.last_status(),
+        }
+    }
+}
+
 /// Runs the node until `shutdown`.
 pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     cfg.validate().map_err(anyhow::Error::msg)?;
+    let mut ros = Ros::new(&cfg.ros, "labrig_gripper")?;
     // The emulated backend serves a 2F-85 on a pty inside the node; the driver is the same.
-    let _emulator: Option<PtyEmulator>;
-    let port = match cfg.backend {
-        Backend::Robotiq => {
-            _emulator = None;
-            cfg.port.clone()
-        }
-        Backend::Emulated => {
-            let emu = Emulated2F85::new(EmulatorConfig { slave: cfg.slave, ..EmulatorConfig::default() });
-            let pty = emu.serve_on_pty()?;
-            let path = pty.path().to_owned();
-            tracing::info!(port = %path, "emulated 2F-85 on a pseudo-terminal");
-            _emulator = Some(pty);
-            path
+    let mut _emulator: Option<PtyEmulator> = None;
+    let mut gripper = match cfg.backend {
+        Backend::Sim => Gripper::Sim(Box::new(SimGripper::new(&mut ros, &cfg.sim_prefix)?)),
+        Backend::Robotiq | Backend::Emulated => {
+            let port = if cfg.backend == Backend::Emulated {
+                let emu = Emulated2F85::new(EmulatorConfig { slave: cfg.slave, ..EmulatorConfig::default() });
+                let pty = emu.serve_on_pty()?;
+                let path = pty.path().to_owned();
+                tracing::info!(port = %path, "emulated 2F-85 on a pseudo-terminal");
+                _emulator = Some(pty);
+                path
+            } else {
+                cfg.port.clone()
+            };
+            Gripper::Robotiq(Robotiq2F85::open(DriverConfig {
+                port,
+                slave: cfg.slave,
+                baud: cfg.baud,
+                request_timeout: Duration::from_millis(cfg.request_timeout_ms),
+            })?)
         }
     };
-    let mut gripper = Robotiq2F85::open(DriverConfig {
-        port,
-        slave: cfg.slave,
-        baud: cfg.baud,
-        request_timeout: Duration::from_millis(cfg.request_timeout_ms),
-    })?;
 
-    let mut ros = Ros::new(&cfg.ros, "labrig_gripper")?;
     let state_pub = ros.publisher::<GripperState>("/gripper/state", qos::reliable(10))?;
     let cmd_sub = ros.subscription::<GripperCommand>("/gripper/command", qos::reliable(100))?;
     // Answered by the loop between ticks.
@@ -169,7 +220,7 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
     let clock = Clock::Wall;
     let activation_timeout = Duration::from_secs_f64(cfg.activation_timeout_s);
 
-    tracing::info!(port = %gripper.config().port, slave = cfg.slave, "activating the 2F-85");
+    tracing::info!(gripper = %gripper.describe(), "activating the 2F-85");
     let mut fault = match gripper.activate(activation_timeout).await {
         Ok(s) => {
             tracing::info!(status = %s.describe(), "2F-85 activated");
