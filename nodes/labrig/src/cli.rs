@@ -31,6 +31,14 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The FR3 arm node: `labrig franka run --robot-ip 172.16.0.2`, or `--backend sim` in front
+    /// of the sim bridge (see `labrig franka run --help`).
+    #[command(disable_help_flag = true)]
+    Franka {
+        /// Arguments for labrig-franka.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The Robotiq 2F-85 node: `labrig gripper run --port /dev/ttyUSB0`, or `labrig gripper
     /// emulate` for a 2F-85 on a pseudo-terminal (see `labrig gripper --help`).
     #[command(disable_help_flag = true)]
@@ -127,5 +135,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
+        Command::Franka { args } => node("labrig-franka", &args),
     }
 }
