@@ -193,7 +193,12 @@ pub async fn run(
                 tracing::info!("/arm/recover: {}", response.message);
                 served.respond(response);
             }
-            _ = async { tokio::time::sleep_until(deadline.expect("guarded")).await }, if deadline.is_some() => {
+            // tokio's timers have 1 ms granularity (they fire up to ~1.5 ms late): wake 1 ms
+            // early and sleep the rest on the thread, so the hold lands at the deadline.
+            _ = async { tokio::time::sleep_until(deadline.expect("guarded") - Duration::from_millis(1)).await },
+                if deadline.is_some() => {
+                let rest = deadline.expect("guarded").saturating_duration_since(Instant::now());
+                std::thread::sleep(rest);
                 if let Some(silence) = watchdog.check(watch_ns(&clock)) {
                     hold(&mut *backend, &mut report, silence);
                     publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf)?;
