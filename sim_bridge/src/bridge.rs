@@ -262,10 +262,10 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     let mut idle_publish = Instant::now();
     let mut late_ticks = 0u64;
     let mut last_tick = Instant::now();
-    publish_state(&sim, &pubs, &state)?;
+    report_publish(publish_state(&sim, &pubs, &state));
     while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
         // Gripper commands first, so an arm command of the same tick can override them.
-        while let Some(g) = gripper_sub.try_take()? {
+        while let Some(g) = take(&gripper_sub, &mut state) {
             let p = g.msg.position;
             if p.is_finite() && (0.0..=1.0).contains(&p) {
                 state.gripper = p;
@@ -276,7 +276,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             }
         }
         let step_now = match a.mode {
-            Mode::Lockstep => match arm_sub.try_take()? {
+            Mode::Lockstep => match take(&arm_sub, &mut state) {
                 Some(cmd) => {
                     accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0, arm_sets_gripper);
                     true
@@ -284,7 +284,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                 None => false,
             },
             Mode::Realtime => {
-                while let Some(cmd) = arm_sub.try_take()? {
+                while let Some(cmd) = take(&arm_sub, &mut state) {
                     // Arrival on the sim's time line: the last tick's time + wall time since it.
                     let since_tick = (last_tick.elapsed().as_nanos() as i64).min(period.0 - 1);
                     let at = sim.time().0 + since_tick;
@@ -306,7 +306,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         if !step_now {
             // Lockstep and idle: repeat the current state now and then, for late joiners.
             if a.mode == Mode::Lockstep && idle_publish.elapsed() > Duration::from_millis(200) {
-                publish_state(&sim, &pubs, &state)?;
+                report_publish(publish_state(&sim, &pubs, &state));
                 idle_publish = Instant::now();
             }
             let wait = match a.mode {
@@ -354,7 +354,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             frame_pubs[i].publish(&rgb, t, t)?;
             pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovys[i]))?;
         }
-        publish_state(&sim, &pubs, &state)?;
+        report_publish(publish_state(&sim, &pubs, &state));
         idle_publish = Instant::now();
     }
     let wall = started.elapsed().as_secs_f64();
@@ -373,6 +373,33 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// The next message of `sub`; a malformed one is refused, named in the state, and skipped.
+fn take<T: labrig_msgs::RosMessage>(
+    sub: &RosSubscription<T>,
+    state: &mut CommandState,
+) -> Option<labrig_runtime::ros::Received<T>> {
+    // Bounded: a reader that kept failing would otherwise hold the tick.
+    for _ in 0..100 {
+        match sub.try_take() {
+            Ok(m) => return m,
+            Err(e) => {
+                state.refused += 1;
+                state.last_ok = false;
+                state.fault = format!("refused a message on {}: {e}", sub.topic());
+                tracing::warn!("{}", state.fault);
+            }
+        }
+    }
+    None
+}
+
+/// A subscriber that cannot keep up must not stop the rig: reported, skipped.
+fn report_publish(r: anyhow::Result<()>) {
+    if let Err(e) = r {
+        tracing::warn!("publishing the rig's state: {e}");
+    }
+}
+
 fn accept(
     cmd: &ArmCommand,
     sim: &Sim,
@@ -387,11 +414,22 @@ fn accept(
         measured: sim.joint_positions(),
         commanded: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints),
     };
-    let checked = safety.filter(cmd, &view, sim.time().0).map_err(|e| e.to_string()).and_then(|ok| {
-        let gripper = if arm_sets_gripper { ok.gripper } else { state.gripper };
-        let t = ArmTarget { joints: ok.joints, gripper };
-        sim.check(&t).map(|()| (t, ok.clipped)).map_err(|e| e.to_string())
-    });
+    let checked = if arm_sets_gripper {
+        safety.filter(cmd, &view, sim.time().0).map_err(|e| e.to_string()).and_then(|ok| {
+            let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+            sim.check(&t).map(|()| (t, ok.clipped)).map_err(|e| e.to_string())
+        })
+    } else {
+        // Behind a prefix the bridge is the hardware: the franka node in front of it ran the
+        // safety layer; like the FR3, the sim only checks its own limits.
+        match cmd.mode() {
+            Ok(labrig_msgs::labrig_msgs::ArmCommandMode::JointPosition) => {
+                let t = ArmTarget { joints: cmd.joint_position, gripper: state.gripper };
+                sim.check(&t).map(|()| (t, Vec::new())).map_err(|e| e.to_string())
+            }
+            _ => Err(format!("behind --hardware-prefix the sim takes joint position targets only (mode {})", cmd.mode)),
+        }
+    };
     match checked {
         Ok((t, clipped)) => {
             if !clipped.is_empty() {

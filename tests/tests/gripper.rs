@@ -62,33 +62,45 @@ fn the_gripper_node_drives_an_emulated_2f85() {
         assert_eq!(s.requested_position, 1.0);
         assert!(s.current_ma > 100.0);
 
-        // A NaN command is refused, named, and moves nothing.
+        // A NaN command is refused, named, and moves nothing; the same valid command as
+        // before (a 20 Hz rig repeats its action) clears the refusal.
         cmd_pub.publish(command(f64::NAN)).unwrap();
         let s = wait_state(&states, "the refusal", |s| !s.fault.is_empty()).await;
         assert_eq!(s.fault, "refused gripper command: position NaN is outside 0..1");
         assert!(s.object_detected, "still holding the object");
+        cmd_pub.publish(command(1.0)).unwrap();
+        let s = wait_state(&states, "the refusal cleared", |s| s.fault.is_empty()).await;
+        assert!(s.object_detected);
 
-        // Open: the object is released, the refusal cleared by a good command.
+        // Open: the object is released. Then half closed.
         cmd_pub.publish(command(0.0)).unwrap();
         let s = wait_state(&states, "open", |s| s.position == 0.0 && s.fault.is_empty()).await;
         assert!(!s.object_detected);
+        cmd_pub.publish(command(0.5)).unwrap();
+        wait_state(&states, "half closed", |s| (s.position - 128.0 / 255.0).abs() < 1e-9).await;
 
         // Overcurrent: reported with its code and meaning; motion refused until re-activation.
         emu.inject_fault(0x0E);
         let s = wait_state(&states, "the fault", |s| s.fault_code == 0x0E).await;
         assert!(s.fault.contains("0x0E") && s.fault.contains("overcurrent"), "{}", s.fault);
         assert!(!s.activated, "a major fault: not ready");
-        cmd_pub.publish(command(0.5)).unwrap();
+        cmd_pub.publish(command(0.9)).unwrap();
         tokio::time::sleep(Duration::from_millis(300)).await;
-        assert_eq!(emu.status().position, 0, "no motion under a fault");
+        let g = emu.status();
+        assert_eq!((g.requested, g.position), (128, 128), "nothing written under a fault: {}", g.describe());
+        // Back to the command written before the fault: nothing left to write. (Given a few
+        // ticks to arrive before the activation request.)
+        cmd_pub.publish(command(0.5)).unwrap();
+        tokio::time::sleep(Duration::from_millis(200)).await;
         activate.wait_for_service(&ros, Duration::from_secs(30)).await.unwrap();
         let r = activate.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
         assert!(r.success, "{}", r.message);
         let s = wait_state(&states, "re-activated", |s| s.activated && s.fault_code == 0).await;
         assert!(s.fault.is_empty(), "{}", s.fault);
-        // After re-activation the same command is written again.
+        assert_eq!(emu.status().requested, 0, "activation resets the request (fingers open)");
+        // The activation opened the fingers; the same 0.5 as before the fault is written again.
         cmd_pub.publish(command(0.5)).unwrap();
-        wait_state(&states, "half closed", |s| (s.position - 128.0 / 255.0).abs() < 1e-9).await;
+        wait_state(&states, "half closed again", |s| (s.position - 128.0 / 255.0).abs() < 1e-9).await;
 
         // A gripper that stops answering is reported, and the node recovers when it answers.
         emu.set_mute(true);

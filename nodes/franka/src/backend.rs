@@ -30,6 +30,10 @@ pub enum BackendError {
     /// The arm cannot be reached or refused to start.
     #[error("cannot start the arm: {0}")]
     Start(String),
+    /// The backend refused one target (e.g. inside its own joint-limit inset); the arm goes
+    /// on tracking the previous one.
+    #[error("the arm refused the target: {0}")]
+    Refused(String),
 }
 
 /// An arm taking joint targets at the rig's rate (20 Hz) while its own loop (1 kHz on an

@@ -88,6 +88,7 @@ fn classify(e: FrankaError) -> BackendError {
     match e {
         FrankaError::Network(m) => BackendError::Disconnected(m),
         FrankaError::Control(c) => BackendError::Reflex(c.to_string()),
+        FrankaError::InvalidArgument(m) => BackendError::Refused(m),
         other => BackendError::Reflex(other.to_string()),
     }
 }

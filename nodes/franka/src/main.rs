@@ -62,6 +62,10 @@ fn main() -> ExitCode {
                     cfg.ros.domain_id = d;
                 }
                 cfg.validate().map_err(anyhow::Error::msg)?;
+                anyhow::ensure!(
+                    connect_timeout_s.is_finite() && (0.0..=86_400.0).contains(&connect_timeout_s),
+                    "--connect-timeout-s is {connect_timeout_s}, must be 0..=86400"
+                );
                 if cfg.backend == BackendKind::Sim {
                     let prefix = cfg.sim_prefix.clone();
                     return labrig_franka::node::run(

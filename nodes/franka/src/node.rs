@@ -157,21 +157,41 @@ pub async fn run(
                 tracing::debug!("waiting for the arm: {e}");
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
-            Err(e) => return Err(e.into()),
+            Err(e) => {
+                backend.stop();
+                return Err(e.into());
+            }
         }
     };
     tracing::info!(backend = backend.name(), q = ?reading.q, "franka node up");
+    let bounds = filter.ik().bounds();
     let started = Instant::now();
-    let sync_clock = || -> anyhow::Result<()> {
-        if let Some(sub) = &sim_clock {
-            while let Some(c) = sub.try_take()? {
-                clock.set(Nanos::from(c.msg.clock));
+    // Sim time from the bridge's /clock. Between two /clock messages (one per bridge tick) the
+    // node adds the wall time since the last one, at most one period, as the bridge itself
+    // does for arrivals: in realtime that tracks sim time, in lockstep (sim time standing
+    // still between commands) it never adds up to a watchdog's silence.
+    let period_ns = (cfg.safety.period_s * 1e9) as i64;
+    let mut clock_at = Instant::now();
+    let sync_clock = |clock: &Clock, clock_at: &mut Instant| {
+        let Some(sub) = &sim_clock else { return };
+        loop {
+            match sub.try_take() {
+                Ok(Some(c)) => {
+                    let t = Nanos::from(c.msg.clock);
+                    if t.0 + 1_000_000_000 < clock.now().0 {
+                        tracing::warn!("/clock went back to {:.3} s: the sim bridge restarted", t.as_secs_f64());
+                        clock.reset(t);
+                    } else {
+                        clock.set(t);
+                    }
+                    *clock_at = Instant::now();
+                }
+                Ok(None) => break,
+                Err(e) => tracing::warn!("/clock: {e}"),
             }
         }
-        Ok(())
     };
-    // The watchdog's time line: the node's monotonic clock, or sim time.
-    let watch_ns = |clock: &Clock| if sim { clock.now().0 } else { started.elapsed().as_nanos() as i64 };
+    let since_clock = |clock_at: Instant| (clock_at.elapsed().as_nanos() as i64).min(period_ns - 1);
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut stream = Box::pin(commands.stream());
@@ -199,17 +219,29 @@ pub async fn run(
                 if deadline.is_some() => {
                 let rest = deadline.expect("guarded").saturating_duration_since(Instant::now());
                 std::thread::sleep(rest);
-                if let Some(silence) = watchdog.check(watch_ns(&clock)) {
-                    hold(&mut *backend, &mut report, silence);
-                    publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf)?;
+                if let Some(silence) = watchdog.check(started.elapsed().as_nanos() as i64) {
+                    hold(&mut *backend, &mut report, silence, &bounds);
+                    publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf);
                 }
             }
             msg = stream.next() => {
                 let Some(msg) = msg else { break };
                 let received = Instant::now();
-                let cmd = msg?.msg;
-                sync_clock()?;
                 report.commands += 1;
+                let cmd = match msg {
+                    Ok(m) => m.msg,
+                    Err(e) => {
+                        // A malformed command: refused and named; the node goes on.
+                        report.refused += 1;
+                        report.last_ok = false;
+                        report.fault = format!("refused arm command: {e}");
+                        tracing::warn!("{}", report.fault);
+                        continue;
+                    }
+                };
+                sync_clock(&clock, &mut clock_at);
+                // Arrival on the watchdog's time line: monotonic, or sim time.
+                let arrival = if sim { clock.now().0 + since_clock(clock_at) } else { started.elapsed().as_nanos() as i64 };
                 if let Some(e) = &report.backend_down {
                     report.refused += 1;
                     report.last_ok = false;
@@ -228,19 +260,28 @@ pub async fn run(
                                 report.latency_ms = received.elapsed().as_secs_f64() * 1e3;
                                 // Each accepted command's joint targets, stamped with the
                                 // command's own stamp (what the recorder pairs them by).
-                                arm_target.publish(JointState {
+                                let echo = arm_target.publish(JointState {
                                     header: Header { stamp: cmd.header.stamp, frame_id: BASE_FRAME.into() },
                                     name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
                                     position: ok.joints.to_vec(),
                                     velocity: vec![],
                                     effort: vec![],
-                                })?;
+                                });
+                                if let Err(e) = echo {
+                                    tracing::warn!("/arm/target: {e}");
+                                }
                                 report.commanded = Some(ok.joints);
                                 report.gripper = ok.gripper;
                                 report.last_ok = true;
                                 report.holding = false;
                                 report.fault.clear();
-                                watchdog.feed(watch_ns(&clock));
+                                watchdog.feed(arrival);
+                            }
+                            Err(BackendError::Refused(why)) => {
+                                report.refused += 1;
+                                report.last_ok = false;
+                                report.fault = format!("refused arm command seq {}: {why}", cmd.seq);
+                                tracing::warn!("{}", report.fault);
                             }
                             Err(e) => down(&mut report, e),
                         }
@@ -254,15 +295,15 @@ pub async fn run(
                 }
             }
             _ = ticker.tick() => {
-                sync_clock()?;
+                sync_clock(&clock, &mut clock_at);
                 match backend.read() {
                     Ok(r) => reading = r,
                     Err(e) => down(&mut report, e),
                 }
-                if sim && let Some(silence) = watchdog.check(watch_ns(&clock)) {
-                    hold(&mut *backend, &mut report, silence);
+                if sim && let Some(silence) = watchdog.check(clock.now().0 + since_clock(clock_at)) {
+                    hold(&mut *backend, &mut report, silence, &bounds);
                 }
-                publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf)?;
+                publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf);
             }
         }
     }
@@ -276,9 +317,14 @@ pub async fn run(
     Ok(())
 }
 
-/// The watchdog tripped after `silence` ns: hold the arm where it is.
-fn hold(backend: &mut dyn ArmBackend, report: &mut Report, silence: i64) {
-    match backend.hold() {
+/// The watchdog tripped after `silence` ns: hold the arm where it is (its measured joints,
+/// kept inside the safety layer's joint bounds, so the hold itself is a valid target).
+fn hold(backend: &mut dyn ArmBackend, report: &mut Report, silence: i64, bounds: &[[f64; 2]; 7]) {
+    let held = backend.read().and_then(|r| {
+        let q: Joints = std::array::from_fn(|i| r.q[i].clamp(bounds[i][0], bounds[i][1]));
+        backend.set_target(&q).map(|()| q)
+    });
+    match held {
         Ok(q) => {
             report.commanded = Some(q);
             report.holding = true;
@@ -303,6 +349,23 @@ fn down(report: &mut Report, e: BackendError) {
 
 #[allow(clippy::too_many_arguments)]
 fn publish(
+    clock: &Clock,
+    kin: &Fr3Kinematics,
+    r: &ArmReading,
+    report: &Report,
+    arm_state: &labrig_runtime::ros::RosPublisher<RobotState>,
+    sim: bool,
+    joint_states: &labrig_runtime::ros::RosPublisher<JointState>,
+    tf: &labrig_runtime::ros::RosPublisher<TFMessage>,
+) {
+    // A subscriber that cannot keep up must not take the arm node down: reported, skipped.
+    if let Err(e) = publish_all(clock, kin, r, report, arm_state, sim, joint_states, tf) {
+        tracing::warn!("publishing the arm's state: {e}");
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn publish_all(
     clock: &Clock,
     kin: &Fr3Kinematics,
     r: &ArmReading,

@@ -96,19 +96,29 @@ impl ArmBackend for SimArm {
     }
 
     fn recover(&mut self) -> Result<(), BackendError> {
-        self.latest = None;
-        let deadline = Instant::now() + Duration::from_secs(5);
+        // Hold where the arm is (a fresh, valid command clears a refusal the bridge still
+        // reports), then wait for a state after it that is not a fault.
+        self.drain()?;
+        let Some((s, _)) = &self.latest else {
+            return Err(BackendError::Start(format!("no state from the sim bridge on {}/arm/state", self.prefix)));
+        };
+        let q = s.joint_positions;
+        self.set_target(&q)?;
+        let sent = Instant::now();
+        let deadline = sent + Duration::from_secs(2);
         loop {
             self.drain()?;
-            if let Some((s, _)) = &self.latest {
-                // A fresh command clears a refusal the bridge still reports.
-                let q = s.joint_positions;
-                return self.set_target(&q);
+            if let Some((s, at)) = &self.latest
+                && *at > sent
+                && s.mode != RobotState::MODE_FAULT
+            {
+                return Ok(());
             }
             if Instant::now() > deadline {
-                return Err(BackendError::Start(format!("no state from the sim bridge on {}/arm/state", self.prefix)));
+                let why = self.latest.as_ref().map_or("no state".to_owned(), |(s, _)| s.fault.clone());
+                return Err(BackendError::Start(format!("the sim bridge did not take the hold: {why}")));
             }
-            std::thread::sleep(Duration::from_millis(20));
+            std::thread::sleep(Duration::from_millis(10));
         }
     }
 

@@ -146,17 +146,16 @@ impl Inner {
                 let mut regs = self.request.to_registers();
                 regs[usize::from(offset)..usize::from(offset) + words.len()].copy_from_slice(&words);
                 let new = Request::from_registers(regs);
+                self.write(new);
                 if new.go_to && !new.activate {
+                    // rACT = 0 is a reset; the motion request on top of it is a fault.
                     self.status.fault = 0x07;
-                    self.request = new;
-                    self.status.going = true;
-                } else {
-                    self.write(new);
                 }
                 Ok(Some(Response::WriteMultipleRegisters(addr, words.len() as u16)))
             }
             R::ReadHoldingRegisters(addr, n) | R::ReadInputRegisters(addr, n) => {
-                let offset = addr.checked_sub(STATUS_REGISTER).filter(|o| n >= 1 && o + n <= 3);
+                let offset =
+                    addr.checked_sub(STATUS_REGISTER).filter(|o| n >= 1 && usize::from(*o) + usize::from(n) <= 3);
                 let Some(offset) = offset else { return Err(ExceptionCode::IllegalDataAddress) };
                 let regs = self.status.to_registers()[usize::from(offset)..usize::from(offset + n)].to_vec();
                 Ok(Some(match req.request {

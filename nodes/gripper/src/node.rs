@@ -232,6 +232,8 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
         }
     };
     let mut written: Option<Wanted> = None;
+    let mut pending: Option<Wanted> = None;
+    let mut refusal = String::new();
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let (mut commands, mut refused) = (0u64, 0u64);
@@ -255,42 +257,63 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
             };
             served.respond(response);
         }
-        let mut latest = None;
-        while let Some(c) = cmd_sub.try_take()? {
+        // The newest command of the tick wins; a valid one clears an earlier refusal and is
+        // pending until it is written (a failed write is retried next tick). Bounded, so a
+        // reader that kept failing cannot hold the tick.
+        for _ in 0..1000 {
+            let c = match cmd_sub.try_take() {
+                Ok(Some(c)) => c,
+                Ok(None) => break,
+                Err(e) => {
+                    refused += 1;
+                    refusal = format!("refused gripper command: {e}");
+                    tracing::warn!("{refusal}");
+                    continue;
+                }
+            };
             commands += 1;
             match wanted(&c.msg, &cfg) {
-                Ok(w) => latest = Some(w),
+                Ok(w) => {
+                    refusal.clear();
+                    pending = (written != Some(w)).then_some(w);
+                }
                 Err(why) => {
                     refused += 1;
                     tracing::warn!("{why}");
-                    fault = why;
+                    refusal = why;
                 }
             }
         }
-        if let Some(w) = latest.filter(|w| written != Some(*w)) {
+        if let Some(w) = pending {
             match gripper.go_to(w.position, w.speed, w.force).await {
                 Ok(()) => {
                     written = Some(w);
+                    pending = None;
                     fault.clear();
                 }
                 Err(e) => {
-                    tracing::warn!("{e}");
-                    fault = e.to_string();
+                    let e = e.to_string();
+                    if e != fault {
+                        tracing::warn!("{e}");
+                    }
+                    fault = e;
                 }
             }
         }
-        // A link problem is reported while it lasts; a refused command or a failed activation
-        // until the next good command or activation.
+        // A link problem is reported while it lasts; a failed write or activation until the
+        // next good one; a refused command until the next valid one.
         let (status, link) = match gripper.status().await {
             Ok(s) => (Some(s), String::new()),
             // Stale: the last status read, with the reason it is stale.
-            Err(e @ (GripperError::Timeout { .. } | GripperError::Link { .. })) => {
+            Err(e @ (GripperError::Timeout { .. } | GripperError::Link { .. } | GripperError::Sim(_))) => {
                 (gripper.last_status(), e.to_string())
             }
             Err(e) => (None, e.to_string()),
         };
-        let reason = if link.is_empty() { &fault } else { &link };
-        state_pub.publish(state(clock.now(), status, reason))?;
+        let reason = [&link, &fault, &refusal].into_iter().find(|r| !r.is_empty()).map_or("", |r| r.as_str());
+        if let Err(e) = state_pub.publish(state(clock.now(), status, reason)) {
+            tracing::warn!("/gripper/state: {e}");
+        }
     }
     tracing::info!(commands, refused, "gripper node stopped");
     Ok(())

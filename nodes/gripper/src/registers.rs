@@ -166,8 +166,11 @@ pub struct Status {
     pub activation: Activation,
     /// gOBJ.
     pub object: Object,
-    /// gFLT: 0 = no fault; see [`fault_meaning`].
+    /// gFLT (the fault byte's low nibble): 0 = no fault; see [`fault_meaning`].
     pub fault: u8,
+    /// kFLT (the fault byte's high nibble): the controller's own fault code, for Robotiq
+    /// support; 0 = none.
+    pub controller_fault: u8,
     /// gPR: echo of the requested position.
     pub requested: u8,
     /// gPO: the measured position, 0 open .. 255 closed.
@@ -184,7 +187,7 @@ impl Status {
     pub fn to_registers(&self) -> [u16; 3] {
         [
             u16::from(self.status_byte()) << 8,
-            u16::from(self.fault) << 8 | u16::from(self.requested),
+            u16::from((self.fault & 0x0F) | self.controller_fault << 4) << 8 | u16::from(self.requested),
             u16::from(self.position) << 8 | u16::from(self.current),
         ]
     }
@@ -196,7 +199,8 @@ impl Status {
             going: s & (1 << 3) != 0,
             activation: Activation::from_bits(s >> 4),
             object: Object::from_bits(s >> 6),
-            fault: (r[1] >> 8) as u8,
+            fault: ((r[1] >> 8) & 0x0F) as u8,
+            controller_fault: (r[1] >> 12) as u8,
             requested: (r[1] & 0xFF) as u8,
             position: (r[2] >> 8) as u8,
             current: (r[2] & 0xFF) as u8,
@@ -293,6 +297,10 @@ mod tests {
         assert!(s.object.detected());
         assert_eq!((s.fault, s.requested, s.position, s.current), (0, 255, 0xBD, 0));
         assert_eq!(Status::from_registers(s.to_registers()), s);
+        // The fault byte: gFLT in the low nibble, kFLT (controller) in the high one.
+        let f = Status::from_registers([0x3100, 0x5E00, 0x0000]);
+        assert_eq!((f.fault, f.controller_fault), (0x0E, 0x05));
+        assert_eq!(Status::from_registers(f.to_registers()), f);
         assert_eq!(fault_meaning(0x0E), Some("overcurrent triggered"));
         assert_eq!(fault_meaning(0x01), None);
         assert!(fault_is_major(0x0D) && !fault_is_major(0x09));

@@ -94,6 +94,7 @@ impl SimGripper {
             activation: Activation::Complete,
             object,
             fault: 0,
+            controller_fault: 0,
             requested,
             position,
             current: (g.current_ma / 10.0).clamp(0.0, 255.0) as u8,

@@ -41,6 +41,18 @@ impl Clock {
         }
     }
 
+    /// Sets a manual clock to `t` even if that is earlier (the time source restarted).
+    /// Returns false on a wall clock.
+    pub fn reset(&self, t: Nanos) -> bool {
+        match self {
+            Clock::Wall => false,
+            Clock::Manual(cur) => {
+                cur.store(t.0, Ordering::Release);
+                true
+            }
+        }
+    }
+
     /// Advances a manual clock by `d`. Returns false on a wall clock.
     pub fn advance(&self, d: Nanos) -> bool {
         match self {

@@ -580,7 +580,19 @@ where
     pub fn forward(self) -> tokio::sync::mpsc::Receiver<Served<S>> {
         let (tx, rx) = tokio::sync::mpsc::channel::<Served<S>>(4);
         tokio::spawn(async move {
-            while let Ok((id, request)) = self.receive().await {
+            loop {
+                let (id, request) = match self.receive().await {
+                    Ok(r) => r,
+                    Err(e) => {
+                        // A malformed request: reported, the service goes on.
+                        tracing::warn!("{}: {e}", self.service);
+                        if tx.is_closed() {
+                            break;
+                        }
+                        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+                        continue;
+                    }
+                };
                 let (respond, answer) = tokio::sync::oneshot::channel();
                 if tx.send(Served { request, respond }).await.is_err() {
                     break;
