@@ -1,0 +1,205 @@
+//! DROID's episode metadata and directory layout.
+//!
+//! DROID names an episode `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>` and files it under
+//! `{success|failure}/<YYYY-MM-DD>/<asctime>/` (e.g. `success/2023-07-07/Fri_Jul__7_09:42:23_2023/`).
+//! The same keys go into each MCAP as a `droid_episode` metadata record (string map), so the
+//! file carries its own description.
+
+use chrono::{DateTime, Datelike, Utc};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// How an episode ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Outcome {
+    Success,
+    Failure,
+}
+
+impl Outcome {
+    pub fn dir(self) -> &'static str {
+        match self {
+            Outcome::Success => "success",
+            Outcome::Failure => "failure",
+        }
+    }
+}
+
+/// Who and where: the parts of DROID's metadata a rig config sets once.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigIdentity {
+    pub lab: String,
+    pub building: String,
+    pub user: String,
+    pub robot_serial: String,
+    /// Camera id (ext1, ext2, wrist, rs1, rs2) -> the camera's serial.
+    pub camera_serials: BTreeMap<String, String>,
+}
+
+impl Default for RigIdentity {
+    fn default() -> Self {
+        RigIdentity {
+            lab: "LABRIG".into(),
+            building: "sim".into(),
+            user: "operator".into(),
+            robot_serial: "sim-fr3".into(),
+            camera_serials: BTreeMap::new(),
+        }
+    }
+}
+
+/// One episode's DROID metadata.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeMetadata {
+    pub uuid: String,
+    pub lab: String,
+    pub building: String,
+    pub user: String,
+    pub scene_id: String,
+    pub task_instruction: String,
+    /// Set when the episode ends.
+    pub success: Option<bool>,
+    pub robot_serial: String,
+    pub camera_serials: BTreeMap<String, String>,
+    /// Camera id -> extrinsics in the robot base frame as DROID stores them:
+    /// [x, y, z, rx, ry, rz] (m, extrinsic XYZ euler rad).
+    pub extrinsics: BTreeMap<String, [f64; 6]>,
+    /// Start of recording, ns since the Unix epoch.
+    pub start_ns: i64,
+    /// Steps recorded (DROID's trajectory_length); set when the episode ends.
+    pub trajectory_length: u64,
+    /// Simulated episodes: the scene spec and its sampled values (JSON).
+    pub sim_scene: Option<String>,
+}
+
+impl EpisodeMetadata {
+    pub fn new(rig: &RigIdentity, scene_id: &str, task_instruction: &str, start_ns: i64) -> EpisodeMetadata {
+        EpisodeMetadata {
+            uuid: episode_uuid(&rig.lab, &rig.user, start_ns),
+            lab: rig.lab.clone(),
+            building: rig.building.clone(),
+            user: rig.user.clone(),
+            scene_id: scene_id.to_owned(),
+            task_instruction: task_instruction.to_owned(),
+            success: None,
+            robot_serial: rig.robot_serial.clone(),
+            camera_serials: rig.camera_serials.clone(),
+            extrinsics: BTreeMap::new(),
+            start_ns,
+            trajectory_length: 0,
+            sim_scene: None,
+        }
+    }
+
+    /// The string map of the MCAP `droid_episode` metadata record (DROID's key names;
+    /// maps and arrays as JSON).
+    pub fn to_record(&self) -> BTreeMap<String, String> {
+        let mut m = BTreeMap::new();
+        let start = utc(self.start_ns);
+        m.insert("uuid".into(), self.uuid.clone());
+        m.insert("lab".into(), self.lab.clone());
+        m.insert("building".into(), self.building.clone());
+        m.insert("user".into(), self.user.clone());
+        m.insert("scene_id".into(), self.scene_id.clone());
+        m.insert("current_task".into(), self.task_instruction.clone());
+        m.insert("success".into(), self.success.map_or("unknown".into(), |s| s.to_string()));
+        m.insert("robot_serial".into(), self.robot_serial.clone());
+        m.insert("date".into(), start.format("%Y-%m-%d").to_string());
+        m.insert("time".into(), asctime(&start));
+        m.insert("start_ns".into(), self.start_ns.to_string());
+        m.insert("trajectory_length".into(), self.trajectory_length.to_string());
+        m.insert("camera_serials".into(), serde_json::to_string(&self.camera_serials).unwrap_or_default());
+        m.insert("extrinsics".into(), serde_json::to_string(&self.extrinsics).unwrap_or_default());
+        if let Some(scene) = &self.sim_scene {
+            m.insert("sim_scene".into(), scene.clone());
+        }
+        m
+    }
+
+    /// Reads a `droid_episode` record back.
+    pub fn from_record(m: &BTreeMap<String, String>) -> Result<EpisodeMetadata, String> {
+        let get = |k: &str| m.get(k).cloned().ok_or_else(|| format!("droid_episode metadata has no `{k}`"));
+        let num = |k: &str| get(k)?.parse::<i64>().map_err(|e| format!("droid_episode `{k}`: {e}"));
+        Ok(EpisodeMetadata {
+            uuid: get("uuid")?,
+            lab: get("lab")?,
+            building: get("building")?,
+            user: get("user")?,
+            scene_id: get("scene_id")?,
+            task_instruction: get("current_task")?,
+            success: match get("success")?.as_str() {
+                "true" => Some(true),
+                "false" => Some(false),
+                _ => None,
+            },
+            robot_serial: get("robot_serial")?,
+            camera_serials: serde_json::from_str(&get("camera_serials")?).map_err(|e| e.to_string())?,
+            extrinsics: serde_json::from_str(&get("extrinsics")?).map_err(|e| e.to_string())?,
+            start_ns: num("start_ns")?,
+            trajectory_length: num("trajectory_length")? as u64,
+            sim_scene: m.get("sim_scene").cloned(),
+        })
+    }
+}
+
+fn utc(ns: i64) -> DateTime<Utc> {
+    DateTime::from_timestamp_nanos(ns)
+}
+
+/// Python's `time.asctime()` form DROID uses for directory names, with `:` kept
+/// (`Fri Jul  7 09:42:23 2023` -> `Fri_Jul__7_09:42:23_2023`).
+fn asctime(t: &DateTime<Utc>) -> String {
+    format!("{}_{:>2}_{}_{}", t.format("%a_%b"), t.day(), t.format("%H:%M:%S"), t.year()).replace(' ', "_")
+}
+
+/// DROID's episode id: `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>`.
+pub fn episode_uuid(lab: &str, user: &str, start_ns: i64) -> String {
+    format!("{lab}+{user}+{}", utc(start_ns).format("%Y-%m-%d-%Hh-%Mm-%Ss"))
+}
+
+/// `<root>/{success|failure}/<YYYY-MM-DD>/<asctime>/`.
+pub fn episode_dir(root: &Path, outcome: Outcome, start_ns: i64) -> PathBuf {
+    let t = utc(start_ns);
+    root.join(outcome.dir()).join(t.format("%Y-%m-%d").to_string()).join(asctime(&t))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // 2023-07-07 09:42:23 UTC, DROID's own example directory.
+    const T: i64 = 1_688_722_943_000_000_000;
+
+    #[test]
+    fn names_follow_droid() {
+        assert_eq!(episode_uuid("IRIS", "7dfa2da3", T), "IRIS+7dfa2da3+2023-07-07-09h-42m-23s");
+        assert_eq!(
+            episode_dir(Path::new("/data"), Outcome::Success, T),
+            Path::new("/data/success/2023-07-07/Fri_Jul__7_09:42:23_2023")
+        );
+        assert_eq!(
+            episode_dir(Path::new("/d"), Outcome::Failure, T + 7 * 86_400_000_000_000),
+            Path::new("/d/failure/2023-07-14/Fri_Jul_14_09:42:23_2023")
+        );
+    }
+
+    #[test]
+    fn the_record_round_trips() {
+        let mut rig = RigIdentity::default();
+        rig.camera_serials.insert("ext1".into(), "ZED2-123".into());
+        let mut m = EpisodeMetadata::new(&rig, "pick_place_cube", "put the cube in the bin", T);
+        m.extrinsics.insert("ext1".into(), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]);
+        m.success = Some(true);
+        m.trajectory_length = 123;
+        m.sim_scene = Some("{\"seed\":3}".into());
+        let back = EpisodeMetadata::from_record(&m.to_record()).unwrap();
+        assert_eq!(back, m);
+        assert_eq!(m.to_record()["current_task"], "put the cube in the bin");
+        let mut r = m.to_record();
+        r.remove("lab");
+        assert_eq!(EpisodeMetadata::from_record(&r).unwrap_err(), "droid_episode metadata has no `lab`");
+    }
+}
