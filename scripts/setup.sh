@@ -163,33 +163,43 @@ fi
 mkdir -p "$REPO_DIR/.labrig"
 ln -sfn "$MJ_DIR" "$REPO_DIR/.labrig/mujoco"
 
-# ---------------------------------------------------------------- franka-sim (issue 4)
-# The FCI simulator the franka node's fci backend is tested against: PyPI franka-sim 1.1.7
-# in a venv of its own (it pins numpy 1.26 and mujoco < 3.3), wheels kept in a wheelhouse.
-# It would fetch its FR3 model from GitHub: FR3_MJCF points it at franky-sim's fr3.xml
-# (extracted above) with the mesh directory made absolute.
-FS_VENV="$LABRIG_CACHE/venv-franka-sim"
-FS_WHEELS="$LABRIG_CACHE/wheels-franka-sim"
-FS_REQS=(franka-sim==1.1.7)
-FS_STAMP="$FS_VENV/.labrig-stamp"
-fs_want="$("$PYTHON" -c 'import sys; print(sys.version)' | head -n1)|${FS_REQS[*]}"
-if [ ! -f "$FS_STAMP" ] || [ "$(cat "$FS_STAMP")" != "$fs_want" ] \
-    || ! "$FS_VENV/bin/python" -c 'import franka_sim' >/dev/null 2>&1; then
-    log "creating $FS_VENV"
-    rm -rf "$FS_VENV"
-    "$PYTHON" -m venv "$FS_VENV"
-    if [ ! -f "$FS_WHEELS/.labrig-stamp" ] || [ "$(cat "$FS_WHEELS/.labrig-stamp")" != "$fs_want" ]; then
-        rm -rf "$FS_WHEELS"
-        mkdir -p "$FS_WHEELS"
-        PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$FS_VENV/bin/python" -m pip wheel -q \
-            --disable-pip-version-check -w "$FS_WHEELS" "${FS_REQS[@]}"
-        printf '%s' "$fs_want" > "$FS_WHEELS/.labrig-stamp"
+# ---------------------------------------------------------------- tool venvs
+# A venv of its own per Python tool, its wheels kept in a wheelhouse (re-creating it needs no
+# network), re-made when the requirements or the Python change:
+#   tool_venv NAME IMPORT REQS...   ->  $LABRIG_CACHE/venv-NAME
+tool_venv() {
+    local name="$1" import="$2"
+    shift 2
+    local venv="$LABRIG_CACHE/venv-$name" wheels="$LABRIG_CACHE/wheels-$name"
+    local want
+    want="$("$PYTHON" -c 'import sys; print(sys.version)' | head -n1)|$*"
+    if [ -f "$venv/.labrig-stamp" ] && [ "$(cat "$venv/.labrig-stamp")" = "$want" ] \
+        && "$venv/bin/python" -c "import $import" >/dev/null 2>&1; then
+        return
     fi
-    "$FS_VENV/bin/python" -m pip install -q --disable-pip-version-check \
-        --no-index --find-links "$FS_WHEELS" "${FS_REQS[@]}"
-    "$FS_VENV/bin/python" -c 'import franka_sim'
-    printf '%s' "$fs_want" > "$FS_STAMP"
-fi
+    log "creating $venv"
+    rm -rf "$venv"
+    "$PYTHON" -m venv "$venv"
+    if [ ! -f "$wheels/.labrig-stamp" ] || [ "$(cat "$wheels/.labrig-stamp")" != "$want" ]; then
+        rm -rf "$wheels"
+        mkdir -p "$wheels"
+        PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$venv/bin/python" -m pip wheel -q \
+            --disable-pip-version-check -w "$wheels" "$@"
+        printf '%s' "$want" > "$wheels/.labrig-stamp"
+    fi
+    "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-index --find-links "$wheels" "$@"
+    "$venv/bin/python" -c "import $import"
+    printf '%s' "$want" > "$venv/.labrig-stamp"
+}
+
+# franka-sim (issue 4): the FCI simulator the franka node's fci backend is tested against
+# (it pins numpy 1.26 and mujoco < 3.3, hence its own venv). It would fetch its FR3 model from
+# GitHub: FR3_MJCF points it at franky-sim's fr3.xml (extracted above), meshdir made absolute.
+tool_venv franka-sim franka_sim franka-sim==1.1.7
+FS_VENV="$LABRIG_CACHE/venv-franka-sim"
+# The MCAP readers episodes are checked with (issue 5): the reference `mcap` +
+# `mcap-ros2-support`, and `rosbags`.
+tool_venv readers "mcap_ros2, rosbags" mcap==1.6.0 mcap-ros2-support==0.6.0 rosbags==0.11.9
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
@@ -211,6 +221,7 @@ export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 export LABRIG_MUJOCO_DIR=\"$MJ_DIR\"
 export LABRIG_FRANKA_SIM_PYTHON=\"$FS_VENV/bin/python\"
 export FR3_MJCF=\"$FS_MJCF\"
+export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
 # SYSTEM_DEFAULT: rmw_fastrtps uses the XML profile as is (unset/SUBNET would add
 # the 239.255.0.1 multicast SPDP peer; LOCALHOST would bind the LAN address too)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT

@@ -1,0 +1,313 @@
+//! One episode, one MCAP file in the rosbag2 layout: profile `ros2`, `ros2msg` schemas, `cdr`
+//! messages, channels with their QoS, zstd chunks of about one second each (flushed and
+//! fsynced as they close, so a killed recorder loses at most the open second), DROID's
+//! metadata as the first record, and on [`EpisodeWriter::finish`] the `rosbag2` record and a
+//! `metadata.yaml` beside the file.
+
+use crate::bag::{BagInfo, Reliability, TopicInfo, qos_yaml};
+use crate::metadata::EpisodeMetadata;
+use labrig_msgs::RosMessage;
+use mcap::records::{MessageHeader, Metadata};
+use mcap::{Attachment, Compression, WriteOptions, Writer};
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+/// The episode file's name inside its directory.
+pub const EPISODE_FILE: &str = "episode_0.mcap";
+/// Metadata record names.
+pub const DROID_RECORD: &str = "droid_episode";
+/// Chunks close after this much log time.
+pub const CHUNK_NS: i64 = 1_000_000_000;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RecorderError {
+    #[error("{path}: {what}: {source}")]
+    Io {
+        path: PathBuf,
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: writing the MCAP: {source}")]
+    Mcap {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+    #[error("encoding a {type_name} for {topic}: {message}")]
+    Encode { topic: String, type_name: &'static str, message: String },
+    #[error("topic {topic} was recorded as {first}, now given a {now}")]
+    TypeChanged { topic: String, first: String, now: String },
+}
+
+impl RecorderError {
+    /// The disk is full (or the quota is): recording must stop, earlier files stay.
+    pub fn is_disk_full(&self) -> bool {
+        let io = match self {
+            RecorderError::Io { source, .. } => Some(source),
+            RecorderError::Mcap { source: mcap::McapError::Io(e), .. } => Some(e),
+            _ => None,
+        };
+        io.is_some_and(|e| e.raw_os_error() == Some(28) || e.kind() == std::io::ErrorKind::StorageFull)
+    }
+}
+
+#[derive(Debug)]
+struct Channel {
+    id: u16,
+    topic: TopicInfo,
+}
+
+/// What a finished episode holds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeSummary {
+    pub path: PathBuf,
+    pub messages: u64,
+    pub bytes: u64,
+    pub start_ns: i64,
+    pub end_ns: i64,
+}
+
+/// An episode being written.
+pub struct EpisodeWriter {
+    dir: PathBuf,
+    path: PathBuf,
+    writer: Writer<BufWriter<File>>,
+    /// A second handle on the file, to fsync each closed chunk.
+    sync: File,
+    schemas: HashMap<&'static str, u16>,
+    raw_schemas: HashMap<String, u16>,
+    channels: HashMap<String, Channel>,
+    sequence: u32,
+    start_ns: Option<i64>,
+    end_ns: i64,
+    chunk_start_ns: Option<i64>,
+    meta: EpisodeMetadata,
+}
+
+impl std::fmt::Debug for EpisodeWriter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EpisodeWriter").field("path", &self.path).field("uuid", &self.meta.uuid).finish_non_exhaustive()
+    }
+}
+
+impl EpisodeWriter {
+    /// Creates `dir` (and its parents) and starts `dir/episode_0.mcap` with DROID's metadata
+    /// as its first record, so even a file cut short says what it is.
+    pub fn create(dir: &Path, meta: EpisodeMetadata) -> Result<EpisodeWriter, RecorderError> {
+        let io = |what, source| RecorderError::Io { path: dir.to_owned(), what, source };
+        std::fs::create_dir_all(dir).map_err(|e| io("creating the episode directory", e))?;
+        let path = dir.join(EPISODE_FILE);
+        let file = File::create(&path).map_err(|e| io("creating the episode file", e))?;
+        let sync = file.try_clone().map_err(|e| io("opening the episode file twice", e))?;
+        let opts = WriteOptions::new()
+            .profile("ros2")
+            .library(concat!("labrig-recorder ", env!("CARGO_PKG_VERSION")))
+            .compression(Some(Compression::Zstd))
+            .compression_threads(0)
+            .chunk_size(None);
+        let mcap_err = |source| RecorderError::Mcap { path: path.clone(), source };
+        let mut writer = Writer::with_options(BufWriter::with_capacity(1 << 20, file), opts).map_err(mcap_err)?;
+        writer.write_metadata(&Metadata { name: DROID_RECORD.into(), metadata: meta.to_record() }).map_err(mcap_err)?;
+        let mut w = EpisodeWriter {
+            dir: dir.to_owned(),
+            path,
+            writer,
+            sync,
+            schemas: HashMap::new(),
+            raw_schemas: HashMap::new(),
+            channels: HashMap::new(),
+            sequence: 0,
+            start_ns: None,
+            end_ns: 0,
+            chunk_start_ns: None,
+            meta,
+        };
+        w.sync()?;
+        Ok(w)
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn metadata_mut(&mut self) -> &mut EpisodeMetadata {
+        &mut self.meta
+    }
+
+    fn mcap_err(&self) -> impl Fn(mcap::McapError) -> RecorderError + '_ {
+        |source| RecorderError::Mcap { path: self.path.clone(), source }
+    }
+
+    fn sync(&mut self) -> Result<(), RecorderError> {
+        let path = self.path.clone();
+        self.writer.flush().map_err(|source| RecorderError::Mcap { path: path.clone(), source })?;
+        self.sync.sync_data().map_err(|source| RecorderError::Io { path, what: "syncing the episode file", source })
+    }
+
+    fn channel(
+        &mut self,
+        topic: &str,
+        type_name: &str,
+        schema: impl FnOnce(&mut Self) -> Result<u16, RecorderError>,
+        reliability: Reliability,
+    ) -> Result<u16, RecorderError> {
+        if let Some(c) = self.channels.get(topic) {
+            if c.topic.type_name != type_name {
+                return Err(RecorderError::TypeChanged {
+                    topic: topic.to_owned(),
+                    first: c.topic.type_name.clone(),
+                    now: type_name.to_owned(),
+                });
+            }
+            return Ok(c.id);
+        }
+        let schema_id = schema(self)?;
+        let qos = qos_yaml(reliability);
+        let metadata = [("offered_qos_profiles".to_owned(), qos.clone())].into_iter().collect();
+        let id = self.writer.add_channel(schema_id, topic, "cdr", &metadata).map_err(self.mcap_err())?;
+        let info = TopicInfo { name: topic.to_owned(), type_name: type_name.to_owned(), qos_yaml: qos, count: 0 };
+        self.channels.insert(topic.to_owned(), Channel { id, topic: info });
+        Ok(id)
+    }
+
+    /// Writes a message on `topic`. `log_ns` = when the recorder received it, `publish_ns` =
+    /// its header stamp (DESIGN.md's time model).
+    pub fn write<T: RosMessage>(
+        &mut self,
+        topic: &str,
+        msg: &T,
+        log_ns: i64,
+        publish_ns: i64,
+        reliability: Reliability,
+    ) -> Result<(), RecorderError> {
+        let bytes = labrig_msgs::encode(msg).map_err(|e| RecorderError::Encode {
+            topic: topic.to_owned(),
+            type_name: T::TYPE_NAME,
+            message: e.to_string(),
+        })?;
+        let schema = |w: &mut Self| -> Result<u16, RecorderError> {
+            if let Some(&id) = w.schemas.get(T::TYPE_NAME) {
+                return Ok(id);
+            }
+            let text = labrig_msgs::schema_text::<T>();
+            let id = w.writer.add_schema(T::TYPE_NAME, "ros2msg", text.as_bytes()).map_err(w.mcap_err())?;
+            w.schemas.insert(T::TYPE_NAME, id);
+            Ok(id)
+        };
+        let channel = self.channel(topic, T::TYPE_NAME, schema, reliability)?;
+        self.write_bytes(channel, topic, &bytes, log_ns, publish_ns)
+    }
+
+    /// Writes a message already in CDR (with its encapsulation header), of a type given by
+    /// name and full `ros2msg` schema text: what the recorder passes through from DDS.
+    pub fn write_cdr(
+        &mut self,
+        topic: &str,
+        type_name: &str,
+        schema_text: &str,
+        cdr: &[u8],
+        log_ns: i64,
+        publish_ns: i64,
+        reliability: Reliability,
+    ) -> Result<(), RecorderError> {
+        let schema = |w: &mut Self| -> Result<u16, RecorderError> {
+            if let Some(&id) = w.raw_schemas.get(type_name) {
+                return Ok(id);
+            }
+            let id = w.writer.add_schema(type_name, "ros2msg", schema_text.as_bytes()).map_err(w.mcap_err())?;
+            w.raw_schemas.insert(type_name.to_owned(), id);
+            Ok(id)
+        };
+        let channel = self.channel(topic, type_name, schema, reliability)?;
+        self.write_bytes(channel, topic, cdr, log_ns, publish_ns)
+    }
+
+    fn write_bytes(
+        &mut self,
+        channel: u16,
+        topic: &str,
+        bytes: &[u8],
+        log_ns: i64,
+        publish_ns: i64,
+    ) -> Result<(), RecorderError> {
+        // Close the chunk once it spans a second of log time: flushed and fsynced, so a crash
+        // loses at most the chunk still open.
+        let chunk_start = *self.chunk_start_ns.get_or_insert(log_ns);
+        if log_ns - chunk_start >= CHUNK_NS {
+            self.sync()?;
+            self.chunk_start_ns = Some(log_ns);
+        }
+        self.sequence = self.sequence.wrapping_add(1);
+        let header = MessageHeader {
+            channel_id: channel,
+            sequence: self.sequence,
+            log_time: log_ns.max(0) as u64,
+            publish_time: publish_ns.max(0) as u64,
+        };
+        self.writer.write_to_known_channel(&header, bytes).map_err(self.mcap_err())?;
+        if let Some(c) = self.channels.get_mut(topic) {
+            c.topic.count += 1;
+        }
+        self.start_ns = Some(self.start_ns.map_or(log_ns, |s| s.min(log_ns)));
+        self.end_ns = self.end_ns.max(log_ns);
+        Ok(())
+    }
+
+    /// Attaches a file (calibration, a scene spec).
+    pub fn attach(&mut self, name: &str, media_type: &str, data: &[u8], time_ns: i64) -> Result<(), RecorderError> {
+        let t = time_ns.max(0) as u64;
+        let attachment = Attachment {
+            log_time: t,
+            create_time: t,
+            name: name.to_owned(),
+            media_type: media_type.to_owned(),
+            data: std::borrow::Cow::Borrowed(data),
+        };
+        self.writer.attach(&attachment).map_err(self.mcap_err())?;
+        self.sync()
+    }
+
+    /// Ends the episode: the final DROID record (outcome, length), the `rosbag2` record, the
+    /// summary, an fsync, then `metadata.yaml` (written beside the file, atomically). Every
+    /// error is returned, none is swallowed.
+    pub fn finish(mut self) -> Result<EpisodeSummary, RecorderError> {
+        let meta = Metadata { name: DROID_RECORD.into(), metadata: self.meta.to_record() };
+        self.writer.write_metadata(&meta).map_err(self.mcap_err())?;
+        let info = self.bag_info();
+        self.writer
+            .write_metadata(&Metadata { name: "rosbag2".into(), metadata: info.record() })
+            .map_err(self.mcap_err())?;
+        self.writer.finish().map_err(self.mcap_err())?;
+        let EpisodeWriter { writer, sync, path, dir, .. } = self;
+        let io = |what, source| RecorderError::Io { path: path.clone(), what, source };
+        writer.into_inner().flush().map_err(|e| io("writing the episode file", e))?;
+        sync.sync_all().map_err(|e| io("syncing the episode file", e))?;
+        write_metadata_yaml(&dir, &info)?;
+        let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+        Ok(EpisodeSummary { path, messages: info.message_count(), bytes, start_ns: info.start_ns, end_ns: info.end_ns })
+    }
+
+    fn bag_info(&self) -> BagInfo {
+        let mut topics: Vec<TopicInfo> = self.channels.values().map(|c| c.topic.clone()).collect();
+        topics.sort_by(|a, b| a.name.cmp(&b.name));
+        BagInfo {
+            file_name: EPISODE_FILE.into(),
+            start_ns: self.start_ns.unwrap_or(self.meta.start_ns),
+            end_ns: self.end_ns.max(self.start_ns.unwrap_or(self.meta.start_ns)),
+            topics,
+            custom: vec![("uuid".into(), self.meta.uuid.clone())],
+        }
+    }
+}
+
+/// Writes `dir/metadata.yaml` through a temporary file and a rename.
+pub fn write_metadata_yaml(dir: &Path, info: &BagInfo) -> Result<(), RecorderError> {
+    let path = dir.join("metadata.yaml");
+    let tmp = dir.join(".metadata.yaml.tmp");
+    let io = |what, source| RecorderError::Io { path: path.clone(), what, source };
+    std::fs::write(&tmp, info.metadata_yaml()).map_err(|e| io("writing metadata.yaml", e))?;
+    std::fs::rename(&tmp, &path).map_err(|e| io("renaming metadata.yaml into place", e))
+}

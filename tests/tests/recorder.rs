@@ -1,0 +1,135 @@
+//! Episodes written by labrig-recorder, read back by the reference readers: PyPI `mcap` +
+//! `mcap-ros2-support` (every message decoded through the schema embedded in the file) and
+//! `rosbags` 0.11.9 (the directory through metadata.yaml, and the bare .mcap).
+
+use labrig_msgs::Nanos;
+use labrig_msgs::geometry_msgs::TransformStamped;
+use labrig_msgs::labrig_msgs::{CameraFrameRef, RobotState, Step};
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::std_msgs::Header;
+use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_recorder::bag::Reliability;
+use labrig_recorder::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
+use labrig_tests::{cache_dir, repo_root};
+use serde_json::Value;
+use std::path::Path;
+use std::process::Command;
+
+const T0: i64 = 1_795_000_000_000_000_000;
+const TICK: i64 = 50_000_000;
+
+fn readers_python() -> std::path::PathBuf {
+    let p = std::env::var_os("LABRIG_READERS_PYTHON")
+        .map(Into::into)
+        .unwrap_or_else(|| cache_dir().join("venv-readers/bin/python"));
+    assert!(p.exists(), "the MCAP readers' venv {} is missing: run `bash scripts/setup.sh`", p.display());
+    p
+}
+
+fn read_with_python(dir: &Path) -> Value {
+    let out =
+        Command::new(readers_python()).arg(repo_root().join("tests/peers/read_episode.py")).arg(dir).output().unwrap();
+    assert!(out.status.success(), "read_episode.py failed: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// A small JPEG-shaped payload (SOI ... EOI); the readers only carry the bytes.
+fn jpeg(k: i64) -> Vec<u8> {
+    let mut v = vec![0xFF, 0xD8];
+    v.extend((0..2000).map(|i| ((i + k) % 251) as u8));
+    v.extend([0xFF, 0xD9]);
+    v
+}
+
+fn header(t: i64, frame: &str) -> Header {
+    Header { stamp: Nanos(t).into(), frame_id: frame.into() }
+}
+
+/// Writes a 2 s episode: Step at 20 Hz, two cameras at 20 Hz, /tf at 20 Hz, /arm/state at 50 Hz.
+fn write_episode(root: &Path) -> (std::path::PathBuf, EpisodeMetadata) {
+    let mut meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "put the cube in the bin", T0);
+    meta.extrinsics.insert("ext1".into(), [0.5, -0.4, 0.6, 0.1, 0.2, 0.3]);
+    let dir = episode_dir(root, Outcome::Success, T0);
+    let mut w = EpisodeWriter::create(&dir, meta.clone()).unwrap();
+    w.attach("scene.json", "application/json", br#"{"seed": 3}"#, T0).unwrap();
+    for k in 0..100i64 {
+        let t = T0 + k * 20_000_000;
+        let state =
+            RobotState { header: header(t, "base"), joint_positions: [k as f64 * 0.01; 7], ..Default::default() };
+        w.write("/arm/state", &state, t + 1_000, t, Reliability::Reliable).unwrap();
+    }
+    for k in 0..40i64 {
+        let t = T0 + k * TICK;
+        for cam in ["ext1", "wrist"] {
+            let img =
+                CompressedImage { header: header(t, &format!("{cam}_optical")), format: "jpeg".into(), data: jpeg(k) };
+            w.write(&format!("/cameras/{cam}/image/compressed"), &img, t + 2_000, t, Reliability::BestEffort).unwrap();
+        }
+        let tf = TFMessage {
+            transforms: vec![TransformStamped {
+                header: header(t, "base"),
+                child_frame_id: "tcp".into(),
+                ..Default::default()
+            }],
+        };
+        w.write("/tf", &tf, t + 3_000, t, Reliability::Reliable).unwrap();
+        let step = Step {
+            header: header(t, "base"),
+            episode_id: meta.uuid.clone(),
+            step_index: k as u64,
+            robot_state: RobotState { joint_positions: [k as f64; 7], ..Default::default() },
+            cameras: ["ext1", "wrist"]
+                .iter()
+                .map(|c| CameraFrameRef {
+                    camera_id: (*c).into(),
+                    sequence: k as u64,
+                    capture_ns: t,
+                    arrival_ns: t + 2_000,
+                    ..Default::default()
+                })
+                .collect(),
+            action_source: Step::SOURCE_SCRIPTED,
+            ..Default::default()
+        };
+        w.write("/rig/step", &step, t + 4_000, t, Reliability::Reliable).unwrap();
+    }
+    w.metadata_mut().success = Some(true);
+    w.metadata_mut().trajectory_length = 40;
+    let summary = w.finish().unwrap();
+    assert_eq!(summary.messages, 100 + 40 * 4);
+    let meta = EpisodeMetadata { success: Some(true), trajectory_length: 40, ..meta };
+    (dir, meta)
+}
+
+#[test]
+fn the_reference_readers_read_every_message_of_an_episode() {
+    let root = tempfile::tempdir().unwrap();
+    let (dir, meta) = write_episode(root.path());
+    assert!(dir.starts_with(root.path().join("success")), "{}", dir.display());
+    assert!(dir.join("metadata.yaml").exists() && dir.join("episode_0.mcap").exists());
+    let v = read_with_python(&dir);
+    let expected = serde_json::json!({
+        "/arm/state": 100, "/cameras/ext1/image/compressed": 40, "/cameras/wrist/image/compressed": 40,
+        "/tf": 40, "/rig/step": 40,
+    });
+    assert_eq!(v["mcap"]["counts"], expected, "mcap + mcap-ros2-support: {v}");
+    assert_eq!(v["mcap"]["failures"], serde_json::json!([]));
+    assert_eq!(v["mcap"]["profile"], "ros2");
+    assert_eq!(v["rosbags_dir"], expected, "rosbags on the directory (metadata.yaml): {v}");
+    assert_eq!(v["rosbags_file"], expected, "rosbags on the bare .mcap: {v}");
+    // DROID's record (the final one) and the rosbag2 record.
+    let droid = &v["mcap"]["metadata"]["droid_episode"];
+    assert_eq!(droid["uuid"], meta.uuid.as_str());
+    assert_eq!(droid["success"], "true");
+    assert_eq!(droid["trajectory_length"], "40");
+    assert_eq!(droid["current_task"], "put the cube in the bin");
+    assert!(v["mcap"]["metadata"]["rosbag2"]["serialized_metadata"].as_str().unwrap().contains("message_count: 260"));
+    assert_eq!(v["mcap"]["attachments"], serde_json::json!(["scene.json"]));
+    // Values survive the round trip.
+    let s = &v["mcap"]["samples"];
+    assert_eq!(s["last_step_index"], 39);
+    assert_eq!(s["last_step_joint_positions"], serde_json::json!(vec![39.0; 7]));
+    assert_eq!(s["step_cameras"], serde_json::json!(["ext1", "wrist"]));
+    assert_eq!(s["image_format"], "jpeg");
+    assert_eq!(s["image_jpeg_markers"], true);
+}
