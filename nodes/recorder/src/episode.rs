@@ -54,6 +54,14 @@ impl RecorderError {
     }
 }
 
+/// A message type known by name and `ros2msg` schema text only.
+#[derive(Debug, Clone, Copy)]
+pub struct RawType<'a> {
+    /// `pkg/msg/Name`.
+    pub name: &'a str,
+    pub schema: &'a str,
+}
+
 #[derive(Debug)]
 struct Channel {
     id: u16,
@@ -206,22 +214,21 @@ impl EpisodeWriter {
     pub fn write_cdr(
         &mut self,
         topic: &str,
-        type_name: &str,
-        schema_text: &str,
+        ty: &RawType<'_>,
         cdr: &[u8],
         log_ns: i64,
         publish_ns: i64,
         reliability: Reliability,
     ) -> Result<(), RecorderError> {
         let schema = |w: &mut Self| -> Result<u16, RecorderError> {
-            if let Some(&id) = w.raw_schemas.get(type_name) {
+            if let Some(&id) = w.raw_schemas.get(ty.name) {
                 return Ok(id);
             }
-            let id = w.writer.add_schema(type_name, "ros2msg", schema_text.as_bytes()).map_err(w.mcap_err())?;
-            w.raw_schemas.insert(type_name.to_owned(), id);
+            let id = w.writer.add_schema(ty.name, "ros2msg", ty.schema.as_bytes()).map_err(w.mcap_err())?;
+            w.raw_schemas.insert(ty.name.to_owned(), id);
             Ok(id)
         };
-        let channel = self.channel(topic, type_name, schema, reliability)?;
+        let channel = self.channel(topic, ty.name, schema, reliability)?;
         self.write_bytes(channel, topic, cdr, log_ns, publish_ns)
     }
 
