@@ -133,3 +133,53 @@ fn the_reference_readers_read_every_message_of_an_episode() {
     assert_eq!(s["image_format"], "jpeg");
     assert_eq!(s["image_jpeg_markers"], true);
 }
+
+/// A recorder killed with SIGKILL mid-episode: `labrig recover` makes the file whole, and the
+/// reference readers read everything up to the last chunk that closed before the kill (so at
+/// most the last second is lost).
+#[test]
+fn a_killed_recorder_loses_at_most_the_last_second() {
+    let root = tempfile::tempdir().unwrap();
+    let mut cmd = Command::new(labrig_tests::labrig_bin());
+    cmd.args(["bench", "record", "--realtime", "--seconds", "30", "--json", "--out"]).arg(root.path());
+    let mut rec = labrig_tests::Proc::spawn("labrig bench record", cmd);
+    let first = rec.wait_json(std::time::Duration::from_secs(30), "the episode path", |v| v["episode"].is_string());
+    let dir = std::path::PathBuf::from(first["episode"].as_str().unwrap());
+    let closed = rec.wait_json(std::time::Duration::from_secs(30), "a third closed chunk", |v| {
+        v["closed_chunks"].as_u64().is_some_and(|c| c >= 3)
+    });
+    rec.child.kill().unwrap(); // SIGKILL
+    rec.child.wait().unwrap();
+    let synced_steps = closed["steps"].as_u64().unwrap();
+    let out = Command::new(labrig_tests::labrig_bin()).args(["recover", "--json"]).arg(&dir).output().unwrap();
+    assert!(out.status.success(), "labrig recover: {}", String::from_utf8_lossy(&out.stderr));
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(r["stopped"].as_str().unwrap().starts_with("stopped at"), "the file was damaged: {r}");
+    assert!(dir.join("episode_0.mcap.damaged").exists());
+    let v = read_with_python(&dir);
+    let steps = v["mcap"]["counts"]["/rig/step"].as_u64().unwrap();
+    assert!(steps >= synced_steps, "recovered {steps} steps, {synced_steps} were in closed chunks");
+    assert!(steps <= synced_steps + 21, "recovered {steps} steps, more than were written?");
+    assert_eq!(v["rosbags_dir"], v["mcap"]["counts"], "rosbags reads the recovered episode too: {v}");
+    assert_eq!(v["mcap"]["counts"]["/cameras/wrist/image/compressed"].as_u64().unwrap(), steps);
+    assert!(v["mcap"]["metadata"]["droid_episode"]["uuid"].as_str().unwrap().starts_with("LABRIG+operator+"));
+    eprintln!("killed after {synced_steps} synced steps; recovered {steps}: {r}");
+}
+
+/// A full disk: the next episode fails with an error that says so, and the episode recorded
+/// before it stays whole. (/dev/full answers every write with ENOSPC.)
+#[test]
+fn a_full_disk_stops_recording_and_keeps_earlier_episodes() {
+    let root = tempfile::tempdir().unwrap();
+    let (good, _) = write_episode(root.path());
+    let full_dir = root.path().join("failure/next");
+    std::fs::create_dir_all(&full_dir).unwrap();
+    std::os::unix::fs::symlink("/dev/full", full_dir.join("episode_0.mcap")).unwrap();
+    let meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "again", T0 + 60_000_000_000);
+    let err = EpisodeWriter::create(&full_dir, meta).unwrap_err();
+    assert!(err.is_disk_full(), "{err:?}");
+    assert!(err.to_string().contains("No space left on device"), "{err}");
+    assert!(err.to_string().contains("episode_0.mcap"), "the error names the file: {err}");
+    let v = read_with_python(&good);
+    assert_eq!(v["rosbags_dir"]["/rig/step"], 40, "the earlier episode is intact: {v}");
+}

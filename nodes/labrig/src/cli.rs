@@ -22,6 +22,8 @@ pub enum Command {
     /// Benchmarks that print figures.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Make an episode whose recorder died whole again (up to its last closed chunk).
+    Recover(crate::recover::RecoverArgs),
     /// The main job on a fresh machine: run what the rig has so far and report it.
     Demo(crate::demo::DemoArgs),
     /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
@@ -113,6 +115,8 @@ pub enum TopicCommand {
 pub enum BenchCommand {
     /// Camera frames over iceoryx2 shared memory between processes.
     Shm(crate::bench::ShmArgs),
+    /// Recording an episode: writer MB/s, CPU, JPEG encoding (synthetic 5-camera rig).
+    Record(crate::bench_record::RecordArgs),
     /// The franka node against franka-sim: command-to-backend latency (in the node and round trip).
     Franka(crate::bench_franka::FrankaArgs),
     /// The franka node's command path per tick: URDF FK + Jacobian, IK, the safety filter.
@@ -132,6 +136,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
         Command::Bench(BenchCommand::Ik(a)) => crate::bench_ik::run(a),
         Command::Bench(BenchCommand::Franka(a)) => crate::bench_franka::run(a),
+        Command::Bench(BenchCommand::Record(a)) => crate::bench_record::run(a),
+        Command::Recover(a) => crate::recover::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),

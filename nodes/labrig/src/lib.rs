@@ -5,7 +5,9 @@
 pub mod bench;
 pub mod bench_franka;
 pub mod bench_ik;
+pub mod bench_record;
 pub mod cli;
 pub mod demo;
 pub mod json;
+pub mod recover;
 pub mod topic;

@@ -30,7 +30,7 @@ pub enum RecorderError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path}: writing the MCAP: {source}")]
+    #[error("{path}: writing the MCAP: {}", mcap_detail(source))]
     Mcap {
         path: PathBuf,
         #[source]
@@ -40,6 +40,14 @@ pub enum RecorderError {
     Encode { topic: String, type_name: &'static str, message: String },
     #[error("topic {topic} was recorded as {first}, now given a {now}")]
     TypeChanged { topic: String, first: String, now: String },
+}
+
+/// An MCAP error with the I/O error inside it spelled out (e.g. "No space left on device").
+fn mcap_detail(e: &mcap::McapError) -> String {
+    match e {
+        mcap::McapError::Io(io) => format!("{e}: {io}"),
+        other => other.to_string(),
+    }
 }
 
 impl RecorderError {
@@ -92,6 +100,7 @@ pub struct EpisodeWriter {
     start_ns: Option<i64>,
     end_ns: i64,
     chunk_start_ns: Option<i64>,
+    closed_chunks: u64,
     meta: EpisodeMetadata,
 }
 
@@ -131,6 +140,7 @@ impl EpisodeWriter {
             start_ns: None,
             end_ns: 0,
             chunk_start_ns: None,
+            closed_chunks: 0,
             meta,
         };
         w.sync()?;
@@ -139,6 +149,16 @@ impl EpisodeWriter {
 
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Chunks closed and fsynced so far (what a crash cannot take away).
+    pub fn closed_chunks(&self) -> u64 {
+        self.closed_chunks
+    }
+
+    /// Messages written so far.
+    pub fn messages(&self) -> u64 {
+        self.channels.values().map(|c| c.topic.count).sum()
     }
 
     pub fn metadata_mut(&mut self) -> &mut EpisodeMetadata {
@@ -246,6 +266,7 @@ impl EpisodeWriter {
         if log_ns - chunk_start >= CHUNK_NS {
             self.sync()?;
             self.chunk_start_ns = Some(log_ns);
+            self.closed_chunks += 1;
         }
         self.sequence = self.sequence.wrapping_add(1);
         let header = MessageHeader {

@@ -3,10 +3,13 @@
 //! - [`metadata`]: DROID's episode metadata record and directory layout.
 //! - [`bag`]: the rosbag2 description (QoS text, `rosbag2` record, `metadata.yaml`).
 //! - [`episode`]: [`episode::EpisodeWriter`], one episode being written.
+//! - [`recover`]: an episode whose recorder died, made whole up to its last closed chunk.
 
 pub mod bag;
 pub mod episode;
+pub mod jpeg;
 pub mod metadata;
+pub mod recover;
 
 pub use episode::{EpisodeSummary, EpisodeWriter, RecorderError};
 pub use metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};

@@ -1,0 +1,176 @@
+//! Recovering an episode whose recorder died (SIGKILL, power loss): its MCAP has no summary or
+//! footer and ends in a chunk that never closed. Every chunk that closed (at most one second
+//! of log time each) was fsynced whole; [`recover`] copies every complete chunk, metadata
+//! record and attachment into a new, valid file and rebuilds the rosbag2 record and
+//! `metadata.yaml` from what it copied. A chunk is copied only if every record in it parses.
+
+use crate::bag::{BagInfo, TopicInfo};
+use crate::episode::{RecorderError, write_metadata_yaml};
+use mcap::read::{ChunkReader, LinearReader, Options};
+use mcap::records::Record;
+use mcap::{Attachment, Compression, WriteOptions, Writer};
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+
+/// What a recovery copied.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecoverReport {
+    pub messages: u64,
+    pub chunks: u64,
+    pub metadata: u64,
+    pub attachments: u64,
+    /// Log time of the first and last message copied.
+    pub start_ns: i64,
+    pub end_ns: i64,
+    /// Why reading stopped: "complete file" or the damage found.
+    pub stopped: String,
+}
+
+/// Copies what is complete in `input` into `output` (a new file) and writes `metadata.yaml`
+/// beside `output`.
+pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecorderError> {
+    let io = |path: &Path, what, source| RecorderError::Io { path: path.to_owned(), what, source };
+    let buf = std::fs::read(input).map_err(|e| io(input, "reading the episode", e))?;
+    let mcap_err = |source| RecorderError::Mcap { path: output.to_owned(), source };
+    let mut out: Option<Writer<BufWriter<File>>> = None;
+    let mut schemas: BTreeMap<u16, String> = BTreeMap::new();
+    let mut topics: BTreeMap<u16, TopicInfo> = BTreeMap::new();
+    let mut report = RecoverReport {
+        messages: 0,
+        chunks: 0,
+        metadata: 0,
+        attachments: 0,
+        start_ns: i64::MAX,
+        end_ns: 0,
+        stopped: "complete file".into(),
+    };
+    let mut copy = |rec: Record<'_>, out: &mut Option<Writer<BufWriter<File>>>| -> Result<(), RecorderError> {
+        if let Record::Header(h) = &rec {
+            let file = File::create(output).map_err(|e| io(output, "creating the recovered file", e))?;
+            let opts = WriteOptions::new()
+                .profile(h.profile.clone())
+                .library(h.library.clone())
+                .compression(Some(Compression::Zstd))
+                .compression_threads(0)
+                .chunk_size(None);
+            *out = Some(Writer::with_options(BufWriter::new(file), opts).map_err(mcap_err)?);
+            return Ok(());
+        }
+        let Some(w) = out.as_mut() else { return Ok(()) };
+        match rec {
+            Record::Schema { header, data } => {
+                w.add_schema_with_id(header.id, &header.name, &header.encoding, &data).map_err(mcap_err)?;
+                schemas.insert(header.id, header.name);
+            }
+            Record::Channel(c) => {
+                w.add_channel_with_id(c.id, c.schema_id, &c.topic, &c.message_encoding, &c.metadata)
+                    .map_err(mcap_err)?;
+                topics.entry(c.id).or_insert_with(|| TopicInfo {
+                    name: c.topic.clone(),
+                    type_name: schemas.get(&c.schema_id).cloned().unwrap_or_default(),
+                    qos_yaml: c.metadata.get("offered_qos_profiles").cloned().unwrap_or_default(),
+                    count: 0,
+                });
+            }
+            Record::Message { header, data } => {
+                w.write_to_known_channel(&header, &data).map_err(mcap_err)?;
+                if let Some(t) = topics.get_mut(&header.channel_id) {
+                    t.count += 1;
+                }
+                report.messages += 1;
+                report.start_ns = report.start_ns.min(header.log_time as i64);
+                report.end_ns = report.end_ns.max(header.log_time as i64);
+            }
+            // The rosbag2 record is rebuilt from what was copied.
+            Record::Metadata(m) if m.name != "rosbag2" => {
+                w.write_metadata(&m).map_err(mcap_err)?;
+                report.metadata += 1;
+            }
+            Record::Attachment { header, data, .. } => {
+                let a = Attachment {
+                    log_time: header.log_time,
+                    create_time: header.create_time,
+                    name: header.name,
+                    media_type: header.media_type,
+                    data,
+                };
+                w.attach(&a).map_err(mcap_err)?;
+                report.attachments += 1;
+            }
+            // Indexes, statistics, summary: rebuilt by finish().
+            _ => {}
+        }
+        Ok(())
+    };
+    let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
+        .map_err(|source| RecorderError::Mcap { path: input.to_owned(), source })?;
+    for rec in reader {
+        let rec = match rec {
+            Ok(r) => r,
+            Err(e) => {
+                report.stopped = format!("stopped at damage: {e}");
+                break;
+            }
+        };
+        if let Record::Chunk { header, data } = rec {
+            let inner: Result<Vec<Record<'_>>, _> = ChunkReader::new(header, &data).and_then(|r| r.collect());
+            match inner {
+                Ok(records) => {
+                    for r in records {
+                        copy(r.into_owned(), &mut out)?;
+                    }
+                    if let Some(w) = out.as_mut() {
+                        w.flush().map_err(mcap_err)?;
+                    }
+                    report.chunks += 1;
+                }
+                Err(e) => {
+                    report.stopped = format!("stopped at a damaged chunk: {e}");
+                    break;
+                }
+            }
+        } else {
+            copy(rec, &mut out)?;
+        }
+    }
+    let Some(mut w) = out else {
+        return Err(RecorderError::Io {
+            path: input.to_owned(),
+            what: "recovering",
+            source: std::io::Error::new(std::io::ErrorKind::InvalidData, "not an MCAP file: no header record survived"),
+        });
+    };
+    if report.messages == 0 {
+        report.start_ns = 0;
+    }
+    let mut topics: Vec<TopicInfo> = topics.into_values().collect();
+    topics.sort_by(|a, b| a.name.cmp(&b.name));
+    let info = BagInfo {
+        file_name: output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+        start_ns: report.start_ns,
+        end_ns: report.end_ns,
+        topics,
+        custom: vec![("recovered".into(), report.stopped.clone())],
+    };
+    w.write_metadata(&mcap::records::Metadata { name: "rosbag2".into(), metadata: info.record() }).map_err(mcap_err)?;
+    w.finish().map_err(mcap_err)?;
+    let file = w.into_inner().into_inner().map_err(|e| io(output, "writing the recovered file", e.into_error()))?;
+    file.sync_all().map_err(|e| io(output, "syncing the recovered file", e))?;
+    let dir = output.parent().unwrap_or(Path::new("."));
+    write_metadata_yaml(dir, &info)?;
+    Ok(report)
+}
+
+/// `labrig recover <episode_dir>`: recovers `episode_0.mcap` in place. The damaged file is
+/// kept as `episode_0.mcap.damaged`; the directory's metadata.yaml describes the recovered one.
+pub fn recover_in_place(dir: &Path) -> Result<RecoverReport, RecorderError> {
+    let file = dir.join(crate::episode::EPISODE_FILE);
+    let damaged = dir.join(format!("{}.damaged", crate::episode::EPISODE_FILE));
+    let io = |what, source| RecorderError::Io { path: file.clone(), what, source };
+    if !damaged.exists() {
+        std::fs::rename(&file, &damaged).map_err(|e| io("keeping the damaged file", e))?;
+    }
+    recover(&damaged, &file)
+}
