@@ -1,6 +1,6 @@
 //! `labrig bench record`: what recording an episode costs. A synthetic rig at 20 Hz — five
 //! 128x128 cameras (a moving pattern, JPEG-encoded as the recorder does), /rig/step,
-//! /arm/state at 50 Hz, /tf — written with labrig-recorder's EpisodeWriter, either in real
+//! /arm/state at 40 Hz — written with labrig-recorder's EpisodeWriter, either in real
 //! time (`--realtime`, as a rig would) or as fast as it goes. Prints a JSON line each time a
 //! chunk closes (what a crash can no longer take) and the totals: MB/s, CPU, JPEG time.
 

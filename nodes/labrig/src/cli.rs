@@ -22,6 +22,8 @@ pub enum Command {
     /// Benchmarks that print figures.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// What an episode holds and how well it was recorded (exit 3 when something is flagged).
+    Inspect(crate::inspect::InspectArgs),
     /// Make an episode whose recorder died whole again (up to its last closed chunk).
     Recover(crate::recover::RecoverArgs),
     /// The main job on a fresh machine: run what the rig has so far and report it.
@@ -138,6 +140,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Franka(a)) => crate::bench_franka::run(a),
         Command::Bench(BenchCommand::Record(a)) => crate::bench_record::run(a),
         Command::Recover(a) => crate::recover::run(a),
+        Command::Inspect(a) => crate::inspect::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),

@@ -8,6 +8,7 @@ pub mod bench_ik;
 pub mod bench_record;
 pub mod cli;
 pub mod demo;
+pub mod inspect;
 pub mod json;
 pub mod recover;
 pub mod topic;

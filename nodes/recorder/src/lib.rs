@@ -7,6 +7,7 @@
 
 pub mod bag;
 pub mod episode;
+pub mod inspect;
 pub mod jpeg;
 pub mod metadata;
 pub mod recover;

@@ -1,0 +1,372 @@
+//! `labrig inspect`: what an episode holds and how well it was recorded — duration, per-topic
+//! counts and rates, messages that do not decode or arrive out of order, dropped and late
+//! camera frames, the camera skew of each step, the control loop's period and jitter, and
+//! DROID's metadata. Reads damaged (unfinished) files too, up to their damage.
+
+use crate::metadata::EpisodeMetadata;
+use labrig_msgs::labrig_msgs::Step;
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::{TypeVisitor, visit_type};
+use mcap::read::{ChunkReader, LinearReader, Options};
+use mcap::records::Record;
+use serde::Serialize;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+/// The rig's control period.
+pub const CONTROL_PERIOD_NS: i64 = 50_000_000;
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p99: f64,
+    pub max: f64,
+    pub n: usize,
+}
+
+impl Percentiles {
+    fn of(mut v: Vec<f64>) -> Option<Percentiles> {
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let p = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+        Some(Percentiles { p50: p(0.5), p99: p(0.99), max: p(1.0), n: v.len() })
+    }
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct TopicStats {
+    pub topic: String,
+    pub type_name: String,
+    pub count: u64,
+    pub rate_hz: f64,
+    /// Messages that do not decode as their type.
+    pub malformed: u64,
+    /// Messages whose log time is earlier than the previous one's on the topic.
+    pub out_of_order: u64,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct CameraStats {
+    pub camera: String,
+    pub frames: u64,
+    /// Frames missing between consecutive stamps (gaps longer than 1.5 periods).
+    pub dropped: u64,
+    /// Steps whose frame from this camera was captured more than one period before the step.
+    pub late: u64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Inspection {
+    pub path: PathBuf,
+    /// The file has its summary and footer (the recorder finished it).
+    pub complete: bool,
+    /// What stopped the reading early, for a damaged file.
+    pub damage: Option<String>,
+    pub start_ns: i64,
+    pub end_ns: i64,
+    pub duration_s: f64,
+    pub messages: u64,
+    pub topics: Vec<TopicStats>,
+    pub steps: u64,
+    /// Per step: the spread of the capture times of the frames it used (ms).
+    pub camera_skew_ms: Option<Percentiles>,
+    /// Step-to-step period (ms) and its deviation from 50 ms (ms).
+    pub control_period_ms: Option<Percentiles>,
+    pub control_jitter_ms: Option<Percentiles>,
+    /// Steps more than 1.5 periods after the previous one.
+    pub missed_ticks: u64,
+    pub cameras: Vec<CameraStats>,
+    pub metadata: Option<EpisodeMetadata>,
+    /// What is wrong, for the operator; empty for a good episode.
+    pub flags: Vec<String>,
+}
+
+struct Decodes<'a>(&'a [u8]);
+impl TypeVisitor for Decodes<'_> {
+    type Output = bool;
+    fn visit<T: labrig_msgs::RosMessage>(self) -> bool {
+        labrig_msgs::decode::<T>(self.0).is_ok()
+    }
+}
+
+#[derive(Default)]
+struct Topic {
+    type_name: String,
+    count: u64,
+    malformed: u64,
+    out_of_order: u64,
+    last_log: Option<u64>,
+    first: u64,
+    last: u64,
+    stamps: Vec<i64>,
+}
+
+/// Reads `path` (an episode file or its directory).
+pub fn inspect(path: &Path) -> Result<Inspection, String> {
+    let file = if path.is_dir() { path.join(crate::episode::EPISODE_FILE) } else { path.to_owned() };
+    let buf = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let complete = mcap::Summary::read(&buf).ok().flatten().is_some();
+    let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
+        .map_err(|e| format!("{}: not an MCAP file: {e}", file.display()))?;
+    let mut schemas: HashMap<u16, String> = HashMap::new();
+    let mut channels: HashMap<u16, (String, String)> = HashMap::new();
+    let mut topics: BTreeMap<String, Topic> = BTreeMap::new();
+    let mut steps: Vec<Step> = Vec::new();
+    let mut droid = None;
+    let mut damage = None;
+    let mut on_record = |rec: Record<'_>| match rec {
+        Record::Schema { header, .. } => {
+            schemas.insert(header.id, header.name);
+        }
+        Record::Channel(c) => {
+            let ty = schemas.get(&c.schema_id).cloned().unwrap_or_default();
+            channels.insert(c.id, (c.topic, ty));
+        }
+        Record::Metadata(m) if m.name == crate::episode::DROID_RECORD => droid = Some(m.metadata),
+        Record::Message { header, data } => {
+            let Some((topic, ty)) = channels.get(&header.channel_id) else { return };
+            let t = topics.entry(topic.clone()).or_default();
+            t.type_name.clone_from(ty);
+            t.count += 1;
+            if t.count == 1 {
+                t.first = header.log_time;
+            }
+            t.last = t.last.max(header.log_time);
+            if t.last_log.is_some_and(|l| header.log_time < l) {
+                t.out_of_order += 1;
+            }
+            t.last_log = Some(header.log_time);
+            let ok = match ty.as_str() {
+                "labrig_msgs/msg/Step" => match labrig_msgs::decode::<Step>(&data) {
+                    Ok(s) => {
+                        steps.push(s);
+                        true
+                    }
+                    Err(_) => false,
+                },
+                "sensor_msgs/msg/CompressedImage" => match labrig_msgs::decode::<CompressedImage>(&data) {
+                    Ok(img) => {
+                        t.stamps.push(labrig_msgs::Nanos::from(img.header.stamp).0);
+                        !img.data.is_empty()
+                    }
+                    Err(_) => false,
+                },
+                other => visit_type(other, Decodes(&data)).unwrap_or(true),
+            };
+            if !ok {
+                t.malformed += 1;
+            }
+        }
+        _ => {}
+    };
+    for rec in reader {
+        match rec {
+            Ok(Record::Chunk { header, data }) => match ChunkReader::new(header, &data) {
+                Ok(inner) => {
+                    for r in inner {
+                        match r {
+                            Ok(r) => on_record(r),
+                            Err(e) => {
+                                damage = Some(format!("a damaged chunk: {e}"));
+                                break;
+                            }
+                        }
+                    }
+                }
+                Err(e) => damage = Some(format!("a damaged chunk: {e}")),
+            },
+            Ok(r) => on_record(r),
+            Err(e) => {
+                damage = Some(e.to_string());
+                break;
+            }
+        }
+        if damage.is_some() {
+            break;
+        }
+    }
+    Ok(summarise(file, complete, damage, topics, steps, droid))
+}
+
+fn summarise(
+    path: PathBuf,
+    complete: bool,
+    damage: Option<String>,
+    topics: BTreeMap<String, Topic>,
+    mut steps: Vec<Step>,
+    droid: Option<BTreeMap<String, String>>,
+) -> Inspection {
+    let start = topics.values().map(|t| t.first).min().unwrap_or(0) as i64;
+    let end = topics.values().map(|t| t.last).max().unwrap_or(0) as i64;
+    let duration_s = (end - start).max(0) as f64 / 1e9;
+    let mut flags = Vec::new();
+    let topic_stats: Vec<TopicStats> = topics
+        .iter()
+        .map(|(name, t)| {
+            let span = (t.last - t.first) as f64 / 1e9;
+            TopicStats {
+                topic: name.clone(),
+                type_name: t.type_name.clone(),
+                count: t.count,
+                rate_hz: if span > 0.0 { (t.count - 1) as f64 / span } else { 0.0 },
+                malformed: t.malformed,
+                out_of_order: t.out_of_order,
+            }
+        })
+        .collect();
+    for t in &topic_stats {
+        if t.malformed > 0 {
+            flags.push(format!("{}: {} malformed messages", t.topic, t.malformed));
+        }
+        if t.out_of_order > 0 {
+            flags.push(format!("{}: {} messages out of order", t.topic, t.out_of_order));
+        }
+    }
+    steps.sort_by_key(|s| s.step_index);
+    let step_time = |s: &Step| {
+        if s.timing.step_start != 0 { s.timing.step_start } else { labrig_msgs::Nanos::from(s.header.stamp).0 }
+    };
+    let skew: Vec<f64> = steps
+        .iter()
+        .filter(|s| s.cameras.len() > 1)
+        .map(|s| {
+            let (lo, hi) =
+                s.cameras.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
+            (hi - lo) as f64 / 1e6
+        })
+        .collect();
+    let periods: Vec<f64> = steps.windows(2).map(|w| (step_time(&w[1]) - step_time(&w[0])) as f64 / 1e6).collect();
+    let nominal = CONTROL_PERIOD_NS as f64 / 1e6;
+    let missed_ticks = periods.iter().filter(|&&p| p > 1.5 * nominal).count() as u64;
+    let jitter: Vec<f64> = periods.iter().map(|p| (p - nominal).abs()).collect();
+    // Cameras: frames and gaps per image topic; late frames from the steps' references.
+    let mut cameras: Vec<CameraStats> = Vec::new();
+    for (name, t) in &topics {
+        if t.type_name != "sensor_msgs/msg/CompressedImage" {
+            continue;
+        }
+        let camera = name.trim_start_matches("/cameras/").split('/').next().unwrap_or(name).to_owned();
+        let mut stamps = t.stamps.clone();
+        stamps.sort_unstable();
+        let dropped = stamps
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .filter(|&g| g as f64 > 1.5 * CONTROL_PERIOD_NS as f64)
+            .map(|g| (g as f64 / CONTROL_PERIOD_NS as f64).round() as u64 - 1)
+            .sum();
+        let late = steps
+            .iter()
+            .filter(|s| {
+                s.cameras.iter().any(|c| c.camera_id == camera && step_time(s) - c.capture_ns > CONTROL_PERIOD_NS)
+            })
+            .count() as u64;
+        cameras.push(CameraStats { camera, frames: t.count, dropped, late });
+    }
+    if cameras.iter().all(|c| c.frames == 0) {
+        flags.push("no camera frames: the episode has no images".into());
+    }
+    for c in &cameras {
+        if c.dropped > 0 {
+            flags.push(format!("camera {}: {} frames dropped", c.camera, c.dropped));
+        }
+    }
+    if steps.is_empty() {
+        flags.push("no /rig/step records".into());
+    }
+    if missed_ticks > 0 {
+        flags.push(format!("{missed_ticks} missed control ticks"));
+    }
+    if !complete {
+        flags.push(format!(
+            "unfinished file (recorder stopped before finish): run `labrig recover` on its directory{}",
+            damage.as_ref().map_or(String::new(), |d| format!(" ({d})"))
+        ));
+    }
+    let metadata = droid.as_ref().and_then(|m| EpisodeMetadata::from_record(m).ok());
+    if metadata.is_none() {
+        flags.push("no DROID episode metadata".into());
+    }
+    Inspection {
+        path,
+        complete,
+        damage,
+        start_ns: start,
+        end_ns: end,
+        duration_s,
+        messages: topic_stats.iter().map(|t| t.count).sum(),
+        topics: topic_stats,
+        steps: steps.len() as u64,
+        camera_skew_ms: Percentiles::of(skew),
+        control_period_ms: Percentiles::of(periods),
+        control_jitter_ms: Percentiles::of(jitter),
+        missed_ticks,
+        cameras,
+        metadata,
+        flags,
+    }
+}
+
+impl Inspection {
+    /// The text report.
+    pub fn text(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        let _ = writeln!(s, "{}", self.path.display());
+        if let Some(m) = &self.metadata {
+            let _ = writeln!(
+                s,
+                "  episode {}  task {:?}  scene {}  success {}",
+                m.uuid,
+                m.task_instruction,
+                m.scene_id,
+                m.success.map_or("unknown".into(), |b| b.to_string())
+            );
+        }
+        let _ = writeln!(
+            s,
+            "  {:.2} s, {} messages, {} steps, file {}",
+            self.duration_s,
+            self.messages,
+            self.steps,
+            if self.complete { "complete" } else { "UNFINISHED" }
+        );
+        let _ = writeln!(
+            s,
+            "  {:<40} {:<34} {:>7} {:>8} {:>9} {:>6}",
+            "topic", "type", "count", "rate Hz", "malformed", "order"
+        );
+        for t in &self.topics {
+            let _ = writeln!(
+                s,
+                "  {:<40} {:<34} {:>7} {:>8.1} {:>9} {:>6}",
+                t.topic, t.type_name, t.count, t.rate_hz, t.malformed, t.out_of_order
+            );
+        }
+        for c in &self.cameras {
+            let _ = writeln!(
+                s,
+                "  camera {:<8} frames {:>6}  dropped {:>4}  late {:>4}",
+                c.camera, c.frames, c.dropped, c.late
+            );
+        }
+        let pct = |name: &str, p: &Option<Percentiles>| match p {
+            Some(p) => {
+                format!("  {name}: p50 {:.3} ms  p99 {:.3} ms  max {:.3} ms (n = {})\n", p.p50, p.p99, p.max, p.n)
+            }
+            None => format!("  {name}: -\n"),
+        };
+        s.push_str(&pct("camera skew per step", &self.camera_skew_ms));
+        s.push_str(&pct("control period", &self.control_period_ms));
+        s.push_str(&pct("control jitter", &self.control_jitter_ms));
+        let _ = writeln!(s, "  missed ticks: {}", self.missed_ticks);
+        if self.flags.is_empty() {
+            s.push_str("  OK\n");
+        }
+        for f in &self.flags {
+            let _ = writeln!(s, "  FLAG: {f}");
+        }
+        s
+    }
+}
