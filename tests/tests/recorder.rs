@@ -265,3 +265,103 @@ fn inspect_flags_bad_input() {
     assert_eq!(v["cameras"][0]["dropped"], 3, "{v}");
     assert!(v["flags"].as_array().unwrap().iter().any(|f| f == "camera ext1: 3 frames dropped"), "{v}");
 }
+
+/// The recorder node (its own process) records what the sim bridge publishes — DDS topics as
+/// they came and the five cameras from shared memory as JPEG — between /rig/episode events,
+/// files the episode in DROID's layout, and deletes a discarded one.
+#[test]
+fn the_recorder_node_records_the_sim_rig() {
+    use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+    use labrig_msgs::std_msgs::StringMsg;
+    use labrig_runtime::ros::{Ros, qos};
+    use std::time::{Duration, Instant};
+    let domain = labrig_tests::domain_for("the_recorder_node_records_the_sim_rig");
+    let ns = format!("recorder_{}", std::process::id());
+    let root = tempfile::tempdir().unwrap();
+    let mut bridge = Command::new(labrig_tests::sim_bin());
+    bridge
+        .args(["run", "--mode", "realtime", "--max-ticks", "2000", "--domain-id", &domain.to_string()])
+        .env(labrig_runtime::frames::NAMESPACE_ENV, &ns);
+    let _bridge = labrig_tests::Proc::spawn("labrig-sim run", bridge);
+    let mut rec = Command::new(labrig_tests::workspace_bin("labrig-recorder", "labrig-recorder"));
+    rec.args(["run", "--domain-id", &domain.to_string(), "--root"])
+        .arg(root.path())
+        .env(labrig_runtime::frames::NAMESPACE_ENV, &ns);
+    let _rec = labrig_tests::Proc::spawn("labrig-recorder run", rec);
+    let dir = labrig_tests::rt().block_on(async move {
+        let cfg = labrig_runtime::RosConfig { domain_id: domain, ..Default::default() };
+        let mut ros = Ros::new(&cfg, "recorder_test").unwrap();
+        let events = ros.publisher::<EpisodeEvent>("/rig/episode", qos::reliable(10)).unwrap();
+        let steps = ros.publisher::<Step>("/rig/step", qos::reliable(100)).unwrap();
+        let status = ros.subscription::<StringMsg>("/recorder/status", qos::latched(1)).unwrap();
+        assert!(ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(60)).await, "no recorder");
+        assert!(ros.wait_for_subscribers("/rig/step", 1, Duration::from_secs(60)).await);
+        // Let the recorder see the bridge's latched scene and /tf_static.
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        let wait_status = |want: &'static str| {
+            let status = &status;
+            async move {
+                let deadline = Instant::now() + Duration::from_secs(30);
+                while Instant::now() < deadline {
+                    while let Some(s) = status.try_take().unwrap() {
+                        let v: Value = serde_json::from_str(&s.msg.data).unwrap();
+                        if v["state"] == want {
+                            return v;
+                        }
+                    }
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                panic!("the recorder never said {want}");
+            }
+        };
+        let event = |kind: EpisodeEventKind, note: &str| EpisodeEvent {
+            kind: kind as u8,
+            note: note.into(),
+            ..Default::default()
+        };
+        // A discarded episode leaves nothing.
+        events.publish(event(EpisodeEventKind::Start, "discard me")).unwrap();
+        wait_status("recording").await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        events.publish(event(EpisodeEventKind::Discard, "")).unwrap();
+        wait_status("discarded").await;
+        // A 3 s episode with 20 Hz steps.
+        events.publish(event(EpisodeEventKind::Start, "put the cube in the bin")).unwrap();
+        wait_status("recording").await;
+        for k in 0..60u64 {
+            let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as i64;
+            steps.publish(Step { header: header(t, "base"), step_index: k, ..Default::default() }).unwrap();
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        events.publish(event(EpisodeEventKind::Success, "")).unwrap();
+        let done = wait_status("recorded").await;
+        assert_eq!(done["outcome"], "success", "{done}");
+        std::path::PathBuf::from(done["dir"].as_str().unwrap())
+    });
+    assert!(dir.starts_with(root.path().join("success")), "{}", dir.display());
+    let recording: Vec<_> = std::fs::read_dir(root.path().join(".recording")).unwrap().collect();
+    assert!(recording.is_empty(), "the discarded and the moved episodes left nothing behind");
+    let v = read_with_python(&dir);
+    let counts = &v["mcap"]["counts"];
+    assert_eq!(counts["/rig/step"], 60, "{v}");
+    assert_eq!(v["rosbags_dir"], *counts, "rosbags agrees: {v}");
+    for cam in labrig_msgs::labrig_msgs::RIG_CAMERAS {
+        let n = counts[format!("/cameras/{cam}/image/compressed")].as_u64().unwrap_or(0);
+        assert!((45..=75).contains(&n), "camera {cam}: {n} frames in ~3 s at 20 Hz: {v}");
+    }
+    for t in ["/arm/state", "/tf", "/joint_states", "/tf_static", "/sim/scene"] {
+        assert!(counts[t].as_u64().unwrap_or(0) > 0, "{t} missing: {v}");
+    }
+    assert_eq!(v["mcap"]["samples"]["image_format"], "jpeg");
+    assert_eq!(v["mcap"]["samples"]["image_jpeg_markers"], true);
+    let droid = &v["mcap"]["metadata"]["droid_episode"];
+    assert_eq!(droid["success"], "true");
+    assert_eq!(droid["trajectory_length"], "60");
+    assert_eq!(droid["current_task"], "put the cube in the bin");
+    assert_eq!(droid["scene_id"], "pick_place_cube");
+    let extrinsics: Value = serde_json::from_str(droid["extrinsics"].as_str().unwrap()).unwrap();
+    // The four fixed cameras (the wrist camera moves: its pose is in /tf every step).
+    let ext = extrinsics.as_object().unwrap();
+    assert_eq!(ext.keys().collect::<Vec<_>>(), ["ext1", "ext2", "rs1", "rs2"], "{extrinsics}");
+    assert!(droid["sim_scene"].as_str().unwrap().contains("\"seed\""));
+}

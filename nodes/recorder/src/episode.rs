@@ -156,6 +156,11 @@ impl EpisodeWriter {
         self.closed_chunks
     }
 
+    /// Messages written so far on `topic`.
+    pub fn count(&self, topic: &str) -> u64 {
+        self.channels.get(topic).map_or(0, |c| c.topic.count)
+    }
+
     /// Messages written so far.
     pub fn messages(&self) -> u64 {
         self.channels.values().map(|c| c.topic.count).sum()

@@ -3,6 +3,7 @@
 //! - [`metadata`]: DROID's episode metadata record and directory layout.
 //! - [`bag`]: the rosbag2 description (QoS text, `rosbag2` record, `metadata.yaml`).
 //! - [`episode`]: [`episode::EpisodeWriter`], one episode being written.
+//! - [`node`]: the recorder node (DDS topics + shared-memory frames -> episodes).
 //! - [`recover`]: an episode whose recorder died, made whole up to its last closed chunk.
 
 pub mod bag;
@@ -10,6 +11,7 @@ pub mod episode;
 pub mod inspect;
 pub mod jpeg;
 pub mod metadata;
+pub mod node;
 pub mod recover;
 
 pub use episode::{EpisodeSummary, EpisodeWriter, RecorderError};

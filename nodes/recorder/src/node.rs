@@ -1,0 +1,382 @@
+//! The recorder node: records what the rig publishes — every configured ROS 2 topic as it came
+//! off DDS (CDR passed through with its schema) and every camera's frames from shared memory
+//! (JPEG) — into one MCAP per episode, started and ended by `/rig/episode` events.
+//!
+//! An episode is written under `<root>/.recording/<uuid>/` and moved to DROID's
+//! `<root>/{success|failure}/<date>/<time>/` when it ends (`Success`, or `Failure`/`Stop`);
+//! `Discard` deletes it. A recorder killed mid-episode leaves its directory in `.recording/`
+//! for `labrig recover`. A write error (a full disk) ends the episode with the error reported
+//! on `/recorder/status` and in the log; the node goes on and takes the next `Start`.
+//! `/recorder/status` (std_msgs/String, JSON) says what it is doing once a second and after
+//! every episode.
+
+use crate::bag::Reliability;
+use crate::episode::{EpisodeWriter, RawType, RecorderError};
+use crate::metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS};
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::std_msgs::{Header, StringMsg};
+use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_msgs::{Nanos, RosMessage, TypeVisitor, dds_type_name, visit_type};
+use labrig_runtime::frames::{FrameEncoding, FrameNode, FrameSubscriber};
+use labrig_runtime::ros::{RawSubscription, Ros, qos};
+use labrig_runtime::{Clock, RosConfig, Shutdown};
+use serde::Deserialize;
+use serde_json::json;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// One recorded topic.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TopicSpec {
+    pub topic: String,
+    /// `pkg/msg/Name`; must be a type labrig-msgs knows (its schema goes into the file).
+    #[serde(rename = "type")]
+    pub type_name: String,
+    #[serde(default = "yes")]
+    pub reliable: bool,
+    /// Transient-local (latched) topics like /tf_static and /sim/scene.
+    #[serde(default)]
+    pub latched: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn spec(topic: &str, type_name: &str, latched: bool) -> TopicSpec {
+    TopicSpec { topic: topic.into(), type_name: type_name.into(), reliable: true, latched }
+}
+
+/// The rig's topics recorded by default.
+pub fn default_topics() -> Vec<TopicSpec> {
+    let mut t = vec![
+        spec("/rig/step", "labrig_msgs/msg/Step", false),
+        spec("/rig/episode", "labrig_msgs/msg/EpisodeEvent", false),
+        spec("/arm/state", "labrig_msgs/msg/RobotState", false),
+        spec("/arm/command", "labrig_msgs/msg/ArmCommand", false),
+        spec("/gripper/state", "labrig_msgs/msg/GripperState", false),
+        spec("/gripper/command", "labrig_msgs/msg/GripperCommand", false),
+        spec("/joint_states", "sensor_msgs/msg/JointState", false),
+        spec("/tf", "tf2_msgs/msg/TFMessage", false),
+        spec("/tf_static", "tf2_msgs/msg/TFMessage", true),
+        spec("/sim/scene", "std_msgs/msg/String", true),
+    ];
+    t.extend(
+        RIG_CAMERAS.iter().map(|c| spec(&format!("/cameras/{c}/camera_info"), "sensor_msgs/msg/CameraInfo", false)),
+    );
+    t
+}
+
+/// The node's config (TOML; every key optional, unknown keys refused).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RecorderConfig {
+    pub ros: RosConfig,
+    /// Where episodes go (DROID's layout below it).
+    pub root: PathBuf,
+    pub topics: Vec<TopicSpec>,
+    /// Cameras whose frames are recorded (iceoryx2 shared memory).
+    pub cameras: Vec<String>,
+    pub jpeg_quality: u8,
+    /// The shared-memory namespace of the frames (tests, several rigs on one machine).
+    pub frames_namespace: Option<String>,
+    pub rig: RigIdentity,
+}
+
+impl Default for RecorderConfig {
+    fn default() -> Self {
+        RecorderConfig {
+            ros: RosConfig::default(),
+            root: PathBuf::from("episodes"),
+            topics: default_topics(),
+            cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
+            jpeg_quality: 90,
+            frames_namespace: labrig_runtime::frames::default_namespace(),
+            rig: RigIdentity::default(),
+        }
+    }
+}
+
+struct SchemaOf;
+impl TypeVisitor for SchemaOf {
+    type Output = String;
+    fn visit<T: RosMessage>(self) -> String {
+        labrig_msgs::schema_text::<T>()
+    }
+}
+
+struct Recorded {
+    spec: TopicSpec,
+    schema: String,
+    sub: RawSubscription,
+}
+
+struct Episode {
+    writer: EpisodeWriter,
+    staging: PathBuf,
+    started: Instant,
+    frames: u64,
+}
+
+/// Runs the node until `shutdown`.
+pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+    anyhow::ensure!((1..=100).contains(&cfg.jpeg_quality), "recorder config: `jpeg_quality` must be 1..=100");
+    let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
+    let mut topics = Vec::new();
+    for t in &cfg.topics {
+        let schema = visit_type(&t.type_name, SchemaOf)
+            .ok_or_else(|| anyhow::anyhow!("recorder config: topic {}: unknown type {}", t.topic, t.type_name))?;
+        let q = if t.latched { qos::latched(10) } else { qos::reliable(1000) };
+        let sub = ros.raw_subscription(&t.topic, &dds_type_name(&t.type_name), q)?;
+        topics.push(Recorded { spec: t.clone(), schema, sub });
+    }
+    let events = ros.subscription::<EpisodeEvent>("/rig/episode", qos::reliable(100))?;
+    let status = ros.publisher::<StringMsg>("/recorder/status", qos::latched(1))?;
+    let frames = match &cfg.frames_namespace {
+        Some(ns) => FrameNode::new_in(ns)?,
+        None => FrameNode::new()?,
+    };
+    let cameras: Vec<(String, FrameSubscriber)> =
+        cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
+    // Latched context an episode's metadata is filled from.
+    let mut tf_static: Option<TFMessage> = None;
+    let mut scene_json: Option<String> = None;
+    // The last message of each latched topic (published once, before any episode): written
+    // into every episode at its start, so each file holds its own /tf_static and scene.
+    let mut latched: std::collections::BTreeMap<String, (Vec<u8>, i64)> = Default::default();
+    let clock = Clock::Wall;
+    let mut episode: Option<Episode> = None;
+    let mut last = json!({ "state": "idle" });
+    let mut status_at = Instant::now();
+    let mut errors = 0u64;
+    tracing::info!(root = %cfg.root.display(), topics = topics.len(), cameras = cameras.len(), "recorder up");
+    let publish_status = |v: &serde_json::Value| {
+        if let Err(e) = status.publish(StringMsg { data: v.to_string() }) {
+            tracing::warn!("/recorder/status: {e}");
+        }
+    };
+    publish_status(&last);
+    while !shutdown.is_triggered() {
+        // Events first, so a Start takes the messages of the same poll.
+        while let Some(ev) = events.try_take().unwrap_or_else(|e| {
+            tracing::warn!("/rig/episode: {e}");
+            None
+        }) {
+            let ev = ev.msg;
+            match ev.kind() {
+                Ok(EpisodeEventKind::Start) => {
+                    if let Some(ep) = episode.take() {
+                        let ended = end(ep, Outcome::Failure, &cfg.root, "a new episode started before this one ended");
+                        publish_status(&ended);
+                    }
+                    let start_ns = clock.now().0;
+                    let scene_id = scene_json
+                        .as_deref()
+                        .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
+                        .and_then(|v| v["spec_name"].as_str().map(str::to_owned))
+                        .unwrap_or_default();
+                    let mut meta = EpisodeMetadata::new(&cfg.rig, &scene_id, &ev.note, start_ns);
+                    if !ev.episode_id.is_empty() {
+                        meta.uuid.clone_from(&ev.episode_id);
+                    }
+                    meta.sim_scene.clone_from(&scene_json);
+                    if let Some(tf) = &tf_static {
+                        meta.extrinsics = extrinsics(tf);
+                    }
+                    let staging = cfg.root.join(".recording").join(sanitize(&meta.uuid));
+                    match EpisodeWriter::create(&staging, meta) {
+                        Ok(mut writer) => {
+                            for r in topics.iter().filter(|r| r.spec.latched) {
+                                let Some((cdr, publish)) = latched.get(&r.spec.topic) else { continue };
+                                let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
+                                if let Err(e) =
+                                    writer.write_cdr(&r.spec.topic, &ty, cdr, start_ns, *publish, Reliability::Reliable)
+                                {
+                                    tracing::warn!("{}: {e}", r.spec.topic);
+                                }
+                            }
+                            tracing::info!(dir = %staging.display(), "recording");
+                            last = json!({ "state": "recording", "staging": staging });
+                            episode = Some(Episode { writer, staging, started: Instant::now(), frames: 0 });
+                        }
+                        Err(e) => {
+                            errors += 1;
+                            tracing::error!("cannot start the episode: {e}");
+                            last = json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full() });
+                        }
+                    }
+                    publish_status(&last);
+                }
+                Ok(kind @ (EpisodeEventKind::Success | EpisodeEventKind::Failure | EpisodeEventKind::Stop)) => {
+                    if let Some(mut ep) = episode.take() {
+                        let outcome =
+                            if kind == EpisodeEventKind::Success { Outcome::Success } else { Outcome::Failure };
+                        ep.writer.metadata_mut().success = Some(outcome == Outcome::Success);
+                        last = end(ep, outcome, &cfg.root, "");
+                        publish_status(&last);
+                    }
+                }
+                Ok(EpisodeEventKind::Discard) => {
+                    if let Some(ep) = episode.take() {
+                        let staging = ep.staging.clone();
+                        let _ = ep.writer.finish();
+                        let _ = std::fs::remove_dir_all(&staging);
+                        last = json!({ "state": "discarded", "staging": staging });
+                        publish_status(&last);
+                    }
+                }
+                Ok(EpisodeEventKind::Reset) => {}
+                Err(e) => tracing::warn!("/rig/episode: {e}"),
+            }
+        }
+        // Topics.
+        let mut failed: Option<RecorderError> = None;
+        for r in &topics {
+            loop {
+                let sample = match r.sub.try_take() {
+                    Ok(Some(s)) => s,
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::warn!("{}: {e}", r.spec.topic);
+                        break;
+                    }
+                };
+                let cdr = sample.msg.to_cdr_bytes();
+                if r.spec.topic == "/tf_static" {
+                    tf_static = labrig_msgs::decode::<TFMessage>(&cdr).ok();
+                } else if r.spec.topic == "/sim/scene" {
+                    scene_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
+                }
+                if r.spec.latched {
+                    latched.insert(
+                        r.spec.topic.clone(),
+                        (cdr.clone(), sample.source_time.unwrap_or(sample.receive_time).0),
+                    );
+                }
+                if let Some(ep) = &mut episode {
+                    let log = sample.receive_time.0;
+                    let publish = sample.source_time.map_or(log, |t| t.0);
+                    let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
+                    let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
+                    if let Err(e) = ep.writer.write_cdr(&r.spec.topic, &ty, &cdr, log, publish, reliability) {
+                        failed = Some(e);
+                        break;
+                    }
+                }
+            }
+        }
+        // Camera frames (JPEG).
+        for (camera, sub) in &cameras {
+            loop {
+                let frame = match sub.receive() {
+                    Ok(Some(f)) => f,
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::warn!("camera {camera}: {e}");
+                        break;
+                    }
+                };
+                let Some(ep) = &mut episode else { continue };
+                let h = *frame.header();
+                if h.encoding() != Some(FrameEncoding::Rgb8) {
+                    tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
+                    continue;
+                }
+                let data =
+                    match crate::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, cfg.jpeg_quality) {
+                        Ok(d) => d,
+                        Err(e) => {
+                            tracing::warn!("camera {camera}: {e}");
+                            continue;
+                        }
+                    };
+                let img = CompressedImage {
+                    header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{camera}_optical") },
+                    format: "jpeg".into(),
+                    data,
+                };
+                let topic = format!("/cameras/{camera}/image/compressed");
+                let log = clock.now().0;
+                if let Err(e) = ep.writer.write(&topic, &img, log, h.capture_ns, Reliability::BestEffort) {
+                    failed = Some(e);
+                    break;
+                }
+                ep.frames += 1;
+            }
+        }
+        if let Some(e) = failed {
+            errors += 1;
+            tracing::error!("recording stopped: {e}");
+            if let Some(ep) = episode.take() {
+                let staging = ep.staging.clone();
+                drop(ep);
+                last = json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full(), "staging": staging });
+                publish_status(&last);
+            }
+        }
+        if status_at.elapsed() > Duration::from_secs(1) {
+            status_at = Instant::now();
+            if let Some(ep) = &episode {
+                last = json!({
+                    "state": "recording", "staging": ep.staging, "messages": ep.writer.messages(),
+                    "frames": ep.frames, "seconds": ep.started.elapsed().as_secs_f64(), "errors": errors,
+                });
+                publish_status(&last);
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    if let Some(ep) = episode.take() {
+        end(ep, Outcome::Failure, &cfg.root, "the recorder stopped mid-episode");
+    }
+    Ok(())
+}
+
+/// Finishes an episode and moves it into DROID's layout; returns the status to publish.
+fn end(ep: Episode, outcome: Outcome, root: &std::path::Path, why: &str) -> serde_json::Value {
+    let Episode { mut writer, staging, .. } = ep;
+    let start_ns = writer.metadata_mut().start_ns;
+    writer.metadata_mut().trajectory_length = writer.count("/rig/step");
+    match writer.finish() {
+        Ok(summary) => {
+            let dest = episode_dir(root, outcome, start_ns);
+            let moved =
+                dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(&staging, &dest));
+            match moved {
+                Ok(()) => {
+                    tracing::info!(dir = %dest.display(), messages = summary.messages, "episode recorded {}", why);
+                    json!({ "state": "recorded", "outcome": outcome.dir(), "dir": dest, "messages": summary.messages, "bytes": summary.bytes, "note": why })
+                }
+                Err(e) => {
+                    tracing::error!("moving {} to {}: {e}", staging.display(), dest.display());
+                    json!({ "state": "error", "error": format!("moving the episode: {e}"), "staging": staging })
+                }
+            }
+        }
+        Err(e) => {
+            tracing::error!("finishing the episode: {e}");
+            json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full(), "staging": staging })
+        }
+    }
+}
+
+/// Camera extrinsics from /tf_static: every `<camera>_optical` child of the base frame as
+/// DROID's [x, y, z, rx, ry, rz] (extrinsic XYZ euler).
+fn extrinsics(tf: &TFMessage) -> std::collections::BTreeMap<String, [f64; 6]> {
+    tf.transforms
+        .iter()
+        .filter_map(|t| {
+            let cam = t.child_frame_id.strip_suffix("_optical")?;
+            let (p, q) = (&t.transform.translation, &t.transform.rotation);
+            let rot = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z));
+            let (r, pi, y) = rot.euler_angles();
+            Some((cam.to_owned(), [p.x, p.y, p.z, r, pi, y]))
+        })
+        .collect()
+}
+
+fn sanitize(uuid: &str) -> String {
+    uuid.chars().map(|c| if c.is_ascii_alphanumeric() || "+-_.".contains(c) { c } else { '_' }).collect()
+}
