@@ -14,6 +14,8 @@ bash scripts/setup.sh >/dev/null
 source "${LABRIG_CACHE:-$HOME/.cache/labrig}/env.sh"
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$LABRIG_CACHE/target}"
 export RUST_BACKTRACE=1
+# A test run gains nothing from incremental compilation and its caches cost gigabytes.
+export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
 
 echo "== build"
 cargo build --workspace --all-targets --locked
