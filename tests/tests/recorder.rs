@@ -275,7 +275,7 @@ fn the_recorder_node_records_the_sim_rig() {
     use labrig_msgs::std_msgs::StringMsg;
     use labrig_runtime::ros::{Ros, qos};
     use std::time::{Duration, Instant};
-    let domain = labrig_tests::domain_for("the_recorder_node_records_the_sim_rig");
+    let domain = labrig_tests::domain_for("recorder_node_vs_sim_bridge");
     let ns = format!("recorder_{}", std::process::id());
     let root = tempfile::tempdir().unwrap();
     let mut bridge = Command::new(labrig_tests::sim_bin());

@@ -93,10 +93,6 @@ fn lockstep_run(test: &str, commands: &[ArmCommand]) -> (Vec<Vec<u64>>, Vec<Vec<
         let cmd_pub = ros.publisher::<ArmCommand>("/arm/command", qos::reliable(100)).unwrap();
         let state_sub = ros.subscription::<RobotState>("/arm/state", qos::reliable(100)).unwrap();
         assert!(ros.wait_for_subscribers("/arm/command", 1, Duration::from_secs(60)).await, "bridge did not come up");
-        // Seeing the bridge's reader in discovery can come before this writer has matched it;
-        // in lockstep a first command lost to that race stalls the run, so give matching a
-        // moment (seen once in a loaded full-suite run).
-        tokio::time::sleep(Duration::from_millis(500)).await;
         let frames = FrameNode::new_in(&frames_ns).unwrap();
         let wrist = frames.subscriber("wrist").unwrap();
         let mut traj = Vec::new();
