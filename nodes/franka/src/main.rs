@@ -19,7 +19,7 @@ enum Command {
     /// Run the node: /arm/command in; /arm/state, /arm/target, /joint_states, /tf out;
     /// /arm/recover service.
     Run {
-        /// Node config (TOML, see launch_configs/franka_fr3.toml); the flags below override it.
+        /// Node config (TOML, see launch_configs/nodes/franka_fr3.toml); the flags below override it.
         #[arg(long)]
         config: Option<PathBuf>,
         /// fci: a real FR3 or franka-sim; sim: the sim bridge run with `--hardware-prefix /sim`.

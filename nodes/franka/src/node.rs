@@ -432,7 +432,7 @@ mod tests {
 
     #[test]
     fn the_example_config_parses_and_bad_keys_are_named() {
-        let text = include_str!("../../../launch_configs/franka_fr3.toml");
+        let text = include_str!("../../../launch_configs/nodes/franka_fr3.toml");
         let cfg: FrankaNodeConfig = labrig_runtime::config::parse_config(text, "franka_fr3.toml".as_ref()).unwrap();
         cfg.validate().unwrap();
         assert_eq!(cfg.safety, SafetyConfig::default(), "the example lists the defaults");

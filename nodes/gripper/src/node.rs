@@ -340,7 +340,7 @@ mod tests {
 
     #[test]
     fn the_example_config_parses() {
-        let text = include_str!("../../../launch_configs/gripper_2f85.toml");
+        let text = include_str!("../../../launch_configs/nodes/gripper_2f85.toml");
         let cfg: GripperNodeConfig = labrig_runtime::config::parse_config(text, "gripper_2f85.toml".as_ref()).unwrap();
         cfg.validate().unwrap();
         assert_eq!((cfg.backend, cfg.port.as_str(), cfg.slave), (Backend::Robotiq, "/dev/ttyUSB0", 9));

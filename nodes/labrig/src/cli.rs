@@ -22,6 +22,8 @@ pub enum Command {
     /// Benchmarks that print figures.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Start and supervise a rig described by a launch config (launch_configs/*.toml).
+    Launch(crate::launch::LaunchArgs),
     /// What an episode holds and how well it was recorded (exit 3 when something is flagged).
     Inspect(crate::inspect::InspectArgs),
     /// Make an episode whose recorder died whole again (up to its last closed chunk).
@@ -141,6 +143,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Record(a)) => crate::bench_record::run(a),
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
+        Command::Launch(a) => crate::launch::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),

@@ -10,5 +10,6 @@ pub mod cli;
 pub mod demo;
 pub mod inspect;
 pub mod json;
+pub mod launch;
 pub mod recover;
 pub mod topic;

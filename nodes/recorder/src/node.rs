@@ -316,6 +316,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                 publish_status(&last);
             }
         }
+        // Once a second, recording or not (the launcher watches it as the node's heartbeat).
         if status_at.elapsed() > Duration::from_secs(1) {
             status_at = Instant::now();
             if let Some(ep) = &episode {
@@ -323,8 +324,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                     "state": "recording", "staging": ep.staging, "messages": ep.writer.messages(),
                     "frames": ep.frames, "seconds": ep.started.elapsed().as_secs_f64(), "errors": errors,
                 });
-                publish_status(&last);
             }
+            publish_status(&last);
         }
         tokio::time::sleep(Duration::from_millis(2)).await;
     }

@@ -1,0 +1,121 @@
+//! `labrig launch`: every file in launch_configs/ validates; bad files are refused with the
+//! problem named; the simulated rig (sim_droid.toml) starts in dependency order, reports
+//! health, restarts a killed node, stops cleanly; a node that fails to start stops the rig.
+
+use labrig_tests::{Proc, domain_for, labrig_bin, repo_root};
+use serde_json::Value;
+use std::process::Command;
+use std::time::Duration;
+
+fn check(path: &std::path::Path) -> (bool, String) {
+    let out = Command::new(labrig_bin()).args(["launch", "--check", "--json"]).arg(path).output().unwrap();
+    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+}
+
+#[test]
+fn every_launch_config_validates() {
+    let mut n = 0;
+    for entry in std::fs::read_dir(repo_root().join("launch_configs")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let (ok, out) = check(&path);
+            assert!(ok, "{}: {out}", path.display());
+            let v: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+            assert_eq!(v["valid"], true);
+            n += 1;
+        }
+    }
+    assert!(n >= 2, "sim_droid.toml and real_droid.toml at least");
+}
+
+#[test]
+fn bad_launch_configs_are_refused_with_the_problem_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let node = |name: &str, extra: &str| {
+        format!(
+            "[[node]]\nname = \"{name}\"\nprogram = \"labrig-sim\"\nargs = [\"run\"]\nhealth = \"/joint_states\"\n{extra}\n"
+        )
+    };
+    let cases = [
+        ("[rig]\nname = \"r\"\nnmae = \"x\"\n".to_owned() + &node("a", ""), "unknown field `nmae`"),
+        (
+            "[rig]\nname = \"r\"\n".to_owned() + &node("a", "after = [\"b\"]") + &node("b", "after = [\"a\"]"),
+            "dependency cycle",
+        ),
+        (
+            "[rig]\nname = \"r\"\n".to_owned() + &node("a", "after = [\"ghost\"]"),
+            "starts after `ghost`, which is not a node",
+        ),
+        ("[rig]\nname = \"r\"\n".to_owned() + &node("a", "") + &node("a", ""), "node `a` is defined twice"),
+        ("[rig]\nname = \"r\"\n".to_owned() + &node("a", "config = \"nope.toml\""), "does not exist"),
+        (
+            "[rig]\nname = \"r\"\n[[node]]\nname = \"a\"\nprogram = \"rm\"\nhealth = \"/x\"\n".to_owned(),
+            "unknown program `rm`",
+        ),
+    ];
+    for (i, (text, want)) in cases.iter().enumerate() {
+        let path = dir.path().join(format!("bad{i}.toml"));
+        std::fs::write(&path, text).unwrap();
+        let (ok, out) = check(&path);
+        assert!(!ok && out.contains(want), "case {i}: want {want:?}, got: {out}");
+    }
+}
+
+#[test]
+fn the_sim_rig_starts_reports_health_restarts_and_stops() {
+    let domain = domain_for("launch_sim_droid_rig");
+    let root = tempfile::tempdir().unwrap();
+    let mut cmd = Command::new(labrig_bin());
+    cmd.args(["launch", "--json", "--seconds", "14", "--domain-id", &domain.to_string()])
+        .arg(repo_root().join("launch_configs/sim_droid.toml"))
+        .current_dir(root.path());
+    let mut rig = Proc::spawn("labrig launch", cmd);
+    let mut order = Vec::new();
+    while order.len() < 4 {
+        let v = rig.wait_json(Duration::from_secs(120), "nodes coming up", |v| v["event"] == "up");
+        order.push(v["node"].as_str().unwrap().to_owned());
+    }
+    assert_eq!(order[0], "sim");
+    assert_eq!(order[3], "recorder", "the recorder starts after franka and gripper: {order:?}");
+    let h = rig.wait_json(Duration::from_secs(30), "a health report", |v| v["event"] == "health");
+    for n in h["nodes"].as_array().unwrap() {
+        assert_eq!(n["up"], true, "{h}");
+    }
+    // Kill the recorder: the launcher restarts it (on_failure = "restart").
+    let pattern = format!("labrig-recorder run --root episodes --domain-id {domain}");
+    assert!(Command::new("pkill").args(["-KILL", "-f", &pattern]).status().unwrap().success(), "no recorder to kill");
+    let r = rig.wait_json(Duration::from_secs(30), "the restart", |v| v["event"] == "restart");
+    assert_eq!(r["node"], "recorder");
+    let h = rig.wait_json(Duration::from_secs(30), "health after the restart", |v| {
+        v["event"] == "health" && v["nodes"].as_array().unwrap().iter().all(|n| n["up"] == true)
+    });
+    let sim = h["nodes"].as_array().unwrap().iter().find(|n| n["node"] == "sim").unwrap();
+    assert!(sim["rate_hz"].as_f64().unwrap() > 10.0, "the sim's /joint_states rate: {sim}");
+    let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
+    assert!(end.get("error").is_none(), "{end}");
+    assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
+    let left = Command::new("pgrep").args(["-f", &format!("--domain-id {domain}")]).output().unwrap();
+    assert!(left.stdout.is_empty(), "nodes left running: {}", String::from_utf8_lossy(&left.stdout));
+}
+
+#[test]
+fn a_node_that_fails_to_start_stops_the_rig() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("broken.toml");
+    std::fs::write(
+        &path,
+        "[rig]\nname = \"broken\"\n[[node]]\nname = \"arm\"\nprogram = \"labrig-franka\"\n\
+         args = [\"run\", \"--robot-ip\", \"127.0.0.1:9\", \"--no-realtime\", \"--connect-timeout-s\", \"0\"]\nhealth = \"/arm/state\"\n",
+    )
+    .unwrap();
+    let domain = domain_for("launch_broken_rig");
+    let out = Command::new(labrig_bin())
+        .args(["launch", "--json", "--domain-id", &domain.to_string()])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", String::from_utf8_lossy(&out.stdout));
+    let last: Value = serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap()).unwrap();
+    assert_eq!(last["event"], "stopped");
+    assert!(last["error"].as_str().unwrap().contains("node `arm` exited while starting"), "{last}");
+}
