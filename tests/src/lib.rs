@@ -62,6 +62,22 @@ pub fn workspace_bin(name: &str, package: &str) -> PathBuf {
     bin
 }
 
+/// The sim bridge as the hardware behind the nodes' `sim` backends: realtime, arm and
+/// gripper topics under /sim, no cameras, stopped after 60 s of ticks at most.
+pub fn sim_hardware(domain: u16) -> Proc {
+    let mut cmd = Command::new(sim_bin());
+    cmd.args(["run", "--mode", "realtime", "--no-cameras", "--hardware-prefix", "/sim", "--max-ticks", "1200"])
+        .args(["--domain-id", &domain.to_string()]);
+    Proc::spawn("labrig-sim run --hardware-prefix /sim", cmd)
+}
+
+/// A node program of this workspace in front of [`sim_hardware`]: `<program> run --backend sim`.
+pub fn sim_backend_node(program: &str, domain: u16) -> Proc {
+    let mut cmd = Command::new(workspace_bin(program, program));
+    cmd.args(["run", "--backend", "sim", "--domain-id", &domain.to_string()]);
+    Proc::spawn(&format!("{program} run --backend sim"), cmd)
+}
+
 /// A DDS domain for one test, so tests running in parallel do not see each other's topics.
 pub fn domain_for(test: &str) -> u16 {
     let h = test.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));

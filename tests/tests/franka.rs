@@ -339,17 +339,8 @@ fn the_franka_bench_reports_command_latencies() {
 #[test]
 fn the_sim_backend_drives_the_sim_bridge_through_the_node() {
     let domain = domain_for("the_sim_backend_drives_the_sim_bridge_through_the_node");
-    let mut bridge = Command::new(labrig_tests::sim_bin());
-    bridge.args(["run", "--mode", "realtime", "--no-cameras", "--hardware-prefix", "/sim"]).args([
-        "--domain-id",
-        &domain.to_string(),
-        "--max-ticks",
-        "1200",
-    ]);
-    let _bridge = Proc::spawn("labrig-sim run", bridge);
-    let mut node = Command::new(workspace_bin("labrig-franka", "labrig-franka"));
-    node.args(["run", "--backend", "sim", "--domain-id", &domain.to_string()]);
-    let _node = Proc::spawn("labrig-franka run --backend sim", node);
+    let _bridge = labrig_tests::sim_hardware(domain);
+    let _node = labrig_tests::sim_backend_node("labrig-franka", domain);
     rt().block_on(async move {
         let mut rig = Rig::new(domain).await;
         let clock = rig.ros.subscription::<labrig_msgs::rosgraph_msgs::Clock>("/clock", qos::reliable(10)).unwrap();

@@ -117,17 +117,8 @@ fn the_gripper_node_drives_an_emulated_2f85() {
 #[test]
 fn the_gripper_node_drives_the_sim_bridges_2f85() {
     let domain = domain_for("the_gripper_node_drives_the_sim_bridges_2f85");
-    let mut bridge = Command::new(labrig_tests::sim_bin());
-    bridge.args(["run", "--mode", "realtime", "--no-cameras", "--hardware-prefix", "/sim"]).args([
-        "--domain-id",
-        &domain.to_string(),
-        "--max-ticks",
-        "1200",
-    ]);
-    let _bridge = Proc::spawn("labrig-sim run", bridge);
-    let mut cmd = Command::new(workspace_bin("labrig-gripper", "labrig-gripper"));
-    cmd.args(["run", "--backend", "sim", "--domain-id", &domain.to_string()]);
-    let _node = Proc::spawn("labrig-gripper run --backend sim", cmd);
+    let _bridge = labrig_tests::sim_hardware(domain);
+    let _node = labrig_tests::sim_backend_node("labrig-gripper", domain);
     rt().block_on(async move {
         let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "gripper_sim_test").unwrap();
         let cmd_pub = ros.publisher::<GripperCommand>("/gripper/command", qos::reliable(10)).unwrap();
