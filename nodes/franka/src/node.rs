@@ -140,10 +140,13 @@ pub async fn run(
         None
     };
     let mut backend = make(&mut ros, &clock)?;
-    let arm_state = ros.publisher::<RobotState>("/arm/state", qos::reliable(10))?;
+    let pubs = StatePubs {
+        arm_state: ros.publisher::<RobotState>("/arm/state", qos::reliable(10))?,
+        joint_states: ros.publisher::<JointState>("/joint_states", qos::reliable(10))?,
+        tf: ros.publisher::<TFMessage>("/tf", qos::reliable(10))?,
+        sim,
+    };
     let arm_target = ros.publisher::<JointState>("/arm/target", qos::reliable(10))?;
-    let joint_states = ros.publisher::<JointState>("/joint_states", qos::reliable(10))?;
-    let tf = ros.publisher::<TFMessage>("/tf", qos::reliable(10))?;
     let commands = ros.subscription::<ArmCommand>("/arm/command", qos::reliable(100))?;
     let mut recover_rx = ros.server::<Trigger>("/arm/recover", qos::reliable(10))?.forward();
 
@@ -221,7 +224,7 @@ pub async fn run(
                 std::thread::sleep(rest);
                 if let Some(silence) = watchdog.check(started.elapsed().as_nanos() as i64) {
                     hold(&mut *backend, &mut report, silence, &bounds);
-                    publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf);
+                    pubs.publish(&clock, &kin, &reading, &report);
                 }
             }
             msg = stream.next() => {
@@ -303,7 +306,7 @@ pub async fn run(
                 if sim && let Some(silence) = watchdog.check(clock.now().0 + since_clock(clock_at)) {
                     hold(&mut *backend, &mut report, silence, &bounds);
                 }
-                publish(&clock, &kin, &reading, &report, &arm_state, sim, &joint_states, &tf);
+                pubs.publish(&clock, &kin, &reading, &report);
             }
         }
     }
@@ -347,83 +350,76 @@ fn down(report: &mut Report, e: BackendError) {
     report.backend_down = Some(e);
 }
 
-#[allow(clippy::too_many_arguments)]
-fn publish(
-    clock: &Clock,
-    kin: &Fr3Kinematics,
-    r: &ArmReading,
-    report: &Report,
-    arm_state: &labrig_runtime::ros::RosPublisher<RobotState>,
+/// What the node publishes at its state rate.
+struct StatePubs {
+    arm_state: labrig_runtime::ros::RosPublisher<RobotState>,
+    joint_states: labrig_runtime::ros::RosPublisher<JointState>,
+    tf: labrig_runtime::ros::RosPublisher<TFMessage>,
+    /// In front of the sim bridge, which publishes /joint_states and /tf for the whole rig.
     sim: bool,
-    joint_states: &labrig_runtime::ros::RosPublisher<JointState>,
-    tf: &labrig_runtime::ros::RosPublisher<TFMessage>,
-) {
-    // A subscriber that cannot keep up must not take the arm node down: reported, skipped.
-    if let Err(e) = publish_all(clock, kin, r, report, arm_state, sim, joint_states, tf) {
-        tracing::warn!("publishing the arm's state: {e}");
-    }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn publish_all(
-    clock: &Clock,
-    kin: &Fr3Kinematics,
-    r: &ArmReading,
-    report: &Report,
-    arm_state: &labrig_runtime::ros::RosPublisher<RobotState>,
-    sim: bool,
-    joint_states: &labrig_runtime::ros::RosPublisher<JointState>,
-    tf: &labrig_runtime::ros::RosPublisher<TFMessage>,
-) -> anyhow::Result<()> {
-    let t = clock.now();
-    let tcp = kin.tcp_pose(&r.q);
-    let names: Vec<String> = JOINT_NAMES.iter().map(|s| s.to_string()).collect();
-    let moving = r.dq.iter().any(|v| v.abs() > 1e-3);
-    arm_state.publish(RobotState {
-        header: header(t, BASE_FRAME),
-        cartesian_position: xyz_euler(&tcp),
-        gripper_position: report.gripper,
-        joint_positions: r.q,
-        joint_velocities: r.dq,
-        joint_torques_computed: r.tau_commanded,
-        motor_torques_measured: r.tau_measured,
-        prev_controller_latency_ms: report.latency_ms,
-        prev_command_successful: report.last_ok,
-        mode: if report.backend_down.is_some() || (!report.fault.is_empty() && !report.holding) {
-            RobotState::MODE_FAULT
-        } else if report.holding {
-            RobotState::MODE_STOPPED
-        } else if moving {
-            RobotState::MODE_MOVING
-        } else {
-            RobotState::MODE_IDLE
-        },
-        fault: report.fault.clone(),
-        ..RobotState::default()
-    })?;
-    if sim {
-        // The bridge publishes the whole rig's joints (arm and gripper) and frames.
-        return Ok(());
+impl StatePubs {
+    /// A subscriber that cannot keep up must not take the arm node down: reported, skipped.
+    fn publish(&self, clock: &Clock, kin: &Fr3Kinematics, r: &ArmReading, report: &Report) {
+        if let Err(e) = self.publish_all(clock, kin, r, report) {
+            tracing::warn!("publishing the arm's state: {e}");
+        }
     }
-    joint_states.publish(JointState {
-        header: header(t, BASE_FRAME),
-        name: names,
-        position: r.q.to_vec(),
-        velocity: r.dq.to_vec(),
-        effort: r.tau_measured.to_vec(),
-    })?;
-    let q = tcp.rotation;
-    tf.publish(TFMessage {
-        transforms: vec![TransformStamped {
+
+    fn publish_all(&self, clock: &Clock, kin: &Fr3Kinematics, r: &ArmReading, report: &Report) -> anyhow::Result<()> {
+        let StatePubs { arm_state, joint_states, tf, sim } = self;
+        let sim = *sim;
+        let t = clock.now();
+        let tcp = kin.tcp_pose(&r.q);
+        let names: Vec<String> = JOINT_NAMES.iter().map(|s| s.to_string()).collect();
+        let moving = r.dq.iter().any(|v| v.abs() > 1e-3);
+        arm_state.publish(RobotState {
             header: header(t, BASE_FRAME),
-            child_frame_id: "tcp".into(),
-            transform: Transform {
-                translation: RosVector3 { x: tcp.translation.x, y: tcp.translation.y, z: tcp.translation.z },
-                rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+            cartesian_position: xyz_euler(&tcp),
+            gripper_position: report.gripper,
+            joint_positions: r.q,
+            joint_velocities: r.dq,
+            joint_torques_computed: r.tau_commanded,
+            motor_torques_measured: r.tau_measured,
+            prev_controller_latency_ms: report.latency_ms,
+            prev_command_successful: report.last_ok,
+            mode: if report.backend_down.is_some() || (!report.fault.is_empty() && !report.holding) {
+                RobotState::MODE_FAULT
+            } else if report.holding {
+                RobotState::MODE_STOPPED
+            } else if moving {
+                RobotState::MODE_MOVING
+            } else {
+                RobotState::MODE_IDLE
             },
-        }],
-    })?;
-    Ok(())
+            fault: report.fault.clone(),
+            ..RobotState::default()
+        })?;
+        if sim {
+            // The bridge publishes the whole rig's joints (arm and gripper) and frames.
+            return Ok(());
+        }
+        joint_states.publish(JointState {
+            header: header(t, BASE_FRAME),
+            name: names,
+            position: r.q.to_vec(),
+            velocity: r.dq.to_vec(),
+            effort: r.tau_measured.to_vec(),
+        })?;
+        let q = tcp.rotation;
+        tf.publish(TFMessage {
+            transforms: vec![TransformStamped {
+                header: header(t, BASE_FRAME),
+                child_frame_id: "tcp".into(),
+                transform: Transform {
+                    translation: RosVector3 { x: tcp.translation.x, y: tcp.translation.y, z: tcp.translation.z },
+                    rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+                },
+            }],
+        })?;
+        Ok(())
+    }
 }
 
 #[cfg(test)]
