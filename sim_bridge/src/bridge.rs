@@ -85,6 +85,12 @@ pub struct BridgeArgs {
     /// Run without cameras (physics and state only).
     #[arg(long)]
     pub no_cameras: bool,
+    /// Publish the scripted expert's action for the current state every tick
+    /// (`/sim/expert/action`, an ArmCommand in DROID's cartesian_position form with the
+    /// gripper) and its progress (`/sim/expert/status`, JSON: phase, done, success judged on
+    /// the physics): an action source for the rig loop, which decides whether to follow it.
+    #[arg(long)]
+    pub expert: bool,
     /// Stop after this many ticks (default: run until Ctrl-C).
     #[arg(long)]
     pub max_ticks: Option<u64>,
@@ -223,6 +229,37 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     };
     let tf_static = ros.publisher::<TFMessage>("/tf_static", qos::latched(1))?;
     let scene_pub = ros.publisher::<StringMsg>("/sim/scene", qos::latched(1))?;
+    let mut expert = a.expert.then(|| crate::expert::Expert::new(&sim));
+    let expert_pubs = if a.expert {
+        Some((
+            ros.publisher::<ArmCommand>("/sim/expert/action", qos::reliable(10))?,
+            ros.publisher::<StringMsg>("/sim/expert/status", qos::reliable(10))?,
+        ))
+    } else {
+        None
+    };
+    let mut expert_seq = 0u64;
+    let mut publish_expert = |sim: &Sim| {
+        let (Some(e), Some((action_pub, status_pub))) = (expert.as_mut(), expert_pubs.as_ref()) else { return };
+        let act = e.act(sim);
+        expert_seq += 1;
+        let mut cmd = ArmCommand {
+            mode: labrig_msgs::labrig_msgs::ArmCommandMode::CartesianPosition as u8,
+            cartesian_position: act.cartesian_position,
+            gripper_position: act.gripper_position,
+            seq: expert_seq,
+            ..ArmCommand::default()
+        };
+        cmd.header.stamp = sim.time().into();
+        let status = serde_json::json!({
+            "phase": format!("{:?}", act.phase),
+            "done": act.phase == crate::expert::Phase::Done,
+            "success": crate::expert::task_success(sim),
+            "seq": expert_seq,
+        });
+        report_publish(action_pub.publish(cmd).map_err(Into::into));
+        report_publish(status_pub.publish(StringMsg { data: status.to_string() }).map_err(Into::into));
+    };
     let arm_sub: RosSubscription<ArmCommand> = ros.subscription(&format!("{hw}/arm/command"), qos::reliable(100))?;
     let gripper_sub: RosSubscription<GripperCommand> =
         ros.subscription(&format!("{hw}/gripper/command"), qos::reliable(100))?;
@@ -263,6 +300,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     let mut late_ticks = 0u64;
     let mut last_tick = Instant::now();
     report_publish(publish_state(&sim, &pubs, &state));
+    publish_expert(&sim);
     while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
         // Gripper commands first, so an arm command of the same tick can override them.
         while let Some(g) = take(&gripper_sub, &mut state) {
@@ -355,6 +393,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovys[i]))?;
         }
         report_publish(publish_state(&sim, &pubs, &state));
+        publish_expert(&sim);
         idle_publish = Instant::now();
     }
     let wall = started.elapsed().as_secs_f64();
