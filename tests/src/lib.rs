@@ -78,6 +78,16 @@ pub fn sim_backend_node(program: &str, domain: u16) -> Proc {
     Proc::spawn(&format!("{program} run --backend sim"), cmd)
 }
 
+/// The silence (ms) a watchdog hold reports in `/arm/state.fault`
+/// ("watchdog: no arm command for 100.1 ms; ..."); panics on any other text.
+pub fn watchdog_silence_ms(fault: &str) -> f64 {
+    fault
+        .strip_prefix("watchdog: no arm command for ")
+        .and_then(|r| r.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("unexpected hold report: {fault}"))
+}
+
 /// A DDS domain for one test, so tests running in parallel do not see each other's topics.
 pub fn domain_for(test: &str) -> u16 {
     let h = test.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));

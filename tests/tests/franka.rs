@@ -192,12 +192,7 @@ fn the_fci_backend_moves_franka_sims_fr3_along_commanded_paths() {
         rig.play((0..20).map(|_| velocity([0.0, 0.1, 0.0, 0.0, 0.0, 0.0])), &mut states).await;
         // Silence: the watchdog holds the arm 100 ms after the last command.
         let held = rig.wait(5, "the watchdog's hold", |s| s.mode == RobotState::MODE_STOPPED).await;
-        let silence: f64 = held
-            .fault
-            .strip_prefix("watchdog: no arm command for ")
-            .and_then(|r| r.split(' ').next())
-            .and_then(|v| v.parse().ok())
-            .unwrap_or_else(|| panic!("unexpected hold report: {}", held.fault));
+        let silence = labrig_tests::watchdog_silence_ms(&held.fault);
         assert!((100.0..102.0).contains(&silence), "held after {silence} ms");
         // The arm comes to rest where the hold found it (the trajectory generator brakes it):
         // no joint moves more than 0.5 mrad over 200 ms. (Positions, not franka-sim's velocity
@@ -376,12 +371,7 @@ fn the_sim_backend_drives_the_sim_bridge_through_the_node() {
         assert!(states.iter().all(|s| s.mode != RobotState::MODE_FAULT), "{:?}", states.last());
         // The node's watchdog (on sim time, checked each state tick) holds the arm.
         let held = rig.wait(5, "the node's watchdog", |s| s.mode == RobotState::MODE_STOPPED).await;
-        let silence: f64 = held
-            .fault
-            .strip_prefix("watchdog: no arm command for ")
-            .and_then(|r| r.split(' ').next())
-            .and_then(|v| v.parse().ok())
-            .unwrap_or_else(|| panic!("unexpected hold report: {}", held.fault));
+        let silence = labrig_tests::watchdog_silence_ms(&held.fault);
         // Sim time between /clock messages is interpolated (at most one period); the check
         // runs on the 50 Hz state tick.
         assert!((100.0..=125.0).contains(&silence), "held after {silence} ms of sim time");

@@ -228,12 +228,7 @@ fn the_watchdog_holds_the_arm_when_commands_stop() {
         assert!(moving > 5, "the sweep never moved joint 1: {moving} moving states");
         let hold = states.iter().position(|s| s.mode == RobotState::MODE_STOPPED).expect("the watchdog never held");
         let held = &states[hold];
-        let silence_ms: f64 = held
-            .fault
-            .strip_prefix("watchdog: no arm command for ")
-            .and_then(|r| r.split(' ').next())
-            .and_then(|v| v.parse().ok())
-            .unwrap_or_else(|| panic!("unexpected hold report: {}", held.fault));
+        let silence_ms = labrig_tests::watchdog_silence_ms(&held.fault);
         // Two periods: the hold lands on the 2 ms physics step at the deadline, mid-tick.
         assert!((100.0..=102.0).contains(&silence_ms), "held after {silence_ms} ms");
         // From the hold on, the arm stays put: 0.3 s later and after, joint 1 is at rest where
