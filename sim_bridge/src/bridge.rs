@@ -13,6 +13,10 @@
 //! - `/clock` (rosgraph_msgs/Clock); `/sim/scene` (std_msgs/String, latched): the scene's
 //!   sampled values as JSON, for recordings.
 //!
+//! `/sim/reset` (std_msgs/String, JSON `{"seed": N}`) rebuilds the scene with that seed at
+//! the reset pose between episodes; sim time goes on (one monotonic time line for the
+//! recorder), `/sim/scene` and `/tf_static` are published again.
+//!
 //! Subscribes: `/arm/command` (labrig_msgs/ArmCommand, any of its five modes) and
 //! `/gripper/command` (labrig_msgs/GripperCommand, 0 open .. 1 closed -> the 2F-85's 0..255).
 //! The gripper follows the most recent of the two sources. Every arm command passes the franka
@@ -203,7 +207,6 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     }
     let safety = safety_filter(period, None)?;
     let mut watchdog = Watchdog::new(safety.config().watchdog_ns());
-    let scene: SceneValues = sim.scene().clone();
 
     let cfg = RosConfig { domain_id: a.domain_id, loopback_only: !a.allow_network, ..RosConfig::default() };
     cfg.validate(std::path::Path::new("<command line>"))?;
@@ -229,37 +232,18 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     };
     let tf_static = ros.publisher::<TFMessage>("/tf_static", qos::latched(1))?;
     let scene_pub = ros.publisher::<StringMsg>("/sim/scene", qos::latched(1))?;
-    let mut expert = a.expert.then(|| crate::expert::Expert::new(&sim));
-    let expert_pubs = if a.expert {
-        Some((
-            ros.publisher::<ArmCommand>("/sim/expert/action", qos::reliable(10))?,
-            ros.publisher::<StringMsg>("/sim/expert/status", qos::reliable(10))?,
-        ))
+    let mut expert = if a.expert {
+        Some(ExpertPub {
+            expert: crate::expert::Expert::new(&sim),
+            action: ros.publisher::<ArmCommand>("/sim/expert/action", qos::reliable(10))?,
+            status: ros.publisher::<StringMsg>("/sim/expert/status", qos::reliable(10))?,
+            seq: 0,
+            last: None,
+        })
     } else {
         None
     };
-    let mut expert_seq = 0u64;
-    let mut publish_expert = |sim: &Sim| {
-        let (Some(e), Some((action_pub, status_pub))) = (expert.as_mut(), expert_pubs.as_ref()) else { return };
-        let act = e.act(sim);
-        expert_seq += 1;
-        let mut cmd = ArmCommand {
-            mode: labrig_msgs::labrig_msgs::ArmCommandMode::CartesianPosition as u8,
-            cartesian_position: act.cartesian_position,
-            gripper_position: act.gripper_position,
-            seq: expert_seq,
-            ..ArmCommand::default()
-        };
-        cmd.header.stamp = sim.time().into();
-        let status = serde_json::json!({
-            "phase": format!("{:?}", act.phase),
-            "done": act.phase == crate::expert::Phase::Done,
-            "success": crate::expert::task_success(sim),
-            "seq": expert_seq,
-        });
-        report_publish(action_pub.publish(cmd).map_err(Into::into));
-        report_publish(status_pub.publish(StringMsg { data: status.to_string() }).map_err(Into::into));
-    };
+    let reset_sub: RosSubscription<StringMsg> = ros.subscription("/sim/reset", qos::reliable(10))?;
     let arm_sub: RosSubscription<ArmCommand> = ros.subscription(&format!("{hw}/arm/command"), qos::reliable(100))?;
     let gripper_sub: RosSubscription<GripperCommand> =
         ros.subscription(&format!("{hw}/gripper/command"), qos::reliable(100))?;
@@ -274,23 +258,16 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         })
         .collect::<Result<_, _>>()?;
 
-    scene_pub.publish(StringMsg { data: serde_json::to_string(&scene)? })?;
-    let statics: Vec<TransformStamped> = scene
-        .cameras
-        .keys()
-        .map(|id| {
-            let cam = sim.camera_pose(id).expect("scene cameras exist in the model");
-            transform(Nanos::ZERO, BASE_FRAME, &format!("{id}_optical"), cam.0, &optical(&cam.1))
-        })
-        .collect();
-    tf_static.publish(TFMessage { transforms: statics })?;
+    publish_scene(&sim, &scene_pub, &tf_static)?;
     tracing::info!(
         mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.domain_id,
         "sim bridge up"
     );
 
-    let fovys: Vec<f64> =
-        cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect();
+    let fovys = |sim: &Sim| -> Vec<f64> {
+        cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect()
+    };
+    let mut fovy = fovys(&sim);
     let mut state = CommandState { gripper: 0.0, last_ok: true, ..Default::default() };
     let mut rgb = Vec::with_capacity(a.width * a.height * 3);
     let mut ticks = 0u64;
@@ -300,8 +277,48 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     let mut late_ticks = 0u64;
     let mut last_tick = Instant::now();
     report_publish(publish_state(&sim, &pubs, &state));
-    publish_expert(&sim);
+    if let Some(e) = &mut expert {
+        e.publish(&sim);
+    }
     while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
+        // A new scene (`/sim/reset`, JSON {"seed": N}): the rig rebuilt with that seed at the
+        // reset pose, its clock going on from here; the scene and camera poses re-published.
+        while let Some(r) = take(&reset_sub, &mut state) {
+            match serde_json::from_str::<ResetRequest>(&r.msg.data) {
+                Ok(req) => {
+                    let mut next = Sim::new(&assets, &spec, req.seed, period)?;
+                    if !a.no_cameras {
+                        next.enable_cameras(a.width, a.height, a.meshes)?;
+                    }
+                    next.resume_clock(sim.time());
+                    sim = next;
+                    fovy = fovys(&sim);
+                    state = CommandState {
+                        gripper: 0.0,
+                        last_ok: true,
+                        commands: state.commands,
+                        refused: state.refused,
+                        clipped: state.clipped,
+                        ..Default::default()
+                    };
+                    watchdog = Watchdog::new(safety.config().watchdog_ns());
+                    publish_scene(&sim, &scene_pub, &tf_static)?;
+                    if let Some(e) = &mut expert {
+                        e.expert = crate::expert::Expert::new(&sim);
+                    }
+                    tracing::info!(seed = req.seed, time_s = sim.time().as_secs_f64(), "new scene");
+                    report_publish(publish_state(&sim, &pubs, &state));
+                    if let Some(e) = &mut expert {
+                        e.publish(&sim);
+                    }
+                }
+                Err(e) => {
+                    state.refused += 1;
+                    state.fault = format!("refused /sim/reset {:?}: {e} (expected {{\"seed\": N}})", r.msg.data);
+                    tracing::warn!("{}", state.fault);
+                }
+            }
+        }
         // Gripper commands first, so an arm command of the same tick can override them.
         while let Some(g) = take(&gripper_sub, &mut state) {
             let p = g.msg.position;
@@ -345,6 +362,9 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             // Lockstep and idle: repeat the current state now and then, for late joiners.
             if a.mode == Mode::Lockstep && idle_publish.elapsed() > Duration::from_millis(200) {
                 report_publish(publish_state(&sim, &pubs, &state));
+                if let Some(e) = &expert {
+                    e.republish();
+                }
                 idle_publish = Instant::now();
             }
             let wait = match a.mode {
@@ -390,10 +410,12 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         for (i, camera) in cameras.iter().enumerate() {
             sim.render_into(camera, &mut rgb)?;
             frame_pubs[i].publish(&rgb, t, t)?;
-            pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovys[i]))?;
+            pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovy[i]))?;
         }
         report_publish(publish_state(&sim, &pubs, &state));
-        publish_expert(&sim);
+        if let Some(e) = &mut expert {
+            e.publish(&sim);
+        }
         idle_publish = Instant::now();
     }
     let wall = started.elapsed().as_secs_f64();
@@ -410,6 +432,77 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         "sim bridge stopped"
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// `/sim/reset`'s request.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ResetRequest {
+    seed: u64,
+}
+
+/// The scripted expert as an action source on ROS: its action for the current state and its
+/// progress, after every step.
+struct ExpertPub {
+    expert: crate::expert::Expert,
+    action: RosPublisher<ArmCommand>,
+    status: RosPublisher<StringMsg>,
+    seq: u64,
+    /// The last action and status, sent again with the idle state for late joiners.
+    last: Option<(ArmCommand, StringMsg)>,
+}
+
+impl ExpertPub {
+    fn publish(&mut self, sim: &Sim) {
+        let act = self.expert.act(sim);
+        self.seq += 1;
+        let mut cmd = ArmCommand {
+            mode: labrig_msgs::labrig_msgs::ArmCommandMode::CartesianPosition as u8,
+            cartesian_position: act.cartesian_position,
+            gripper_position: act.gripper_position,
+            seq: self.seq,
+            ..ArmCommand::default()
+        };
+        cmd.header.stamp = sim.time().into();
+        let status = serde_json::json!({
+            "phase": format!("{:?}", act.phase),
+            "done": act.phase == crate::expert::Phase::Done,
+            "success": crate::expert::task_success(sim),
+            "seq": self.seq,
+            "stamp_ns": sim.time().0,
+            "seed": sim.scene().seed,
+        });
+        self.last = Some((cmd, StringMsg { data: status.to_string() }));
+        self.republish();
+    }
+
+    fn republish(&self) {
+        if let Some((cmd, status)) = &self.last {
+            report_publish(self.action.publish(cmd.clone()).map_err(Into::into));
+            report_publish(self.status.publish(status.clone()).map_err(Into::into));
+        }
+    }
+}
+
+/// The scene's sampled values (`/sim/scene`) and the external cameras' poses (`/tf_static`),
+/// both latched.
+fn publish_scene(
+    sim: &Sim,
+    scene_pub: &RosPublisher<StringMsg>,
+    tf_static: &RosPublisher<TFMessage>,
+) -> anyhow::Result<()> {
+    let scene: &SceneValues = sim.scene();
+    scene_pub.publish(StringMsg { data: serde_json::to_string(scene)? })?;
+    let statics: Vec<TransformStamped> = scene
+        .cameras
+        .keys()
+        .map(|id| {
+            let cam = sim.camera_pose(id).expect("scene cameras exist in the model");
+            transform(Nanos::ZERO, BASE_FRAME, &format!("{id}_optical"), cam.0, &optical(&cam.1))
+        })
+        .collect();
+    tf_static.publish(TFMessage { transforms: statics })?;
+    Ok(())
 }
 
 /// The next message of `sub`; a malformed one is refused, named in the state, and skipped.

@@ -248,6 +248,12 @@ impl Sim {
         }
     }
 
+    /// Continues the clock of an earlier scene: time goes on from `t` (rounded down to a
+    /// period), so a rig re-seeded between episodes keeps one monotonic time line.
+    pub fn resume_clock(&mut self, t: Nanos) {
+        self.ticks = (t.0.max(0) / self.period.0) as u64;
+    }
+
     /// Simulated time: ticks x control period (exact, no float accumulation).
     pub fn time(&self) -> Nanos {
         Nanos(self.period.0 * self.ticks as i64)

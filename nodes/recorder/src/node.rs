@@ -4,7 +4,9 @@
 //!
 //! An episode is written under `<root>/.recording/<uuid>/` and moved to DROID's
 //! `<root>/{success|failure}/<date>/<time>/` when it ends (`Success`, or `Failure`/`Stop`);
-//! `Discard` deletes it. A recorder killed mid-episode leaves its directory in `.recording/`
+//! `Discard` deletes it. An ended episode stays open 300 ms for what was sent before its end
+//! event but is still in flight on other topics (the last step, the last frames), taking
+//! nothing sent after it. A recorder killed mid-episode leaves its directory in `.recording/`
 //! for `labrig recover`. A write error (a full disk) ends the episode with the error reported
 //! on `/recorder/status` and in the log; the node goes on and takes the next `Start`.
 //! `/recorder/status` (std_msgs/String, JSON) says what it is doing once a second and after
@@ -118,6 +120,26 @@ struct Episode {
     staging: PathBuf,
     started: Instant,
     frames: u64,
+    /// The Start event's send time (wall, ns): earlier messages are not the episode's.
+    opened_ns: i64,
+    /// The end event came: finishing once the grace period is over.
+    closing: Option<Closing>,
+}
+
+/// How long an ended episode still takes messages sent before its end event.
+const CLOSE_GRACE: Duration = Duration::from_millis(300);
+
+#[derive(Debug, Clone, Copy)]
+struct Closing {
+    outcome: Outcome,
+    /// The end event's send time (wall, ns): later messages are not the episode's.
+    sent_before_ns: i64,
+    until: Instant,
+}
+
+fn finish_closing(ep: Episode, root: &std::path::Path) -> serde_json::Value {
+    let outcome = ep.closing.map_or(Outcome::Failure, |c| c.outcome);
+    end(ep, outcome, root, "")
 }
 
 /// Runs the node until `shutdown`.
@@ -140,12 +162,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     };
     let cameras: Vec<(String, FrameSubscriber)> =
         cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
-    // Latched context an episode's metadata is filled from.
-    let mut tf_static: Option<TFMessage> = None;
-    let mut scene_json: Option<String> = None;
-    // The last message of each latched topic (published once, before any episode): written
-    // into every episode at its start, so each file holds its own /tf_static and scene.
-    let mut latched: std::collections::BTreeMap<String, (Vec<u8>, i64)> = Default::default();
+    let mut context = Context::default();
     let clock = Clock::Wall;
     let mut episode: Option<Episode> = None;
     let mut last = json!({ "state": "idle" });
@@ -159,12 +176,32 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     };
     publish_status(&last);
     while !shutdown.is_triggered() {
-        // Events first, so a Start takes the messages of the same poll.
+        // Events, each after the messages that arrived before it: an episode's last steps
+        // are in it when it ends, and a Start sees the scene published just before it.
+        let mut pending = Vec::new();
         while let Some(ev) = events.try_take().unwrap_or_else(|e| {
             tracing::warn!("/rig/episode: {e}");
             None
         }) {
-            let ev = ev.msg;
+            pending.push(ev);
+        }
+        for received in pending {
+            let ev = received.msg;
+            let sent_ns = received.source_time.unwrap_or(received.receive_time).0;
+            // An episode still closing ends before the next one starts.
+            if ev.kind() == Ok(EpisodeEventKind::Start) && episode.as_ref().is_some_and(|e| e.closing.is_some()) {
+                let _ = drain_topics(&topics, &mut context, episode.as_mut(), false);
+                if let Some(ep) = episode.take() {
+                    last = finish_closing(ep, &cfg.root);
+                    publish_status(&last);
+                }
+            }
+            // Before a Start only the latched topics (the scene, the camera poses published
+            // just before it); the rest is taken after, each message by its send time.
+            let latched_only = ev.kind() == Ok(EpisodeEventKind::Start);
+            if let Some(e) = drain_topics(&topics, &mut context, episode.as_mut(), latched_only) {
+                tracing::error!("recording: {e}");
+            }
             match ev.kind() {
                 Ok(EpisodeEventKind::Start) => {
                     if let Some(ep) = episode.take() {
@@ -172,7 +209,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                         publish_status(&ended);
                     }
                     let start_ns = clock.now().0;
-                    let scene_id = scene_json
+                    let scene_id = context
+                        .scene_json
                         .as_deref()
                         .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
                         .and_then(|v| v["spec_name"].as_str().map(str::to_owned))
@@ -181,15 +219,15 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                     if !ev.episode_id.is_empty() {
                         meta.uuid.clone_from(&ev.episode_id);
                     }
-                    meta.sim_scene.clone_from(&scene_json);
-                    if let Some(tf) = &tf_static {
+                    meta.sim_scene.clone_from(&context.scene_json);
+                    if let Some(tf) = &context.tf_static {
                         meta.extrinsics = extrinsics(tf);
                     }
-                    let staging = cfg.root.join(".recording").join(sanitize(&meta.uuid));
+                    let staging = unused(cfg.root.join(".recording").join(sanitize(&meta.uuid)));
                     match EpisodeWriter::create(&staging, meta) {
                         Ok(mut writer) => {
                             for r in topics.iter().filter(|r| r.spec.latched) {
-                                let Some((cdr, publish)) = latched.get(&r.spec.topic) else { continue };
+                                let Some((cdr, publish)) = context.latched.get(&r.spec.topic) else { continue };
                                 let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
                                 if let Err(e) =
                                     writer.write_cdr(&r.spec.topic, &ty, cdr, start_ns, *publish, Reliability::Reliable)
@@ -197,9 +235,20 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                                     tracing::warn!("{}: {e}", r.spec.topic);
                                 }
                             }
+                            if let Err(e) = writer.write("/rig/episode", &ev, start_ns, sent_ns, Reliability::Reliable)
+                            {
+                                tracing::warn!("/rig/episode: {e}");
+                            }
                             tracing::info!(dir = %staging.display(), "recording");
                             last = json!({ "state": "recording", "staging": staging });
-                            episode = Some(Episode { writer, staging, started: Instant::now(), frames: 0 });
+                            episode = Some(Episode {
+                                writer,
+                                staging,
+                                started: Instant::now(),
+                                frames: 0,
+                                opened_ns: sent_ns,
+                                closing: None,
+                            });
                         }
                         Err(e) => {
                             errors += 1;
@@ -210,12 +259,20 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                     publish_status(&last);
                 }
                 Ok(kind @ (EpisodeEventKind::Success | EpisodeEventKind::Failure | EpisodeEventKind::Stop)) => {
-                    if let Some(mut ep) = episode.take() {
+                    // Messages sent before the event still in flight on other topics (the
+                    // last step, the last frames) belong to the episode: it stays open for
+                    // CLOSE_GRACE, taking only what was sent before the event.
+                    if let Some(ep) = episode.as_mut() {
                         let outcome =
                             if kind == EpisodeEventKind::Success { Outcome::Success } else { Outcome::Failure };
                         ep.writer.metadata_mut().success = Some(outcome == Outcome::Success);
-                        last = end(ep, outcome, &cfg.root, "");
-                        publish_status(&last);
+                        if let Err(e) =
+                            ep.writer.write("/rig/episode", &ev, clock.now().0, sent_ns, Reliability::Reliable)
+                        {
+                            tracing::warn!("/rig/episode: {e}");
+                        }
+                        ep.closing =
+                            Some(Closing { outcome, sent_before_ns: sent_ns, until: Instant::now() + CLOSE_GRACE });
                     }
                 }
                 Ok(EpisodeEventKind::Discard) => {
@@ -232,41 +289,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
             }
         }
         // Topics.
-        let mut failed: Option<RecorderError> = None;
-        for r in &topics {
-            loop {
-                let sample = match r.sub.try_take() {
-                    Ok(Some(s)) => s,
-                    Ok(None) => break,
-                    Err(e) => {
-                        tracing::warn!("{}: {e}", r.spec.topic);
-                        break;
-                    }
-                };
-                let cdr = sample.msg.to_cdr_bytes();
-                if r.spec.topic == "/tf_static" {
-                    tf_static = labrig_msgs::decode::<TFMessage>(&cdr).ok();
-                } else if r.spec.topic == "/sim/scene" {
-                    scene_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
-                }
-                if r.spec.latched {
-                    latched.insert(
-                        r.spec.topic.clone(),
-                        (cdr.clone(), sample.source_time.unwrap_or(sample.receive_time).0),
-                    );
-                }
-                if let Some(ep) = &mut episode {
-                    let log = sample.receive_time.0;
-                    let publish = sample.source_time.map_or(log, |t| t.0);
-                    let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
-                    let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
-                    if let Err(e) = ep.writer.write_cdr(&r.spec.topic, &ty, &cdr, log, publish, reliability) {
-                        failed = Some(e);
-                        break;
-                    }
-                }
-            }
-        }
+        let mut failed: Option<RecorderError> = drain_topics(&topics, &mut context, episode.as_mut(), false);
         // Camera frames (JPEG).
         for (camera, sub) in &cameras {
             loop {
@@ -280,6 +303,9 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                 };
                 let Some(ep) = &mut episode else { continue };
                 let h = *frame.header();
+                if ep.closing.is_some_and(|c| h.publish_ns > c.sent_before_ns) {
+                    continue;
+                }
                 if h.encoding() != Some(FrameEncoding::Rgb8) {
                     tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
                     continue;
@@ -316,6 +342,12 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                 publish_status(&last);
             }
         }
+        if episode.as_ref().and_then(|e| e.closing).is_some_and(|c| Instant::now() >= c.until)
+            && let Some(ep) = episode.take()
+        {
+            last = finish_closing(ep, &cfg.root);
+            publish_status(&last);
+        }
         // Once a second, recording or not (the launcher watches it as the node's heartbeat).
         if status_at.elapsed() > Duration::from_secs(1) {
             status_at = Instant::now();
@@ -330,9 +362,82 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
         tokio::time::sleep(Duration::from_millis(2)).await;
     }
     if let Some(ep) = episode.take() {
-        end(ep, Outcome::Failure, &cfg.root, "the recorder stopped mid-episode");
+        if ep.closing.is_some() {
+            finish_closing(ep, &cfg.root);
+        } else {
+            end(ep, Outcome::Failure, &cfg.root, "the recorder stopped mid-episode");
+        }
     }
     Ok(())
+}
+
+/// Latched context an episode's metadata is filled from.
+#[derive(Default)]
+struct Context {
+    tf_static: Option<TFMessage>,
+    scene_json: Option<String>,
+    /// The last message of each latched topic (published once, before any episode): written
+    /// into every episode at its start, so each file holds its own /tf_static and scene.
+    latched: std::collections::BTreeMap<String, (Vec<u8>, i64)>,
+}
+
+/// Takes every topic's waiting messages: latched context updated, messages written into the
+/// open episode. Stops at the first write error.
+fn drain_topics(
+    topics: &[Recorded],
+    ctx: &mut Context,
+    mut episode: Option<&mut Episode>,
+    latched_only: bool,
+) -> Option<RecorderError> {
+    for r in topics.iter().filter(|r| r.spec.latched || !latched_only) {
+        loop {
+            let sample = match r.sub.try_take() {
+                Ok(Some(s)) => s,
+                Ok(None) => break,
+                Err(e) => {
+                    tracing::warn!("{}: {e}", r.spec.topic);
+                    break;
+                }
+            };
+            // Episode events are written as the episode starts and ends, not here.
+            if r.spec.topic == "/rig/episode" {
+                continue;
+            }
+            let cdr = sample.msg.to_cdr_bytes();
+            if r.spec.topic == "/tf_static" {
+                ctx.tf_static = labrig_msgs::decode::<TFMessage>(&cdr).ok();
+            } else if r.spec.topic == "/sim/scene" {
+                ctx.scene_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
+            }
+            if r.spec.latched {
+                ctx.latched
+                    .insert(r.spec.topic.clone(), (cdr.clone(), sample.source_time.unwrap_or(sample.receive_time).0));
+            }
+            if let Some(ep) = episode.as_mut() {
+                let log = sample.receive_time.0;
+                let publish = sample.source_time.map_or(log, |t| t.0);
+                // Sent before the episode's Start or after its end: not the episode's.
+                if publish < ep.opened_ns || ep.closing.is_some_and(|c| publish > c.sent_before_ns) {
+                    continue;
+                }
+                let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
+                let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
+                if let Err(e) = ep.writer.write_cdr(&r.spec.topic, &ty, &cdr, log, publish, reliability) {
+                    return Some(e);
+                }
+            }
+        }
+    }
+    None
+}
+
+/// `path`, or `path_2`, `path_3`, ... when it exists.
+fn unused(path: PathBuf) -> PathBuf {
+    if !path.exists() {
+        return path;
+    }
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    (2..).map(|k| path.with_file_name(format!("{name}_{k}"))).find(|p| !p.exists()).expect("unbounded")
 }
 
 /// Finishes an episode and moves it into DROID's layout; returns the status to publish.
@@ -342,7 +447,9 @@ fn end(ep: Episode, outcome: Outcome, root: &std::path::Path, why: &str) -> serd
     writer.metadata_mut().trajectory_length = writer.count("/rig/step");
     match writer.finish() {
         Ok(summary) => {
-            let dest = episode_dir(root, outcome, start_ns);
+            // Two episodes may start in the same second (DROID's directory names are to the
+            // second): the later one gets a suffix rather than failing to move.
+            let dest = unused(episode_dir(root, outcome, start_ns));
             let moved =
                 dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(&staging, &dest));
             match moved {

@@ -1,0 +1,145 @@
+//! Action sources: what the rig loop asks for an action each tick. The scripted expert now
+//! (the sim bridge's `/sim/expert/action`), teleop and the policy server later, behind the
+//! same trait. A source proposes an arm command (any `ArmCommand` mode) and may say the task
+//! is over; the loop passes the proposal through the safety layer, never the source.
+
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ArmCommand, Step};
+use labrig_msgs::std_msgs::StringMsg;
+use labrig_runtime::ros::{Ros, RosError, RosSubscription, qos};
+
+/// A source's action for one tick.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Proposal {
+    pub command: ArmCommand,
+    /// The deadman (teleop grip) or the source's own go-ahead; a disabled proposal holds.
+    pub movement_enabled: bool,
+}
+
+/// What a source says about the task at a tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    Running,
+    Succeeded,
+    Failed,
+}
+
+/// Why a source had no action for a tick.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SourceError {
+    #[error("no action from {from} yet")]
+    Silent { from: &'static str },
+    #[error("{from}'s newest action is {age_ms:.1} ms old at the tick (limit {limit_ms:.1} ms)")]
+    Stale { from: &'static str, age_ms: f64, limit_ms: f64 },
+    #[error("{from} is not ready: {why}")]
+    NotReady { from: &'static str, why: String },
+}
+
+pub trait ActionSource: Send {
+    fn name(&self) -> &'static str;
+    /// The `Step::SOURCE_*` value recorded with its actions.
+    fn kind(&self) -> u8;
+    /// Takes what arrived since the last call.
+    fn poll(&mut self) -> Result<(), RosError>;
+    /// Whether the action for `tick_ns` has arrived (lockstep waits for it).
+    fn has(&self, tick_ns: i64) -> bool;
+    /// The action for the tick at `tick_ns`; `max_age_ns` bounds how old it may be.
+    fn action(&mut self, tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError>;
+    /// The task's state as the source judges it at the tick.
+    fn verdict(&self, tick_ns: i64) -> Verdict;
+    /// A new episode begins (a source with memory of the last one forgets it).
+    fn restart(&mut self);
+}
+
+/// The sim bridge's scripted expert (`labrig sim run --expert`): its action for every sim
+/// state on `/sim/expert/action`, and its progress (done, success judged on the physics) on
+/// `/sim/expert/status`.
+pub struct ScriptedExpert {
+    actions: RosSubscription<ArmCommand>,
+    status: RosSubscription<StringMsg>,
+    latest: Option<ArmCommand>,
+    /// (stamp, done, success) of the newest status.
+    progress: Option<(i64, bool, bool)>,
+}
+
+impl std::fmt::Debug for ScriptedExpert {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ScriptedExpert").field("progress", &self.progress).finish_non_exhaustive()
+    }
+}
+
+impl ScriptedExpert {
+    pub fn new(ros: &mut Ros) -> Result<ScriptedExpert, RosError> {
+        Ok(ScriptedExpert {
+            actions: ros.subscription("/sim/expert/action", qos::reliable(100))?,
+            status: ros.subscription("/sim/expert/status", qos::reliable(100))?,
+            latest: None,
+            progress: None,
+        })
+    }
+}
+
+fn stamp_ns(c: &ArmCommand) -> i64 {
+    Nanos::from(c.header.stamp).0
+}
+
+impl ActionSource for ScriptedExpert {
+    fn name(&self) -> &'static str {
+        "the scripted expert (/sim/expert/action)"
+    }
+
+    fn kind(&self) -> u8 {
+        Step::SOURCE_SCRIPTED
+    }
+
+    fn poll(&mut self) -> Result<(), RosError> {
+        while let Some(a) = self.actions.try_take()? {
+            self.latest = Some(a.msg);
+        }
+        while let Some(s) = self.status.try_take()? {
+            let Ok(v) = serde_json::from_str::<serde_json::Value>(&s.msg.data) else {
+                tracing::warn!("/sim/expert/status: not JSON: {:?}", s.msg.data);
+                continue;
+            };
+            let stamp = v["stamp_ns"].as_i64().unwrap_or(i64::MIN);
+            self.progress = Some((stamp, v["done"] == true, v["success"] == true));
+        }
+        Ok(())
+    }
+
+    fn has(&self, tick_ns: i64) -> bool {
+        self.latest.as_ref().is_some_and(|a| stamp_ns(a) >= tick_ns)
+            && self.progress.is_some_and(|(t, _, _)| t >= tick_ns)
+    }
+
+    fn action(&mut self, tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError> {
+        let source = "the scripted expert";
+        let a = self.latest.as_ref().ok_or(SourceError::Silent { from: source })?;
+        let age = tick_ns - stamp_ns(a);
+        if age > max_age_ns {
+            return Err(SourceError::Stale {
+                from: source,
+                age_ms: age as f64 / 1e6,
+                limit_ms: max_age_ns as f64 / 1e6,
+            });
+        }
+        Ok(Proposal { command: a.clone(), movement_enabled: true })
+    }
+
+    fn verdict(&self, tick_ns: i64) -> Verdict {
+        match self.progress {
+            Some((t, true, ok)) if t >= tick_ns => {
+                if ok {
+                    Verdict::Succeeded
+                } else {
+                    Verdict::Failed
+                }
+            }
+            _ => Verdict::Running,
+        }
+    }
+
+    /// Nothing to forget: actions and verdicts are matched to ticks by their sim-time stamps
+    /// (a new scene's expert starts at the time the last one stopped).
+    fn restart(&mut self) {}
+}
