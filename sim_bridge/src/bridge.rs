@@ -95,6 +95,12 @@ pub struct BridgeArgs {
     /// the physics): an action source for the rig loop, which decides whether to follow it.
     #[arg(long)]
     pub expert: bool,
+    /// Sim time on the wall clock's time line (Unix ns) instead of from 0: in realtime each
+    /// step's state and frames are stamped with the wall time they were made at, as a real
+    /// rig's, so a control loop on the wall clock pairs them with its ticks; time lost to a
+    /// late tick or a scene rebuild is skipped, not caught up.
+    #[arg(long)]
+    pub wall_clock_origin: bool,
     /// Stop after this many ticks (default: run until Ctrl-C).
     #[arg(long)]
     pub max_ticks: Option<u64>,
@@ -205,6 +211,12 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     if !a.no_cameras {
         sim.enable_cameras(a.width, a.height, a.meshes)?;
     }
+    // A step that starts at wall time w ends at sim time w: its state and frames go out
+    // stamped about when they were made, as a real rig's are.
+    let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
+    if a.wall_clock_origin {
+        sim.resume_clock(Nanos(wall_line(period)));
+    }
     let safety = safety_filter(period, None)?;
     let mut watchdog = Watchdog::new(safety.config().watchdog_ns());
 
@@ -269,7 +281,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     };
     let mut fovy = fovys(&sim);
     let mut state = CommandState { gripper: 0.0, last_ok: true, ..Default::default() };
-    let mut rgb = Vec::with_capacity(a.width * a.height * 3);
+    let mut rgb: Vec<Vec<u8>> = cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect();
     let mut ticks = 0u64;
     let started = Instant::now();
     let mut next_deadline = Instant::now();
@@ -290,7 +302,9 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                     if !a.no_cameras {
                         next.enable_cameras(a.width, a.height, a.meshes)?;
                     }
-                    next.resume_clock(sim.time());
+                    // On the wall clock's time line the rebuild's time is lost, as a real rig's.
+                    let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
+                    next.resume_clock(Nanos(sim.time().0.max(now)));
                     sim = next;
                     fovy = fovys(&sim);
                     state = CommandState {
@@ -350,6 +364,9 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                     if now > next_deadline + Duration::from_nanos(period.0 as u64) {
                         late_ticks += 1;
                         next_deadline = now;
+                        if a.wall_clock_origin {
+                            sim.resume_clock(Nanos(sim.time().0.max(wall_line(period))));
+                        }
                     }
                     next_deadline += Duration::from_nanos(period.0 as u64);
                     true
@@ -407,9 +424,13 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         ticks += 1;
         last_tick = Instant::now();
         let t = sim.time();
+        // All five rendered first, then sent back to back: a reader never sees a tick's frames
+        // from some cameras and the last tick's from others for longer than the sends take.
+        for (camera, buf) in cameras.iter().zip(rgb.iter_mut()) {
+            sim.render_into(camera, buf)?;
+        }
         for (i, camera) in cameras.iter().enumerate() {
-            sim.render_into(camera, &mut rgb)?;
-            frame_pubs[i].publish(&rgb, t, t)?;
+            frame_pubs[i].publish(&rgb[i], t, t)?;
             pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovy[i]))?;
         }
         report_publish(publish_state(&sim, &pubs, &state));

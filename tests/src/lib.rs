@@ -199,3 +199,19 @@ impl Drop for Proc {
 pub fn rt() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime")
 }
+
+/// Reads an episode directory with the reference readers (PyPI `mcap` + `mcap-ros2-support`,
+/// `rosbags` on the directory and on the bare file) through tests/peers/read_episode.py.
+pub fn read_episode_with_python(dir: &std::path::Path) -> serde_json::Value {
+    let python = std::env::var_os("LABRIG_READERS_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| cache_dir().join("venv-readers/bin/python"));
+    assert!(python.exists(), "the MCAP readers' venv {} is missing: run `bash scripts/setup.sh`", python.display());
+    let out = std::process::Command::new(&python)
+        .arg(repo_root().join("tests/peers/read_episode.py"))
+        .arg(dir)
+        .output()
+        .expect("running read_episode.py");
+    assert!(out.status.success(), "read_episode.py failed: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).expect("read_episode.py prints JSON")
+}

@@ -1,33 +1,63 @@
-//! The `labrig` binary end to end: demo, shm bench (functional, not timing), argument errors.
+//! The `labrig` binary end to end: demo (recorded episodes), shm bench (functional, not timing), argument errors.
 
-use labrig_tests::{labrig_bin, sim_bin};
+use labrig_tests::labrig_bin;
 use serde_json::Value;
 use std::process::Command;
 
+/// The README's main command: the simulated rig (sim bridge, recorder, control loop with the
+/// scripted expert) records seeded pick-and-place episodes; each is complete, unflagged,
+/// successful, holds every step and camera frame, and is read in full by the reference
+/// readers (PyPI mcap + mcap-ros2-support, rosbags).
 #[test]
-fn demo_delivers_every_state_and_frame_and_runs_the_sim_expert() {
-    sim_bin(); // `labrig demo` runs the sim binary built beside it
+fn demo_records_expert_episodes_that_the_reference_readers_read() {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control"] {
+        labrig_tests::workspace_bin(p, p); // `labrig demo` starts them from beside itself
+    }
     let dir = tempfile::tempdir().unwrap();
+    let domain = labrig_tests::domain_for("demo_records_expert_episodes");
     let out = Command::new(labrig_bin())
-        .args(["demo", "--seconds", "1", "--json", "--domain-id", "201", "--episodes", "2", "--out"])
+        .args(["demo", "--episodes", "2", "--first-seed", "3", "--json", "--domain-id", &domain.to_string(), "--out"])
         .arg(dir.path())
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("demo_{}", std::process::id()))
         .output()
         .unwrap();
     assert!(out.status.success(), "demo failed: {}", String::from_utf8_lossy(&out.stderr));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["recorded"], 2, "{r}");
+    assert_eq!(r["successes"], 2, "{r}");
     assert_eq!(r["ok"], true);
-    assert_eq!(r["joint_states"]["received"], r["ticks"]);
-    assert_eq!(r["cameras"].as_array().unwrap().len(), 5);
-    for task in ["pick_place", "drawer_open", "drawer_close"] {
-        let eval = &r["sim"]["tasks"][task];
-        assert_eq!(eval["episodes"], 2, "{task}: {eval}");
-        assert_eq!(eval["successes"], 2, "{task}: {eval}");
-        assert_eq!(eval["results"][0]["task"], task);
+    let mut uuids = Vec::new();
+    for (k, e) in r["episodes"].as_array().unwrap().iter().enumerate() {
+        let i = &e["inspect"];
+        assert_eq!(i["flags"], serde_json::json!([]), "episode {k}: {i}");
+        assert_eq!(i["complete"], true);
+        let steps = i["steps"].as_u64().unwrap();
+        assert!((40..400).contains(&steps), "episode {k}: {steps} steps");
+        assert_eq!(i["metadata"]["trajectory_length"], steps);
+        assert_eq!(i["metadata"]["success"], true);
+        assert_eq!(i["metadata"]["task_instruction"], "put the cube in the bin");
+        // The scene of each episode is its own seed's (3, then 4).
+        let scene: Value = serde_json::from_str(i["metadata"]["sim_scene"].as_str().unwrap()).unwrap();
+        assert_eq!(scene["seed"], 3 + k as u64);
+        for c in i["cameras"].as_array().unwrap() {
+            assert!(c["frames"].as_u64().unwrap() >= steps, "{c}");
+            assert_eq!(c["dropped"], 0, "{c}");
+        }
+        uuids.push(i["metadata"]["uuid"].as_str().unwrap().to_owned());
+        let sheet = std::path::PathBuf::from(e["contact_sheet"].as_str().unwrap());
+        assert!(std::fs::metadata(&sheet).unwrap().len() > 20_000, "contact sheet {} too small", sheet.display());
+        // Every message of the episode decodes in the reference readers.
+        let episode_dir = std::path::PathBuf::from(e["dir"].as_str().unwrap());
+        assert!(episode_dir.starts_with(dir.path().join("episodes/success")), "{}", episode_dir.display());
+        let v = labrig_tests::read_episode_with_python(&episode_dir);
+        assert_eq!(v["mcap"]["failures"], serde_json::json!([]), "{v}");
+        assert_eq!(v["mcap"]["counts"]["/rig/step"], steps, "{v}");
+        assert_eq!(v["rosbags_dir"], v["mcap"]["counts"], "rosbags on the directory: {v}");
+        assert_eq!(v["rosbags_file"], v["mcap"]["counts"], "rosbags on the bare file: {v}");
+        let mcap_total: u64 = v["mcap"]["counts"].as_object().unwrap().values().map(|n| n.as_u64().unwrap()).sum();
+        assert_eq!(mcap_total, i["messages"].as_u64().unwrap(), "every message read");
     }
-    for task in ["pick_place", "drawer_open"] {
-        let sheet = dir.path().join(format!("snapshot_{task}_seed0/cameras.png"));
-        assert!(std::fs::metadata(&sheet).unwrap().len() > 10_000, "contact sheet {} too small", sheet.display());
-    }
+    assert_ne!(uuids[0], uuids[1]);
 }
 
 #[test]

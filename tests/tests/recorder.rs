@@ -10,28 +10,12 @@ use labrig_msgs::std_msgs::Header;
 use labrig_msgs::tf2_msgs::TFMessage;
 use labrig_recorder::bag::Reliability;
 use labrig_recorder::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
-use labrig_tests::{cache_dir, repo_root};
 use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
 
 const T0: i64 = 1_795_000_000_000_000_000;
 const TICK: i64 = 50_000_000;
-
-fn readers_python() -> std::path::PathBuf {
-    let p = std::env::var_os("LABRIG_READERS_PYTHON")
-        .map(Into::into)
-        .unwrap_or_else(|| cache_dir().join("venv-readers/bin/python"));
-    assert!(p.exists(), "the MCAP readers' venv {} is missing: run `bash scripts/setup.sh`", p.display());
-    p
-}
-
-fn read_with_python(dir: &Path) -> Value {
-    let out =
-        Command::new(readers_python()).arg(repo_root().join("tests/peers/read_episode.py")).arg(dir).output().unwrap();
-    assert!(out.status.success(), "read_episode.py failed: {}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap()
-}
 
 /// A small JPEG-shaped payload (SOI ... EOI); the readers only carry the bytes.
 fn jpeg(k: i64) -> Vec<u8> {
@@ -107,7 +91,7 @@ fn the_reference_readers_read_every_message_of_an_episode() {
     let (dir, meta) = write_episode(root.path());
     assert!(dir.starts_with(root.path().join("success")), "{}", dir.display());
     assert!(dir.join("metadata.yaml").exists() && dir.join("episode_0.mcap").exists());
-    let v = read_with_python(&dir);
+    let v = labrig_tests::read_episode_with_python(&dir);
     let expected = serde_json::json!({
         "/arm/state": 100, "/cameras/ext1/image/compressed": 40, "/cameras/wrist/image/compressed": 40,
         "/tf": 40, "/rig/step": 40,
@@ -161,7 +145,7 @@ fn a_killed_recorder_loses_at_most_the_last_second() {
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(r["stopped"].as_str().unwrap().starts_with("stopped at"), "the file was damaged: {r}");
     assert!(dir.join("episode_0.mcap.damaged").exists());
-    let v = read_with_python(&dir);
+    let v = labrig_tests::read_episode_with_python(&dir);
     let steps = v["mcap"]["counts"]["/rig/step"].as_u64().unwrap();
     assert!(steps >= synced_steps, "recovered {steps} steps, {synced_steps} were in closed chunks");
     assert!(steps <= synced_steps + 21, "recovered {steps} steps, more than were written?");
@@ -187,7 +171,7 @@ fn a_full_disk_stops_recording_and_keeps_earlier_episodes() {
     assert!(err.is_disk_full(), "{err:?}");
     assert!(err.to_string().contains("No space left on device"), "{err}");
     assert!(err.to_string().contains("episode_0.mcap"), "the error names the file: {err}");
-    let v = read_with_python(&good);
+    let v = labrig_tests::read_episode_with_python(&good);
     assert_eq!(v["rosbags_dir"]["/rig/step"], 40, "the earlier episode is intact: {v}");
 }
 
@@ -341,7 +325,7 @@ fn the_recorder_node_records_the_sim_rig() {
     assert!(dir.starts_with(root.path().join("success")), "{}", dir.display());
     let recording: Vec<_> = std::fs::read_dir(root.path().join(".recording")).unwrap().collect();
     assert!(recording.is_empty(), "the discarded and the moved episodes left nothing behind");
-    let v = read_with_python(&dir);
+    let v = labrig_tests::read_episode_with_python(&dir);
     let counts = &v["mcap"]["counts"];
     assert_eq!(counts["/rig/step"], 60, "{v}");
     assert_eq!(v["rosbags_dir"], *counts, "rosbags agrees: {v}");

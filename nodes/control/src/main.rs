@@ -50,6 +50,9 @@ struct RunArgs {
     /// Print the run's summary as JSON on exit.
     #[arg(long)]
     json: bool,
+    /// Also write the summary (JSON) to this file on exit.
+    #[arg(long)]
+    stats_out: Option<PathBuf>,
     /// DDS domain id.
     #[arg(long, env = "ROS_DOMAIN_ID")]
     domain_id: Option<u16>,
@@ -93,6 +96,10 @@ fn main() -> ExitCode {
         let summary = labrig_control::node::run(cfg, shutdown).await?;
         if a.json {
             println!("{}", serde_json::to_string(&summary)?);
+        }
+        if let Some(p) = &a.stats_out {
+            std::fs::write(p, serde_json::to_string_pretty(&summary)?)
+                .map_err(|e| anyhow::anyhow!("writing {}: {e}", p.display()))?;
         }
         tracing::info!(
             ticks = summary.ticks,

@@ -15,7 +15,8 @@
 //! published when it is there. In the sim, with `reseed`, each episode gets a new scene
 //! (`/sim/reset`, seeds `first_seed`, `first_seed + 1`, ...).
 //!
-//! Clocks: `sim` ticks on the sim bridge's time (a tick is each new `/arm/state` stamp; in
+//! Clocks: `sim` ticks on the sim bridge's time (a tick is the first `/arm/state` stamped a
+//! period after the last tick; in
 //! lockstep the bridge steps once per arm command, so the loop and the physics advance
 //! together and the result does not depend on machine speed); `wall` ticks on the monotonic
 //! clock (the real rig). The loop always commands the arm, holding it while idle, so sim time
@@ -43,6 +44,9 @@ use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
+
+/// In sim time, a state this close to a period after the last tick starts the next one.
+const TICK_TOLERANCE_NS: i64 = 1_000_000;
 
 /// DROID's `max_gripper_delta`: a full-scale gripper velocity moves it this far per step.
 pub const MAX_GRIPPER_DELTA: f64 = 0.25;
@@ -99,6 +103,9 @@ pub struct ControlConfig {
     pub home_tolerance_rad: f64,
     /// Giving up on reaching home after this long (s of the loop's clock): the node stops.
     pub reset_timeout_s: f64,
+    /// On the wall clock, run the loop's thread at this SCHED_FIFO priority (1..99; 0: off).
+    /// Needs root or CAP_SYS_NICE; without them the loop runs at normal priority, warned.
+    pub realtime_priority: u8,
     /// DROID's uuid parts: `<lab>+<user>+<timestamp>`.
     pub lab: String,
     pub user: String,
@@ -126,6 +133,7 @@ impl Default for ControlConfig {
             source_timeout_s: 5.0,
             home_tolerance_rad: 0.02,
             reset_timeout_s: 20.0,
+            realtime_priority: 20,
             lab: "LABRIG".into(),
             user: "operator".into(),
             // The loop makes its own commands each tick: no age check on them.
@@ -156,6 +164,9 @@ impl ControlConfig {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{name} = {v} must be > 0"));
             }
+        }
+        if self.realtime_priority > 99 {
+            return Err(format!("realtime_priority = {} must be 0..=99", self.realtime_priority));
         }
         if self.max_steps == 0 {
             return Err("max_steps must be > 0".into());
@@ -189,6 +200,12 @@ pub struct Summary {
     pub missed_ticks: u64,
     /// Wall-clock period deviation of consecutive ticks (us): p50, p99, max.
     pub jitter_us: [f64; 3],
+    /// Recorded steps with a camera missing, or with a frame older than `stale_frame_ms`.
+    pub steps_missing_frames: u64,
+    pub steps_stale_frames: u64,
+    /// Camera skew per recorded step (us): p50, p99, max.
+    pub skew_us: [f64; 3],
+    pub seconds: f64,
 }
 
 struct Pubs {
@@ -276,7 +293,25 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             tracing::warn!("nothing subscribes to /rig/episode: episodes will not be recorded");
         }
     }
+    if cfg.clock == ClockKind::Wall && cfg.realtime_priority > 0 {
+        // This future runs on the thread that called block_on: the loop's own thread.
+        use thread_priority::{
+            RealtimeThreadSchedulePolicy, ThreadPriority, ThreadSchedulePolicy, set_thread_priority_and_policy,
+            thread_native_id,
+        };
+        let priority = ThreadPriority::Crossplatform(
+            cfg.realtime_priority.try_into().map_err(|e| anyhow::anyhow!("realtime_priority: {e:?}"))?,
+        );
+        let fifo = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
+        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), priority, fifo) {
+            tracing::warn!(
+                "cannot run the loop at SCHED_FIFO {}: {e:?} (needs root or CAP_SYS_NICE); normal priority",
+                cfg.realtime_priority
+            );
+        }
+    }
     tracing::info!(source = ?cfg.source, clock = ?cfg.clock, episodes = cfg.episodes, "control loop up");
+    let _ = pubs.status.publish(StringMsg { data: json!({ "state": "Idle", "ticks": 0 }).to_string() });
 
     let mut gripper: Option<GripperState> = None;
     let mut scene = Scene::default();
@@ -293,6 +328,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut last_tick_ns: Option<i64> = None;
     let mut last_tick_wall: Option<Instant> = None;
     let mut jitter_ns: Vec<i64> = Vec::new();
+    let mut skew_ns: Vec<i64> = Vec::new();
     let started = Instant::now();
     let mut next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
     let mut pending_request: Option<EpisodeEventKind> = None;
@@ -324,7 +360,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 if let Some(s) = newest {
                     let t = Nanos::from(s.header.stamp).0;
                     robot = s;
-                    if last_tick_ns.is_none_or(|l| t > l) {
+                    // A new period (an arm node may publish states faster than the loop runs).
+                    if last_tick_ns.is_none_or(|l| t >= l + period.0 - TICK_TOLERANCE_NS) {
                         break t;
                     }
                 }
@@ -411,7 +448,12 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             if done {
                 break;
             }
-            if cfg.reseed {
+            // Not before the source has an action for now (after a scene rebuild it may lag).
+            let age_ns = (cfg.max_action_age_ms * 1e6) as i64;
+            let source_ready =
+                cfg.clock == ClockKind::Sim || source.as_mut().is_none_or(|s| s.action(tick_ns, age_ns).is_ok());
+            if !source_ready {
+            } else if cfg.reseed {
                 if scene.seed == Some(next_seed) && episode_seed.is_none_or(|s| s != next_seed) {
                     event = Some(EpisodeEventKind::Start);
                 } else {
@@ -425,11 +467,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         }
         if let Between::Reseeding { seed, asked_at } = between {
             if scene.seed == Some(seed) {
+                // The next tick starts the episode (once the source has caught up).
                 between = Between::Ready;
                 commanded = None;
-                if cfg.auto_start {
-                    event = Some(EpisodeEventKind::Start);
-                }
             } else if tick_ns - asked_at > 30_000_000_000 {
                 anyhow::bail!(
                     "the sim did not load scene seed {seed} within 30 s of /sim/reset (is it `labrig sim run`?)"
@@ -470,7 +510,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                     episode_id = episode_uuid(&cfg.lab, &cfg.user, &summary.episodes, tick_ns);
                     episode_seed = scene.seed;
                     if let Some(s) = source.as_mut() {
-                        s.restart();
+                        s.restart(tick_ns);
                     }
                     publish_event(kind, &episode_id, &scene.instruction, tick_ns);
                     tracing::info!(episode = %episode_id, seed = ?scene.seed, instruction = %scene.instruction, "episode started");
@@ -586,6 +626,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             if !frames.missing.is_empty() || !frames.stale.is_empty() {
                 tracing::debug!(missing = ?frames.missing, stale = ?frames.stale, "cameras");
             }
+            summary.steps_missing_frames += u64::from(!frames.missing.is_empty());
+            summary.steps_stale_frames += u64::from(!frames.stale.is_empty());
+            skew_ns.push(frames.skew_ns);
             let times = TickTimes {
                 tick_ns,
                 step_start,
@@ -619,14 +662,19 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         let _ = episodes.on(EpisodeEventKind::Stop);
         publish_event(EpisodeEventKind::Stop, &episode_id, "the control loop stopped", t);
     }
-    jitter_ns.sort_unstable();
-    let pct = |q: f64| {
-        jitter_ns.get(((jitter_ns.len().max(1) - 1) as f64 * q).round() as usize).map_or(f64::NAN, |&v| v as f64 / 1e3)
-    };
-    summary.jitter_us = [pct(0.5), pct(0.99), jitter_ns.last().map_or(f64::NAN, |&v| v as f64 / 1e3)];
+    summary.jitter_us = percentiles_us(&mut jitter_ns);
+    summary.skew_us = percentiles_us(&mut skew_ns);
+    summary.seconds = started.elapsed().as_secs_f64();
     // The last events reach the recorder before the participant goes.
     tokio::time::sleep(Duration::from_millis(300)).await;
     Ok(summary)
+}
+
+/// p50, p99 and max of `v` (ns) in us; NaN when empty.
+fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
+    v.sort_unstable();
+    let at = |q: f64| v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).map_or(f64::NAN, |&x| x as f64 / 1e3);
+    [at(0.5), at(0.99), at(1.0)]
 }
 
 /// Whether the command moves the arm away from where it was told to be.

@@ -45,10 +45,11 @@ pub trait ActionSource: Send {
     fn has(&self, tick_ns: i64) -> bool;
     /// The action for the tick at `tick_ns`; `max_age_ns` bounds how old it may be.
     fn action(&mut self, tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError>;
-    /// The task's state as the source judges it at the tick.
+    /// The task's state as the source judges it at the tick (its newest judgement since the
+    /// episode began).
     fn verdict(&self, tick_ns: i64) -> Verdict;
-    /// A new episode begins (a source with memory of the last one forgets it).
-    fn restart(&mut self);
+    /// A new episode begins at `start_ns` (a source with memory of the last one forgets it).
+    fn restart(&mut self, start_ns: i64);
 }
 
 /// The sim bridge's scripted expert (`labrig sim run --expert`): its action for every sim
@@ -60,6 +61,8 @@ pub struct ScriptedExpert {
     latest: Option<ArmCommand>,
     /// (stamp, done, success) of the newest status.
     progress: Option<(i64, bool, bool)>,
+    /// The current episode's first tick: older verdicts are the last episode's.
+    since_ns: i64,
 }
 
 impl std::fmt::Debug for ScriptedExpert {
@@ -75,6 +78,7 @@ impl ScriptedExpert {
             status: ros.subscription("/sim/expert/status", qos::reliable(100))?,
             latest: None,
             progress: None,
+            since_ns: i64::MIN,
         })
     }
 }
@@ -126,9 +130,9 @@ impl ActionSource for ScriptedExpert {
         Ok(Proposal { command: a.clone(), movement_enabled: true })
     }
 
-    fn verdict(&self, tick_ns: i64) -> Verdict {
+    fn verdict(&self, _tick_ns: i64) -> Verdict {
         match self.progress {
-            Some((t, true, ok)) if t >= tick_ns => {
+            Some((t, true, ok)) if t >= self.since_ns => {
                 if ok {
                     Verdict::Succeeded
                 } else {
@@ -139,7 +143,9 @@ impl ActionSource for ScriptedExpert {
         }
     }
 
-    /// Nothing to forget: actions and verdicts are matched to ticks by their sim-time stamps
-    /// (a new scene's expert starts at the time the last one stopped).
-    fn restart(&mut self) {}
+    /// Actions are matched to ticks by their sim-time stamps; verdicts count from the
+    /// episode's first tick.
+    fn restart(&mut self, start_ns: i64) {
+        self.since_ns = start_ns;
+    }
 }

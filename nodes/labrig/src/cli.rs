@@ -119,6 +119,8 @@ pub enum TopicCommand {
 pub enum BenchCommand {
     /// Camera frames over iceoryx2 shared memory between processes.
     Shm(crate::bench::ShmArgs),
+    /// The rig loop free-running for minutes: tick jitter, missed ticks, dropped frames, recorder CPU, MB/s.
+    Loop(crate::bench_loop::LoopArgs),
     /// Recording an episode: writer MB/s, CPU, JPEG encoding (synthetic 5-camera rig).
     Record(crate::bench_record::RecordArgs),
     /// The franka node against franka-sim: command-to-backend latency (in the node and round trip).
@@ -141,6 +143,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Ik(a)) => crate::bench_ik::run(a),
         Command::Bench(BenchCommand::Franka(a)) => crate::bench_franka::run(a),
         Command::Bench(BenchCommand::Record(a)) => crate::bench_record::run(a),
+        Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),

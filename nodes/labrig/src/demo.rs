@@ -1,232 +1,278 @@
-//! `labrig demo`: the main job on a fresh machine.
-//!
-//! Until the MuJoCo sim bridge lands, the demo runs the rig's transport end to end in one
-//! process: an arm-state publisher and a subscriber on separate DDS participants (over
-//! loopback, exactly as two nodes would talk), and the five cameras' frame streams over
-//! iceoryx2 shared memory, then reports what arrived, at what rate, and the camera skew.
+//! `labrig demo`: the main job on a fresh machine. The simulated DROID rig
+//! (launch_configs/sim_demo.toml: the MuJoCo bridge in lockstep as the FR3, the 2F-85 and the
+//! five cameras; the recorder; the control loop with the scripted expert as its action
+//! source) collects seeded pick-and-place episodes as DROID-format MCAP. The demo then prints
+//! where each episode is with its `labrig inspect` summary and writes a contact sheet of the
+//! five cameras per episode (first, middle and last recorded frame).
 
-use anyhow::bail;
+use crate::launch::{LaunchConfig, Output};
+use anyhow::{Context, bail};
 use clap::Args;
-use futures::StreamExt;
 use indicatif::{ProgressBar, ProgressStyle};
-use labrig_msgs::Nanos;
-use labrig_msgs::sensor_msgs::JointState;
-use labrig_msgs::std_msgs::Header;
-use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode};
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS, Step};
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::std_msgs::StringMsg;
 use labrig_runtime::ros::{Ros, qos};
-use labrig_runtime::{Clock, RosConfig};
+use labrig_runtime::{RosConfig, Shutdown};
 use serde_json::json;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
 
-use labrig_msgs::labrig_msgs::{DROID_RESET_POSE as RESET, RIG_CAMERAS as CAMERAS};
+/// The demo's rig, compiled in (the same file `labrig launch` reads).
+pub(crate) const SIM_DEMO: &str = include_str!("../../../launch_configs/sim_demo.toml");
 
-/// FR3 joints + the 2F-85's driving joint, as the sim bridge will name them.
-pub const JOINTS: [&str; 8] =
-    ["fr3_joint1", "fr3_joint2", "fr3_joint3", "fr3_joint4", "fr3_joint5", "fr3_joint6", "fr3_joint7", "finger_joint"];
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Seconds to run.
-    #[arg(long, default_value_t = 5.0)]
-    pub seconds: f64,
-    /// Control rate in Hz.
-    #[arg(long, default_value_t = 20.0)]
-    pub rate: f64,
-    /// DDS domain id for the demo's nodes.
+    /// Seeded pick-and-place episodes to record.
+    #[arg(long, default_value_t = 3)]
+    pub episodes: u64,
+    /// The first scene seed (the episodes take seeds first..first+episodes).
+    #[arg(long, default_value_t = 0)]
+    pub first_seed: u64,
+    /// Run the sim in real time instead of lockstep.
+    #[arg(long)]
+    pub realtime: bool,
+    /// Where the episodes (DROID layout under `episodes/`) and the contact sheets go.
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+    /// DDS domain id for the demo's rig.
     #[arg(long, default_value_t = 42)]
     pub domain_id: u16,
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
-    /// Skip the simulated rig (transport only).
-    #[arg(long)]
-    pub no_sim: bool,
-    /// Seeded pick-and-place scenes the scripted expert runs in the sim.
-    #[arg(long, default_value_t = 3)]
-    pub episodes: u64,
-    /// Where the demo writes its pictures.
-    #[arg(long, default_value = "out/demo")]
-    pub out: std::path::PathBuf,
+}
+
+/// Sets `flag`'s value in `args` (appended when absent).
+pub(crate) fn set_arg(args: &mut Vec<String>, flag: &str, value: &str) {
+    match args.iter().position(|a| a == flag) {
+        Some(i) if i + 1 < args.len() => args[i + 1] = value.to_owned(),
+        _ => args.extend([flag.to_owned(), value.to_owned()]),
+    }
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
-    if !(args.seconds > 0.0 && args.seconds <= 600.0 && args.rate > 0.0 && args.rate <= 200.0) {
-        bail!("--seconds must be in (0, 600] and --rate in (0, 200]");
+    anyhow::ensure!((1..=100).contains(&args.episodes), "--episodes must be in 1..=100");
+    let origin = Path::new("launch_configs/sim_demo.toml");
+    let (mut cfg, order) = LaunchConfig::parse(SIM_DEMO, origin)?;
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let out = std::fs::canonicalize(&args.out)?;
+    let root = out.join("episodes");
+    {
+        let sim = cfg.node_mut("sim").context("sim_demo.toml has no `sim` node")?;
+        set_arg(&mut sim.args, "--mode", if args.realtime { "realtime" } else { "lockstep" });
+        if args.realtime {
+            sim.args.push("--wall-clock-origin".into());
+        }
+        let rec = cfg.node_mut("recorder").context("sim_demo.toml has no `recorder` node")?;
+        set_arg(&mut rec.args, "--root", &root.display().to_string());
+        let ctl = cfg.node_mut("control").context("sim_demo.toml has no `control` node")?;
+        set_arg(&mut ctl.args, "--episodes", &args.episodes.to_string());
+        set_arg(&mut ctl.args, "--first-seed", &args.first_seed.to_string());
+        if args.realtime {
+            set_arg(&mut ctl.args, "--clock", "wall");
+        }
     }
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    rt.block_on(demo(args))
-}
+    let recorded = rt.block_on(collect(&args, cfg, order))?;
+    drop(rt);
 
-async fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
-    let cfg = RosConfig { domain_id: args.domain_id, ..RosConfig::default() };
-    cfg.validate(std::path::Path::new("<command line>"))?;
-    let mut arm = Ros::new(&cfg, "labrig_demo_arm")?;
-    let mut recorder = Ros::new(&cfg, "labrig_demo_recorder")?;
-    let publisher = arm.publisher::<JointState>("/joint_states", qos::reliable(10))?;
-    let subscription = recorder.subscription::<JointState>("/joint_states", qos::reliable(100))?;
-    if !arm.wait_for_subscribers("/joint_states", 1, Duration::from_secs(10)).await {
-        bail!("the demo's subscriber did not match /joint_states within 10 s");
+    let mut reports = Vec::new();
+    let mut ok = recorded.len() as u64 == args.episodes;
+    for (k, dir) in recorded.iter().enumerate() {
+        let inspection = labrig_recorder::inspect::inspect(dir).map_err(anyhow::Error::msg)?;
+        let sheet = out.join(format!("episode_{k}_cameras.png"));
+        contact_sheet(&inspection.path, &sheet).with_context(|| format!("contact sheet of {}", dir.display()))?;
+        ok &= inspection.flags.is_empty();
+        reports.push((dir.clone(), inspection, sheet));
     }
-    let frames = FrameNode::new()?;
-    let fmt = FrameFormat { encoding: FrameEncoding::Rgb8, width: 128, height: 128 };
-    let run_id = std::process::id();
-    let ids: Vec<String> = CAMERAS.iter().map(|c| format!("demo{run_id}_{c}")).collect();
-    let mut cams = ids.iter().map(|c| frames.publisher(c, fmt.clone())).collect::<Result<Vec<_>, _>>()?;
-    let subs = ids.iter().map(|c| frames.subscriber(c)).collect::<Result<Vec<_>, _>>()?;
-
-    let ticks = (args.seconds * args.rate).round() as u64;
-    let period = Duration::from_secs_f64(1.0 / args.rate);
-    let clock = Clock::Wall;
-    let bar =
-        ProgressBar::new(ticks).with_style(ProgressStyle::with_template("{spinner} demo {bar:30} {pos}/{len} ticks")?);
-    let mut pixels = vec![0u8; fmt.frame_bytes()];
-    let mut frames_received = [0u64; 5];
-    let mut skews_us = Vec::new();
-    let mut states_received = 0u64;
-    let mut stream = Box::pin(subscription.stream());
-    let mut interval = tokio::time::interval(period);
-    for tick in 0..ticks {
-        interval.tick().await;
-        let now = clock.now();
-        let t = tick as f64 / args.rate;
-        let mut position: Vec<f64> = RESET.iter().enumerate().map(|(j, q)| q + 0.1 * (t + j as f64).sin()).collect();
-        position.push(0.0);
-        publisher.publish(JointState {
-            header: Header { stamp: now.into(), frame_id: "fr3_link0".into() },
-            name: JOINTS.iter().map(|s| s.to_string()).collect(),
-            position,
-            velocity: vec![0.0; 8],
-            effort: vec![],
-        })?;
-        for (i, cam) in cams.iter_mut().enumerate() {
-            pixels.iter_mut().for_each(|p| *p = (tick as u8).wrapping_add(i as u8 * 40));
-            let capture = clock.now();
-            cam.publish(&pixels, capture, capture)?;
-        }
-        // One observation per tick: the newest frame of each camera, and their skew.
-        let mut captures = Vec::new();
-        for (i, sub) in subs.iter().enumerate() {
-            let mut newest = None;
-            while let Some(f) = sub.receive()? {
-                frames_received[i] += 1;
-                newest = Some(f.header().capture_ns);
-            }
-            captures.extend(newest);
-        }
-        if captures.len() == CAMERAS.len() {
-            let (lo, hi) = (captures.iter().min().copied().unwrap_or(0), captures.iter().max().copied().unwrap_or(0));
-            skews_us.push((hi - lo) as f64 / 1000.0);
-        }
-        while let Ok(Some(item)) = tokio::time::timeout(Duration::ZERO, stream.next()).await {
-            match item {
-                Ok(_) => states_received += 1,
-                Err(e) => tracing::warn!("{e}"),
-            }
-        }
-        bar.inc(1);
-    }
-    // Let the last states arrive (bounded).
-    let deadline = clock.now() + Nanos::from_millis(500);
-    while states_received < ticks && clock.now() < deadline {
-        if let Ok(Some(Ok(_))) = tokio::time::timeout(Duration::from_millis(50), stream.next()).await {
-            states_received += 1;
-        }
-    }
-    bar.finish_and_clear();
-    skews_us.sort_by(f64::total_cmp);
-    let p =
-        |q: f64| skews_us.get(((q * (skews_us.len().max(1) - 1) as f64).round()) as usize).copied().unwrap_or(f64::NAN);
-    let transport_ok = states_received == ticks && frames_received.iter().all(|&n| n == ticks);
-    let sim = if args.no_sim { None } else { Some(sim_part(&args)?) };
-    let sim_ok = sim.as_ref().is_none_or(|s| s["ok"] == true);
-    let ok = transport_ok && sim_ok;
-    let report = json!({
-        "ticks": ticks,
-        "rate_hz": args.rate,
-        "joint_states": { "published": ticks, "received": states_received },
-        "cameras": CAMERAS.iter().zip(frames_received).map(|(c, n)| json!({"camera": c, "published": ticks, "received": n})).collect::<Vec<_>>(),
-        "camera_skew_us": { "p50": p(0.5), "p99": p(0.99) },
-        "sim": sim,
-        "ok": ok,
-    });
+    let successes =
+        reports.iter().filter(|(_, i, _)| i.metadata.as_ref().and_then(|m| m.success) == Some(true)).count();
     if args.json {
-        println!("{report}");
+        let episodes: Vec<_> =
+            reports.iter().map(|(dir, i, sheet)| json!({ "dir": dir, "contact_sheet": sheet, "inspect": i })).collect();
+        println!(
+            "{}",
+            json!({ "episodes": episodes, "recorded": reports.len(), "successes": successes, "root": root, "ok": ok })
+        );
     } else {
-        println!("labrig demo: {ticks} ticks at {} Hz (DDS on loopback, domain {})", args.rate, args.domain_id);
-        println!("  /joint_states  sensor_msgs/JointState  {states_received}/{ticks} received over DDS");
-        for (c, n) in CAMERAS.iter().zip(frames_received) {
-            println!("  camera {c:<6} 128x128 rgb8 over iceoryx2  {n}/{ticks} frames");
+        println!(
+            "labrig demo: {} of {} episodes recorded ({} successful) under {}",
+            reports.len(),
+            args.episodes,
+            successes,
+            root.display()
+        );
+        for (k, (dir, i, sheet)) in reports.iter().enumerate() {
+            println!();
+            print!("{}", summary_text(k, dir, i));
+            println!("  cameras (first, middle, last frame): {}", sheet.display());
         }
-        println!("  camera skew per observation: p50 {:.0} us, p99 {:.0} us", p(0.5), p(0.99));
-        println!("  {}", if transport_ok { "all data arrived" } else { "DATA WAS LOST (see counts above)" });
-        if let Some(sim) = &sim {
-            println!("simulated rig (MuJoCo): scripted experts on seeded scenes");
-            for (task, eval) in sim["tasks"].as_object().into_iter().flatten() {
-                println!("  {task}: {}/{} succeeded", eval["successes"], eval["episodes"]);
-                for r in eval["results"].as_array().into_iter().flatten() {
-                    println!(
-                        "    seed {}: {} in {} ticks, cameras {}",
-                        r["seed"],
-                        if r["success"] == true { "success" } else { "FAILED" },
-                        r["ticks"],
-                        r["camera_bins"]
-                            .as_array()
-                            .map(|b| b.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(" "))
-                            .unwrap_or_default()
-                    );
-                }
-            }
-            for shot in sim["snapshots"].as_array().into_iter().flatten() {
-                println!("  the five cameras: {}", shot.as_str().unwrap_or_default());
-            }
-        }
-        println!("Recording these episodes as DROID-format MCAP comes with the rig loop and recorder (issue 5).");
+        println!();
+        println!("Inspect one again: labrig inspect <dir>; read them with any MCAP or rosbag2 reader.");
     }
     Ok(if ok { ExitCode::SUCCESS } else { ExitCode::from(1) })
 }
 
-/// The scenes the demo runs the experts on (built into labrig-sim).
-const DEMO_TASKS: [&str; 3] = ["pick_place", "drawer_open", "drawer_close"];
+/// A few lines per episode (the whole report: `labrig inspect <dir>`).
+fn summary_text(k: usize, dir: &Path, i: &labrig_recorder::inspect::Inspection) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let meta = i.metadata.as_ref();
+    let _ = writeln!(s, "episode {k}: {}", dir.display());
+    let _ = writeln!(
+        s,
+        "  {}  task \"{}\"  success {}",
+        meta.map_or("-", |m| m.uuid.as_str()),
+        meta.map_or("", |m| m.task_instruction.as_str()),
+        meta.and_then(|m| m.success).map_or("unknown".into(), |b| b.to_string())
+    );
+    let frames: Vec<String> = i.cameras.iter().map(|c| format!("{} {}", c.camera, c.frames)).collect();
+    let dropped: u64 = i.cameras.iter().map(|c| c.dropped).sum();
+    let _ = writeln!(
+        s,
+        "  {} steps, {:.1} s, {} messages, {:.1} MB; frames: {}; dropped {dropped}",
+        i.steps,
+        i.duration_s,
+        i.messages,
+        std::fs::metadata(&i.path).map_or(0.0, |m| m.len() as f64 / 1e6),
+        frames.join(", ")
+    );
+    let pct = |p: &Option<labrig_recorder::inspect::Percentiles>| {
+        p.as_ref().map_or("-".into(), |p| format!("p50 {:.3} / p99 {:.3} / max {:.3} ms", p.p50, p.p99, p.max))
+    };
+    let _ = writeln!(
+        s,
+        "  camera skew {}; control jitter {}; missed ticks {}",
+        pct(&i.camera_skew_ms),
+        pct(&i.control_jitter_ms),
+        i.missed_ticks
+    );
+    let _ = writeln!(s, "  inspect: {}", if i.flags.is_empty() { "OK".to_string() } else { i.flags.join("; ") });
+    s
+}
 
-/// The simulated rig's part: the scripted experts on seeded scenes of each task (`labrig sim
-/// eval`) and snapshots of the five cameras (`labrig sim snapshot`), run by the sim binary.
-fn sim_part(args: &DemoArgs) -> anyhow::Result<serde_json::Value> {
-    let exe = crate::cli::sibling_binary("labrig-sim")?;
-    let bar = ProgressBar::new_spinner();
-    bar.enable_steady_tick(Duration::from_millis(120));
-    let mut tasks = serde_json::Map::new();
-    let mut ok = true;
-    for task in DEMO_TASKS {
-        bar.set_message(format!("simulated rig: {task} expert on {} scenes", args.episodes));
-        let out = std::process::Command::new(&exe)
-            .args(["eval", "--json", "--scene", task, "--episodes", &args.episodes.to_string()])
-            .stderr(std::process::Stdio::inherit())
-            .output()?;
-        if !out.status.success() {
-            bar.finish_and_clear();
-            bail!("labrig sim eval --scene {task} failed ({})", out.status);
-        }
-        let eval: serde_json::Value = serde_json::from_slice(&out.stdout)?;
-        ok &= eval["successes"] == eval["episodes"];
-        tasks.insert(task.to_owned(), eval);
+/// Runs the rig until the control loop has its episodes; returns the episode directories
+/// the recorder reported, in order.
+async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> anyhow::Result<Vec<PathBuf>> {
+    let ros_cfg = RosConfig { domain_id: args.domain_id, ..RosConfig::default() };
+    ros_cfg.validate(Path::new("<command line>"))?;
+    let mut ros = Ros::new(&ros_cfg, "labrig_demo")?;
+    let events = ros.subscription::<EpisodeEvent>("/rig/episode", qos::reliable(100))?;
+    let steps = ros.subscription::<Step>("/rig/step", qos::reliable(1000))?;
+    let status = ros.subscription::<StringMsg>("/recorder/status", qos::reliable(100))?;
+    let bar = ProgressBar::new(args.episodes);
+    bar.set_style(ProgressStyle::with_template("{spinner} demo {bar:25} {pos}/{len} episodes  {msg}  [{elapsed}]")?);
+    if args.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
-    let mut snapshots = Vec::new();
-    for task in ["pick_place", "drawer_open"] {
-        bar.set_message(format!("simulated rig: snapshot of {task}"));
-        let dir = args.out.join(format!("snapshot_{task}_seed0"));
-        let status = std::process::Command::new(&exe)
-            .args(["snapshot", "--scene", task, "--seed", "0", "--out"])
-            .arg(&dir)
-            .stdout(std::process::Stdio::null())
-            .status()?;
-        if !status.success() {
-            bar.finish_and_clear();
-            bail!("labrig sim snapshot --scene {task} failed ({status})");
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar.set_message("starting the simulated rig");
+    let watch = Shutdown::new();
+    let rig = {
+        let watch = watch.clone();
+        let domain = args.domain_id;
+        tokio::spawn(async move {
+            let r = crate::launch::supervise(cfg, order, PathBuf::from("launch_configs"), domain, None, Output::Quiet)
+                .await;
+            watch.trigger();
+            r
+        })
+    };
+    let mut recorded = Vec::new();
+    let mut step_count = 0u64;
+    let mut episode = 0u64;
+    loop {
+        while let Some(e) = events.try_take()? {
+            match e.msg.kind() {
+                Ok(EpisodeEventKind::Start) => {
+                    episode += 1;
+                    step_count = 0;
+                    bar.set_message(format!("episode {episode}: \"{}\"", e.msg.note));
+                }
+                Ok(EpisodeEventKind::Success) => bar.set_message(format!("episode {episode}: success, arm going home")),
+                Ok(EpisodeEventKind::Failure | EpisodeEventKind::Stop) => {
+                    bar.set_message(format!("episode {episode}: failure, arm going home"))
+                }
+                _ => {}
+            }
         }
-        let sheet = dir.join("cameras.png");
-        ok &= sheet.exists();
-        snapshots.push(sheet.display().to_string());
+        while steps.try_take()?.is_some() {
+            step_count += 1;
+            if step_count.is_multiple_of(10) {
+                bar.set_message(format!("episode {episode}: {step_count} steps"));
+            }
+        }
+        while let Some(s) = status.try_take()? {
+            let v: serde_json::Value = serde_json::from_str(&s.msg.data).unwrap_or_default();
+            if v["state"] == "recorded"
+                && let Some(dir) = v["dir"].as_str()
+            {
+                let dir = PathBuf::from(dir);
+                if !recorded.contains(&dir) {
+                    recorded.push(dir);
+                    bar.inc(1);
+                }
+            } else if v["state"] == "error" {
+                bar.println(format!("recorder: {}", v["error"]));
+            }
+        }
+        if watch.is_triggered() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
     }
     bar.finish_and_clear();
-    Ok(json!({ "tasks": tasks, "snapshots": snapshots, "ok": ok }))
+    let code = rig.await.context("the launcher task")??;
+    if code != ExitCode::SUCCESS {
+        bail!("the simulated rig stopped with an error (see above)");
+    }
+    Ok(recorded)
+}
+
+/// One PNG: a row per moment (first, middle, last recorded frame), a column per camera.
+pub fn contact_sheet(mcap_file: &Path, png_out: &Path) -> anyhow::Result<()> {
+    let buf = std::fs::read(mcap_file)?;
+    let mut frames: Vec<Vec<Vec<u8>>> = vec![Vec::new(); RIG_CAMERAS.len()];
+    for m in mcap::MessageStream::new(&buf)? {
+        let m = m?;
+        let Some(cam) = m.channel.topic.strip_prefix("/cameras/").and_then(|t| t.strip_suffix("/image/compressed"))
+        else {
+            continue;
+        };
+        let Some(i) = RIG_CAMERAS.iter().position(|c| *c == cam) else { continue };
+        let img = labrig_msgs::decode::<CompressedImage>(&m.data)?;
+        frames[i].push(img.data);
+    }
+    let n = frames.iter().map(Vec::len).min().unwrap_or(0);
+    anyhow::ensure!(n > 0, "the episode has no frames from every camera");
+    let decode = |jpeg: &[u8]| -> anyhow::Result<(usize, usize, Vec<u8>)> {
+        let mut d = jpeg_decoder::Decoder::new(jpeg);
+        let pixels = d.decode()?;
+        let info = d.info().context("a JPEG without a header")?;
+        anyhow::ensure!(info.pixel_format == jpeg_decoder::PixelFormat::RGB24, "not an RGB JPEG");
+        Ok((info.width as usize, info.height as usize, pixels))
+    };
+    let (w, h, _) = decode(&frames[0][0])?;
+    let rows = [0, n / 2, n - 1];
+    let gap = 4;
+    let (sw, sh) = (RIG_CAMERAS.len() * (w + gap) - gap, rows.len() * (h + gap) - gap);
+    let mut sheet = vec![32u8; sw * sh * 3];
+    for (r, &k) in rows.iter().enumerate() {
+        for (c, cam) in frames.iter().enumerate() {
+            let (fw, fh, px) = decode(&cam[k])?;
+            anyhow::ensure!((fw, fh) == (w, h), "cameras of different sizes ({fw}x{fh} vs {w}x{h})");
+            for y in 0..h {
+                let dst = ((r * (h + gap) + y) * sw + c * (w + gap)) * 3;
+                sheet[dst..dst + w * 3].copy_from_slice(&px[y * w * 3..(y + 1) * w * 3]);
+            }
+        }
+    }
+    let file = std::io::BufWriter::new(std::fs::File::create(png_out)?);
+    let mut enc = png::Encoder::new(file, sw as u32, sh as u32);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header()?.write_image_data(&sheet)?;
+    Ok(())
 }

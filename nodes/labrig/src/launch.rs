@@ -84,6 +84,10 @@ pub struct NodeSpec {
     pub on_failure: Option<OnFailure>,
     #[serde(default = "three")]
     pub max_restarts: u32,
+    /// The node is the rig's job (a control loop collecting N episodes): when it exits
+    /// with status 0 the rig stops, successfully.
+    #[serde(default)]
+    pub completes: bool,
 }
 
 fn three() -> u32 {
@@ -104,6 +108,19 @@ impl LaunchConfig {
         let cfg: LaunchConfig = labrig_runtime::load_config(path)?;
         let order = cfg.validate(path.parent().unwrap_or(Path::new(".")))?;
         Ok((cfg, order))
+    }
+
+    /// Parses and validates a config's text (`origin` names it in errors; config files are
+    /// looked up beside it).
+    pub fn parse(text: &str, origin: &Path) -> anyhow::Result<(LaunchConfig, Vec<usize>)> {
+        let cfg: LaunchConfig = labrig_runtime::config::parse_config(text, origin)?;
+        let order = cfg.validate(origin.parent().unwrap_or(Path::new(".")))?;
+        Ok((cfg, order))
+    }
+
+    /// The node called `name`.
+    pub fn node_mut(&mut self, name: &str) -> Option<&mut NodeSpec> {
+        self.nodes.iter_mut().find(|n| n.name == name)
     }
 
     /// Checks what serde cannot; returns the nodes' start order (dependencies first).
@@ -189,9 +206,13 @@ struct Running {
     up: bool,
 }
 
-fn spawn(spec: &NodeSpec, dir: &Path, domain: u16) -> anyhow::Result<Child> {
+fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Result<Child> {
     let exe = crate::cli::sibling_binary(&spec.program)?;
     let mut cmd = Command::new(&exe);
+    // Quiet: the nodes log warnings and errors only (unless RUST_LOG says otherwise).
+    if out == Output::Quiet && std::env::var_os("RUST_LOG").is_none() {
+        cmd.env("RUST_LOG", "warn,rustdds=off,ros2_client=error,mujoco=warn");
+    }
     cmd.args(&spec.args);
     if let Some(c) = &spec.config {
         cmd.arg("--config").arg(dir.join(c));
@@ -229,16 +250,28 @@ pub fn run(a: LaunchArgs) -> anyhow::Result<ExitCode> {
     }
     let domain = a.domain_id.unwrap_or(cfg.rig.domain_id);
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    rt.block_on(supervise(cfg, order, dir, domain, a.seconds, a.json))
+    let out = if a.json { Output::Json } else { Output::Text };
+    rt.block_on(supervise(cfg, order, dir, domain, a.seconds, out))
 }
 
-async fn supervise(
+/// How the launcher reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Output {
+    Text,
+    Json,
+    /// Failures only (a caller shows its own progress).
+    Quiet,
+}
+
+/// Starts and supervises the rig until Ctrl-C, `seconds`, a failure, or its `completes`
+/// node is done.
+pub async fn supervise(
     cfg: LaunchConfig,
     order: Vec<usize>,
     dir: PathBuf,
     domain: u16,
     seconds: Option<f64>,
-    json_out: bool,
+    out: Output,
 ) -> anyhow::Result<ExitCode> {
     let shutdown = Shutdown::new();
     shutdown.trigger_on_signals()?;
@@ -250,14 +283,14 @@ async fn supervise(
         .map(|s| Running { spec: s.clone(), child: None, restarts: 0, count: 0, rate_hz: 0.0, up: false })
         .collect();
     let started_at = Instant::now();
-    let report = |v: serde_json::Value, text: String| {
-        if json_out {
-            println!("{v}");
-        } else {
-            println!("{text}");
-        }
+    let report = |v: serde_json::Value, text: String| match out {
+        Output::Json => println!("{v}"),
+        Output::Text => println!("{text}"),
+        Output::Quiet if v.get("error").is_some() => eprintln!("{text}"),
+        Output::Quiet => {}
     };
     let mut failure: Option<String> = None;
+    let mut completed: Option<String> = None;
     // Start in order; each node once the nodes it starts after are up.
     let mut health_subs = Vec::new();
     for &i in &order {
@@ -265,7 +298,7 @@ async fn supervise(
             break;
         }
         let spec = running[i].spec.clone();
-        running[i].child = Some(spawn(&spec, &dir, domain)?);
+        running[i].child = Some(spawn(&spec, &dir, domain, out)?);
         report(json!({ "event": "started", "node": spec.name }), format!("started {} ({})", spec.name, spec.program));
         // Up when its health topic appears; a node that exits first has failed to start.
         let waited = Instant::now();
@@ -298,7 +331,11 @@ async fn supervise(
     }
     let deadline = seconds.map(|s| Instant::now() + Duration::from_secs_f64(s));
     let mut window = Instant::now();
-    while failure.is_none() && !shutdown.is_triggered() && deadline.is_none_or(|d| Instant::now() < d) {
+    while failure.is_none()
+        && completed.is_none()
+        && !shutdown.is_triggered()
+        && deadline.is_none_or(|d| Instant::now() < d)
+    {
         tokio::time::sleep(Duration::from_millis(100)).await;
         for (i, sub) in &health_subs {
             while let Ok(Some(_)) = sub.try_take() {
@@ -311,6 +348,10 @@ async fn supervise(
             let Ok(Some(status)) = child.try_wait() else { continue };
             r.child = None;
             r.up = false;
+            if r.spec.completes && status.success() {
+                completed = Some(r.spec.name.clone());
+                break;
+            }
             let policy = r.spec.on_failure.unwrap_or(cfg.rig.on_failure);
             let what = format!("node `{}` exited ({status})", r.spec.name);
             if policy == OnFailure::Restart && r.restarts < r.spec.max_restarts {
@@ -319,7 +360,7 @@ async fn supervise(
                     json!({ "event": "restart", "node": r.spec.name, "status": status.to_string(), "restarts": r.restarts }),
                     format!("{what}: restarting ({}/{})", r.restarts, r.spec.max_restarts),
                 );
-                r.child = Some(spawn(&r.spec, &dir, domain)?);
+                r.child = Some(spawn(&r.spec, &dir, domain, out)?);
                 r.up = true;
             } else {
                 failure = Some(format!("{what}: stopping the rig (on_failure = {policy:?}, {} restarts)", r.restarts));
@@ -362,7 +403,11 @@ async fn supervise(
             Ok(ExitCode::FAILURE)
         }
         None => {
-            report(json!({ "event": "stopped" }), "rig stopped".into());
+            let why = completed.map(|n| format!("node `{n}` completed the rig's job"));
+            report(
+                json!({ "event": "stopped", "completed": why.is_some() }),
+                format!("rig stopped{}", why.map(|w| format!(": {w}")).unwrap_or_default()),
+            );
             Ok(ExitCode::SUCCESS)
         }
     }

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod bench_franka;
 pub mod bench_ik;
+pub mod bench_loop;
 pub mod bench_record;
 pub mod cli;
 pub mod demo;

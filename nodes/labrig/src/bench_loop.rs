@@ -1,0 +1,243 @@
+//! `labrig bench loop`: the rig loop free-running for minutes. The demo's rig
+//! (launch_configs/sim_demo.toml) with the sim bridge in real time on the wall clock's time
+//! line, the control loop on the wall clock, the scripted expert collecting episodes back to
+//! back and the recorder writing all five cameras. Reports the loop's tick period jitter
+//! (p50/p99/max), missed ticks, steps with a missing or stale camera frame, dropped frames
+//! in the recordings, the recorder's (and the bridge's and loop's) CPU, and MB/s written.
+
+use crate::demo::set_arg;
+use crate::launch::{LaunchConfig, Output};
+use anyhow::Context;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+#[derive(Debug, Args)]
+pub struct LoopArgs {
+    /// How long the rig runs (the figure is 300 s).
+    #[arg(long, default_value_t = 300.0)]
+    pub seconds: f64,
+    /// Camera image size.
+    #[arg(long, default_value_t = 128)]
+    pub width: u32,
+    #[arg(long, default_value_t = 128)]
+    pub height: u32,
+    /// Where the episodes and the stats go (default: a temporary directory, removed).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[arg(long, default_value_t = 43)]
+    pub domain_id: u16,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// CPU seconds of a process and when they were read.
+type CpuSample = (f64, Instant);
+
+/// CPU seconds (user + system) of a process, from /proc.
+fn cpu_seconds(pid: u32) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the command name (which may hold spaces) start after the last ')'.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0) // USER_HZ is 100 on Linux
+}
+
+/// The rig's processes: program name -> pid, found by the `--domain-id <domain>` the
+/// launcher gives every node.
+fn rig_pids(domain: u16) -> BTreeMap<String, u32> {
+    let domain = domain.to_string();
+    let mut found = BTreeMap::new();
+    let Ok(dir) = std::fs::read_dir("/proc") else { return found };
+    for e in dir.flatten() {
+        let Some(pid) = e.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else { continue };
+        let Ok(cmd) = std::fs::read(format!("/proc/{pid}/cmdline")) else { continue };
+        let args: Vec<String> = cmd.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect();
+        if !args.windows(2).any(|w| w[0] == "--domain-id" && w[1] == domain) {
+            continue;
+        }
+        if let Some(name) =
+            args.first().and_then(|a| Path::new(a).file_name()).map(|n| n.to_string_lossy().into_owned())
+        {
+            found.insert(name, pid);
+        }
+    }
+    found
+}
+
+pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!(a.seconds >= 10.0 && a.seconds <= 3600.0, "--seconds must be in [10, 3600]");
+    let tmp;
+    let out = match &a.out {
+        Some(p) => {
+            std::fs::create_dir_all(p)?;
+            std::fs::canonicalize(p)?
+        }
+        None => {
+            tmp = std::env::temp_dir().join(format!("labrig-bench-loop-{}", std::process::id()));
+            std::fs::create_dir_all(&tmp)?;
+            tmp.clone()
+        }
+    };
+    let root = out.join("episodes");
+    let stats = out.join("control_stats.json");
+    let (mut cfg, order) = LaunchConfig::parse(crate::demo::SIM_DEMO, Path::new("launch_configs/sim_demo.toml"))?;
+    {
+        let sim = cfg.node_mut("sim").context("no `sim` node")?;
+        set_arg(&mut sim.args, "--mode", "realtime");
+        set_arg(&mut sim.args, "--width", &a.width.to_string());
+        set_arg(&mut sim.args, "--height", &a.height.to_string());
+        sim.args.push("--wall-clock-origin".into());
+        let rec = cfg.node_mut("recorder").context("no `recorder` node")?;
+        set_arg(&mut rec.args, "--root", &root.display().to_string());
+        let ctl = cfg.node_mut("control").context("no `control` node")?;
+        set_arg(&mut ctl.args, "--clock", "wall");
+        set_arg(&mut ctl.args, "--episodes", "0");
+        set_arg(&mut ctl.args, "--stats-out", &stats.display().to_string());
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let bar = ProgressBar::new(a.seconds as u64);
+    bar.set_style(ProgressStyle::with_template("{spinner} bench loop {bar:30} {pos}/{len} s  {msg}")?);
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let started = Instant::now();
+    // First and last sample of each process's CPU seconds, with their times.
+    let mut cpu: BTreeMap<String, [CpuSample; 2]> = BTreeMap::new();
+    let code = rt.block_on(async {
+        let seconds = a.seconds;
+        let rig = tokio::spawn(crate::launch::supervise(
+            cfg,
+            order,
+            PathBuf::from("launch_configs"),
+            a.domain_id,
+            Some(seconds + 15.0),
+            Output::Quiet,
+        ));
+        let mut control_pid = None;
+        while !rig.is_finished() {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            bar.set_position(started.elapsed().as_secs().min(seconds as u64));
+            let pids = rig_pids(a.domain_id);
+            for (name, pid) in &pids {
+                if let Some(c) = cpu_seconds(*pid) {
+                    let e = cpu.entry(name.clone()).or_insert([(c, Instant::now()); 2]);
+                    e[1] = (c, Instant::now());
+                }
+            }
+            if let Some(&pid) = pids.get("labrig-control") {
+                control_pid = Some(pid);
+            }
+            // The measured window ends after `seconds`: stop the control loop (it writes its
+            // stats), the launcher then stops the rig when its job is done.
+            if started.elapsed().as_secs_f64() >= seconds
+                && let Some(pid) = control_pid.take()
+            {
+                bar.set_message("stopping");
+                let _ = std::process::Command::new("kill").args(["-TERM", &pid.to_string()]).status();
+            }
+        }
+        rig.await.context("the launcher task")?
+    })?;
+    bar.finish_and_clear();
+    anyhow::ensure!(code == ExitCode::SUCCESS, "the rig stopped with an error (see above)");
+    let control: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(&stats).with_context(|| format!("the control loop's stats {}", stats.display()))?,
+    )?;
+    // The recordings.
+    let mut episodes = Vec::new();
+    for outcome in ["success", "failure"] {
+        let Ok(dates) = std::fs::read_dir(root.join(outcome)) else { continue };
+        for d in dates.flatten() {
+            for e in std::fs::read_dir(d.path())?.flatten() {
+                episodes.push(e.path());
+            }
+        }
+    }
+    let (mut bytes, mut dropped, mut flagged, mut steps, mut recorded_s) = (0u64, 0u64, 0u64, 0u64, 0.0);
+    for e in &episodes {
+        let i = labrig_recorder::inspect::inspect(e).map_err(anyhow::Error::msg)?;
+        bytes += std::fs::metadata(&i.path).map_or(0, |m| m.len());
+        dropped += i.cameras.iter().map(|c| c.dropped).sum::<u64>();
+        flagged += u64::from(!i.flags.is_empty());
+        steps += i.steps;
+        recorded_s += i.duration_s;
+    }
+    let run_s = control["seconds"].as_f64().unwrap_or(a.seconds);
+    let cpu_pct: BTreeMap<String, f64> = cpu
+        .iter()
+        .map(|(n, [(c0, t0), (c1, t1)])| {
+            (n.clone(), 100.0 * (c1 - c0) / t1.duration_since(*t0).as_secs_f64().max(1e-9))
+        })
+        .collect();
+    let report = json!({
+        "seconds": run_s,
+        "cameras": format!("5 x {}x{} rgb8 -> JPEG q90", a.width, a.height),
+        "ticks": control["ticks"],
+        "tick_jitter_us": { "p50": control["jitter_us"][0], "p99": control["jitter_us"][1], "max": control["jitter_us"][2] },
+        "missed_ticks": control["missed_ticks"],
+        "held_ticks": control["held_ticks"],
+        "steps_missing_frames": control["steps_missing_frames"],
+        "steps_stale_frames": control["steps_stale_frames"],
+        "camera_skew_us": { "p50": control["skew_us"][0], "p99": control["skew_us"][1], "max": control["skew_us"][2] },
+        "episodes": control["episodes"].as_array().map_or(0, Vec::len),
+        "successes": control["episodes"].as_array().map_or(0, |v| v.iter().filter(|e| e["outcome"] == "success").count()),
+        "recorded_episodes": episodes.len(),
+        "recorded_steps": steps,
+        "recorded_seconds": recorded_s,
+        "dropped_frames": dropped,
+        "flagged_episodes": flagged,
+        "mb_written": bytes as f64 / 1e6,
+        "mb_per_s": bytes as f64 / 1e6 / run_s,
+        "mb_per_recorded_s": bytes as f64 / 1e6 / recorded_s.max(1e-9),
+        "cpu_percent": cpu_pct,
+    });
+    if a.out.is_none() {
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    if a.json {
+        println!("{report}");
+    } else {
+        let r = &report;
+        println!(
+            "labrig bench loop: {:.0} s free-running, sim in real time, {}",
+            run_s,
+            r["cameras"].as_str().unwrap_or("")
+        );
+        println!("  (a shared 2-core machine: timings are noisy; compare ratios, rerun before concluding)");
+        println!(
+            "  control loop: {} ticks, period jitter p50 {:.0} us, p99 {:.0} us, max {:.0} us; missed ticks {}",
+            r["ticks"],
+            control["jitter_us"][0].as_f64().unwrap_or(f64::NAN),
+            control["jitter_us"][1].as_f64().unwrap_or(f64::NAN),
+            control["jitter_us"][2].as_f64().unwrap_or(f64::NAN),
+            r["missed_ticks"]
+        );
+        println!(
+            "  observations: {} steps with a camera missing, {} with a stale frame (> 100 ms); skew p50 {:.0} us, p99 {:.0} us",
+            r["steps_missing_frames"],
+            r["steps_stale_frames"],
+            control["skew_us"][0].as_f64().unwrap_or(f64::NAN),
+            control["skew_us"][1].as_f64().unwrap_or(f64::NAN)
+        );
+        println!(
+            "  recorded: {} episodes ({} successful), {} steps, {:.0} s; dropped frames {}, flagged episodes {}",
+            r["recorded_episodes"], r["successes"], steps, recorded_s, dropped, flagged
+        );
+        println!(
+            "  written: {:.1} MB, {:.2} MB/s over the run, {:.2} MB/s while recording",
+            r["mb_written"].as_f64().unwrap_or(0.0),
+            r["mb_per_s"].as_f64().unwrap_or(0.0),
+            r["mb_per_recorded_s"].as_f64().unwrap_or(0.0)
+        );
+        for (n, p) in &cpu_pct {
+            println!("  cpu {n}: {p:.1}% of one core");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
