@@ -101,6 +101,11 @@ pub struct BridgeArgs {
     /// late tick or a scene rebuild is skipped, not caught up.
     #[arg(long)]
     pub wall_clock_origin: bool,
+    /// In realtime, run the bridge's thread (and the renderer threads it starts) at this
+    /// SCHED_FIFO priority (1..99; needs root or CAP_SYS_NICE, else warned): the simulated
+    /// hardware keeps its own pace on a busy machine, as real hardware does.
+    #[arg(long)]
+    pub realtime_priority: Option<u8>,
     /// Stop after this many ticks (default: run until Ctrl-C).
     #[arg(long)]
     pub max_ticks: Option<u64>,
@@ -205,6 +210,19 @@ fn safety_filter(period: Nanos, urdf: Option<&std::path::Path>) -> anyhow::Resul
 
 async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(a.period_ms > 0 && a.period_ms <= 1000, "--period-ms must be in 1..=1000");
+    if let (Some(p), Mode::Realtime) = (a.realtime_priority, a.mode) {
+        // Before the renderer exists: the threads it starts inherit the policy.
+        use thread_priority::{
+            RealtimeThreadSchedulePolicy, ThreadPriority, ThreadSchedulePolicy, set_thread_priority_and_policy,
+            thread_native_id,
+        };
+        let priority =
+            ThreadPriority::Crossplatform(p.try_into().map_err(|e| anyhow::anyhow!("--realtime-priority: {e:?}"))?);
+        let fifo = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
+        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), priority, fifo) {
+            tracing::warn!("cannot run the bridge at SCHED_FIFO {p}: {e:?} (needs root or CAP_SYS_NICE)");
+        }
+    }
     let (spec, assets) = crate::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
     let period = Nanos::from_millis(a.period_ms);
     let mut sim = Sim::new(&assets, &spec, a.seed, period)?;

@@ -169,16 +169,19 @@ impl Proc {
         }
     }
 
-    /// Waits (bounded) for the process to exit and returns its code.
+    /// Waits (bounded) for the process to exit and returns its code (checks at least once,
+    /// so a zero timeout asks whether it has exited).
     pub fn wait_exit(&mut self, timeout: Duration) -> Option<i32> {
         let deadline = Instant::now() + timeout;
-        while Instant::now() < deadline {
+        loop {
             if let Some(status) = self.child.try_wait().expect("try_wait") {
                 return status.code();
             }
+            if Instant::now() >= deadline {
+                return None;
+            }
             std::thread::sleep(Duration::from_millis(20));
         }
-        None
     }
 }
 

@@ -129,7 +129,7 @@ impl Default for ControlConfig {
             cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
             frames_namespace: labrig_runtime::frames::default_namespace(),
             stale_frame_ms: 100.0,
-            max_action_age_ms: 100.0,
+            max_action_age_ms: 150.0,
             source_timeout_s: 5.0,
             home_tolerance_rad: 0.02,
             reset_timeout_s: 20.0,
@@ -368,13 +368,13 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 tokio::time::sleep(Duration::from_micros(200)).await;
             },
             ClockKind::Wall => {
-                // tokio's timers fire up to ~1.5 ms late: wake 1 ms early, sleep the rest.
-                let early = next_wall.checked_sub(Duration::from_millis(1)).unwrap_or(next_wall);
-                tokio::select! {
-                    _ = shutdown.wait() => break 'ticks,
-                    _ = tokio::time::sleep_until(early.into()) => {}
-                }
+                // The loop's own thread sleeps to the tick (a high-resolution timer; at
+                // SCHED_FIFO it runs the moment it wakes). tokio's timers are woken by its
+                // workers at normal priority: 1-5 ms late on a busy machine.
                 std::thread::sleep(next_wall.saturating_duration_since(Instant::now()));
+                if shutdown.is_triggered() {
+                    break 'ticks;
+                }
                 let now = Instant::now();
                 // Behind by more than a period: skip the lost ticks, count them.
                 let behind = now.saturating_duration_since(next_wall).as_nanos() as i64 / period.0;
@@ -583,13 +583,14 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             gripper_position: gripper_target,
             ..Default::default()
         };
-        let wanted = match proposal.filter(|p| p.movement_enabled) {
-            Some(p) => p.command,
-            None => hold(),
+        let (wanted, mut moving) = match proposal.filter(|p| p.movement_enabled) {
+            Some(p) => (p.command, true),
+            None => (hold(), false),
         };
         let safe = match filter.filter(&wanted, &view, tick_ns) {
             Ok(s) => s,
             Err(refusal) => {
+                moving = false;
                 summary.refused += 1;
                 summary.held_ticks += 1;
                 tracing::warn!("refused the action: {refusal}; holding");
@@ -638,7 +639,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 step_end: now(Instant::now()),
             };
             let obs = Observation { robot: robot.clone(), gripper: gripper.clone(), frames };
-            let decision = Decision { action, source: source_kind, movement_enabled: proposal_enabled(&wanted, &view) };
+            let decision = Decision { action, source: source_kind, movement_enabled: moving };
             pubs.step.publish(make_step(&episode_id, episodes.steps, &obs, &decision, &times))?;
             episodes.tick();
         }
@@ -675,11 +676,6 @@ fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
     v.sort_unstable();
     let at = |q: f64| v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).map_or(f64::NAN, |&x| x as f64 / 1e3);
     [at(0.5), at(0.99), at(1.0)]
-}
-
-/// Whether the command moves the arm away from where it was told to be.
-fn proposal_enabled(cmd: &ArmCommand, view: &ArmView) -> bool {
-    !(cmd.mode == ArmCommandMode::JointPosition as u8 && cmd.joint_position == view.commanded)
 }
 
 /// DROID's uuid `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>` (wall time); a second episode in the

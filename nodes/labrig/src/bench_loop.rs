@@ -92,7 +92,7 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
         set_arg(&mut sim.args, "--mode", "realtime");
         set_arg(&mut sim.args, "--width", &a.width.to_string());
         set_arg(&mut sim.args, "--height", &a.height.to_string());
-        sim.args.push("--wall-clock-origin".into());
+        sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
         let rec = cfg.node_mut("recorder").context("no `recorder` node")?;
         set_arg(&mut rec.args, "--root", &root.display().to_string());
         let ctl = cfg.node_mut("control").context("no `control` node")?;

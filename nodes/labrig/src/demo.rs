@@ -63,7 +63,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         let sim = cfg.node_mut("sim").context("sim_demo.toml has no `sim` node")?;
         set_arg(&mut sim.args, "--mode", if args.realtime { "realtime" } else { "lockstep" });
         if args.realtime {
-            sim.args.push("--wall-clock-origin".into());
+            sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
         }
         let rec = cfg.node_mut("recorder").context("sim_demo.toml has no `recorder` node")?;
         set_arg(&mut rec.args, "--root", &root.display().to_string());
