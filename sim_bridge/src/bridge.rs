@@ -232,9 +232,6 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     // A step that starts at wall time w ends at sim time w: its state and frames go out
     // stamped about when they were made, as a real rig's are.
     let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
-    if a.wall_clock_origin {
-        sim.resume_clock(Nanos(wall_line(period)));
-    }
     let safety = safety_filter(period, None)?;
     let mut watchdog = Watchdog::new(safety.config().watchdog_ns());
 
@@ -306,6 +303,10 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     let mut idle_publish = Instant::now();
     let mut late_ticks = 0u64;
     let mut last_tick = Instant::now();
+    if a.wall_clock_origin {
+        sim.resume_clock(Nanos(wall_line(period)));
+    }
+    let sim_start = sim.time();
     report_publish(publish_state(&sim, &pubs, &state));
     if let Some(e) = &mut expert {
         e.publish(&sim);
@@ -377,19 +378,34 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                     let at = sim.time().0 + since_tick;
                     accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, at, arm_sets_gripper);
                 }
-                let now = Instant::now();
-                if now >= next_deadline {
-                    if now > next_deadline + Duration::from_nanos(period.0 as u64) {
-                        late_ticks += 1;
-                        next_deadline = now;
-                        if a.wall_clock_origin {
-                            sim.resume_clock(Nanos(sim.time().0.max(wall_line(period))));
+                if a.wall_clock_origin {
+                    // On the wall clock's line a step ending at sim time T starts when the
+                    // wall clock reaches T: its state goes out stamped T, a compute time later.
+                    let now = labrig_runtime::Clock::Wall.now().0;
+                    let end = sim.time().0 + period.0;
+                    next_deadline = Instant::now() + Duration::from_nanos((end - now).max(0) as u64);
+                    if now >= end {
+                        if now > end + period.0 {
+                            // Late by more than a period: the lost time is skipped.
+                            late_ticks += 1;
+                            sim.resume_clock(Nanos(now - period.0));
                         }
+                        true
+                    } else {
+                        false
                     }
-                    next_deadline += Duration::from_nanos(period.0 as u64);
-                    true
                 } else {
-                    false
+                    let now = Instant::now();
+                    if now >= next_deadline {
+                        if now > next_deadline + Duration::from_nanos(period.0 as u64) {
+                            late_ticks += 1;
+                            next_deadline = now;
+                        }
+                        next_deadline += Duration::from_nanos(period.0 as u64);
+                        true
+                    } else {
+                        false
+                    }
                 }
             }
         };
@@ -402,11 +418,14 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                 }
                 idle_publish = Instant::now();
             }
-            let wait = match a.mode {
-                Mode::Lockstep => Duration::from_micros(200),
-                Mode::Realtime => next_deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(1)),
-            };
-            tokio::time::sleep(wait).await;
+            match a.mode {
+                Mode::Lockstep => tokio::time::sleep(Duration::from_micros(200)).await,
+                // The bridge's own thread sleeps (at most 1 ms, for commands): tokio's timers
+                // are woken by a worker and land 1-5 ms late on a busy machine.
+                Mode::Realtime => std::thread::sleep(
+                    next_deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(1)),
+                ),
+            }
             continue;
         }
         let target =
@@ -458,7 +477,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         idle_publish = Instant::now();
     }
     let wall = started.elapsed().as_secs_f64();
-    let sim_s = sim.time().as_secs_f64();
+    let sim_s = (sim.time().0 - sim_start.0) as f64 / 1e9;
     tracing::info!(
         ticks,
         sim_seconds = sim_s,

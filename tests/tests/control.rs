@@ -140,3 +140,81 @@ fn the_loop_follows_good_actions_refuses_bad_ones_and_fails_over_budget() {
         assert!(steps[&k].robot_state.joint_positions.iter().all(|q| q.is_finite()));
     }
 }
+
+/// Operator events (`labrig episode ...` on /rig/request) drive the loop's episodes: one out
+/// of place is refused, Start carries the instruction, Success ends the episode, the arm
+/// (already home) is reported home, and the loop exits after its one episode.
+#[test]
+fn operator_events_start_and_end_episodes() {
+    let domain = domain_for("control_loop_operator_events");
+    let ns = format!("control_ops_{}", std::process::id());
+    let mut bridge = Command::new(sim_bin());
+    bridge
+        .args(["run", "--mode", "lockstep", "--no-cameras", "--domain-id", &domain.to_string()])
+        .env(NAMESPACE_ENV, &ns);
+    let _bridge = Proc::spawn("labrig-sim run", bridge);
+    let mut control = Command::new(workspace_bin("labrig-control", "labrig-control"));
+    control
+        // Lockstep without cameras runs far faster than 20 Hz: no step budget in the way.
+        .args(["run", "--source", "hold", "--clock", "sim", "--no-reseed", "--episodes", "1", "--max-steps", "1000000"])
+        .args(["--domain-id", &domain.to_string()])
+        .env(NAMESPACE_ENV, &ns);
+    let mut control = Proc::spawn("labrig-control run", control);
+    let episode = |args: &[&str]| {
+        let out = Command::new(labrig_tests::labrig_bin())
+            .arg("episode")
+            .args(args)
+            .args(["--domain-id", &domain.to_string(), "--wait", "60"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "labrig episode {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let (events, steps) = rt().block_on(async {
+        let cfg = RosConfig { domain_id: domain, ..Default::default() };
+        let mut ros = Ros::new(&cfg, "control_ops_test").unwrap();
+        let events = ros.subscription::<EpisodeEvent>("/rig/episode", qos::reliable(100)).unwrap();
+        let step_sub = ros.subscription::<Step>("/rig/step", qos::reliable(1000)).unwrap();
+        // The loop's writers matched before any event (so this test sees all of them).
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while (ros.publisher_count("/rig/episode") == 0 || ros.publisher_count("/rig/step") == 0)
+            && Instant::now() < deadline
+        {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        let mut got = Vec::new();
+        let mut steps = 0u64;
+        let drain = |got: &mut Vec<EpisodeEvent>, steps: &mut u64| {
+            while let Some(e) = events.try_take().unwrap() {
+                got.push(e.msg);
+            }
+            while step_sub.try_take().unwrap().is_some() {
+                *steps += 1;
+            }
+        };
+        // Success while idle: refused by the loop, nothing published.
+        episode(&["success"]);
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        drain(&mut got, &mut steps);
+        assert!(got.is_empty(), "an event out of place is refused: {got:?}");
+        episode(&["start", "--note", "wipe the table"]);
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while steps < 10 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            drain(&mut got, &mut steps);
+        }
+        assert!(steps >= 10, "steps while recording: {steps}");
+        episode(&["success"]);
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while got.len() < 3 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            drain(&mut got, &mut steps);
+        }
+        (got, steps)
+    });
+    let kinds: Vec<u8> = events.iter().map(|e| e.kind).collect();
+    assert_eq!(kinds, vec![0, 2, 5], "Start, Success, Reset: {events:?}");
+    assert_eq!(events[0].note, "wipe the table");
+    assert!(!events[0].episode_id.is_empty() && events.iter().all(|e| e.episode_id == events[0].episode_id));
+    assert!(steps >= 10);
+    assert_eq!(control.wait_exit(Duration::from_secs(30)), Some(0), "the loop exits after its one episode");
+}

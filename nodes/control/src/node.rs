@@ -293,6 +293,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             tracing::warn!("nothing subscribes to /rig/episode: episodes will not be recorded");
         }
     }
+    // The graph shows a reader a little before our writers have matched it: let them settle.
+    tokio::time::sleep(Duration::from_millis(300)).await;
     if cfg.clock == ClockKind::Wall && cfg.realtime_priority > 0 {
         // This future runs on the thread that called block_on: the loop's own thread.
         use thread_priority::{
@@ -323,6 +325,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut seq = 0u64;
     let mut episode_id = String::new();
     let mut episode_seed: Option<u64> = None;
+    let mut episode_instruction = String::new();
     let mut next_seed = cfg.first_seed;
     let mut reset_started: i64 = 0;
     let mut last_tick_ns: Option<i64> = None;
@@ -331,7 +334,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut skew_ns: Vec<i64> = Vec::new();
     let started = Instant::now();
     let mut next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
-    let mut pending_request: Option<EpisodeEventKind> = None;
+    // An operator's event and its note (a Start's task instruction).
+    let mut pending_request: Option<(EpisodeEventKind, String)> = None;
 
     let publish_event = |kind: EpisodeEventKind, id: &str, note: &str, t: i64| {
         let ev = EpisodeEvent {
@@ -432,7 +436,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             None
         }) {
             match r.msg.kind() {
-                Ok(k) => pending_request = Some(k),
+                Ok(k) => pending_request = Some((k, r.msg.note)),
                 Err(e) => tracing::warn!("/rig/request: {e}"),
             }
         }
@@ -441,18 +445,30 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         }
 
         // Episode events: the operator's, then the loop's own.
-        let mut event: Option<EpisodeEventKind> = pending_request.take();
+        let (mut event, mut instruction) = match pending_request.take() {
+            Some((k, note)) => (Some(k), note),
+            None => (None, String::new()),
+        };
+        if instruction.is_empty() {
+            instruction.clone_from(&scene.instruction);
+        }
         let state = episodes.state();
+        if state == State::Idle && cfg.episodes > 0 && summary.episodes.len() as u64 >= cfg.episodes {
+            break;
+        }
         if event.is_none() && state == State::Idle && cfg.auto_start && between == Between::Ready {
-            let done = cfg.episodes > 0 && summary.episodes.len() as u64 >= cfg.episodes;
-            if done {
-                break;
-            }
             // Not before the source has an action for now (after a scene rebuild it may lag).
             let age_ns = (cfg.max_action_age_ms * 1e6) as i64;
             let source_ready =
                 cfg.clock == ClockKind::Sim || source.as_mut().is_none_or(|s| s.action(tick_ns, age_ns).is_ok());
-            if !source_ready {
+            // Nor while a camera that has been sending lags (after a scene rebuild, say).
+            let lagging = book.at(tick_ns, (cfg.stale_frame_ms * 1e6) as i64).stale;
+            if !lagging.is_empty() && summary.ticks.is_multiple_of(40) {
+                let seen = book.at(i64::MAX, i64::MAX).refs;
+                let ages: Vec<f64> = seen.iter().map(|r| (tick_ns - r.capture_ns) as f64 / 1e6).collect();
+                tracing::warn!(cameras = ?lagging, ages_ms = ?ages, "waiting for fresh frames before starting the episode");
+            }
+            if !source_ready || !lagging.is_empty() {
             } else if cfg.reseed {
                 if scene.seed == Some(next_seed) && episode_seed.is_none_or(|s| s != next_seed) {
                     event = Some(EpisodeEventKind::Start);
@@ -512,8 +528,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                     if let Some(s) = source.as_mut() {
                         s.restart(tick_ns);
                     }
-                    publish_event(kind, &episode_id, &scene.instruction, tick_ns);
-                    tracing::info!(episode = %episode_id, seed = ?scene.seed, instruction = %scene.instruction, "episode started");
+                    publish_event(kind, &episode_id, &instruction, tick_ns);
+                    tracing::info!(episode = %episode_id, seed = ?scene.seed, %instruction, "episode started");
+                    episode_instruction.clone_from(&instruction);
                 }
                 Ok(Effect::EndRecording(ending)) => {
                     publish_event(kind, &episode_id, "", tick_ns);
@@ -526,7 +543,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                     summary.episodes.push(EpisodeReport {
                         episode_id: episode_id.clone(),
                         seed: episode_seed,
-                        instruction: scene.instruction.clone(),
+                        instruction: episode_instruction.clone(),
                         outcome: outcome.into(),
                         steps: episodes.steps,
                     });
@@ -666,8 +683,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     summary.jitter_us = percentiles_us(&mut jitter_ns);
     summary.skew_us = percentiles_us(&mut skew_ns);
     summary.seconds = started.elapsed().as_secs_f64();
-    // The last events reach the recorder before the participant goes.
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    // The last events reach their readers (the recorder) before the participant goes.
+    tokio::time::sleep(Duration::from_millis(1000)).await;
     Ok(summary)
 }
 
@@ -755,6 +772,15 @@ mod tests {
         let second = episode_uuid("LAB", "op", &[report(&first)], 0);
         assert_ne!(first, second);
         assert!(first.starts_with("LAB+op+20"));
+    }
+
+    #[test]
+    fn the_real_rigs_config_file_loads() {
+        let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../launch_configs/nodes/control_real.toml");
+        let c: ControlConfig = labrig_runtime::load_config(&p).unwrap();
+        assert_eq!(c.validate(), Ok(()));
+        assert_eq!((c.source, c.clock, c.auto_start), (SourceKind::Hold, ClockKind::Wall, false));
+        assert_eq!(c.safety.max_command_age_s, 0.0);
     }
 
     #[test]

@@ -26,9 +26,11 @@ pub enum Command {
     Launch(crate::launch::LaunchArgs),
     /// What an episode holds and how well it was recorded (exit 3 when something is flagged).
     Inspect(crate::inspect::InspectArgs),
+    /// Tell the rig loop to start or end an episode (start | success | failure | discard | stop).
+    Episode(crate::episode::EpisodeArgs),
     /// Make an episode whose recorder died whole again (up to its last closed chunk).
     Recover(crate::recover::RecoverArgs),
-    /// The main job on a fresh machine: run what the rig has so far and report it.
+    /// The main job on a fresh machine: the simulated rig records scripted pick-and-place episodes.
     Demo(crate::demo::DemoArgs),
     /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
     #[command(disable_help_flag = true)]
@@ -148,6 +150,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
         Command::Demo(a) => crate::demo::run(a),
+        Command::Episode(a) => crate::episode::run(a),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),

@@ -9,6 +9,7 @@ pub mod bench_loop;
 pub mod bench_record;
 pub mod cli;
 pub mod demo;
+pub mod episode;
 pub mod inspect;
 pub mod json;
 pub mod launch;

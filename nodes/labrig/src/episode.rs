@@ -1,0 +1,74 @@
+//! `labrig episode start|success|failure|discard|stop`: an operator's episode event for the rig
+//! loop (on `/rig/request`). The loop applies it if it makes sense in its state (a Success
+//! while idle is refused, named in its log) and publishes what happened on `/rig/episode`.
+
+use crate::cli::RosArgs;
+use clap::{Args, ValueEnum};
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+use labrig_msgs::std_msgs::StringMsg;
+use labrig_runtime::ros::{Ros, qos};
+use std::process::ExitCode;
+use std::time::Duration;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Kind {
+    Start,
+    Success,
+    Failure,
+    Discard,
+    /// End without a label (recorded as a failure, as in DROID).
+    Stop,
+}
+
+#[derive(Debug, Args)]
+pub struct EpisodeArgs {
+    #[arg(value_enum)]
+    kind: Kind,
+    /// The task instruction (for `start`).
+    #[arg(long, default_value = "")]
+    note: String,
+    /// How long to wait for the rig loop (s).
+    #[arg(long, default_value_t = 10.0)]
+    wait: f64,
+    #[command(flatten)]
+    ros: RosArgs,
+}
+
+pub fn run(a: EpisodeArgs) -> anyhow::Result<ExitCode> {
+    let kind = match a.kind {
+        Kind::Start => EpisodeEventKind::Start,
+        Kind::Success => EpisodeEventKind::Success,
+        Kind::Failure => EpisodeEventKind::Failure,
+        Kind::Discard => EpisodeEventKind::Discard,
+        Kind::Stop => EpisodeEventKind::Stop,
+    };
+    let cfg = a.ros.config()?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    rt.block_on(async {
+        let mut ros = Ros::new(&cfg, "labrig_episode")?;
+        let publisher = ros.publisher::<EpisodeEvent>("/rig/request", qos::reliable(10))?;
+        let status = ros.subscription::<StringMsg>("/control/status", qos::latched(1))?;
+        // The loop is running (its latched status is out) and listens for requests.
+        let deadline = std::time::Instant::now() + Duration::from_secs_f64(a.wait.max(0.1));
+        let mut running = false;
+        while std::time::Instant::now() < deadline {
+            running |= status.try_take()?.is_some();
+            if running && ros.subscription_count("/rig/request") > 0 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if !running || ros.subscription_count("/rig/request") == 0 {
+            eprintln!("no rig loop (labrig-control) on domain {} within {} s", cfg.domain_id, a.wait);
+            return Ok(ExitCode::from(2));
+        }
+        // The ROS graph shows the reader a little before this writer has matched it (SEDP is
+        // processed on DDS's own thread); a volatile sample sent in between is lost.
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        publisher.publish(EpisodeEvent { kind: kind as u8, note: a.note.clone(), ..Default::default() })?;
+        // Reliable delivery before the participant goes.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        println!("sent {kind:?} to the rig loop");
+        Ok(ExitCode::SUCCESS)
+    })
+}
