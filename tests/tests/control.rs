@@ -29,7 +29,7 @@ fn special(k: u64) -> bool {
 
 #[test]
 fn the_loop_follows_good_actions_refuses_bad_ones_and_fails_over_budget() {
-    let domain = domain_for("control_loop_against_the_bridge");
+    let domain = domain_for("control_loop_vs_lockstep_bridge");
     let ns = format!("control_{}", std::process::id());
     let mut bridge = Command::new(sim_bin());
     bridge
