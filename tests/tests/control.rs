@@ -137,6 +137,9 @@ fn the_loop_follows_good_actions_refuses_bad_ones_and_fails_over_budget() {
         }
         // Every recorded action is finite (a NaN never reaches a command or the record).
         assert!(joints(k).iter().all(|q| q.is_finite()), "step {k}");
+        let a = &steps[&k].action;
+        let values = a.cartesian_position.iter().chain(&a.cartesian_velocity).chain(&a.target_cartesian_position);
+        assert!(values.chain(&a.joint_velocity).all(|v| v.is_finite()), "step {k}: {a:?}");
         assert!(steps[&k].robot_state.joint_positions.iter().all(|q| q.is_finite()));
     }
 }

@@ -600,7 +600,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             gripper_position: gripper_target,
             ..Default::default()
         };
-        let (wanted, mut moving) = match proposal.filter(|p| p.movement_enabled) {
+        let (mut wanted, mut moving) = match proposal.filter(|p| p.movement_enabled) {
             Some(p) => (p.command, true),
             None => (hold(), false),
         };
@@ -608,13 +608,15 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             Ok(s) => s,
             Err(refusal) => {
                 moving = false;
+                // The record holds what was done (a hold), never the refused values.
+                wanted = hold();
                 summary.refused += 1;
                 summary.held_ticks += 1;
                 tracing::warn!("refused the action: {refusal}; holding");
-                filter.filter(&hold(), &view, tick_ns).map_err(|e| anyhow::anyhow!("cannot even hold the arm: {e}"))?
+                filter.filter(&wanted, &view, tick_ns).map_err(|e| anyhow::anyhow!("cannot even hold the arm: {e}"))?
             }
         };
-        let action = action_dict(&kin, &robot, gripper.as_ref(), &wanted, &safe.joints, safe.gripper, period);
+        let action = action_dict(&kin, &robot, gripper.as_ref(), &wanted, &safe.joints, safe.gripper);
         // Send.
         let sleep_start = now(Instant::now());
         seq += 1;
@@ -721,7 +723,6 @@ fn action_dict(
     wanted: &ArmCommand,
     joints: &Joints,
     gripper_target: f64,
-    _period: Nanos,
 ) -> ActionDict {
     let here = kin.tcp_pose(&robot.joint_positions);
     let target = kin.tcp_pose(joints);
