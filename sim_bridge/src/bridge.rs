@@ -14,8 +14,9 @@
 //!   sampled values as JSON, for recordings.
 //!
 //! `/sim/reset` (std_msgs/String, JSON `{"seed": N}`) rebuilds the scene with that seed at
-//! the reset pose between episodes; sim time goes on (one monotonic time line for the
-//! recorder), `/sim/scene` and `/tf_static` are published again.
+//! the reset pose between episodes; sim time goes on a period later (one monotonic time line
+//! for the recorder; the new scene's first state is a tick of its own), `/sim/scene` (with
+//! the spec, so a recording can rebuild it) and `/tf_static` are published again.
 //!
 //! Subscribes: `/arm/command` (labrig_msgs/ArmCommand, any of its five modes) and
 //! `/gripper/command` (labrig_msgs/GripperCommand, 0 open .. 1 closed -> the 2F-85's 0..255).
@@ -200,7 +201,7 @@ pub fn camera_info(t: Nanos, camera: &str, width: usize, height: usize, fovy_deg
 }
 
 /// The safety layer of the franka node, on the FR3's URDF, for the sim's control period.
-fn safety_filter(period: Nanos, urdf: Option<&std::path::Path>) -> anyhow::Result<SafetyFilter> {
+pub(crate) fn safety_filter(period: Nanos, urdf: Option<&std::path::Path>) -> anyhow::Result<SafetyFilter> {
     let urdf = labrig_franka::urdf_path(urdf);
     let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)?;
     let ik = labrig_franka::ik::Ik::new(kin, labrig_franka::ik::IkConfig::default());
@@ -285,7 +286,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         })
         .collect::<Result<_, _>>()?;
 
-    publish_scene(&sim, &scene_pub, &tf_static)?;
+    publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
     tracing::info!(
         mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.domain_id,
         "sim bridge up"
@@ -322,8 +323,9 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                         next.enable_cameras(a.width, a.height, a.meshes)?;
                     }
                     // On the wall clock's time line the rebuild's time is lost, as a real rig's.
+                    // The new scene starts a period on: its first state is a tick of its own.
                     let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
-                    next.resume_clock(Nanos(sim.time().0.max(now)));
+                    next.resume_clock(Nanos((sim.time().0 + period.0).max(now)));
                     sim = next;
                     fovy = fovys(&sim);
                     state = CommandState {
@@ -335,7 +337,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                         ..Default::default()
                     };
                     watchdog = Watchdog::new(safety.config().watchdog_ns());
-                    publish_scene(&sim, &scene_pub, &tf_static)?;
+                    publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
                     if let Some(e) = &mut expert {
                         e.expert = crate::expert::Expert::new(&sim);
                     }
@@ -548,9 +550,13 @@ fn publish_scene(
     sim: &Sim,
     scene_pub: &RosPublisher<StringMsg>,
     tf_static: &RosPublisher<TFMessage>,
+    spec: &crate::scene::SceneSpec,
 ) -> anyhow::Result<()> {
     let scene: &SceneValues = sim.scene();
-    scene_pub.publish(StringMsg { data: serde_json::to_string(scene)? })?;
+    // The sampled values, and the spec they came from (so a recording can rebuild the scene).
+    let mut json = serde_json::to_value(scene)?;
+    json["spec"] = serde_json::to_value(spec)?;
+    scene_pub.publish(StringMsg { data: json.to_string() })?;
     let statics: Vec<TransformStamped> = scene
         .cameras
         .keys()

@@ -16,6 +16,7 @@ pub mod bench;
 pub mod bridge;
 pub mod expert;
 pub mod render;
+pub mod replay;
 pub mod rig;
 pub mod scene;
 pub mod sim;

@@ -33,6 +33,8 @@ enum Command {
     Run(labrig_sim::bridge::BridgeArgs),
     /// Physics steps per second, render time per frame, real-time factor.
     Bench(labrig_sim::bench::BenchArgs),
+    /// Replay a recorded episode's actions against its rebuilt scene; compare the states (exit 5 beyond tolerances).
+    Replay(labrig_sim::replay::ReplayArgs),
 }
 
 /// Which scene: a spec file (default: the built-in pick-and-place scene) and a seed.
@@ -92,6 +94,7 @@ fn main() -> ExitCode {
         Command::Eval(a) => eval(a),
         Command::Bench(a) => labrig_sim::bench::run(a),
         Command::Run(a) => labrig_sim::bridge::run(a),
+        Command::Replay(a) => labrig_sim::replay::run(a),
     };
     match result {
         Ok(code) => code,

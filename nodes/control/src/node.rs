@@ -224,6 +224,13 @@ struct Scene {
     instruction: String,
 }
 
+impl Scene {
+    fn parse(json: &str) -> Result<Scene, serde_json::Error> {
+        let v: serde_json::Value = serde_json::from_str(json)?;
+        Ok(Scene { seed: v["seed"].as_u64(), instruction: v["instruction"].as_str().unwrap_or_default().to_owned() })
+    }
+}
+
 /// What the loop is doing between episodes.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Between {
@@ -411,14 +418,21 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         while let Some(g) = gripper_state.try_take()? {
             gripper = Some(g.msg);
         }
-        while let Some(s) = scene_sub.try_take()? {
-            match serde_json::from_str::<serde_json::Value>(&s.msg.data) {
-                Ok(v) => {
-                    scene = Scene {
-                        seed: v["seed"].as_u64(),
-                        instruction: v["instruction"].as_str().unwrap_or_default().to_owned(),
-                    }
+        // On the sim's clock the gripper's state of this same instant follows the arm's on its
+        // own topic: wait for it (bounded), so a step's gripper reading is not a tick old.
+        if cfg.clock == ClockKind::Sim && gripper.is_some() {
+            let stamp = |g: &Option<GripperState>| g.as_ref().map_or(i64::MIN, |g| Nanos::from(g.header.stamp).0);
+            let deadline = Instant::now() + Duration::from_millis(500);
+            while stamp(&gripper) < tick_ns && Instant::now() < deadline && !shutdown.is_triggered() {
+                tokio::time::sleep(Duration::from_micros(100)).await;
+                while let Some(g) = gripper_state.try_take()? {
+                    gripper = Some(g.msg);
                 }
+            }
+        }
+        while let Some(s) = scene_sub.try_take()? {
+            match Scene::parse(&s.msg.data) {
+                Ok(sc) => scene = sc,
                 Err(e) => tracing::warn!("/sim/scene is not JSON: {e}"),
             }
         }
@@ -445,6 +459,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         }
 
         // Episode events: the operator's, then the loop's own.
+        let mut skip_command = false;
         let (mut event, mut instruction) = match pending_request.take() {
             Some((k, note)) => (Some(k), note),
             None => (None, String::new()),
@@ -455,6 +470,28 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         let state = episodes.state();
         if state == State::Idle && cfg.episodes > 0 && summary.episodes.len() as u64 >= cfg.episodes {
             break;
+        }
+        if let Between::Reseeding { seed, asked_at } = between {
+            // Lockstep: the state after the rebuild is the first tick of the new scene (the
+            // bridge resumes a period on); its scene message may trail it on its own topic.
+            if cfg.clock == ClockKind::Sim && tick_ns > asked_at && scene.seed != Some(seed) {
+                let deadline = Instant::now() + Duration::from_secs(30);
+                while scene.seed != Some(seed) && Instant::now() < deadline && !shutdown.is_triggered() {
+                    tokio::time::sleep(Duration::from_micros(200)).await;
+                    while let Some(m) = scene_sub.try_take()? {
+                        scene = Scene::parse(&m.msg.data).unwrap_or(scene);
+                    }
+                }
+            }
+            if scene.seed == Some(seed) {
+                // This tick starts the episode, from the new scene's first state.
+                between = Between::Ready;
+                commanded = None;
+            } else if tick_ns - asked_at > 30_000_000_000 {
+                anyhow::bail!(
+                    "the sim did not load scene seed {seed} within 30 s of /sim/reset (is it `labrig sim run`?)"
+                );
+            }
         }
         if event.is_none() && state == State::Idle && cfg.auto_start && between == Between::Ready {
             // Not before the source has an action for now (after a scene rebuild it may lag).
@@ -476,20 +513,11 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                     let msg = StringMsg { data: json!({ "seed": next_seed }).to_string() };
                     pubs.reset.publish(msg)?;
                     between = Between::Reseeding { seed: next_seed, asked_at: tick_ns };
+                    // Lockstep: no step of the old scene after this; the next state is the new one's.
+                    skip_command = cfg.clock == ClockKind::Sim;
                 }
             } else {
                 event = Some(EpisodeEventKind::Start);
-            }
-        }
-        if let Between::Reseeding { seed, asked_at } = between {
-            if scene.seed == Some(seed) {
-                // The next tick starts the episode (once the source has caught up).
-                between = Between::Ready;
-                commanded = None;
-            } else if tick_ns - asked_at > 30_000_000_000 {
-                anyhow::bail!(
-                    "the sim did not load scene seed {seed} within 30 s of /sim/reset (is it `labrig sim run`?)"
-                );
             }
         }
         if event.is_none() && episodes.recording() {
@@ -622,6 +650,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         seq += 1;
         let stamp: labrig_msgs::builtin_interfaces::Time = Nanos(tick_ns).into();
         let control_start = now(Instant::now());
+        if skip_command {
+            continue 'ticks;
+        }
         if let Err(e) = pubs.gripper.publish(GripperCommand {
             header: Header { stamp, frame_id: String::new() },
             position: safe.gripper,

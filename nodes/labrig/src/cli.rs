@@ -39,6 +39,14 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Replay a recorded episode against the simulated rig: `labrig replay <episode> --sim
+    /// [--json] [--max-tcp-error-m 0.005 ...]` (exit 5 when it deviates beyond the tolerances).
+    #[command(disable_help_flag = true)]
+    Replay {
+        /// The episode, `--sim`, and the options of `labrig-sim replay`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The FR3 arm node: `labrig franka run --robot-ip 172.16.0.2`, or `--backend sim` in front
     /// of the sim bridge (see `labrig franka run --help`).
     #[command(disable_help_flag = true)]
@@ -73,6 +81,21 @@ pub fn node(name: &str, args: &[String]) -> anyhow::Result<ExitCode> {
         Some(c) => ExitCode::from(c.clamp(0, 255) as u8),
         None => ExitCode::from(1),
     })
+}
+
+/// `labrig replay <episode> --sim ...` -> `labrig-sim replay <episode> ...` (the simulated rig
+/// is the only replay target so far; `--sim` says so explicitly).
+pub fn replay(args: &[String]) -> anyhow::Result<ExitCode> {
+    if args.iter().any(|a| a == "--help" || a == "-h") {
+        return node("labrig-sim", &["replay".to_owned(), "--help".to_owned()]);
+    }
+    anyhow::ensure!(
+        args.iter().any(|a| a == "--sim"),
+        "labrig replay needs --sim: episodes replay against the simulated rig (no real-robot replay)"
+    );
+    let mut forwarded = vec!["replay".to_owned()];
+    forwarded.extend(args.iter().filter(|a| *a != "--sim").cloned());
+    node("labrig-sim", &forwarded)
 }
 
 /// A labrig program installed next to the running `labrig` binary.
@@ -151,6 +174,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Launch(a) => crate::launch::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Episode(a) => crate::episode::run(a),
+        Command::Replay { args } => replay(&args),
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),

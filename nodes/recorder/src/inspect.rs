@@ -105,8 +105,45 @@ struct Topic {
 
 /// Reads `path` (an episode file or its directory).
 pub fn inspect(path: &Path) -> Result<Inspection, String> {
+    let Scan { file, complete, damage, topics, steps, droid } = scan(path)?;
+    Ok(summarise(file, complete, damage, topics, steps, droid))
+}
+
+/// What replay and export need of an episode: its steps in order and its metadata.
+#[derive(Debug, Clone)]
+pub struct EpisodeData {
+    pub file: PathBuf,
+    /// The file was finished (an unfinished one is read up to its damage).
+    pub complete: bool,
+    pub metadata: Option<EpisodeMetadata>,
+    /// `/rig/step` records by step index.
+    pub steps: Vec<Step>,
+}
+
+/// Reads an episode's steps and metadata (`path`: the episode file or its directory).
+pub fn read_episode(path: &Path) -> Result<EpisodeData, String> {
+    let Scan { file, complete, mut steps, droid, .. } = scan(path)?;
+    steps.sort_by_key(|s| s.step_index);
+    let metadata = droid.as_ref().map(EpisodeMetadata::from_record).transpose()?;
+    Ok(EpisodeData { file, complete, metadata, steps })
+}
+
+struct Scan {
+    file: PathBuf,
+    complete: bool,
+    damage: Option<String>,
+    topics: BTreeMap<String, Topic>,
+    steps: Vec<Step>,
+    droid: Option<BTreeMap<String, String>>,
+}
+
+/// One pass over every record of the file (chunks included), up to the first damage.
+fn scan(path: &Path) -> Result<Scan, String> {
     let file = if path.is_dir() { path.join(crate::episode::EPISODE_FILE) } else { path.to_owned() };
     let buf = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    if !buf.starts_with(mcap::MAGIC) {
+        return Err(format!("{}: not an MCAP file (it does not start with MCAP's magic bytes)", file.display()));
+    }
     let complete = mcap::Summary::read(&buf).ok().flatten().is_some();
     let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
         .map_err(|e| format!("{}: not an MCAP file: {e}", file.display()))?;
@@ -187,7 +224,7 @@ pub fn inspect(path: &Path) -> Result<Inspection, String> {
             break;
         }
     }
-    Ok(summarise(file, complete, damage, topics, steps, droid))
+    Ok(Scan { file, complete, damage, topics, steps, droid })
 }
 
 fn summarise(

@@ -1,0 +1,347 @@
+//! `labrig replay <episode> --sim` (run as `labrig-sim replay`): a recorded episode's actions
+//! fed back through the rig's own path against the rebuilt scene, and the resulting robot
+//! state compared with the recorded one.
+//!
+//! The scene comes from the episode's metadata (the sim scene: spec and seed) or `--scene` /
+//! `--seed`. Each step's recorded action (the joint targets the loop sent, and the gripper)
+//! goes through the same safety layer as in the bridge and steps the physics one control
+//! period, in lockstep. Before step 0 the rig may have stood a few ticks after its scene was
+//! loaded (the loop holds the arm until the episode starts): replay holds the same way and
+//! starts where the recorded first state is matched best (reported as `aligned_ticks`).
+//! Compared per step before each action: joints, TCP position and orientation, gripper; at the
+//! end, the task's success then (metadata) and now (the expert's predicate on the physics).
+
+use crate::bridge::safety_filter;
+use crate::expert::{euler_xyz, task_success};
+use crate::scene::SceneSpec;
+use crate::{ArmTarget, Meshes, Sim};
+use anyhow::Context;
+use labrig_franka::safety::ArmView;
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState, Step};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+/// Exit status when the replay deviates beyond the tolerances.
+pub const EXIT_DEVIATION: u8 = 5;
+
+#[derive(Debug, clap::Args)]
+pub struct ReplayArgs {
+    /// The episode: its directory or its .mcap file.
+    pub episode: PathBuf,
+    /// Rebuild the scene from this spec (file or built-in name) instead of the episode's.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// The scene seed (default: the episode's).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    pub assets: Option<PathBuf>,
+    /// Render the five cameras every step (as the bridge does), for the speed figure.
+    #[arg(long)]
+    pub cameras: bool,
+    #[arg(long, default_value_t = 128)]
+    pub width: usize,
+    #[arg(long, default_value_t = 128)]
+    pub height: usize,
+    /// Tolerances: the replay fails (exit 5) when a maximum error exceeds one.
+    #[arg(long, default_value_t = 0.01)]
+    pub max_joint_error_rad: f64,
+    #[arg(long, default_value_t = 0.005)]
+    pub max_tcp_error_m: f64,
+    #[arg(long, default_value_t = 0.02)]
+    pub max_rotation_error_rad: f64,
+    #[arg(long, default_value_t = 0.05)]
+    pub max_gripper_error: f64,
+    /// Add this (rad) to every recorded joint-1 target: a what-if, and the proof the check fails.
+    #[arg(long, default_value_t = 0.0)]
+    pub perturb_joint1_rad: f64,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Max and RMS of one error series.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq)]
+pub struct Error {
+    pub max: f64,
+    pub rms: f64,
+}
+
+impl Error {
+    fn of(v: &[f64]) -> Error {
+        if v.is_empty() {
+            return Error::default();
+        }
+        Error {
+            max: v.iter().copied().fold(0.0, f64::max),
+            rms: (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub episode: PathBuf,
+    pub scene: String,
+    pub seed: u64,
+    pub steps: usize,
+    pub aligned_ticks: usize,
+    pub joint_rad: Vec<Error>,
+    pub tcp_m: Error,
+    pub rotation_rad: Error,
+    pub gripper: Error,
+    pub success_recorded: Option<bool>,
+    pub success_replayed: bool,
+    /// Simulated seconds per wall second.
+    pub realtime_factor: f64,
+    pub steps_per_s: f64,
+    pub cameras: bool,
+    /// Which tolerances were exceeded (empty: the replay passed).
+    pub exceeded: Vec<String>,
+    /// Recorded vs replayed TCP position per step (m).
+    pub tcp_recorded: Vec<[f64; 3]>,
+    pub tcp_replayed: Vec<[f64; 3]>,
+}
+
+fn rotation(euler: &[f64]) -> Rotation3<f64> {
+    Rotation3::from_euler_angles(euler[0], euler[1], euler[2])
+}
+
+/// The scene of a recorded episode: its spec and seed from the metadata's sim scene.
+fn recorded_scene(sim_scene: Option<&str>) -> anyhow::Result<(SceneSpec, u64)> {
+    let json = sim_scene.context(
+        "the episode has no sim scene in its metadata (not recorded in the simulated rig?): give --scene and --seed",
+    )?;
+    let v: serde_json::Value = serde_json::from_str(json).context("the episode's sim scene is not JSON")?;
+    let spec = v.get("spec").cloned().context(
+        "the episode's sim scene has no spec (recorded before scenes carried theirs): give --scene (e.g. pick_place)",
+    )?;
+    let spec: SceneSpec = serde_json::from_value(spec).context("the episode's scene spec")?;
+    let seed = v["seed"].as_u64().context("the episode's sim scene has no seed")?;
+    Ok((spec, seed))
+}
+
+pub fn run(a: ReplayArgs) -> anyhow::Result<ExitCode> {
+    let r = replay(&a)?;
+    if a.json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else {
+        print!("{}", text(&r));
+    }
+    Ok(if r.exceeded.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(EXIT_DEVIATION) })
+}
+
+pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
+    let ep = labrig_recorder::inspect::read_episode(&a.episode).map_err(anyhow::Error::msg)?;
+    anyhow::ensure!(
+        !ep.steps.is_empty(),
+        "{}: no /rig/step records{}: nothing to replay",
+        ep.file.display(),
+        if ep.complete {
+            ""
+        } else {
+            " in its readable part (the file is unfinished or truncated; try `labrig recover`)"
+        }
+    );
+    let meta = ep.metadata.as_ref();
+    let (spec, seed) = match &a.scene {
+        Some(path) => {
+            let (spec, _) = crate::resolve_scene(Some(path), a.assets.as_deref())?;
+            let seed = match a.seed {
+                Some(s) => s,
+                None => recorded_scene(meta.and_then(|m| m.sim_scene.as_deref()))?.1,
+            };
+            (spec, seed)
+        }
+        None => {
+            let (spec, seed) = recorded_scene(meta.and_then(|m| m.sim_scene.as_deref()))?;
+            (spec, a.seed.unwrap_or(seed))
+        }
+    };
+    let steps: &[Step] = &ep.steps;
+    for (k, s) in steps.iter().enumerate() {
+        anyhow::ensure!(
+            s.step_index == k as u64,
+            "{}: step {k} is missing (found index {} there): replay needs every step",
+            ep.file.display(),
+            s.step_index
+        );
+    }
+    let stamp = |s: &Step| Nanos::from(s.header.stamp).0;
+    let period = if steps.len() > 1 { Nanos(stamp(&steps[1]) - stamp(&steps[0])) } else { Nanos::from_millis(50) };
+    anyhow::ensure!(period.0 > 0, "{}: steps 0 and 1 have the same stamp", ep.file.display());
+    let assets = crate::assets_dir(a.assets.as_deref());
+    let safety = safety_filter(period, None)?;
+    let build = || -> anyhow::Result<Sim> {
+        let mut sim =
+            Sim::new(&assets, &spec, seed, period).with_context(|| format!("scene {} seed {seed}", spec.name))?;
+        if a.cameras {
+            sim.enable_cameras(a.width, a.height, Meshes::Collision)?;
+        }
+        Ok(sim)
+    };
+    // The arm held after the scene loaded (the loop's hold: its measured joints, gripper open).
+    let hold = |sim: &mut Sim, commanded: &mut Option<[f64; 7]>| -> anyhow::Result<()> {
+        let cmd = ArmCommand {
+            mode: ArmCommandMode::JointPosition as u8,
+            joint_position: commanded.unwrap_or_else(|| sim.joint_positions()),
+            ..Default::default()
+        };
+        let view =
+            ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
+        let ok = safety.filter(&cmd, &view, sim.time().0).map_err(|e| anyhow::anyhow!("holding: {e}"))?;
+        let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+        sim.check(&t)?;
+        sim.step(&t)?;
+        *commanded = Some(ok.joints);
+        Ok(())
+    };
+    let first = &steps[0].robot_state;
+    let distance = |sim: &Sim, r: &RobotState| {
+        let q = sim.joint_positions();
+        (0..7)
+            .map(|i| (q[i] - r.joint_positions[i]).abs())
+            .fold((sim.gripper_position() - r.gripper_position).abs(), f64::max)
+    };
+    // Align: how many held ticks after the scene loaded match the recorded first state best.
+    const MAX_ALIGN: usize = 20;
+    let mut sim = build()?;
+    let mut commanded = None;
+    let mut best = (distance(&sim, first), 0usize);
+    for k in 1..=MAX_ALIGN {
+        if best.0 == 0.0 {
+            break;
+        }
+        hold(&mut sim, &mut commanded)?;
+        let d = distance(&sim, first);
+        if d < best.0 {
+            best = (d, k);
+        }
+    }
+    let aligned = best.1;
+    if best.0 != 0.0 || commanded.is_some() {
+        sim = build()?;
+        commanded = None;
+        for _ in 0..aligned {
+            hold(&mut sim, &mut commanded)?;
+        }
+    }
+    let started = Instant::now();
+    let mut joint_err: Vec<Vec<f64>> = vec![Vec::with_capacity(steps.len()); 7];
+    let (mut tcp_err, mut rot_err, mut grip_err) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut tcp_recorded, mut tcp_replayed) = (Vec::new(), Vec::new());
+    let mut rgb = Vec::new();
+    for (k, s) in steps.iter().enumerate() {
+        let r = &s.robot_state;
+        let q = sim.joint_positions();
+        for j in 0..7 {
+            joint_err[j].push((q[j] - r.joint_positions[j]).abs());
+        }
+        let (p, rot) = sim.tcp_pose();
+        let rot = Matrix3::from_row_slice(&rot);
+        let rec_p = [r.cartesian_position[0], r.cartesian_position[1], r.cartesian_position[2]];
+        tcp_err.push(((p[0] - rec_p[0]).powi(2) + (p[1] - rec_p[1]).powi(2) + (p[2] - rec_p[2]).powi(2)).sqrt());
+        let here = UnitQuaternion::from_rotation_matrix(&rotation(&euler_xyz(&rot)));
+        let rec = UnitQuaternion::from_rotation_matrix(&rotation(&r.cartesian_position[3..6]));
+        // 2 atan2(|v|, |w|) of the relative rotation: exact near zero, where acos is not.
+        let rel = here.inverse() * rec;
+        rot_err.push(2.0 * rel.imag().norm().atan2(rel.scalar().abs()));
+        grip_err.push((sim.gripper_position() - r.gripper_position).abs());
+        tcp_recorded.push(rec_p);
+        tcp_replayed.push(p);
+        // The recorded action through the bridge's path: safety layer, the sim's own check, one period.
+        let mut target = s.action.joint_position;
+        target[0] += a.perturb_joint1_rad;
+        let cmd = ArmCommand {
+            mode: ArmCommandMode::JointPosition as u8,
+            joint_position: target,
+            gripper_position: s.action.gripper_position,
+            ..Default::default()
+        };
+        let view =
+            ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
+        match safety.filter(&cmd, &view, sim.time().0) {
+            Ok(ok) => {
+                let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+                sim.check(&t).with_context(|| format!("step {k}"))?;
+                sim.step(&t)?;
+                commanded = Some(ok.joints);
+            }
+            Err(e) => {
+                // Refused now (as it would be on the rig): the arm holds, the deviation shows.
+                tracing::warn!("step {k}: the recorded action is refused: {e}; holding");
+                hold(&mut sim, &mut commanded)?;
+            }
+        }
+        if a.cameras {
+            for cam in crate::rig::CAMERAS {
+                sim.render_into(cam, &mut rgb)?;
+            }
+        }
+    }
+    let wall = started.elapsed().as_secs_f64().max(1e-9);
+    let joint_rad: Vec<Error> = joint_err.iter().map(|v| Error::of(v)).collect();
+    let (tcp_m, rotation_rad, gripper) = (Error::of(&tcp_err), Error::of(&rot_err), Error::of(&grip_err));
+    let mut exceeded = Vec::new();
+    let worst_joint = joint_rad.iter().map(|e| e.max).fold(0.0, f64::max);
+    for (what, value, limit) in [
+        ("joint", worst_joint, a.max_joint_error_rad),
+        ("tcp position", tcp_m.max, a.max_tcp_error_m),
+        ("tcp rotation", rotation_rad.max, a.max_rotation_error_rad),
+        ("gripper", gripper.max, a.max_gripper_error),
+    ] {
+        if !(value <= limit) {
+            exceeded.push(format!("{what} error {value:.3e} > {limit:.3e}"));
+        }
+    }
+    Ok(Report {
+        episode: ep.file.clone(),
+        scene: spec.name.clone(),
+        seed,
+        steps: steps.len(),
+        aligned_ticks: aligned,
+        joint_rad,
+        tcp_m,
+        rotation_rad,
+        gripper,
+        success_recorded: meta.and_then(|m| m.success),
+        success_replayed: task_success(&sim),
+        realtime_factor: steps.len() as f64 * period.as_secs_f64() / wall,
+        steps_per_s: steps.len() as f64 / wall,
+        cameras: a.cameras,
+        exceeded,
+        tcp_recorded,
+        tcp_replayed,
+    })
+}
+
+fn text(r: &Report) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let _ = writeln!(s, "replay of {} ({} steps) in scene {} seed {}", r.episode.display(), r.steps, r.scene, r.seed);
+    let _ = writeln!(s, "  started {} held ticks after the scene loaded (as recorded)", r.aligned_ticks);
+    for (j, e) in r.joint_rad.iter().enumerate() {
+        let _ = writeln!(s, "  joint {}: max {:.3e} rad, rms {:.3e} rad", j + 1, e.max, e.rms);
+    }
+    let _ = writeln!(s, "  tcp position: max {:.3e} m, rms {:.3e} m", r.tcp_m.max, r.tcp_m.rms);
+    let _ = writeln!(s, "  tcp rotation: max {:.3e} rad, rms {:.3e} rad", r.rotation_rad.max, r.rotation_rad.rms);
+    let _ = writeln!(s, "  gripper: max {:.3e}, rms {:.3e}", r.gripper.max, r.gripper.rms);
+    let then = r.success_recorded.map_or("unknown".to_string(), |b| b.to_string());
+    let _ = writeln!(s, "  task success: recorded {then}, replayed {}", r.success_replayed);
+    let _ = writeln!(
+        s,
+        "  speed: {:.0} steps/s, {:.1}x real time ({})",
+        r.steps_per_s,
+        r.realtime_factor,
+        if r.cameras { "five cameras rendered" } else { "no rendering" }
+    );
+    if r.exceeded.is_empty() {
+        let _ = writeln!(s, "  PASS: within tolerances");
+    } else {
+        let _ = writeln!(s, "  FAIL: {}", r.exceeded.join("; "));
+    }
+    s
+}
