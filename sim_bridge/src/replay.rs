@@ -230,7 +230,7 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
         }
     }
     let started = Instant::now();
-    let mut joint_err: Vec<Vec<f64>> = vec![Vec::with_capacity(steps.len()); 7];
+    let mut joint_err: Vec<Vec<f64>> = (0..7).map(|_| Vec::with_capacity(steps.len())).collect();
     let (mut tcp_err, mut rot_err, mut grip_err) = (Vec::new(), Vec::new(), Vec::new());
     let (mut tcp_recorded, mut tcp_replayed) = (Vec::new(), Vec::new());
     let mut rgb = Vec::new();
@@ -293,7 +293,8 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
         ("tcp rotation", rotation_rad.max, a.max_rotation_error_rad),
         ("gripper", gripper.max, a.max_gripper_error),
     ] {
-        if !(value <= limit) {
+        // NaN (a diverged replay) counts as exceeded.
+        if !matches!(value.partial_cmp(&limit), Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)) {
             exceeded.push(format!("{what} error {value:.3e} > {limit:.3e}"));
         }
     }
