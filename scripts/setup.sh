@@ -40,6 +40,8 @@ apt_install() {  # apt_install PKG...: install what is missing (apt-get update o
 apt_install tcpdump
 # Offscreen rendering for the sim (EGL + Mesa llvmpipe, no display needed).
 apt_install libegl1 libegl-mesa0 libgl1-mesa-dri
+# The font of the PNG plots' text (replay).
+apt_install fonts-dejavu-core
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.

@@ -61,6 +61,9 @@ pub struct ReplayArgs {
     pub perturb_joint1_rad: f64,
     #[arg(long)]
     pub json: bool,
+    /// Write a PNG: recorded vs replayed TCP trajectory, and the errors over time.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 /// Max and RMS of one error series.
@@ -104,6 +107,11 @@ pub struct Report {
     /// Recorded vs replayed TCP position per step (m).
     pub tcp_recorded: Vec<[f64; 3]>,
     pub tcp_replayed: Vec<[f64; 3]>,
+    /// Per step: TCP position error (m) and the largest joint error (rad).
+    pub tcp_error_m: Vec<f64>,
+    pub joint_error_rad: Vec<f64>,
+    /// The period the steps were recorded at (s).
+    pub period_s: f64,
 }
 
 fn rotation(euler: &[f64]) -> Rotation3<f64> {
@@ -126,6 +134,9 @@ fn recorded_scene(sim_scene: Option<&str>) -> anyhow::Result<(SceneSpec, u64)> {
 
 pub fn run(a: ReplayArgs) -> anyhow::Result<ExitCode> {
     let r = replay(&a)?;
+    if let Some(path) = &a.plot {
+        plot(&r, path).with_context(|| format!("plotting to {}", path.display()))?;
+    }
     if a.json {
         println!("{}", serde_json::to_string(&r)?);
     } else {
@@ -316,6 +327,9 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
         exceeded,
         tcp_recorded,
         tcp_replayed,
+        joint_error_rad: (0..steps.len()).map(|k| (0..7).map(|j| joint_err[j][k]).fold(0.0, f64::max)).collect(),
+        tcp_error_m: tcp_err,
+        period_s: period.as_secs_f64(),
     })
 }
 
@@ -345,4 +359,96 @@ fn text(r: &Report) -> String {
         let _ = writeln!(s, "  FAIL: {}", r.exceeded.join("; "));
     }
     s
+}
+
+/// A sans-serif TrueType font for the plot's text (Debian's DejaVu, installed by setup).
+fn register_font() -> anyhow::Result<()> {
+    static DONE: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
+    DONE.get_or_init(|| {
+        let candidates = ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"];
+        let path = candidates.iter().find(|p| std::path::Path::new(p).exists()).ok_or_else(|| {
+            format!(
+                "no DejaVuSans.ttf for the plot's text (looked in {candidates:?}; apt-get install fonts-dejavu-core)"
+            )
+        })?;
+        let bytes: &'static [u8] =
+            Box::leak(std::fs::read(path).map_err(|e| format!("{path}: {e}"))?.into_boxed_slice());
+        plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
+            .map_err(|_| format!("{path} is not a font ab_glyph can read"))
+    })
+    .clone()
+    .map_err(anyhow::Error::msg)
+}
+
+/// Top: recorded (solid) and replayed (dashed) TCP x, y, z over time. Bottom: the TCP position
+/// error (mm) and the largest joint error (mrad) per step.
+pub fn plot(r: &Report, path: &std::path::Path) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    register_font()?;
+    let err = |e| anyhow::anyhow!("{e:?}");
+    let root = BitMapBackend::new(path, (1200, 900)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let (top, bottom) = root.split_vertically(520);
+    let t: Vec<f64> = (0..r.steps).map(|k| k as f64 * r.period_s).collect();
+    let t_end = t.last().copied().unwrap_or(1.0).max(r.period_s);
+    let all = r.tcp_recorded.iter().chain(&r.tcp_replayed).flat_map(|p| p.iter().copied());
+    let (lo, hi) = all.fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+    let pad = ((hi - lo) * 0.05).max(0.01);
+    let mut chart = ChartBuilder::on(&top)
+        .caption(format!("{}: TCP recorded (solid) vs replayed (dashed)", r.scene), ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..t_end, (lo - pad)..(hi + pad))
+        .map_err(err)?;
+    chart.configure_mesh().x_desc("time (s)").y_desc("position (m)").draw().map_err(err)?;
+    let colours = [RED, RGBColor(0, 150, 0), BLUE];
+    for (axis, name) in ["x", "y", "z"].iter().enumerate() {
+        let c = colours[axis];
+        let rec: Vec<(f64, f64)> = t.iter().zip(&r.tcp_recorded).map(|(&t, p)| (t, p[axis])).collect();
+        chart
+            .draw_series(LineSeries::new(rec, c.stroke_width(2)))
+            .map_err(err)?
+            .label(format!("{name} recorded"))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        let rep: Vec<(f64, f64)> = t.iter().zip(&r.tcp_replayed).map(|(&t, p)| (t, p[axis])).collect();
+        chart
+            .draw_series(DashedLineSeries::new(rep, 6, 4, c.stroke_width(2)))
+            .map_err(err)?
+            .label(format!("{name} replayed"))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(1)));
+    }
+    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
+    let tcp_mm: Vec<f64> = r.tcp_error_m.iter().map(|e| e * 1e3).collect();
+    let joint_mrad: Vec<f64> = r.joint_error_rad.iter().map(|e| e * 1e3).collect();
+    let top_err = tcp_mm.iter().chain(&joint_mrad).copied().filter(|v| v.is_finite()).fold(0.0, f64::max).max(1e-3);
+    let mut chart = ChartBuilder::on(&bottom)
+        .caption(
+            format!(
+                "error per step: TCP max {:.3} mm, joint max {:.3} mrad ({})",
+                r.tcp_m.max * 1e3,
+                r.joint_rad.iter().map(|e| e.max).fold(0.0, f64::max) * 1e3,
+                if r.exceeded.is_empty() { "within tolerances" } else { "EXCEEDS tolerances" }
+            ),
+            ("sans-serif", 22),
+        )
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..t_end, 0.0..top_err * 1.1)
+        .map_err(err)?;
+    chart.configure_mesh().x_desc("time (s)").y_desc("mm / mrad").draw().map_err(err)?;
+    chart
+        .draw_series(LineSeries::new(t.iter().copied().zip(tcp_mm), RED.stroke_width(2)))
+        .map_err(err)?
+        .label("TCP position error (mm)")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
+    chart
+        .draw_series(LineSeries::new(t.iter().copied().zip(joint_mrad), BLUE.stroke_width(2)))
+        .map_err(err)?
+        .label("largest joint error (mrad)")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
+    root.present().map_err(err)?;
+    Ok(())
 }

@@ -46,8 +46,12 @@ fn every_committed_fixture_replays_exactly() {
 #[test]
 fn a_perturbed_action_stream_fails_with_the_deviation_named() {
     let f = &fixtures()[0];
-    let out = replay(f, &["--json", "--perturb-joint1-rad", "0.05"]);
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("replay.png");
+    let out = replay(f, &["--json", "--perturb-joint1-rad", "0.05", "--plot", png.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(5), "{}", String::from_utf8_lossy(&out.stderr));
+    // The picture of it: recorded vs replayed TCP, errors over time.
+    assert!(std::fs::metadata(&png).unwrap().len() > 20_000, "plot {} too small", png.display());
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
     let j1 = r["joint_rad"][0]["max"].as_f64().unwrap();
     assert!(j1 > 0.03, "joint 1 deviates by about the perturbation: {j1}");
