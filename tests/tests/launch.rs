@@ -71,12 +71,13 @@ fn the_sim_rig_starts_reports_health_restarts_and_stops() {
         .current_dir(root.path());
     let mut rig = Proc::spawn("labrig launch", cmd);
     let mut order = Vec::new();
-    while order.len() < 4 {
+    while order.len() < 5 {
         let v = rig.wait_json(Duration::from_secs(120), "nodes coming up", |v| v["event"] == "up");
         order.push(v["node"].as_str().unwrap().to_owned());
     }
     assert_eq!(order[0], "sim");
     assert_eq!(order[3], "recorder", "the recorder starts after franka and gripper: {order:?}");
+    assert_eq!(order[4], "control", "the rig loop starts last: {order:?}");
     let h = rig.wait_json(Duration::from_secs(30), "a health report", |v| v["event"] == "health");
     for n in h["nodes"].as_array().unwrap() {
         assert_eq!(n["up"], true, "{h}");
