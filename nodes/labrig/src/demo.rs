@@ -110,7 +110,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
             println!("  cameras (first, middle, last frame): {}", sheet.display());
         }
         println!();
-        println!("Inspect one again: labrig inspect <dir>; read them with any MCAP or rosbag2 reader.");
+        println!("Inspect one again: labrig inspect <dir>; replay it: labrig replay <dir> --sim [--plot replay.png];");
+        println!("read them with any MCAP or rosbag2 reader.");
     }
     Ok(if ok { ExitCode::SUCCESS } else { ExitCode::from(1) })
 }
