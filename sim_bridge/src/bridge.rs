@@ -213,15 +213,8 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(a.period_ms > 0 && a.period_ms <= 1000, "--period-ms must be in 1..=1000");
     if let (Some(p), Mode::Realtime) = (a.realtime_priority, a.mode) {
         // Before the renderer exists: the threads it starts inherit the policy.
-        use thread_priority::{
-            RealtimeThreadSchedulePolicy, ThreadPriority, ThreadSchedulePolicy, set_thread_priority_and_policy,
-            thread_native_id,
-        };
-        let priority =
-            ThreadPriority::Crossplatform(p.try_into().map_err(|e| anyhow::anyhow!("--realtime-priority: {e:?}"))?);
-        let fifo = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
-        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), priority, fifo) {
-            tracing::warn!("cannot run the bridge at SCHED_FIFO {p}: {e:?} (needs root or CAP_SYS_NICE)");
+        if let Err(e) = labrig_runtime::realtime_priority(p) {
+            tracing::warn!("{e}; the bridge runs at normal priority");
         }
     }
     let (spec, assets) = crate::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;

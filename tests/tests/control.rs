@@ -22,6 +22,15 @@ const STALE_STEP: u64 = 18;
 const FAR_STEPS: std::ops::Range<u64> = 22..25;
 const MAX_STEPS: u64 = 30;
 
+/// The sim bridge in lockstep without cameras (the loop's hardware in these tests).
+fn lockstep_bridge(domain: u16, frames_ns: &str) -> Proc {
+    let mut bridge = Command::new(sim_bin());
+    bridge
+        .args(["run", "--mode", "lockstep", "--no-cameras", "--domain-id", &domain.to_string()])
+        .env(NAMESPACE_ENV, frames_ns);
+    Proc::spawn("labrig-sim run", bridge)
+}
+
 /// A tick with one of the bad actions.
 fn special(k: u64) -> bool {
     NAN_STEPS.contains(&k) || k == STALE_STEP || FAR_STEPS.contains(&k)
@@ -31,11 +40,7 @@ fn special(k: u64) -> bool {
 fn the_loop_follows_good_actions_refuses_bad_ones_and_fails_over_budget() {
     let domain = domain_for("control_loop_vs_lockstep_bridge");
     let ns = format!("control_{}", std::process::id());
-    let mut bridge = Command::new(sim_bin());
-    bridge
-        .args(["run", "--mode", "lockstep", "--no-cameras", "--domain-id", &domain.to_string()])
-        .env(NAMESPACE_ENV, &ns);
-    let _bridge = Proc::spawn("labrig-sim run", bridge);
+    let _bridge = lockstep_bridge(domain, &ns);
     let stats = tempfile::NamedTempFile::new().unwrap();
     let mut control = Command::new(workspace_bin("labrig-control", "labrig-control"));
     control
@@ -151,11 +156,7 @@ fn the_loop_follows_good_actions_refuses_bad_ones_and_fails_over_budget() {
 fn operator_events_start_and_end_episodes() {
     let domain = domain_for("control_loop_operator_events");
     let ns = format!("control_ops_{}", std::process::id());
-    let mut bridge = Command::new(sim_bin());
-    bridge
-        .args(["run", "--mode", "lockstep", "--no-cameras", "--domain-id", &domain.to_string()])
-        .env(NAMESPACE_ENV, &ns);
-    let _bridge = Proc::spawn("labrig-sim run", bridge);
+    let _bridge = lockstep_bridge(domain, &ns);
     let mut control = Command::new(workspace_bin("labrig-control", "labrig-control"));
     control
         // Lockstep without cameras runs far faster than 20 Hz: no step budget in the way.

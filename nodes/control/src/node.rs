@@ -304,19 +304,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     tokio::time::sleep(Duration::from_millis(300)).await;
     if cfg.clock == ClockKind::Wall && cfg.realtime_priority > 0 {
         // This future runs on the thread that called block_on: the loop's own thread.
-        use thread_priority::{
-            RealtimeThreadSchedulePolicy, ThreadPriority, ThreadSchedulePolicy, set_thread_priority_and_policy,
-            thread_native_id,
-        };
-        let priority = ThreadPriority::Crossplatform(
-            cfg.realtime_priority.try_into().map_err(|e| anyhow::anyhow!("realtime_priority: {e:?}"))?,
-        );
-        let fifo = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
-        if let Err(e) = set_thread_priority_and_policy(thread_native_id(), priority, fifo) {
-            tracing::warn!(
-                "cannot run the loop at SCHED_FIFO {}: {e:?} (needs root or CAP_SYS_NICE); normal priority",
-                cfg.realtime_priority
-            );
+        if let Err(e) = labrig_runtime::realtime_priority(cfg.realtime_priority) {
+            tracing::warn!("{e}; the loop runs at normal priority");
         }
     }
     tracing::info!(source = ?cfg.source, clock = ?cfg.clock, episodes = cfg.episodes, "control loop up");

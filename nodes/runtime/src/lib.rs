@@ -20,4 +20,4 @@ pub mod ros;
 
 pub use clock::Clock;
 pub use config::{ConfigError, RosConfig, load_config};
-pub use lifecycle::{NodeContext, NodeError, Shutdown, main_node, run_node};
+pub use lifecycle::{NodeContext, NodeError, Shutdown, main_node, realtime_priority, run_node};

@@ -203,3 +203,17 @@ mod node_tests {
         assert!(err.to_string().contains("unknown field `tikcs`"), "{err}");
     }
 }
+
+/// Runs the calling thread at SCHED_FIFO `priority` (1..=99): a control loop or the simulated
+/// hardware keeps its pace on a busy machine. Threads it starts afterwards inherit the policy.
+/// Needs root or CAP_SYS_NICE; the error says so.
+pub fn realtime_priority(priority: u8) -> Result<(), String> {
+    use thread_priority::{
+        RealtimeThreadSchedulePolicy, ThreadPriority, ThreadSchedulePolicy, set_thread_priority_and_policy,
+        thread_native_id,
+    };
+    let value = priority.try_into().map_err(|e| format!("SCHED_FIFO priority {priority}: {e:?}"))?;
+    let fifo = ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo);
+    set_thread_priority_and_policy(thread_native_id(), ThreadPriority::Crossplatform(value), fifo)
+        .map_err(|e| format!("cannot run at SCHED_FIFO {priority}: {e:?} (needs root or CAP_SYS_NICE)"))
+}
