@@ -540,7 +540,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         if let Some(kind) = event {
             match episodes.on(kind) {
                 Ok(Effect::StartRecording) => {
-                    episode_id = episode_uuid(&cfg.lab, &cfg.user, &summary.episodes, tick_ns);
+                    episode_id = episode_uuid(&cfg.lab, &cfg.user, &summary.episodes);
                     episode_seed = scene.seed;
                     if let Some(s) = source.as_mut() {
                         s.restart(tick_ns);
@@ -719,7 +719,7 @@ fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
 
 /// DROID's uuid `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>` (wall time); a second episode in the
 /// same second gets `-2`, `-3`, ...
-fn episode_uuid(lab: &str, user: &str, earlier: &[EpisodeReport], _tick_ns: i64) -> String {
+fn episode_uuid(lab: &str, user: &str, earlier: &[EpisodeReport]) -> String {
     let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64);
     let base = format!("{lab}+{user}+{}", droid_timestamp(secs));
     let taken = |id: &str| earlier.iter().any(|e| e.episode_id == id);
@@ -782,7 +782,7 @@ mod tests {
 
     #[test]
     fn episode_ids_in_the_same_second_differ() {
-        let first = episode_uuid("LAB", "op", &[], 0);
+        let first = episode_uuid("LAB", "op", &[]);
         let report = |id: &str| EpisodeReport {
             episode_id: id.into(),
             seed: None,
@@ -790,7 +790,7 @@ mod tests {
             outcome: "success".into(),
             steps: 1,
         };
-        let second = episode_uuid("LAB", "op", &[report(&first)], 0);
+        let second = episode_uuid("LAB", "op", &[report(&first)]);
         assert_ne!(first, second);
         assert!(first.starts_with("LAB+op+20"));
     }

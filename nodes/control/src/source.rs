@@ -31,8 +31,6 @@ pub enum SourceError {
     Silent { from: &'static str },
     #[error("{from}'s newest action is {age_ms:.1} ms old at the tick (limit {limit_ms:.1} ms)")]
     Stale { from: &'static str, age_ms: f64, limit_ms: f64 },
-    #[error("{from} is not ready: {why}")]
-    NotReady { from: &'static str, why: String },
 }
 
 pub trait ActionSource: Send {

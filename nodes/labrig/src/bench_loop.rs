@@ -38,16 +38,6 @@ pub struct LoopArgs {
 /// CPU seconds of a process and when they were read.
 type CpuSample = (f64, Instant);
 
-/// CPU seconds (user + system) of a process, from /proc.
-fn cpu_seconds(pid: u32) -> Option<f64> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    // Fields after the command name (which may hold spaces) start after the last ')'.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
-    Some(ticks / 100.0) // USER_HZ is 100 on Linux
-}
-
 /// The rig's processes: program name -> pid, found by the `--domain-id <domain>` the
 /// launcher gives every node.
 fn rig_pids(domain: u16) -> BTreeMap<String, u32> {
@@ -125,7 +115,7 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
             bar.set_position(started.elapsed().as_secs().min(seconds as u64));
             let pids = rig_pids(a.domain_id);
             for (name, pid) in &pids {
-                if let Some(c) = cpu_seconds(*pid) {
+                if let Some(c) = crate::bench::cpu_seconds_of(&pid.to_string()) {
                     let e = cpu.entry(name.clone()).or_insert([(c, Instant::now()); 2]);
                     e[1] = (c, Instant::now());
                 }

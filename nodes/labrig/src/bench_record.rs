@@ -34,15 +34,6 @@ pub struct RecordArgs {
     json: bool,
 }
 
-fn cpu_seconds() -> f64 {
-    // utime + stime of this process, in clock ticks (fields 14 and 15 of /proc/self/stat).
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
-}
-
 fn now_ns() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos() as i64
 }
@@ -67,7 +58,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
     let n = a.size as usize;
     let mut rgb = vec![0u8; n * n * 3];
     let (mut jpeg_us, mut jpeg_bytes) = (Vec::new(), 0u64);
-    let cpu0 = cpu_seconds();
+    let cpu0 = crate::bench::process_cpu_seconds();
     let wall = Instant::now();
     let mut next = Instant::now();
     let mut closed = 0;
@@ -120,7 +111,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
     w.metadata_mut().success = Some(true);
     let summary = w.finish()?;
     let wall_s = wall.elapsed().as_secs_f64();
-    let cpu_s = cpu_seconds() - cpu0;
+    let cpu_s = crate::bench::process_cpu_seconds() - cpu0;
     jpeg_us.sort_by(f64::total_cmp);
     let p = |q: f64| jpeg_us[((jpeg_us.len() - 1) as f64 * q).round() as usize];
     let mb = summary.bytes as f64 / 1e6;
