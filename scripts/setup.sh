@@ -42,6 +42,9 @@ apt_install tcpdump
 apt_install libegl1 libegl-mesa0 libgl1-mesa-dri
 # The font of the PNG plots' text (replay).
 apt_install fonts-dejavu-core
+# DROID raw export/import (issue 6): trajectory.h5 through Debian's libhdf5 (hdf5-metno finds
+# it with pkg-config), MP4 through ffmpeg/ffprobe (libx264).
+apt_install libhdf5-dev pkg-config ffmpeg
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.
@@ -202,6 +205,8 @@ FS_VENV="$LABRIG_CACHE/venv-franka-sim"
 # The MCAP readers episodes are checked with (issue 5): the reference `mcap` +
 # `mcap-ros2-support`, and `rosbags`.
 tool_venv readers "mcap_ros2, rosbags" mcap==1.6.0 mcap-ros2-support==0.6.0 rosbags==0.11.9
+# h5py: the reference reader the DROID export is checked with (issue 6).
+tool_venv droid h5py h5py==3.16.0
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
@@ -224,6 +229,7 @@ export LABRIG_MUJOCO_DIR=\"$MJ_DIR\"
 export LABRIG_FRANKA_SIM_PYTHON=\"$FS_VENV/bin/python\"
 export FR3_MJCF=\"$FS_MJCF\"
 export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
+export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 # SYSTEM_DEFAULT: rmw_fastrtps uses the XML profile as is (unset/SUBNET would add
 # the 239.255.0.1 multicast SPDP peer; LOCALHOST would bind the LAN address too)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT

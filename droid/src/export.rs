@@ -1,0 +1,266 @@
+//! `labrig export droid`: one MCAP episode -> DROID's raw layout.
+//!
+//! `<out>/{success|failure}/<date>/<asctime>/` holding `trajectory.h5`,
+//! `recordings/MP4/<serial>.mp4` (one frame per step: the frame the step's observation used)
+//! and `metadata_<uuid>.json`. Everything is written into `<dir>.partial` and renamed at the
+//! end, so an export that fails leaves no half episode behind.
+
+use crate::droid::{self, Camera, Episode, HAND_CAMERA};
+use crate::h5doc;
+use crate::meta;
+use crate::video::Mp4Writer;
+use labrig_franka::ik::{pose_from_xyz_euler, xyz_euler};
+use labrig_msgs::Nanos;
+use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
+use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_recorder::inspect::read_episode;
+use labrig_recorder::metadata::{Outcome, episode_dir};
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The rig's control rate: the MP4s play at it.
+pub const FPS: u32 = 20;
+
+#[derive(Debug, Clone, Default)]
+pub struct ExportOptions {
+    /// Replace an episode already exported to the same directory.
+    pub overwrite: bool,
+}
+
+/// What one export wrote and how long it took.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Exported {
+    pub source: PathBuf,
+    pub dir: PathBuf,
+    pub uuid: String,
+    pub steps: usize,
+    pub cameras: Vec<String>,
+    /// Step frames taken from a neighbouring step (the camera had no frame at that tick).
+    pub frames_filled: usize,
+    /// Frames per MP4 (all equal to `steps`).
+    pub mp4_frames: Vec<u64>,
+    pub seconds: f64,
+    pub h5_seconds: f64,
+}
+
+/// The hand camera's pose in the TCP frame, from the first /tf that has both.
+fn hand_offset_of(tf: &TFMessage) -> Option<[f64; 6]> {
+    let pose = |child: &str| {
+        tf.transforms.iter().find(|t| t.child_frame_id == child).map(|t| {
+            let (p, q) = (&t.transform.translation, &t.transform.rotation);
+            Isometry3::from_parts(
+                Translation3::new(p.x, p.y, p.z),
+                UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z)),
+            )
+        })
+    };
+    let (tcp, cam) = (pose("tcp")?, pose(&format!("{HAND_CAMERA}_optical"))?);
+    Some(xyz_euler(&(tcp.inverse() * cam)))
+}
+
+struct CameraOut {
+    refs: Vec<i64>,
+    next: usize,
+    last: Option<Vec<u8>>,
+    filled: usize,
+    writer: Mp4Writer,
+}
+
+impl CameraOut {
+    /// A recorded frame stamped `t`: written for every step that used it; steps whose frame
+    /// was never recorded (an older stamp) get the last frame seen.
+    fn frame(&mut self, t: i64, jpeg: &[u8]) -> Result<(), crate::video::VideoError> {
+        while self.next < self.refs.len() && self.refs[self.next] <= t {
+            if self.refs[self.next] == t {
+                self.writer.push_jpeg(jpeg)?;
+            } else {
+                self.filled += 1;
+                let last = self.last.as_deref().unwrap_or(jpeg);
+                self.writer.push_jpeg(last)?;
+            }
+            self.next += 1;
+        }
+        self.last = Some(jpeg.to_vec());
+        Ok(())
+    }
+}
+
+/// Exports the episode at `source` (its directory or MCAP file) under `out_root`.
+pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> anyhow::Result<Exported> {
+    let started = Instant::now();
+    let data = read_episode(source).map_err(|e| anyhow::anyhow!(e))?;
+    let file = data.file.clone();
+    anyhow::ensure!(
+        data.complete,
+        "{}: the episode was not finished (its recorder stopped early): run `labrig recover` on it first",
+        file.display()
+    );
+    let mut metadata = data.metadata.ok_or_else(|| {
+        anyhow::anyhow!("{}: no droid_episode metadata record: not an episode recorded by labrig", file.display())
+    })?;
+    let steps = data.steps;
+    anyhow::ensure!(!steps.is_empty(), "{}: no /rig/step records: nothing to export", file.display());
+    for (i, s) in steps.iter().enumerate() {
+        anyhow::ensure!(
+            s.step_index == i as u64,
+            "{}: step {i} is missing (the steps go {} -> {})",
+            file.display(),
+            i.saturating_sub(1),
+            s.step_index
+        );
+    }
+    metadata.trajectory_length = steps.len() as u64;
+
+    // Second pass: intrinsics, the hand camera's offset, and the frames into the MP4s.
+    let buf = std::fs::read(&file).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    let mut intrinsics: BTreeMap<String, [f64; 9]> = BTreeMap::new();
+    // An imported episode carries the hand camera's offset in its metadata; a recorded one
+    // has it on /tf.
+    let mut hand_offset = metadata.extrinsics.get(&format!("{HAND_CAMERA}_gripper_offset")).copied();
+    let mut cameras = droid::cameras_of(&steps, &metadata, &intrinsics);
+    let (refs, _) = droid::frame_refs(&steps, &cameras);
+
+    let outcome = if metadata.success == Some(true) { Outcome::Success } else { Outcome::Failure };
+    let dir = episode_dir(out_root, outcome, metadata.start_ns);
+    let rel_dir = dir.strip_prefix(out_root).unwrap_or(&dir).to_string_lossy().into_owned();
+    if dir.exists() {
+        anyhow::ensure!(opts.overwrite, "{} exists (exported before?): pass --overwrite to replace it", dir.display());
+        std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    }
+    let partial = dir.with_extension("partial");
+    let _ = std::fs::remove_dir_all(&partial);
+    let mp4_dir = partial.join("recordings").join("MP4");
+    std::fs::create_dir_all(&mp4_dir).map_err(|e| anyhow::anyhow!("{}: {e}", mp4_dir.display()))?;
+    let result = (|| -> anyhow::Result<Exported> {
+        let mut outs: Vec<CameraOut> = Vec::new();
+        for (cam, r) in cameras.iter().zip(&refs) {
+            outs.push(CameraOut {
+                refs: r.iter().map(|f| f.capture_ns).collect(),
+                next: 0,
+                last: None,
+                filled: 0,
+                writer: Mp4Writer::create(&mp4_dir.join(format!("{}.mp4", cam.serial)), FPS)?,
+            });
+        }
+        let index: BTreeMap<String, usize> = cameras.iter().enumerate().map(|(i, c)| (c.id.clone(), i)).collect();
+        for m in mcap::MessageStream::new(&buf)? {
+            let m = m.map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+            let topic = m.channel.topic.as_str();
+            let Some(rest) = topic.strip_prefix("/cameras/") else {
+                if topic == "/tf" && hand_offset.is_none() {
+                    if let Ok(tf) = labrig_msgs::decode::<TFMessage>(&m.data) {
+                        hand_offset = hand_offset_of(&tf);
+                    }
+                }
+                continue;
+            };
+            let Some((id, what)) = rest.split_once('/') else { continue };
+            let Some(&c) = index.get(id) else { continue };
+            match what {
+                "image/compressed" => {
+                    let img = labrig_msgs::decode::<CompressedImage>(&m.data)
+                        .map_err(|e| anyhow::anyhow!("{}: {topic}: {e}", file.display()))?;
+                    outs[c].frame(Nanos::from(img.header.stamp).0, &img.data)?;
+                }
+                "camera_info" if !intrinsics.contains_key(id) => {
+                    if let Ok(info) = labrig_msgs::decode::<CameraInfo>(&m.data) {
+                        intrinsics.insert(id.to_owned(), info.k);
+                    }
+                }
+                _ => {}
+            }
+        }
+        let mut mp4_frames = Vec::new();
+        let mut frames_filled = 0;
+        for (cam, mut out) in cameras.iter().zip(outs) {
+            anyhow::ensure!(out.last.is_some(), "{}: camera {} has no recorded frames: no video to export", file.display(), cam.id);
+            // Steps after the last recorded frame.
+            while out.next < out.refs.len() {
+                let last = out.last.clone().expect("checked");
+                out.frame(i64::MAX, &last)?;
+            }
+            frames_filled += out.filled;
+            mp4_frames.push(out.writer.finish()?);
+        }
+        for cam in cameras.iter_mut() {
+            cam.k = intrinsics.get(&cam.id).copied();
+        }
+        let h5_started = Instant::now();
+        let ep = Episode { metadata, steps, cameras, hand_offset };
+        h5doc::write(&partial.join("trajectory.h5"), &droid::to_droid(&ep))?;
+        let h5_seconds = h5_started.elapsed().as_secs_f64();
+        let json_cams: Vec<(String, String, Option<[f64; 6]>)> = ep
+            .cameras
+            .iter()
+            .map(|c: &Camera| {
+                let e = if c.id == HAND_CAMERA {
+                    ep.hand_offset.map(|off| {
+                        xyz_euler(
+                            &(pose_from_xyz_euler(&ep.steps[0].robot_state.cartesian_position) * pose_from_xyz_euler(&off)),
+                        )
+                    })
+                } else {
+                    ep.metadata.extrinsics.get(&c.id).copied()
+                };
+                (c.id.clone(), c.serial.clone(), e)
+            })
+            .collect();
+        let json = meta::to_json(&meta::JsonInput {
+            meta: &ep.metadata,
+            rel_dir: &rel_dir,
+            cameras: &json_cams,
+            hand_offset: ep.hand_offset,
+            action_source: ep.steps[0].action_source,
+        });
+        let json_path = partial.join(meta::file_name(&ep.metadata.uuid));
+        std::fs::write(&json_path, serde_json::to_string_pretty(&json)? + "\n")
+            .map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))?;
+        Ok(Exported {
+            source: file.clone(),
+            dir: dir.clone(),
+            uuid: ep.metadata.uuid.clone(),
+            steps: ep.steps.len(),
+            cameras: ep.cameras.iter().map(|c| c.id.clone()).collect(),
+            frames_filled,
+            mp4_frames,
+            seconds: 0.0,
+            h5_seconds,
+        })
+    })();
+    match result {
+        Ok(mut e) => {
+            std::fs::rename(&partial, &dir).map_err(|err| anyhow::anyhow!("{}: {err}", dir.display()))?;
+            e.seconds = started.elapsed().as_secs_f64();
+            Ok(e)
+        }
+        Err(err) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            Err(err)
+        }
+    }
+}
+
+/// Every episode under `root` (directories holding an episode file; staging and hidden
+/// directories skipped), sorted.
+pub fn find_episodes(root: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut stack = vec![root.to_owned()];
+    while let Some(d) = stack.pop() {
+        if d.join(labrig_recorder::episode::EPISODE_FILE).is_file() {
+            found.push(d);
+            continue;
+        }
+        let Ok(entries) = std::fs::read_dir(&d) else { continue };
+        for e in entries.flatten() {
+            let p = e.path();
+            let hidden = p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with('.'));
+            if p.is_dir() && !hidden {
+                stack.push(p);
+            }
+        }
+    }
+    found.sort();
+    found
+}

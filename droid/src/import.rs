@@ -1,0 +1,278 @@
+//! `labrig import droid`: a DROID raw episode -> an MCAP episode in the recorder's layout.
+//!
+//! Reads `trajectory.h5`, `metadata_<uuid>.json` and `recordings/MP4/<serial>.mp4`, and writes
+//! what the recorder would have: the DROID metadata record, `/rig/episode` Start and
+//! Success/Failure, one `/rig/step` per step, `/cameras/<id>/camera_info` (from the
+//! intrinsics) and `/cameras/<id>/image/compressed` (each distinct frame once, JPEG), so the
+//! episode can be inspected, indexed, replayed (when it carries a sim scene) and exported
+//! again (to the same trajectory.h5).
+
+use crate::droid::{self, Camera};
+use crate::h5doc;
+use crate::meta;
+use crate::video::Mp4Reader;
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
+use labrig_msgs::std_msgs::Header;
+use labrig_recorder::bag::Reliability;
+use labrig_recorder::episode::EpisodeWriter;
+use labrig_recorder::metadata::{Outcome, episode_dir};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Debug, Clone)]
+pub struct ImportOptions {
+    pub overwrite: bool,
+    /// JPEG quality of the imported frames.
+    pub jpeg_quality: u8,
+}
+
+impl Default for ImportOptions {
+    fn default() -> Self {
+        ImportOptions { overwrite: false, jpeg_quality: 90 }
+    }
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Imported {
+    pub source: PathBuf,
+    pub dir: PathBuf,
+    pub uuid: String,
+    pub steps: usize,
+    pub cameras: Vec<String>,
+    pub frames: u64,
+    /// Problems that did not stop the import (a video shorter than the trajectory ...).
+    pub warnings: Vec<String>,
+    pub seconds: f64,
+}
+
+/// DROID episode directories under `root`: every directory holding a trajectory.h5.
+pub fn find_droid_episodes(root: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut stack = vec![root.to_owned()];
+    while let Some(d) = stack.pop() {
+        if d.join("trajectory.h5").is_file() {
+            found.push(d);
+            continue;
+        }
+        let Ok(entries) = std::fs::read_dir(&d) else { continue };
+        for e in entries.flatten() {
+            if e.path().is_dir() {
+                stack.push(e.path());
+            }
+        }
+    }
+    found.sort();
+    found
+}
+
+fn metadata_json(dir: &Path) -> anyhow::Result<PathBuf> {
+    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("metadata_") && n.ends_with(".json"))
+        })
+        .collect();
+    found.sort();
+    match found.len() {
+        0 => anyhow::bail!("{}: no metadata_<uuid>.json: not a DROID episode directory", dir.display()),
+        1 => Ok(found.remove(0)),
+        _ => anyhow::bail!("{}: {} metadata_*.json files: which episode is this?", dir.display(), found.len()),
+    }
+}
+
+/// Imports the DROID episode in `source` under `out_root`.
+pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> anyhow::Result<Imported> {
+    let started = Instant::now();
+    // trajectory.h5 itself names its episode directory.
+    let source = match source.parent() {
+        Some(parent) if source.is_file() => parent,
+        _ => source,
+    };
+    let h5_path = source.join("trajectory.h5");
+    anyhow::ensure!(h5_path.is_file(), "{}: no trajectory.h5: not a DROID episode directory", source.display());
+    let json_path = metadata_json(source)?;
+    let text = std::fs::read_to_string(&json_path).map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| anyhow::anyhow!("{}: not JSON: {e}", json_path.display()))?;
+    let parsed = meta::parse(&value).map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))?;
+    let doc = h5doc::read(&h5_path)?;
+    let mut meta = parsed.meta;
+    let traj = droid::from_droid(&doc, &meta.uuid, &parsed.serial_to_id)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", h5_path.display()))?;
+    let mut steps = traj.steps;
+    for s in &mut steps {
+        s.action_source = parsed.action_source;
+    }
+    // trajectory.h5's attributes are DROID's record of who, where and what; the JSON fills in.
+    for (key, field) in [
+        ("user", &mut meta.user),
+        ("building", &mut meta.building),
+        ("scene_id", &mut meta.scene_id),
+        ("current_task", &mut meta.task_instruction),
+    ] {
+        if let Some(v) = droid::attr_text(&doc, key) {
+            *field = v;
+        }
+    }
+    if traj.success.is_some() {
+        meta.success = traj.success;
+    }
+    if !parsed.has_start {
+        meta.start_ns = steps[0].timing.step_start;
+    }
+    meta.trajectory_length = steps.len() as u64;
+    for cam in &traj.cameras {
+        meta.camera_serials.insert(cam.id.clone(), cam.serial.clone());
+    }
+    for (id, e) in &traj.extrinsics {
+        meta.extrinsics.entry(id.clone()).or_insert(*e);
+    }
+
+    let outcome = if meta.success == Some(true) { Outcome::Success } else { Outcome::Failure };
+    let dir = episode_dir(out_root, outcome, meta.start_ns);
+    if dir.exists() {
+        anyhow::ensure!(opts.overwrite, "{} exists (imported before?): pass --overwrite to replace it", dir.display());
+        std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    }
+    let partial = dir.with_extension("partial");
+    let _ = std::fs::remove_dir_all(&partial);
+    let mut warnings = Vec::new();
+    let result = write_episode(
+        &partial,
+        meta.clone(),
+        &steps,
+        &traj.cameras,
+        traj.hand_offset,
+        source,
+        opts,
+        &mut warnings,
+    );
+    match result {
+        Ok(frames) => {
+            std::fs::rename(&partial, &dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+            Ok(Imported {
+                source: source.to_owned(),
+                dir,
+                uuid: meta.uuid,
+                steps: steps.len(),
+                cameras: traj.cameras.iter().map(|c| c.id.clone()).collect(),
+                frames,
+                warnings,
+                seconds: started.elapsed().as_secs_f64(),
+            })
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            Err(e)
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn write_episode(
+    dir: &Path,
+    mut meta: labrig_recorder::metadata::EpisodeMetadata,
+    steps: &[labrig_msgs::labrig_msgs::Step],
+    cameras: &[Camera],
+    hand_offset: Option<[f64; 6]>,
+    source: &Path,
+    opts: &ImportOptions,
+    warnings: &mut Vec<String>,
+) -> anyhow::Result<u64> {
+    if let Some(off) = hand_offset {
+        // Where the recorder keeps extrinsics; an export reads the hand camera's from here.
+        meta.extrinsics.insert(format!("{}_gripper_offset", droid::HAND_CAMERA), off);
+    }
+    let success = meta.success;
+    let uuid = meta.uuid.clone();
+    let mut w = EpisodeWriter::create(dir, meta)?;
+    let mp4_dir = source.join("recordings").join("MP4");
+    let mut readers: Vec<Option<Mp4Reader>> = Vec::new();
+    for cam in cameras {
+        let p = mp4_dir.join(format!("{}.mp4", cam.serial));
+        if !p.is_file() {
+            warnings.push(format!("camera {} ({}): no {}: imported without images", cam.id, cam.serial, p.display()));
+            readers.push(None);
+            continue;
+        }
+        readers.push(Some(Mp4Reader::open(&p)?));
+    }
+    let t0 = steps[0].timing.step_start.max(Nanos::from(steps[0].header.stamp).0);
+    let event = |kind: EpisodeEventKind, t: i64| EpisodeEvent {
+        header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
+        kind: kind as u8,
+        episode_id: uuid.clone(),
+        note: "imported from DROID".into(),
+        ..EpisodeEvent::default()
+    };
+    w.write("/rig/episode", &event(EpisodeEventKind::Start, t0), t0, t0, Reliability::Reliable)?;
+    let mut frames = 0u64;
+    let mut short = vec![false; cameras.len()];
+    let mut last_t = t0;
+    for (i, s) in steps.iter().enumerate() {
+        let t = s.timing.step_start.max(Nanos::from(s.header.stamp).0).max(last_t);
+        last_t = t;
+        for (c, cam) in cameras.iter().enumerate() {
+            let Some(r) = readers[c].as_mut() else { continue };
+            if i == 0 {
+                let k = cam.k.unwrap_or([0.0; 9]);
+                let info = CameraInfo {
+                    header: Header { stamp: Nanos(t).into(), frame_id: format!("{}_optical", cam.id) },
+                    width: r.width,
+                    height: r.height,
+                    distortion_model: "plumb_bob".into(),
+                    d: vec![0.0; 5],
+                    k,
+                    r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                    p: [k[0], k[1], k[2], 0.0, k[3], k[4], k[5], 0.0, k[6], k[7], k[8], 0.0],
+                    ..CameraInfo::default()
+                };
+                w.write(&format!("/cameras/{}/camera_info", cam.id), &info, t, t, Reliability::Reliable)?;
+            }
+            // The video holds one frame per step; a step whose frame is its predecessor's
+            // (same capture time) was one frame recorded once.
+            let pixels = if short[c] { None } else { r.next_frame()? };
+            let Some(pixels) = pixels else {
+                if !short[c] {
+                    short[c] = true;
+                    warnings.push(format!("camera {}: the video ends at frame {i} of {} steps", cam.id, steps.len()));
+                }
+                continue;
+            };
+            let Some(fr) = s.cameras.iter().find(|f| f.camera_id == cam.id) else { continue };
+            let repeat = i > 0 && steps[i - 1].cameras.iter().any(|p| p.camera_id == cam.id && p.capture_ns == fr.capture_ns);
+            if repeat {
+                continue;
+            }
+            let jpeg = labrig_recorder::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, opts.jpeg_quality)
+                .map_err(|e| anyhow::anyhow!("camera {}: {e}", cam.id))?;
+            let img = CompressedImage {
+                header: Header { stamp: Nanos(fr.capture_ns).into(), frame_id: format!("{}_optical", cam.id) },
+                format: "jpeg".into(),
+                data: jpeg,
+            };
+            w.write(&format!("/cameras/{}/image/compressed", cam.id), &img, t, fr.capture_ns, Reliability::BestEffort)?;
+            frames += 1;
+        }
+        w.write("/rig/step", s, t, Nanos::from(s.header.stamp).0, Reliability::Reliable)?;
+    }
+    for (c, cam) in cameras.iter().enumerate() {
+        if let Some(r) = readers[c].as_mut()
+            && !short[c]
+            && r.next_frame()?.is_some()
+        {
+            warnings.push(format!("camera {}: the video has more frames than the {} steps; the rest were left out", cam.id, steps.len()));
+        }
+    }
+    let end = match success {
+        Some(true) => EpisodeEventKind::Success,
+        _ => EpisodeEventKind::Failure,
+    };
+    w.write("/rig/episode", &event(end, last_t), last_t, last_t, Reliability::Reliable)?;
+    w.finish()?;
+    Ok(frames)
+}
