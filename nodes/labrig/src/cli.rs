@@ -47,6 +47,23 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Export episodes to another format: `labrig export droid <episode|dir> <out_dir>
+    /// [--overwrite] [--json]` writes DROID's raw layout (trajectory.h5, one MP4 per camera,
+    /// metadata_<uuid>.json).
+    #[command(disable_help_flag = true)]
+    Export {
+        /// The format (`droid`), then the options of `labrig-droid export`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// Import episodes from another format: `labrig import droid <droid_episode|dir>
+    /// [--out episodes]` writes MCAP episodes in the recorder's layout.
+    #[command(disable_help_flag = true)]
+    Import {
+        /// The format (`droid`), then the options of `labrig-droid import`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The FR3 arm node: `labrig franka run --robot-ip 172.16.0.2`, or `--backend sim` in front
     /// of the sim bridge (see `labrig franka run --help`).
     #[command(disable_help_flag = true)]
@@ -96,6 +113,23 @@ pub fn replay(args: &[String]) -> anyhow::Result<ExitCode> {
     let mut forwarded = vec!["replay".to_owned()];
     forwarded.extend(args.iter().filter(|a| *a != "--sim").cloned());
     node("labrig-sim", &forwarded)
+}
+
+/// `labrig export|import <format> ...` -> `labrig-droid export|import ...` (DROID's raw format
+/// is the one format so far; labrig-droid is the program that links libhdf5).
+pub fn convert(verb: &str, args: &[String]) -> anyhow::Result<ExitCode> {
+    match args.first().map(String::as_str) {
+        Some("droid") => {
+            let mut forwarded = vec![verb.to_owned()];
+            forwarded.extend(args[1..].iter().cloned());
+            node("labrig-droid", &forwarded)
+        }
+        Some("--help" | "-h") | None => {
+            println!("usage: labrig {verb} droid ... (formats: droid)\n");
+            node("labrig-droid", &[verb.to_owned(), "--help".to_owned()])
+        }
+        Some(other) => anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid)"),
+    }
 }
 
 /// A labrig program installed next to the running `labrig` binary.
@@ -152,6 +186,14 @@ pub enum BenchCommand {
     Franka(crate::bench_franka::FrankaArgs),
     /// The franka node's command path per tick: URDF FK + Jacobian, IK, the safety filter.
     Ik(crate::bench_ik::IkArgs),
+    /// DROID export and import throughput (steps/s) of one episode: `labrig bench export
+    /// <episode> [--repeat 5] [--json]`.
+    #[command(disable_help_flag = true)]
+    Export {
+        /// The episode, then the options of `labrig-droid bench`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -175,6 +217,13 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Demo(a) => crate::demo::run(a),
         Command::Episode(a) => crate::episode::run(a),
         Command::Replay { args } => replay(&args),
+        Command::Export { args } => convert("export", &args),
+        Command::Import { args } => convert("import", &args),
+        Command::Bench(BenchCommand::Export { args }) => {
+            let mut forwarded = vec!["bench".to_owned()];
+            forwarded.extend(args);
+            node("labrig-droid", &forwarded)
+        }
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
