@@ -123,12 +123,13 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
     let (refs, _) = droid::frame_refs(&steps, &cameras);
 
     let outcome = if metadata.success == Some(true) { Outcome::Success } else { Outcome::Failure };
-    let dir = episode_dir(out_root, outcome, metadata.start_ns);
+    let json_name = meta::file_name(&metadata.uuid);
+    let dir = crate::destination(
+        &episode_dir(out_root, outcome, metadata.start_ns),
+        |d| d.join(&json_name).is_file(),
+        opts.overwrite,
+    )?;
     let rel_dir = dir.strip_prefix(out_root).unwrap_or(&dir).to_string_lossy().into_owned();
-    if dir.exists() {
-        anyhow::ensure!(opts.overwrite, "{} exists (exported before?): pass --overwrite to replace it", dir.display());
-        std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
-    }
     let partial = dir.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
     let mp4_dir = partial.join("recordings").join("MP4");

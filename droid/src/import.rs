@@ -133,11 +133,10 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
     }
 
     let outcome = if meta.success == Some(true) { Outcome::Success } else { Outcome::Failure };
-    let dir = episode_dir(out_root, outcome, meta.start_ns);
-    if dir.exists() {
-        anyhow::ensure!(opts.overwrite, "{} exists (imported before?): pass --overwrite to replace it", dir.display());
-        std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
-    }
+    // The recorder's metadata.yaml names the episode's uuid.
+    let uuid = meta.uuid.clone();
+    let same = |d: &Path| std::fs::read_to_string(d.join("metadata.yaml")).is_ok_and(|y| y.contains(&uuid));
+    let dir = crate::destination(&episode_dir(out_root, outcome, meta.start_ns), same, opts.overwrite)?;
     let partial = dir.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
     let mut warnings = Vec::new();

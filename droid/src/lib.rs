@@ -13,3 +13,45 @@ pub mod h5doc;
 pub mod import;
 pub mod meta;
 pub mod video;
+
+use std::path::{Path, PathBuf};
+
+/// Where an episode goes: DROID's directory `base` (named to the second), or `base_2`,
+/// `base_3` ... when another episode started in the same second (as the recorder does).
+/// The directory already holding this same episode (`is_same`) is an error unless
+/// `overwrite`, then it is removed and reused.
+pub(crate) fn destination(base: &Path, is_same: impl Fn(&Path) -> bool, overwrite: bool) -> anyhow::Result<PathBuf> {
+    let name = base.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    for k in 1.. {
+        let dir = if k == 1 { base.to_owned() } else { base.with_file_name(format!("{name}_{k}")) };
+        if !dir.exists() {
+            return Ok(dir);
+        }
+        if is_same(&dir) {
+            anyhow::ensure!(overwrite, "{} holds this episode already: pass --overwrite to replace it", dir.display());
+            std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+            return Ok(dir);
+        }
+    }
+    unreachable!("an unbounded search")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::destination;
+
+    #[test]
+    fn episodes_of_the_same_second_get_a_suffix_and_the_same_one_is_kept() {
+        let t = tempfile::tempdir().unwrap();
+        let base = t.path().join("Fri_Jul__7_09:42:23_2023");
+        assert_eq!(destination(&base, |_| false, false).unwrap(), base);
+        std::fs::create_dir_all(base.join("x")).unwrap();
+        let other = destination(&base, |d| d.join("mine").exists(), false).unwrap();
+        assert_eq!(other, t.path().join("Fri_Jul__7_09:42:23_2023_2"));
+        std::fs::create_dir_all(other.join("mine")).unwrap();
+        let e = destination(&base, |d| d.join("mine").exists(), false).unwrap_err().to_string();
+        assert!(e.contains("_2 holds this episode already: pass --overwrite"), "{e}");
+        assert_eq!(destination(&base, |d| d.join("mine").exists(), true).unwrap(), other);
+        assert!(!other.exists() && base.join("x").exists(), "only the same episode's directory is replaced");
+    }
+}

@@ -218,3 +218,22 @@ pub fn read_episode_with_python(dir: &std::path::Path) -> serde_json::Value {
     assert!(out.status.success(), "read_episode.py failed: {}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout).expect("read_episode.py prints JSON")
 }
+
+/// tests/peers/check_droid.py (h5py, json, ffprobe) on a DROID raw root: whether it matches
+/// DROID's layout, its per-episode reports, and the problems it printed.
+pub fn check_droid_with_python(root: &std::path::Path) -> (bool, Vec<serde_json::Value>, String) {
+    let python = std::env::var_os("LABRIG_DROID_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| cache_dir().join("venv-droid/bin/python"));
+    assert!(python.exists(), "the h5py venv {} is missing: run `bash scripts/setup.sh`", python.display());
+    let out = std::process::Command::new(&python)
+        .arg(repo_root().join("tests/peers/check_droid.py"))
+        .arg(root)
+        .output()
+        .expect("running check_droid.py");
+    let reports = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("check_droid.py prints JSON lines"))
+        .collect();
+    (out.status.success(), reports, String::from_utf8_lossy(&out.stderr).into_owned())
+}

@@ -70,6 +70,23 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
         assert_eq!(rep["success_replayed"], true);
     }
     assert_ne!(uuids[0], uuids[1]);
+    // The recordings as DROID raw data, the whole directory at once: DROID's layout as h5py
+    // and ffprobe read it, an MP4 frame per step.
+    labrig_tests::workspace_bin("labrig-droid", "labrig-droid");
+    let droid = dir.path().join("droid");
+    let out = Command::new(labrig_bin()).args(["export", "droid"]).arg(dir.path().join("episodes")).arg(&droid).output().unwrap();
+    assert!(out.status.success(), "export: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("export: 2 episodes"), "{}", String::from_utf8_lossy(&out.stdout));
+    let (good, reports, problems) = labrig_tests::check_droid_with_python(&droid);
+    assert!(good, "{problems}");
+    assert_eq!(reports.len(), 2);
+    for (r, e) in reports.iter().zip(r["episodes"].as_array().unwrap()) {
+        assert!(r["dir"].as_str().unwrap().starts_with("success/"), "{r}");
+        assert_eq!(r["steps"], e["inspect"]["steps"]);
+        for v in r["mp4"].as_object().unwrap().values() {
+            assert_eq!(v["frames"], e["inspect"]["steps"]);
+        }
+    }
 }
 
 #[test]

@@ -3,7 +3,7 @@
 //! export -> import -> export gives the same trajectory.h5 and metadata; the imported episode
 //! inspects clean and replays against the sim exactly; bad input is named.
 
-use labrig_tests::{cache_dir, labrig_bin, repo_root, workspace_bin};
+use labrig_tests::{cache_dir, check_droid_with_python as check_droid, labrig_bin, repo_root, workspace_bin};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -31,17 +31,6 @@ fn ok(out: &Output) -> String {
 fn failed(out: &Output) -> String {
     assert!(!out.status.success(), "expected a failure, got: {}", String::from_utf8_lossy(&out.stdout));
     String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// tests/peers/check_droid.py on a DROID root: (exit ok, per-episode reports, problems).
-pub fn check_droid(root: &Path) -> (bool, Vec<Value>, String) {
-    let python = std::env::var_os("LABRIG_DROID_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| cache_dir().join("venv-droid/bin/python"));
-    assert!(python.exists(), "the h5py venv {} is missing: run `bash scripts/setup.sh`", python.display());
-    let out = Command::new(&python).arg(repo_root().join("tests/peers/check_droid.py")).arg(root).output().unwrap();
-    let reports = String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
-    (out.status.success(), reports, String::from_utf8_lossy(&out.stderr).into_owned())
 }
 
 /// The one episode directory under a DROID or MCAP root.
@@ -164,7 +153,7 @@ fn bad_input_is_named() {
     // Exported twice: the first stays unless --overwrite.
     ok(&labrig(&["export", "droid", &s(&fixture()), &s(&out)]));
     let e = failed(&labrig(&["export", "droid", &s(&fixture()), &s(&out)]));
-    assert!(e.contains("exists") && e.contains("--overwrite"), "{e}");
+    assert!(e.contains("holds this episode already") && e.contains("--overwrite"), "{e}");
     ok(&labrig(&["export", "droid", &s(&fixture()), &s(&out), "--overwrite"]));
     let ep = only_episode(&out, "trajectory.h5");
 

@@ -1,4 +1,5 @@
 //! Layering: msgs and runtime never depend on the heavy native crates (tch, mujoco, opencv),
+//! the CLI links neither MuJoCo nor libhdf5,
 //! and msgs stays a leaf (no async runtime, no DDS, no shared memory). Checked on the real
 //! dependency graph with `cargo tree`.
 
@@ -46,4 +47,13 @@ fn runtime_has_no_heavy_native_dependencies() {
 fn the_check_sees_real_dependencies() {
     // Guards the guard: runtime does depend on rustdds, so the tree lookup works.
     assert!(deps("labrig-runtime").iter().any(|d| d == "rustdds"));
+}
+
+#[test]
+fn the_cli_links_neither_mujoco_nor_libhdf5() {
+    // `labrig` execs labrig-sim (MuJoCo) and labrig-droid (libhdf5) from beside itself, so the
+    // CLI runs where neither library is installed.
+    assert_free_of("labrig", &["mujoco-rs", "hdf5-metno", "hdf5-metno-sys"]);
+    assert_free_of("labrig-droid", HEAVY);
+    assert!(deps("labrig-droid").iter().any(|d| d == "hdf5-metno-sys"), "the guard sees hdf5");
 }
