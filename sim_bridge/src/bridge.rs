@@ -200,6 +200,29 @@ pub fn camera_info(t: Nanos, camera: &str, width: usize, height: usize, fovy_deg
     }
 }
 
+/// Renders every camera at the sim's time, then sends the frames and their camera_info back
+/// to back: a reader never sees one tick's frames from some cameras and the last tick's from
+/// others for longer than the sends take.
+fn send_frames(
+    sim: &mut Sim,
+    cameras: &[&'static str],
+    rgb: &mut [Vec<u8>],
+    frame_pubs: &mut [FramePublisher],
+    info: &[RosPublisher<CameraInfo>],
+    fovy: &[f64],
+    (width, height): (usize, usize),
+) -> anyhow::Result<()> {
+    let t = sim.time();
+    for (camera, buf) in cameras.iter().zip(rgb.iter_mut()) {
+        sim.render_into(camera, buf)?;
+    }
+    for (i, camera) in cameras.iter().enumerate() {
+        frame_pubs[i].publish(&rgb[i], t, t)?;
+        info[i].publish(camera_info(t, camera, width, height, fovy[i]))?;
+    }
+    Ok(())
+}
+
 /// The safety layer of the franka node, on the FR3's URDF, for the sim's control period.
 pub(crate) fn safety_filter(period: Nanos, urdf: Option<&std::path::Path>) -> anyhow::Result<SafetyFilter> {
     let urdf = labrig_franka::urdf_path(urdf);
@@ -335,6 +358,9 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                         e.expert = crate::expert::Expert::new(&sim);
                     }
                     tracing::info!(seed = req.seed, time_s = sim.time().as_secs_f64(), "new scene");
+                    // The new scene's first state comes with its own frames: the episode's
+                    // first step must not see the last scene's images.
+                    send_frames(&mut sim, &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
                     report_publish(publish_state(&sim, &pubs, &state));
                     if let Some(e) = &mut expert {
                         e.publish(&sim);
@@ -455,16 +481,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         }
         ticks += 1;
         last_tick = Instant::now();
-        let t = sim.time();
-        // All five rendered first, then sent back to back: a reader never sees a tick's frames
-        // from some cameras and the last tick's from others for longer than the sends take.
-        for (camera, buf) in cameras.iter().zip(rgb.iter_mut()) {
-            sim.render_into(camera, buf)?;
-        }
-        for (i, camera) in cameras.iter().enumerate() {
-            frame_pubs[i].publish(&rgb[i], t, t)?;
-            pubs.camera_info[i].publish(camera_info(t, camera, a.width, a.height, fovy[i]))?;
-        }
+        send_frames(&mut sim, &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
         report_publish(publish_state(&sim, &pubs, &state));
         if let Some(e) = &mut expert {
             e.publish(&sim);

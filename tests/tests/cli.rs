@@ -74,9 +74,21 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
     // and ffprobe read it, an MP4 frame per step.
     labrig_tests::workspace_bin("labrig-droid", "labrig-droid");
     let droid = dir.path().join("droid");
-    let out = Command::new(labrig_bin()).args(["export", "droid"]).arg(dir.path().join("episodes")).arg(&droid).output().unwrap();
+    let out = Command::new(labrig_bin())
+        .args(["export", "droid", "--json"])
+        .arg(dir.path().join("episodes"))
+        .arg(&droid)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "export: {}", String::from_utf8_lossy(&out.stderr));
-    assert!(String::from_utf8_lossy(&out.stdout).contains("export: 2 episodes"), "{}", String::from_utf8_lossy(&out.stdout));
+    let exported: Vec<Value> =
+        String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(exported.len(), 2);
+    for e in &exported {
+        // Every step's observation frame of every camera is in the recording (the first
+        // step's too: it is published before the episode's Start).
+        assert_eq!(e["frames_filled"], 0, "{e}");
+    }
     let (good, reports, problems) = labrig_tests::check_droid_with_python(&droid);
     assert!(good, "{problems}");
     assert_eq!(reports.len(), 2);

@@ -53,6 +53,19 @@ impl FrameBook {
         }
     }
 
+    /// Cameras that kept pace with the last tick (their newest frame was captured at or after
+    /// `prev_tick_ns`) but have nothing yet for the tick at `tick_ns`: on the sim's clock
+    /// their frame of this tick is on its way.
+    pub fn keeping_pace(&self, prev_tick_ns: i64, tick_ns: i64) -> Vec<&str> {
+        self.order
+            .iter()
+            .filter(|c| {
+                self.cameras[*c].back().is_some_and(|f| f.capture_ns >= prev_tick_ns && f.capture_ns < tick_ns)
+            })
+            .map(String::as_str)
+            .collect()
+    }
+
     /// The frames for a tick at `tick_ns`: per camera the newest captured at or before it.
     pub fn at(&self, tick_ns: i64, stale_ns: i64) -> TickFrames {
         let mut refs = Vec::new();
@@ -109,6 +122,19 @@ mod tests {
         // Long after the last frames: stale.
         let t = b.at(1_000_000_000, 50_000_000);
         assert_eq!(t.stale, vec!["ext1".to_string(), "wrist".to_string()]);
+    }
+
+    #[test]
+    fn cameras_that_kept_pace_are_waited_for_slow_ones_not() {
+        let mut b = FrameBook::new(&["ext1", "wrist", "rs1"]);
+        b.push("ext1", f(0, 50));
+        b.push("wrist", f(0, 50));
+        b.push("rs1", f(0, 0)); // a slower camera: behind the last tick already
+        assert_eq!(b.keeping_pace(50, 100), vec!["ext1", "wrist"]);
+        b.push("ext1", f(1, 100));
+        assert_eq!(b.keeping_pace(50, 100), vec!["wrist"]);
+        b.push("wrist", f(1, 100));
+        assert!(b.keeping_pace(50, 100).is_empty());
     }
 
     #[test]

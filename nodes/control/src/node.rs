@@ -396,7 +396,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         if let Some(w) = last_tick_wall {
             jitter_ns.push((tick_wall.duration_since(w).as_nanos() as i64 - period.0).abs());
         }
-        last_tick_ns = Some(tick_ns);
+        let prev_tick_ns = last_tick_ns.replace(tick_ns);
         last_tick_wall = Some(tick_wall);
         summary.ticks += 1;
         // The loop's clock inside the tick.
@@ -425,14 +425,26 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 Err(e) => tracing::warn!("/sim/scene is not JSON: {e}"),
             }
         }
-        for (name, sub) in &cams {
-            while let Some(f) = sub.receive()? {
-                let h = f.header();
-                book.push(
-                    name,
-                    FrameTimes { sequence: h.sequence, capture_ns: h.capture_ns, arrival_ns: h.arrival_ns },
-                );
+        // On the sim's clock a camera that kept pace with the last tick has this tick's frame
+        // on its way (it trails the state on its own channel; after a scene rebuild by more):
+        // wait for it (bounded), so a step never pairs this state with the last tick's image.
+        let frames_deadline = Instant::now() + Duration::from_millis(200);
+        loop {
+            for (name, sub) in &cams {
+                while let Some(f) = sub.receive()? {
+                    let h = f.header();
+                    book.push(
+                        name,
+                        FrameTimes { sequence: h.sequence, capture_ns: h.capture_ns, arrival_ns: h.arrival_ns },
+                    );
+                }
             }
+            let waiting = cfg.clock == ClockKind::Sim
+                && prev_tick_ns.is_some_and(|p| !book.keeping_pace(p, tick_ns).is_empty());
+            if !waiting || Instant::now() >= frames_deadline || shutdown.is_triggered() {
+                break;
+            }
+            tokio::time::sleep(Duration::from_micros(100)).await;
         }
         while let Some(r) = requests.try_take().unwrap_or_else(|e| {
             tracing::warn!("/rig/request: {e}");

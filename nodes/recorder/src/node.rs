@@ -129,6 +129,41 @@ struct Episode {
 /// How long an ended episode still takes messages sent before its end event.
 const CLOSE_GRACE: Duration = Duration::from_millis(300);
 
+/// A frame kept from before a Start is the first step's when captured at most this long
+/// before the Start's stamp (the loop's stale-frame limit is 100 ms).
+const PREROLL_NS: i64 = 200_000_000;
+
+/// One camera frame into the episode, as JPEG (rgb8 frames only).
+fn write_frame(
+    ep: &mut Episode,
+    camera: &str,
+    frame: &labrig_runtime::frames::Frame,
+    quality: u8,
+    log_ns: i64,
+) -> Result<(), RecorderError> {
+    let h = *frame.header();
+    if h.encoding() != Some(FrameEncoding::Rgb8) {
+        tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
+        return Ok(());
+    }
+    let data = match crate::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality) {
+        Ok(d) => d,
+        Err(e) => {
+            tracing::warn!("camera {camera}: {e}");
+            return Ok(());
+        }
+    };
+    let img = CompressedImage {
+        header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{camera}_optical") },
+        format: "jpeg".into(),
+        data,
+    };
+    let topic = format!("/cameras/{camera}/image/compressed");
+    ep.writer.write(&topic, &img, log_ns, h.capture_ns, Reliability::BestEffort)?;
+    ep.frames += 1;
+    Ok(())
+}
+
 #[derive(Debug, Clone, Copy)]
 struct Closing {
     outcome: Outcome,
@@ -165,6 +200,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     let mut context = Context::default();
     let clock = Clock::Wall;
     let mut episode: Option<Episode> = None;
+    // Each camera's newest frame while no episode is open.
+    let mut held: std::collections::BTreeMap<String, labrig_runtime::frames::Frame> = Default::default();
     let mut last = json!({ "state": "idle" });
     let mut status_at = Instant::now();
     let mut errors = 0u64;
@@ -241,14 +278,26 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                             }
                             tracing::info!(dir = %staging.display(), "recording");
                             last = json!({ "state": "recording", "staging": staging });
-                            episode = Some(Episode {
+                            let mut ep = Episode {
                                 writer,
                                 staging,
                                 started: Instant::now(),
                                 frames: 0,
                                 opened_ns: sent_ns,
                                 closing: None,
-                            });
+                            };
+                            // The first step's frames were published before the Start (the
+                            // loop announces an episode on its first tick): the frames kept
+                            // while idle go in when they belong to that tick.
+                            let first_tick = Nanos::from(ev.header.stamp).0;
+                            for (camera, frame) in std::mem::take(&mut held) {
+                                if frame.header().capture_ns >= first_tick - PREROLL_NS
+                                    && let Err(e) = write_frame(&mut ep, &camera, &frame, cfg.jpeg_quality, start_ns)
+                                {
+                                    tracing::warn!("camera {camera}: {e}");
+                                }
+                            }
+                            episode = Some(ep);
                         }
                         Err(e) => {
                             errors += 1;
@@ -301,35 +350,18 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                         break;
                     }
                 };
-                let Some(ep) = &mut episode else { continue };
-                let h = *frame.header();
-                if ep.closing.is_some_and(|c| h.publish_ns > c.sent_before_ns) {
+                let Some(ep) = &mut episode else {
+                    // Idle: the newest frame is kept, for a Start whose first step uses it.
+                    held.insert(camera.clone(), frame);
                     continue;
-                }
-                if h.encoding() != Some(FrameEncoding::Rgb8) {
-                    tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
-                    continue;
-                }
-                let data =
-                    match crate::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, cfg.jpeg_quality) {
-                        Ok(d) => d,
-                        Err(e) => {
-                            tracing::warn!("camera {camera}: {e}");
-                            continue;
-                        }
-                    };
-                let img = CompressedImage {
-                    header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{camera}_optical") },
-                    format: "jpeg".into(),
-                    data,
                 };
-                let topic = format!("/cameras/{camera}/image/compressed");
-                let log = clock.now().0;
-                if let Err(e) = ep.writer.write(&topic, &img, log, h.capture_ns, Reliability::BestEffort) {
+                if ep.closing.is_some_and(|c| frame.header().publish_ns > c.sent_before_ns) {
+                    continue;
+                }
+                if let Err(e) = write_frame(ep, camera, &frame, cfg.jpeg_quality, clock.now().0) {
                     failed = Some(e);
                     break;
                 }
-                ep.frames += 1;
             }
         }
         if let Some(e) = failed {
