@@ -22,9 +22,9 @@
 
 use crate::h5doc::{Attr, Column, Data, H5Doc};
 use labrig_franka::ik::{pose_from_xyz_euler, xyz_euler};
+use labrig_msgs::builtin_interfaces::Time;
 use labrig_msgs::labrig_msgs::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
 use labrig_msgs::std_msgs::Header;
-use labrig_msgs::builtin_interfaces::Time;
 use labrig_recorder::metadata::EpisodeMetadata;
 use std::collections::BTreeMap;
 
@@ -151,12 +151,22 @@ pub fn to_droid(ep: &Episode) -> H5Doc {
     c.rows(&format!("{o}/prev_joint_torques_computed"), rs(|r| r.prev_joint_torques_computed));
     c.rows(&format!("{o}/prev_joint_torques_computed_safened"), rs(|r| r.prev_joint_torques_computed_safened));
     c.rows(&format!("{o}/motor_torques_measured"), rs(|r| r.motor_torques_measured));
-    c.f64(&format!("{o}/prev_controller_latency_ms"), 0, steps.iter().map(|s| s.robot_state.prev_controller_latency_ms));
+    c.f64(
+        &format!("{o}/prev_controller_latency_ms"),
+        0,
+        steps.iter().map(|s| s.robot_state.prev_controller_latency_ms),
+    );
     c.bool(&format!("{o}/prev_command_successful"), steps.iter().map(|s| s.robot_state.prev_command_successful));
 
     let t = "observation/timestamp";
-    c.i64(&format!("{t}/robot_state/robot_timestamp_seconds"), steps.iter().map(|s| s.robot_state.header.stamp.sec as i64));
-    c.i64(&format!("{t}/robot_state/robot_timestamp_nanos"), steps.iter().map(|s| s.robot_state.header.stamp.nanosec as i64));
+    c.i64(
+        &format!("{t}/robot_state/robot_timestamp_seconds"),
+        steps.iter().map(|s| s.robot_state.header.stamp.sec as i64),
+    );
+    c.i64(
+        &format!("{t}/robot_state/robot_timestamp_nanos"),
+        steps.iter().map(|s| s.robot_state.header.stamp.nanosec as i64),
+    );
     for (i, key) in CONTROL_KEYS.iter().enumerate() {
         c.i64(&format!("{t}/control/{key}"), steps.iter().map(|s| ms(timing(&s.timing)[i])));
     }
@@ -267,7 +277,9 @@ fn bools(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<bool>>, String> 
 fn intrinsics(doc: &H5Doc, key: &str, n: usize) -> Result<Option<[f64; 9]>, String> {
     match doc.datasets.get(key) {
         Some(Column { shape, data: Data::F64(v) }) if shape == &[n, 3, 3] => Ok(v[..9].try_into().ok()),
-        Some(c) => Err(format!("trajectory.h5 `{key}` is {} {:?}, expected float64 [{n}, 3, 3]", c.data.dtype(), c.shape)),
+        Some(c) => {
+            Err(format!("trajectory.h5 `{key}` is {} {:?}, expected float64 [{n}, 3, 3]", c.data.dtype(), c.shape))
+        }
         None => Ok(None),
     }
 }
@@ -278,7 +290,11 @@ fn scalars(doc: &H5Doc, key: &str, n: usize) -> Result<Vec<f64>, String> {
 
 /// Reads trajectory.h5's content back into steps. `serial_to_id` names the cameras (DROID
 /// files know serials only); a serial it does not know keeps the serial as its id.
-pub fn from_droid(doc: &H5Doc, episode_id: &str, serial_to_id: &BTreeMap<String, String>) -> Result<Trajectory, String> {
+pub fn from_droid(
+    doc: &H5Doc,
+    episode_id: &str,
+    serial_to_id: &BTreeMap<String, String>,
+) -> Result<Trajectory, String> {
     let n = doc
         .datasets
         .get("action/joint_position")
@@ -385,7 +401,8 @@ pub fn from_droid(doc: &H5Doc, episode_id: &str, serial_to_id: &BTreeMap<String,
                     }
                 })
                 .collect::<Vec<_>>();
-            let (lo, hi) = cams.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
+            let (lo, hi) =
+                cams.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
             let header = Header { stamp: stamp(i), frame_id: "base".into() };
             Step {
                 header: header.clone(),

@@ -150,10 +150,11 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
             let m = m.map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
             let topic = m.channel.topic.as_str();
             let Some(rest) = topic.strip_prefix("/cameras/") else {
-                if topic == "/tf" && hand_offset.is_none() {
-                    if let Ok(tf) = labrig_msgs::decode::<TFMessage>(&m.data) {
-                        hand_offset = hand_offset_of(&tf);
-                    }
+                if topic == "/tf"
+                    && hand_offset.is_none()
+                    && let Ok(tf) = labrig_msgs::decode::<TFMessage>(&m.data)
+                {
+                    hand_offset = hand_offset_of(&tf);
                 }
                 continue;
             };
@@ -176,7 +177,12 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
         let mut mp4_frames = Vec::new();
         let mut frames_filled = 0;
         for (cam, mut out) in cameras.iter().zip(outs) {
-            anyhow::ensure!(out.last.is_some(), "{}: camera {} has no recorded frames: no video to export", file.display(), cam.id);
+            anyhow::ensure!(
+                out.last.is_some(),
+                "{}: camera {} has no recorded frames: no video to export",
+                file.display(),
+                cam.id
+            );
             // Steps after the last recorded frame.
             while out.next < out.refs.len() {
                 let last = out.last.clone().expect("checked");
@@ -199,7 +205,8 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
                 let e = if c.id == HAND_CAMERA {
                     ep.hand_offset.map(|off| {
                         xyz_euler(
-                            &(pose_from_xyz_euler(&ep.steps[0].robot_state.cartesian_position) * pose_from_xyz_euler(&off)),
+                            &(pose_from_xyz_euler(&ep.steps[0].robot_state.cartesian_position)
+                                * pose_from_xyz_euler(&off)),
                         )
                     })
                 } else {

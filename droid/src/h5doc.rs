@@ -6,8 +6,8 @@
 //! compare with `==`. Files are written without object modification times, so the same
 //! content gives the same bytes.
 
-use hdf5_metno as hdf5;
 use hdf5::types::{TypeDescriptor, VarLenAscii, VarLenUnicode};
+use hdf5_metno as hdf5;
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::str::FromStr;
@@ -114,7 +114,9 @@ pub fn write(path: &Path, doc: &H5Doc) -> Result<(), H5Error> {
         let ds = match &col.data {
             Data::F64(v) => new_dataset::<f64>(&group, shape, leaf).and_then(|d| d.write_raw(v.as_slice()).map(|_| d)),
             Data::I64(v) => new_dataset::<i64>(&group, shape, leaf).and_then(|d| d.write_raw(v.as_slice()).map(|_| d)),
-            Data::Bool(v) => new_dataset::<bool>(&group, shape, leaf).and_then(|d| d.write_raw(v.as_slice()).map(|_| d)),
+            Data::Bool(v) => {
+                new_dataset::<bool>(&group, shape, leaf).and_then(|d| d.write_raw(v.as_slice()).map(|_| d))
+            }
         };
         ds.map_err(err(path, what))?;
     }

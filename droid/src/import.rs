@@ -140,16 +140,8 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
     let partial = dir.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
     let mut warnings = Vec::new();
-    let result = write_episode(
-        &partial,
-        meta.clone(),
-        &steps,
-        &traj.cameras,
-        traj.hand_offset,
-        source,
-        opts,
-        &mut warnings,
-    );
+    let result =
+        write_episode(&partial, meta.clone(), &steps, &traj.cameras, traj.hand_offset, source, opts, &mut warnings);
     match result {
         Ok(frames) => {
             std::fs::rename(&partial, &dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
@@ -243,7 +235,8 @@ fn write_episode(
                 continue;
             };
             let Some(fr) = s.cameras.iter().find(|f| f.camera_id == cam.id) else { continue };
-            let repeat = i > 0 && steps[i - 1].cameras.iter().any(|p| p.camera_id == cam.id && p.capture_ns == fr.capture_ns);
+            let repeat =
+                i > 0 && steps[i - 1].cameras.iter().any(|p| p.camera_id == cam.id && p.capture_ns == fr.capture_ns);
             if repeat {
                 continue;
             }
@@ -264,7 +257,11 @@ fn write_episode(
             && !short[c]
             && r.next_frame()?.is_some()
         {
-            warnings.push(format!("camera {}: the video has more frames than the {} steps; the rest were left out", cam.id, steps.len()));
+            warnings.push(format!(
+                "camera {}: the video has more frames than the {} steps; the rest were left out",
+                cam.id,
+                steps.len()
+            ));
         }
     }
     let end = match success {

@@ -3,7 +3,7 @@
 //!
 //! - [`h5doc`]: an HDF5 file as plain data (hdf5-metno over Debian's libhdf5).
 //! - [`droid`]: steps <-> DROID's trajectory.h5 keys, no I/O.
-//! - [`meta`]: `metadata_<uuid>.json`.
+//! - [`meta`]: the metadata JSON (`metadata_<uuid>.json`).
 //! - [`video`]: MP4 through ffmpeg.
 //! - [`export`], [`import`]: whole episodes.
 

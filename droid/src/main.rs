@@ -79,7 +79,11 @@ fn bar(n: usize, what: &str) -> ProgressBar {
 }
 
 /// The episodes `source` names: itself, or the episodes found under it.
-fn sources(source: &Path, is_episode: impl Fn(&Path) -> bool, find: impl Fn(&Path) -> Vec<PathBuf>) -> anyhow::Result<Vec<PathBuf>> {
+fn sources(
+    source: &Path,
+    is_episode: impl Fn(&Path) -> bool,
+    find: impl Fn(&Path) -> Vec<PathBuf>,
+) -> anyhow::Result<Vec<PathBuf>> {
     anyhow::ensure!(source.exists(), "{}: no such file or directory", source.display());
     if source.is_file() || is_episode(source) {
         return Ok(vec![source.to_owned()]);
@@ -138,7 +142,11 @@ fn export_line(e: &Exported) -> String {
         e.dir.display(),
         e.steps,
         e.cameras.len(),
-        if e.frames_filled > 0 { format!(", {} frames filled from a neighbouring step", e.frames_filled) } else { String::new() },
+        if e.frames_filled > 0 {
+            format!(", {} frames filled from a neighbouring step", e.frames_filled)
+        } else {
+            String::new()
+        },
         e.seconds,
         e.steps as f64 / e.seconds.max(1e-9)
     )
@@ -174,7 +182,8 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let pb = if a.json { ProgressBar::hidden() } else { ProgressBar::new(a.repeat as u64) };
     for _ in 0..a.repeat {
         let e = export_episode(&a.episode, &tmp.join("droid"), &ExportOptions { overwrite: true })?;
-        let i = import_episode(&e.dir, &tmp.join("mcap"), &ImportOptions { overwrite: true, ..ImportOptions::default() })?;
+        let i =
+            import_episode(&e.dir, &tmp.join("mcap"), &ImportOptions { overwrite: true, ..ImportOptions::default() })?;
         export_rate.push(e.steps as f64 / e.seconds);
         h5_rate.push(e.steps as f64 / e.h5_seconds.max(1e-9));
         import_rate.push(i.steps as f64 / i.seconds);

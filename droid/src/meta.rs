@@ -85,10 +85,7 @@ pub fn to_json(i: &JsonInput<'_>) -> Value {
         obj.insert(format!("{role}_cam_serial"), json!(cam.map(|c| &c.1)));
         obj.insert(format!("{role}_cam_extrinsics"), json!(cam.and_then(|c| c.2)));
         obj.insert(format!("{role}_svo_path"), Value::Null);
-        obj.insert(
-            format!("{role}_mp4_path"),
-            json!(cam.map(|c| format!("{}/recordings/MP4/{}.mp4", i.rel_dir, c.1))),
-        );
+        obj.insert(format!("{role}_mp4_path"), json!(cam.map(|c| format!("{}/recordings/MP4/{}.mp4", i.rel_dir, c.1))));
     }
     let cameras: BTreeMap<&str, &str> = i.cameras.iter().map(|(id, s, _)| (id.as_str(), s.as_str())).collect();
     // The hand camera's offset has a key of its own (an imported episode keeps it among the
@@ -147,7 +144,8 @@ pub fn parse(v: &Value) -> Result<Parsed, String> {
     let mut camera_serials = BTreeMap::new();
     if let Some(cams) = labrig.and_then(|l| l.get("cameras")).and_then(Value::as_object) {
         for (id, serial) in cams {
-            let serial = serial.as_str().ok_or_else(|| format!("metadata JSON `labrig.cameras.{id}` is not a string"))?;
+            let serial =
+                serial.as_str().ok_or_else(|| format!("metadata JSON `labrig.cameras.{id}` is not a string"))?;
             serial_to_id.insert(serial.to_owned(), id.clone());
             camera_serials.insert(id.clone(), serial.to_owned());
         }
@@ -161,7 +159,8 @@ pub fn parse(v: &Value) -> Result<Parsed, String> {
     }
     let mut extrinsics: BTreeMap<String, [f64; 6]> = BTreeMap::new();
     if let Some(e) = labrig.and_then(|l| l.get("extrinsics")) {
-        extrinsics = serde_json::from_value(e.clone()).map_err(|e| format!("metadata JSON `labrig.extrinsics`: {e}"))?;
+        extrinsics =
+            serde_json::from_value(e.clone()).map_err(|e| format!("metadata JSON `labrig.extrinsics`: {e}"))?;
     } else {
         for role in ["ext1", "ext2"] {
             if let Some(e) = v.get(format!("{role}_cam_extrinsics")).filter(|e| !e.is_null()) {
@@ -197,10 +196,8 @@ pub fn parse(v: &Value) -> Result<Parsed, String> {
         trajectory_length: v.get("trajectory_length").and_then(Value::as_u64).unwrap_or(0),
         sim_scene: labrig.and_then(|l| l.get("sim_scene")).and_then(Value::as_str).map(str::to_owned),
     };
-    let action_source = labrig
-        .and_then(|l| l.get("action_source"))
-        .and_then(Value::as_str)
-        .map_or(Step::SOURCE_TELEOP, source_of);
+    let action_source =
+        labrig.and_then(|l| l.get("action_source")).and_then(Value::as_str).map_or(Step::SOURCE_TELEOP, source_of);
     Ok(Parsed { meta, serial_to_id, action_source, has_start: start_ns.is_some() })
 }
 
@@ -223,7 +220,13 @@ mod tests {
             ("ext1".to_owned(), "ext1".to_owned(), Some([0.1, -0.2, 0.3, 1.0, 0.5, -3.0])),
             ("wrist".to_owned(), "18026681".to_owned(), None),
         ];
-        let i = JsonInput { meta: &m, rel_dir: "failure/2023-07-07/x", cameras: &cams, hand_offset: None, action_source: 3 };
+        let i = JsonInput {
+            meta: &m,
+            rel_dir: "failure/2023-07-07/x",
+            cameras: &cams,
+            hand_offset: None,
+            action_source: 3,
+        };
         let v = to_json(&i);
         assert_eq!(v["timestamp"], "2023-07-07-09h-42m-23s");
         assert_eq!(v["wrist_mp4_path"], "failure/2023-07-07/x/recordings/MP4/18026681.mp4");
