@@ -360,7 +360,15 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                     tracing::info!(seed = req.seed, time_s = sim.time().as_secs_f64(), "new scene");
                     // The new scene's first state comes with its own frames: the episode's
                     // first step must not see the last scene's images.
-                    send_frames(&mut sim, &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
+                    send_frames(
+                        &mut sim,
+                        &cameras,
+                        &mut rgb,
+                        &mut frame_pubs,
+                        &pubs.camera_info,
+                        &fovy,
+                        (a.width, a.height),
+                    )?;
                     report_publish(publish_state(&sim, &pubs, &state));
                     if let Some(e) = &mut expert {
                         e.publish(&sim);

@@ -59,9 +59,7 @@ impl FrameBook {
     pub fn keeping_pace(&self, prev_tick_ns: i64, tick_ns: i64) -> Vec<&str> {
         self.order
             .iter()
-            .filter(|c| {
-                self.cameras[*c].back().is_some_and(|f| f.capture_ns >= prev_tick_ns && f.capture_ns < tick_ns)
-            })
+            .filter(|c| self.cameras[*c].back().is_some_and(|f| f.capture_ns >= prev_tick_ns && f.capture_ns < tick_ns))
             .map(String::as_str)
             .collect()
     }

@@ -68,7 +68,7 @@ fn main() -> ExitCode {
         };
         if let Some(s) = a.source {
             cfg.source = s;
-            if s == SourceKind::Hold {
+            if s == SourceKind::Hold || s == SourceKind::Teleop {
                 cfg.auto_start = false;
             }
         }

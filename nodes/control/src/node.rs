@@ -60,6 +60,9 @@ pub enum SourceKind {
     Scripted,
     /// No source: the arm holds; episodes only from `/rig/request`.
     Hold,
+    /// The Quest teleop node (`labrig-teleop`): `/teleop/action`, deadman on `/teleop/state`;
+    /// episodes from `/rig/request` (the operator's and the controller's A/B).
+    Teleop,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -97,6 +100,10 @@ pub struct ControlConfig {
     /// A source action older than this at a tick is refused (ms; realtime only, lockstep
     /// waits for the tick's own action).
     pub max_action_age_ms: f64,
+    /// Teleop: an action that arrived longer ago than this is not followed (ms). The headset
+    /// sends ~72 readings/s, so 35 ms is ~2 missed ones; with a 50 ms tick a vanished
+    /// controller holds the arm within 35 + 50 ms.
+    pub teleop_max_age_ms: f64,
     /// How long a lockstep tick waits for the source's action before holding (s).
     pub source_timeout_s: f64,
     /// The arm counts as home when every joint is this close to DROID's reset pose (rad).
@@ -130,6 +137,7 @@ impl Default for ControlConfig {
             frames_namespace: labrig_runtime::frames::default_namespace(),
             stale_frame_ms: 100.0,
             max_action_age_ms: 150.0,
+            teleop_max_age_ms: 35.0,
             source_timeout_s: 5.0,
             home_tolerance_rad: 0.02,
             reset_timeout_s: 20.0,
@@ -173,6 +181,12 @@ impl ControlConfig {
         }
         if self.source == SourceKind::Hold && self.auto_start {
             return Err("auto_start needs an action source (source = \"hold\" has none)".into());
+        }
+        if self.source == SourceKind::Teleop && self.auto_start {
+            return Err("auto_start: teleop episodes start on /rig/request (the operator), not by themselves".into());
+        }
+        if !(self.teleop_max_age_ms.is_finite() && self.teleop_max_age_ms > 0.0) {
+            return Err(format!("teleop_max_age_ms: {} must be positive", self.teleop_max_age_ms));
         }
         self.safety.validate()
     }
@@ -267,6 +281,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut source: Option<Box<dyn ActionSource>> = match cfg.source {
         SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(&mut ros)?)),
         SourceKind::Hold => None,
+        SourceKind::Teleop => {
+            Some(Box::new(crate::source::Teleop::new(&mut ros, Duration::from_secs_f64(cfg.teleop_max_age_ms / 1e3))?))
+        }
     };
     let frame_node = match &cfg.frames_namespace {
         Some(ns) => FrameNode::new_in(ns)?,
@@ -439,8 +456,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                     );
                 }
             }
-            let waiting = cfg.clock == ClockKind::Sim
-                && prev_tick_ns.is_some_and(|p| !book.keeping_pace(p, tick_ns).is_empty());
+            let waiting =
+                cfg.clock == ClockKind::Sim && prev_tick_ns.is_some_and(|p| !book.keeping_pace(p, tick_ns).is_empty());
             if !waiting || Instant::now() >= frames_deadline || shutdown.is_triggered() {
                 break;
             }

@@ -4,7 +4,7 @@
 //! is over; the loop passes the proposal through the safety layer, never the source.
 
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, Step};
+use labrig_msgs::labrig_msgs::{ArmCommand, Step, TeleopState};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_runtime::ros::{Ros, RosError, RosSubscription, qos};
 
@@ -146,4 +146,83 @@ impl ActionSource for ScriptedExpert {
     fn restart(&mut self, start_ns: i64) {
         self.since_ns = start_ns;
     }
+}
+
+/// The Quest teleop node (`labrig-teleop`): its DROID cartesian-velocity action on
+/// `/teleop/action` and the controller on `/teleop/state` (the deadman, connected). Actions
+/// come at the headset's rate on the wall clock, so their age is taken on this process's
+/// monotonic clock from their arrival: older than the source's limit, the arm holds; a state
+/// with the deadman released (or the controller gone) holds too. Episode events come from the
+/// node's `/rig/request` (A/X success, B/Y failure), not from a verdict.
+pub struct Teleop {
+    actions: RosSubscription<ArmCommand>,
+    states: RosSubscription<TeleopState>,
+    latest: Option<(ArmCommand, std::time::Instant)>,
+    state: Option<TeleopState>,
+    max_age: std::time::Duration,
+}
+
+impl std::fmt::Debug for Teleop {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Teleop").field("max_age", &self.max_age).finish_non_exhaustive()
+    }
+}
+
+impl Teleop {
+    pub fn new(ros: &mut Ros, max_age: std::time::Duration) -> Result<Teleop, RosError> {
+        Ok(Teleop {
+            actions: ros.subscription("/teleop/action", qos::reliable(100))?,
+            states: ros.subscription("/teleop/state", qos::reliable(100))?,
+            latest: None,
+            state: None,
+            max_age,
+        })
+    }
+}
+
+impl ActionSource for Teleop {
+    fn name(&self) -> &'static str {
+        "teleop (/teleop/action)"
+    }
+
+    fn kind(&self) -> u8 {
+        Step::SOURCE_TELEOP
+    }
+
+    fn poll(&mut self) -> Result<(), RosError> {
+        while let Some(a) = self.actions.try_take()? {
+            self.latest = Some((a.msg, std::time::Instant::now()));
+        }
+        while let Some(s) = self.states.try_take()? {
+            self.state = Some(s.msg);
+        }
+        Ok(())
+    }
+
+    /// Teleop runs at its own rate: a tick never waits for it.
+    fn has(&self, _tick_ns: i64) -> bool {
+        true
+    }
+
+    fn action(&mut self, _tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError> {
+        let source = "teleop";
+        let (a, at) = self.latest.as_ref().ok_or(SourceError::Silent { from: source })?;
+        let limit = self.max_age.min(std::time::Duration::from_nanos(max_age_ns.max(0) as u64));
+        let age = at.elapsed();
+        if age > limit {
+            return Err(SourceError::Stale {
+                from: source,
+                age_ms: age.as_secs_f64() * 1e3,
+                limit_ms: limit.as_secs_f64() * 1e3,
+            });
+        }
+        let enabled = self.state.as_ref().is_some_and(|s| s.movement_enabled && s.controller_connected);
+        Ok(Proposal { command: a.clone(), movement_enabled: enabled })
+    }
+
+    fn verdict(&self, _tick_ns: i64) -> Verdict {
+        Verdict::Running
+    }
+
+    fn restart(&mut self, _start_ns: i64) {}
 }

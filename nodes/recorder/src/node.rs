@@ -64,6 +64,8 @@ pub fn default_topics() -> Vec<TopicSpec> {
         spec("/tf", "tf2_msgs/msg/TFMessage", false),
         spec("/tf_static", "tf2_msgs/msg/TFMessage", true),
         spec("/sim/scene", "std_msgs/msg/String", true),
+        spec("/teleop/state", "labrig_msgs/msg/TeleopState", false),
+        spec("/teleop/action", "labrig_msgs/msg/ArmCommand", false),
     ];
     t.extend(
         RIG_CAMERAS.iter().map(|c| spec(&format!("/cameras/{c}/camera_info"), "sensor_msgs/msg/CameraInfo", false)),

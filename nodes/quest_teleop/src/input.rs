@@ -1,0 +1,247 @@
+//! Where the controller's lines come from, each on a thread of its own feeding the node:
+//!
+//! - `adb`: `adb [-s <device>] logcat -T 0 -v epoch wE9ryARX:V *:S` (Debian's adb; USB serial,
+//!   or `ip:5555` for Wi-Fi, connected first with `adb connect`), optionally starting the
+//!   headset app first. When adb exits or the device drops, it is started again after
+//!   `reconnect_s`.
+//! - `playback`: a recorded logcat file, each line sent at its original time offset (from
+//!   the line's own logcat time) scaled by `speed`; lines without a time go out at once.
+
+use serde::Deserialize;
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc::UnboundedSender;
+
+/// The Quest app (FACTS.md).
+pub const APP_ACTIVITY: &str = "com.rail.oculus.teleop/com.rail.oculus.teleop.MainActivity";
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum InputKind {
+    Adb,
+    Playback,
+}
+
+/// `[input]` of the node's config.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InputConfig {
+    pub kind: InputKind,
+    /// The adb program.
+    pub adb: String,
+    /// The headset: a USB serial or `ip:port` (Wi-Fi); empty: adb's only device.
+    pub device: String,
+    /// Start the headset app over adb before reading.
+    pub start_app: bool,
+    /// Seconds between adb restarts.
+    pub reconnect_s: f64,
+    /// Playback: the recorded logcat file.
+    pub file: Option<PathBuf>,
+    /// Playback: time scale (2.0 = twice as fast).
+    pub speed: f64,
+}
+
+impl Default for InputConfig {
+    fn default() -> Self {
+        InputConfig {
+            kind: InputKind::Adb,
+            adb: "adb".into(),
+            device: String::new(),
+            start_app: true,
+            reconnect_s: 1.0,
+            file: None,
+            speed: 1.0,
+        }
+    }
+}
+
+impl InputConfig {
+    pub fn validate(&self) -> Result<(), String> {
+        if self.kind == InputKind::Playback && self.file.is_none() {
+            return Err("input.file: playback needs a recorded logcat file".into());
+        }
+        if !(self.speed.is_finite() && self.speed > 0.0) {
+            return Err(format!("input.speed: {} must be positive", self.speed));
+        }
+        if !(self.reconnect_s.is_finite() && self.reconnect_s >= 0.0) {
+            return Err(format!("input.reconnect_s: {} must be >= 0", self.reconnect_s));
+        }
+        Ok(())
+    }
+}
+
+/// What the input thread reports.
+#[derive(Debug)]
+pub enum InputEvent {
+    /// A line and when it was read.
+    Line { text: String, read_at: Instant },
+    /// The source's state changed (adb started, lost, ...), for the log and the status.
+    Note(String),
+    /// The source has no more lines (playback's end).
+    End,
+}
+
+/// A running input; dropping it stops the thread (and adb).
+#[derive(Debug)]
+pub struct Input {
+    stop: Arc<AtomicBool>,
+    child: Arc<Mutex<Option<Child>>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for Input {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        if let Ok(mut c) = self.child.lock()
+            && let Some(c) = c.as_mut()
+        {
+            let _ = c.kill();
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Starts the input `cfg` describes, sending to `tx`.
+pub fn start(cfg: &InputConfig, tx: UnboundedSender<InputEvent>) -> anyhow::Result<Input> {
+    cfg.validate().map_err(|e| anyhow::anyhow!(e))?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let child: Arc<Mutex<Option<Child>>> = Arc::new(Mutex::new(None));
+    let (cfg2, stop2, child2) = (cfg.clone(), stop.clone(), child.clone());
+    let thread = match cfg.kind {
+        InputKind::Playback => {
+            let path = cfg.file.clone().expect("validated");
+            let text =
+                std::fs::read_to_string(&path).map_err(|e| anyhow::anyhow!("input.file {}: {e}", path.display()))?;
+            std::thread::Builder::new()
+                .name("teleop-playback".into())
+                .spawn(move || playback(&text, cfg2.speed, &tx, &stop2))?
+        }
+        InputKind::Adb => {
+            std::thread::Builder::new().name("teleop-adb".into()).spawn(move || adb(&cfg2, &tx, &stop2, &child2))?
+        }
+    };
+    Ok(Input { stop, child, thread: Some(thread) })
+}
+
+fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
+    let until = Instant::now() + d;
+    while !stop.load(Ordering::SeqCst) {
+        let now = Instant::now();
+        if now >= until {
+            return;
+        }
+        std::thread::sleep((until - now).min(Duration::from_millis(20)));
+    }
+}
+
+fn playback(text: &str, speed: f64, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool) {
+    let started = Instant::now();
+    let mut t0: Option<i64> = None;
+    for line in text.lines() {
+        if stop.load(Ordering::SeqCst) {
+            return;
+        }
+        if let Some(t) = crate::logcat::line_time_ns(line) {
+            let first = *t0.get_or_insert(t);
+            let offset = ((t - first).max(0) as f64 / speed) as u64;
+            let due = started + Duration::from_nanos(offset);
+            let now = Instant::now();
+            if due > now {
+                sleep_unless_stopped(due - now, stop);
+            }
+        }
+        if tx.send(InputEvent::Line { text: line.to_owned(), read_at: Instant::now() }).is_err() {
+            return;
+        }
+    }
+    let _ = tx.send(InputEvent::End);
+}
+
+fn adb_command(cfg: &InputConfig) -> Command {
+    let mut c = Command::new(&cfg.adb);
+    if !cfg.device.is_empty() {
+        c.args(["-s", &cfg.device]);
+    }
+    c
+}
+
+fn adb(cfg: &InputConfig, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool, child: &Mutex<Option<Child>>) {
+    let note = |s: String| {
+        tracing::info!("{s}");
+        let _ = tx.send(InputEvent::Note(s));
+    };
+    while !stop.load(Ordering::SeqCst) {
+        if cfg.device.contains(':') {
+            // Wi-Fi: (re)connect first; its output says whether it worked, logcat will tell.
+            let _ = Command::new(&cfg.adb)
+                .args(["connect", &cfg.device])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .status();
+        }
+        if cfg.start_app {
+            let _ = adb_command(cfg)
+                .args(["shell", "am", "start", "-n", APP_ACTIVITY])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .status();
+        }
+        let spawned = adb_command(cfg)
+            .args(["logcat", "-T", "0", "-v", "epoch", &format!("{}:V", crate::logcat::TAG), "*:S"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn();
+        let stdout = match spawned {
+            Ok(mut c) => {
+                let out = c.stdout.take();
+                if let Ok(mut slot) = child.lock() {
+                    *slot = Some(c);
+                }
+                note(format!(
+                    "adb logcat started ({})",
+                    if cfg.device.is_empty() { "the one device" } else { &cfg.device }
+                ));
+                out
+            }
+            Err(e) => {
+                note(format!("cannot run {} ({e}): install Debian's adb", cfg.adb));
+                None
+            }
+        };
+        if let Some(out) = stdout {
+            for line in BufReader::new(out).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(InputEvent::Line { text: line, read_at: Instant::now() }).is_err() {
+                    return;
+                }
+                if stop.load(Ordering::SeqCst) {
+                    break;
+                }
+            }
+        }
+        let status = child.lock().ok().and_then(|mut c| c.take()).map(|mut c| {
+            let _ = c.kill();
+            c.wait()
+        });
+        if stop.load(Ordering::SeqCst) {
+            return;
+        }
+        note(format!(
+            "adb logcat ended ({}); reconnecting in {:.1} s",
+            match status {
+                Some(Ok(s)) => s.to_string(),
+                Some(Err(e)) => e.to_string(),
+                None => "not started".into(),
+            },
+            cfg.reconnect_s
+        ));
+        sleep_unless_stopped(Duration::from_secs_f64(cfg.reconnect_s), stop);
+    }
+}
