@@ -206,9 +206,13 @@ fn a_vanished_controller_holds_the_arm_within_100_ms() {
         "vanished controller: last moving step {moving_ms:.1} ms after the last reading, hold {hold_ms:.1} ms after it"
     );
     assert!(hold_ms <= 100.0, "held {hold_ms:.1} ms after the last reading");
-    // Held: the TCP stays where it stopped for the rest of the episode.
-    let stop = tcp(&steps[last_moving + 2]);
-    let drift = steps[last_moving + 2..]
+    // Held: from the hold on, every step commands the same joints (the arm's last target),
+    // and the TCP, once it has caught up with that target (0.3 s), stays.
+    let target = steps[last_moving + 1].action.joint_position;
+    assert!(steps[last_moving + 1..].iter().all(|s| s.action.joint_position == target), "the held target changed");
+    assert!(steps.len() > last_moving + 12, "the hold was recorded for a while: {} steps", steps.len());
+    let stop = tcp(&steps[last_moving + 7]);
+    let drift = steps[last_moving + 7..]
         .iter()
         .map(|s| sub(tcp(s), stop).iter().map(|v| v * v).sum::<f64>().sqrt())
         .fold(0.0, f64::max);
@@ -229,4 +233,48 @@ fn last_stamp(dir: &Path, topic: &str) -> i64 {
         }
     }
     last
+}
+
+/// The adb input: the node starts the headset app, runs `adb logcat`, and when adb exits (the
+/// device dropped) starts it again. Against a stand-in `adb` script (no headset here) that
+/// logs its arguments and prints 40 lines of the square trace per logcat run, then exits.
+#[test]
+fn the_adb_input_starts_the_app_and_reconnects_when_adb_drops() {
+    let domain = domain_for("teleop_adb_reconnects").to_string();
+    let tmp = tempfile::tempdir().unwrap();
+    let log = tmp.path().join("adb.log");
+    let adb = tmp.path().join("adb");
+    std::fs::write(
+        &adb,
+        "#!/bin/sh\necho \"$@\" >> \"$ADB_LOG\"\ncase \"$*\" in\n  *logcat*) head -n 40 \"$ADB_TRACE\"; exit 0 ;;\nesac\nexit 0\n",
+    )
+    .unwrap();
+    std::process::Command::new("chmod").arg("+x").arg(&adb).status().unwrap();
+    let cfg = tmp.path().join("teleop.toml");
+    std::fs::write(
+        &cfg,
+        format!("[input]\nkind = \"adb\"\nadb = \"{}\"\ndevice = \"1WMHH0TEST\"\nreconnect_s = 0.2\n", adb.display()),
+    )
+    .unwrap();
+    let mut cmd = Command::new(workspace_bin("labrig-teleop", "labrig-teleop"));
+    cmd.args(["run", "--json", "--domain-id", &domain, "--config"])
+        .arg(&cfg)
+        .env("ADB_LOG", &log)
+        .env("ADB_TRACE", repo_root().join("nodes/quest_teleop/tests/fixtures/square.logcat"))
+        .stdout(std::process::Stdio::piped());
+    let child = cmd.spawn().unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{:?}", out.status);
+    let stats: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let calls = std::fs::read_to_string(&log).unwrap();
+    let logcats = calls.lines().filter(|l| l.contains("logcat")).count();
+    eprintln!("adb calls:\n{calls}\nteleop: {stats}");
+    assert!(logcats >= 3, "adb logcat started again after each drop: {logcats}");
+    assert!(calls.lines().all(|l| l.starts_with("-s 1WMHH0TEST ")), "every call names the device: {calls}");
+    assert!(calls.contains("shell am start -n com.rail.oculus.teleop/com.rail.oculus.teleop.MainActivity"));
+    assert!(calls.contains("logcat -T 0 -v epoch wE9ryARX:V *:S"), "{calls}");
+    let readings = stats["lines"]["readings"].as_u64().unwrap();
+    assert_eq!(readings, 40 * logcats as u64, "every line of every run read: {stats}");
 }

@@ -150,14 +150,18 @@ impl ActionSource for ScriptedExpert {
 
 /// The Quest teleop node (`labrig-teleop`): its DROID cartesian-velocity action on
 /// `/teleop/action` and the controller on `/teleop/state` (the deadman, connected). Actions
-/// come at the headset's rate on the wall clock, so their age is taken on this process's
-/// monotonic clock from their arrival: older than the source's limit, the arm holds; a state
+/// come at the headset's rate on the wall clock, so their age is the wall clock's now minus
+/// their DDS source timestamp (when the node published them; the two processes share the
+/// machine's clock, or a synchronised one), whatever the loop's own clock: older than the
+/// source's limit, the arm holds. (Taking the age from when the loop polled them would hide up
+/// to a tick of silence: the loop polls once per tick.) A state
 /// with the deadman released (or the controller gone) holds too. Episode events come from the
 /// node's `/rig/request` (A/X success, B/Y failure), not from a verdict.
 pub struct Teleop {
     actions: RosSubscription<ArmCommand>,
     states: RosSubscription<TeleopState>,
-    latest: Option<(ArmCommand, std::time::Instant)>,
+    /// The newest action and when it was sent (wall ns).
+    latest: Option<(ArmCommand, i64)>,
     state: Option<TeleopState>,
     max_age: std::time::Duration,
 }
@@ -191,7 +195,8 @@ impl ActionSource for Teleop {
 
     fn poll(&mut self) -> Result<(), RosError> {
         while let Some(a) = self.actions.try_take()? {
-            self.latest = Some((a.msg, std::time::Instant::now()));
+            let sent = a.source_time.unwrap_or(a.receive_time).0;
+            self.latest = Some((a.msg, sent));
         }
         while let Some(s) = self.states.try_take()? {
             self.state = Some(s.msg);
@@ -206,15 +211,11 @@ impl ActionSource for Teleop {
 
     fn action(&mut self, _tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError> {
         let source = "teleop";
-        let (a, at) = self.latest.as_ref().ok_or(SourceError::Silent { from: source })?;
-        let limit = self.max_age.min(std::time::Duration::from_nanos(max_age_ns.max(0) as u64));
-        let age = at.elapsed();
+        let (a, sent) = self.latest.as_ref().ok_or(SourceError::Silent { from: source })?;
+        let limit = (self.max_age.as_nanos() as i64).min(max_age_ns);
+        let age = labrig_runtime::Clock::Wall.now().0 - sent;
         if age > limit {
-            return Err(SourceError::Stale {
-                from: source,
-                age_ms: age.as_secs_f64() * 1e3,
-                limit_ms: limit.as_secs_f64() * 1e3,
-            });
+            return Err(SourceError::Stale { from: source, age_ms: age as f64 / 1e6, limit_ms: limit as f64 / 1e6 });
         }
         let enabled = self.state.as_ref().is_some_and(|s| s.movement_enabled && s.controller_connected);
         Ok(Proposal { command: a.clone(), movement_enabled: enabled })

@@ -72,6 +72,14 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The Quest teleop node: `labrig teleop run [--device <serial|ip:5555>]` (adb), or
+    /// `--file trace.logcat` to play a recorded controller (see `labrig teleop run --help`).
+    #[command(disable_help_flag = true)]
+    Teleop {
+        /// Arguments for labrig-teleop.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The Robotiq 2F-85 node: `labrig gripper run --port /dev/ttyUSB0`, or `labrig gripper
     /// emulate` for a 2F-85 on a pseudo-terminal (see `labrig gripper --help`).
     #[command(disable_help_flag = true)]
@@ -194,6 +202,8 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The Quest teleop node: logcat line in -> action out, p50/p99 (a recorded trace played).
+    Teleop(crate::bench_teleop::TeleopArgs),
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -211,6 +221,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Franka(a)) => crate::bench_franka::run(a),
         Command::Bench(BenchCommand::Record(a)) => crate::bench_record::run(a),
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
+        Command::Bench(BenchCommand::Teleop(a)) => crate::bench_teleop::run(a),
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
@@ -227,5 +238,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim { args } => sim(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
+        Command::Teleop { args } => node("labrig-teleop", &args),
     }
 }

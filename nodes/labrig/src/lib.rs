@@ -7,6 +7,7 @@ pub mod bench_franka;
 pub mod bench_ik;
 pub mod bench_loop;
 pub mod bench_record;
+pub mod bench_teleop;
 pub mod cli;
 pub mod demo;
 pub mod episode;

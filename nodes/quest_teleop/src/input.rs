@@ -5,7 +5,8 @@
 //!   headset app first. When adb exits or the device drops, it is started again after
 //!   `reconnect_s`.
 //! - `playback`: a recorded logcat file, each line sent at its original time offset (from
-//!   the line's own logcat time) scaled by `speed`; lines without a time go out at once.
+//!   the line's own logcat time) scaled by `speed`; lines without a time go out at once;
+//!   `repeat` plays it again and again.
 
 use serde::Deserialize;
 use std::io::{BufRead, BufReader};
@@ -43,6 +44,8 @@ pub struct InputConfig {
     pub file: Option<PathBuf>,
     /// Playback: time scale (2.0 = twice as fast).
     pub speed: f64,
+    /// Playback: start again at the end (a controller that never leaves; the sim rig).
+    pub repeat: bool,
 }
 
 impl Default for InputConfig {
@@ -55,6 +58,7 @@ impl Default for InputConfig {
             reconnect_s: 1.0,
             file: None,
             speed: 1.0,
+            repeat: false,
         }
     }
 }
@@ -118,9 +122,10 @@ pub fn start(cfg: &InputConfig, tx: UnboundedSender<InputEvent>) -> anyhow::Resu
             let path = cfg.file.clone().expect("validated");
             let text =
                 std::fs::read_to_string(&path).map_err(|e| anyhow::anyhow!("input.file {}: {e}", path.display()))?;
-            std::thread::Builder::new()
-                .name("teleop-playback".into())
-                .spawn(move || playback(&text, cfg2.speed, &tx, &stop2))?
+            std::thread::Builder::new().name("teleop-playback".into()).spawn(move || {
+                while playback(&text, cfg2.speed, &tx, &stop2) && cfg2.repeat {}
+                let _ = tx.send(InputEvent::End);
+            })?
         }
         InputKind::Adb => {
             std::thread::Builder::new().name("teleop-adb".into()).spawn(move || adb(&cfg2, &tx, &stop2, &child2))?
@@ -140,12 +145,13 @@ fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
     }
 }
 
-fn playback(text: &str, speed: f64, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool) {
+/// Plays `text` once; false when stopped or the node is gone.
+fn playback(text: &str, speed: f64, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool) -> bool {
     let started = Instant::now();
     let mut t0: Option<i64> = None;
     for line in text.lines() {
         if stop.load(Ordering::SeqCst) {
-            return;
+            return false;
         }
         if let Some(t) = crate::logcat::line_time_ns(line) {
             let first = *t0.get_or_insert(t);
@@ -157,10 +163,12 @@ fn playback(text: &str, speed: f64, tx: &UnboundedSender<InputEvent>, stop: &Ato
             }
         }
         if tx.send(InputEvent::Line { text: line.to_owned(), read_at: Instant::now() }).is_err() {
-            return;
+            return false;
         }
     }
-    let _ = tx.send(InputEvent::End);
+    // One period's pause before a repeat, as between two frames.
+    sleep_unless_stopped(Duration::from_millis(14), stop);
+    !stop.load(Ordering::SeqCst)
 }
 
 fn adb_command(cfg: &InputConfig) -> Command {

@@ -36,6 +36,9 @@ struct RunArgs {
     /// Playback time scale.
     #[arg(long)]
     speed: Option<f64>,
+    /// Playback: start again at the end.
+    #[arg(long)]
+    repeat: bool,
     /// adb: the headset's serial or ip:port.
     #[arg(long)]
     device: Option<String>,
@@ -61,7 +64,16 @@ fn main() -> ExitCode {
     let Command::Run(a) = cli.command;
     labrig_runtime::main_node("labrig-teleop", |shutdown| async move {
         let mut cfg: TeleopConfig = match &a.config {
-            Some(p) => labrig_runtime::load_config(p)?,
+            Some(p) => {
+                let mut c: TeleopConfig = labrig_runtime::load_config(p)?;
+                // A trace named in a config file is relative to that file.
+                if let (Some(f), Some(dir)) = (c.input.file.as_mut(), p.parent())
+                    && f.is_relative()
+                {
+                    *f = dir.join(&*f);
+                }
+                c
+            }
             None => TeleopConfig::default(),
         };
         if let Some(k) = a.input {
@@ -70,6 +82,9 @@ fn main() -> ExitCode {
         if let Some(f) = a.file {
             cfg.input.kind = InputKind::Playback;
             cfg.input.file = Some(f);
+        }
+        if a.repeat {
+            cfg.input.repeat = true;
         }
         if let Some(s) = a.speed {
             cfg.input.speed = s;

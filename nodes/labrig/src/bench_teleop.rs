@@ -1,0 +1,113 @@
+//! `labrig bench teleop`: the Quest teleop node's latency, logcat line in -> action out.
+//! Starts `labrig-teleop run` playing a recorded controller trace (the committed
+//! square.logcat by default) on a private DDS domain, plays the arm's `/arm/state` to it
+//! at 50 Hz from this process, and measures:
+//! - in the node: the line read from the input -> its action published (the node's figures);
+//! - across DDS: the reading's time (the action's stamp) -> the action received here.
+
+use clap::Args;
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ArmCommand, RobotState};
+use labrig_runtime::ros::{Ros, qos};
+use serde_json::json;
+use std::path::PathBuf;
+use std::process::{Command, ExitCode, Stdio};
+use std::time::Duration;
+
+#[derive(Debug, Args)]
+pub struct TeleopArgs {
+    /// The recorded logcat trace to play (default: the committed square trace).
+    #[arg(long)]
+    trace: Option<PathBuf>,
+    /// Playback speed (2 = twice the headset's rate).
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// DDS domain for the bench's node.
+    #[arg(long, default_value_t = 232)]
+    domain_id: u16,
+    #[arg(long)]
+    json: bool,
+}
+
+fn summary(mut v: Vec<f64>) -> serde_json::Value {
+    if v.is_empty() {
+        return json!(null);
+    }
+    v.sort_by(f64::total_cmp);
+    let p = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    json!({ "p50_us": p(0.5), "p99_us": p(0.99), "max_us": p(1.0), "n": v.len() })
+}
+
+pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
+    let trace = a.trace.unwrap_or_else(|| {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../quest_teleop/tests/fixtures/square.logcat")
+    });
+    anyhow::ensure!(trace.is_file(), "{}: no such trace", trace.display());
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let (node, received) = rt.block_on(async {
+        let cfg = labrig_runtime::RosConfig { domain_id: a.domain_id, ..Default::default() };
+        let mut ros = Ros::new(&cfg, "labrig_bench_teleop")?;
+        let state = ros.publisher::<RobotState>("/arm/state", qos::reliable(100))?;
+        let actions = ros.subscription::<ArmCommand>("/teleop/action", qos::reliable(1000))?;
+        let child = Command::new(crate::cli::sibling_binary("labrig-teleop")?)
+            .args(["run", "--json", "--exit-at-end", "--speed", &a.speed.to_string()])
+            .args(["--domain-id", &a.domain_id.to_string(), "--file"])
+            .arg(&trace)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()?;
+        let waiter = tokio::task::spawn_blocking(move || child.wait_with_output());
+        let mut received = Vec::new();
+        let home =
+            RobotState { cartesian_position: [0.5, 0.0, 0.4, std::f64::consts::PI, 0.0, 0.0], ..RobotState::default() };
+        let mut next_state = tokio::time::Instant::now();
+        while !waiter.is_finished() {
+            if tokio::time::Instant::now() >= next_state {
+                state.publish(home.clone())?;
+                next_state += Duration::from_millis(20);
+            }
+            while let Some(m) = actions.try_take()? {
+                let now = labrig_runtime::Clock::Wall.now().0;
+                received.push((now - Nanos::from(m.msg.header.stamp).0) as f64 / 1e3);
+            }
+            tokio::time::sleep(Duration::from_micros(200)).await;
+        }
+        let out = waiter.await??;
+        anyhow::ensure!(out.status.success(), "labrig-teleop failed ({})", out.status);
+        let node: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+        anyhow::Ok((node, received))
+    })?;
+    let report = json!({
+        "trace": trace,
+        "readings": node["lines"]["readings"],
+        "actions": node["actions"],
+        "node_line_to_action_published": {
+            "p50_us": node["latency_us_p50"], "p99_us": node["latency_us_p99"],
+            "max_us": node["latency_us_max"], "n": node["latency_n"],
+        },
+        "reading_to_action_received": summary(received),
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        let line = |name: &str, v: &serde_json::Value| {
+            println!(
+                "{name:<44} p50 {:>7.0} us  p99 {:>7.0} us  max {:>7.0} us  (n = {})",
+                v["p50_us"].as_f64().unwrap_or(f64::NAN),
+                v["p99_us"].as_f64().unwrap_or(f64::NAN),
+                v["max_us"].as_f64().unwrap_or(f64::NAN),
+                v["n"]
+            )
+        };
+        println!(
+            "teleop node: {} readings played from {} at {}x, {} actions",
+            report["readings"],
+            trace.display(),
+            a.speed,
+            report["actions"]
+        );
+        line("in the node: line read -> action published", &report["node_line_to_action_published"]);
+        line("reading -> action received (one DDS hop)", &report["reading_to_action_received"]);
+    }
+    Ok(ExitCode::SUCCESS)
+}
