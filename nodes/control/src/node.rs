@@ -829,7 +829,8 @@ mod tests {
         let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../launch_configs/nodes/control_real.toml");
         let c: ControlConfig = labrig_runtime::load_config(&p).unwrap();
         assert_eq!(c.validate(), Ok(()));
-        assert_eq!((c.source, c.clock, c.auto_start), (SourceKind::Hold, ClockKind::Wall, false));
+        assert_eq!((c.source, c.clock, c.auto_start), (SourceKind::Teleop, ClockKind::Wall, false));
+        assert_eq!(c.teleop_max_age_ms, 35.0);
         assert_eq!(c.safety.max_command_age_s, 0.0);
     }
 

@@ -25,6 +25,8 @@ pub const APP_ACTIVITY: &str = "com.rail.oculus.teleop/com.rail.oculus.teleop.Ma
 pub enum InputKind {
     Adb,
     Playback,
+    /// The terminal's keyboard as a virtual controller (sim work without a headset).
+    Keyboard,
 }
 
 /// `[input]` of the node's config.
@@ -46,6 +48,11 @@ pub struct InputConfig {
     pub speed: f64,
     /// Playback: start again at the end (a controller that never leaves; the sim rig).
     pub repeat: bool,
+    /// Keyboard: the controller's move per key press (m) and turn (rad).
+    pub keyboard_step_m: f64,
+    pub keyboard_step_rad: f64,
+    /// Keyboard: readings per second.
+    pub keyboard_hz: f64,
 }
 
 impl Default for InputConfig {
@@ -59,6 +66,9 @@ impl Default for InputConfig {
             file: None,
             speed: 1.0,
             repeat: false,
+            keyboard_step_m: 0.005,
+            keyboard_step_rad: 0.05,
+            keyboard_hz: 50.0,
         }
     }
 }
@@ -70,6 +80,15 @@ impl InputConfig {
         }
         if !(self.speed.is_finite() && self.speed > 0.0) {
             return Err(format!("input.speed: {} must be positive", self.speed));
+        }
+        for (k, v) in [
+            ("keyboard_step_m", self.keyboard_step_m),
+            ("keyboard_step_rad", self.keyboard_step_rad),
+            ("keyboard_hz", self.keyboard_hz),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("input.{k}: {v} must be positive"));
+            }
         }
         if !(self.reconnect_s.is_finite() && self.reconnect_s >= 0.0) {
             return Err(format!("input.reconnect_s: {} must be >= 0", self.reconnect_s));
@@ -83,6 +102,10 @@ impl InputConfig {
 pub enum InputEvent {
     /// A line and when it was read.
     Line { text: String, read_at: Instant },
+    /// A reading made here (the keyboard's virtual controller).
+    Reading { reading: Box<crate::logcat::Reading>, read_at: Instant },
+    /// The operator asked to quit (Esc / Ctrl-C at the keyboard).
+    Quit,
     /// The source's state changed (adb started, lost, ...), for the log and the status.
     Note(String),
     /// The source has no more lines (playback's end).
@@ -111,8 +134,13 @@ impl Drop for Input {
     }
 }
 
-/// Starts the input `cfg` describes, sending to `tx`.
-pub fn start(cfg: &InputConfig, tx: UnboundedSender<InputEvent>) -> anyhow::Result<Input> {
+/// Starts the input `cfg` describes, sending to `tx`; `reorder` is the policy's axis mapping
+/// (the keyboard moves its virtual controller along the robot's axes).
+pub fn start(
+    cfg: &InputConfig,
+    tx: UnboundedSender<InputEvent>,
+    reorder: nalgebra::Matrix4<f64>,
+) -> anyhow::Result<Input> {
     cfg.validate().map_err(|e| anyhow::anyhow!(e))?;
     let stop = Arc::new(AtomicBool::new(false));
     let child: Arc<Mutex<Option<Child>>> = Arc::new(Mutex::new(None));
@@ -126,6 +154,18 @@ pub fn start(cfg: &InputConfig, tx: UnboundedSender<InputEvent>) -> anyhow::Resu
                 while playback(&text, cfg2.speed, &tx, &stop2) && cfg2.repeat {}
                 let _ = tx.send(InputEvent::End);
             })?
+        }
+        InputKind::Keyboard => {
+            use std::io::IsTerminal;
+            anyhow::ensure!(
+                std::io::stdin().is_terminal(),
+                "input.kind = \"keyboard\" needs a terminal (stdin is not one): run `labrig teleop run --input keyboard` in a shell"
+            );
+            let vc = crate::keyboard::VirtualController::new(reorder, cfg.keyboard_step_m, cfg.keyboard_step_rad);
+            let period = Duration::from_secs_f64(1.0 / cfg.keyboard_hz);
+            std::thread::Builder::new()
+                .name("teleop-keyboard".into())
+                .spawn(move || keyboard(vc, period, &tx, &stop2))?
         }
         InputKind::Adb => {
             std::thread::Builder::new().name("teleop-adb".into()).spawn(move || adb(&cfg2, &tx, &stop2, &child2))?
@@ -251,5 +291,58 @@ fn adb(cfg: &InputConfig, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool, c
             cfg.reconnect_s
         ));
         sleep_unless_stopped(Duration::from_secs_f64(cfg.reconnect_s), stop);
+    }
+}
+
+/// Restores the terminal when the keyboard thread ends, however it ends.
+struct RawMode;
+impl Drop for RawMode {
+    fn drop(&mut self) {
+        let _ = crossterm::terminal::disable_raw_mode();
+    }
+}
+
+fn keyboard(
+    mut vc: crate::keyboard::VirtualController,
+    period: Duration,
+    tx: &UnboundedSender<InputEvent>,
+    stop: &AtomicBool,
+) {
+    use crate::keyboard::KeyEffect;
+    use crossterm::event::{Event, KeyCode, KeyEventKind, KeyModifiers};
+    if let Err(e) = crossterm::terminal::enable_raw_mode() {
+        let _ = tx.send(InputEvent::Note(format!("keyboard: cannot switch the terminal to raw mode: {e}")));
+        let _ = tx.send(InputEvent::End);
+        return;
+    }
+    let _raw = RawMode;
+    eprint!(
+        "keyboard controller: space = grip (deadman, toggles), w/s a/d r/f = x y z, q/e = turn, g = gripper, 1 = success, 2 = failure, Esc = quit\r\n"
+    );
+    let mut next = Instant::now();
+    while !stop.load(Ordering::SeqCst) {
+        let wait = next.saturating_duration_since(Instant::now());
+        if crossterm::event::poll(wait).unwrap_or(false) {
+            if let Ok(Event::Key(k)) = crossterm::event::read()
+                && k.kind != KeyEventKind::Release
+            {
+                let quit_keys = matches!(k.code, KeyCode::Esc)
+                    || (k.code == KeyCode::Char('c') && k.modifiers.contains(KeyModifiers::CONTROL));
+                let effect = match k.code {
+                    _ if quit_keys => KeyEffect::Quit,
+                    KeyCode::Char(c) => vc.key(c),
+                    _ => KeyEffect::Ignored,
+                };
+                if effect == KeyEffect::Quit {
+                    let _ = tx.send(InputEvent::Quit);
+                    return;
+                }
+            }
+            continue;
+        }
+        next += period;
+        if tx.send(InputEvent::Reading { reading: Box::new(vc.reading()), read_at: Instant::now() }).is_err() {
+            return;
+        }
     }
 }

@@ -160,7 +160,7 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
     let request_pub = ros.publisher::<EpisodeEvent>("/rig/request", qos::reliable(10))?;
     let arm = ros.subscription::<RobotState>(&cfg.state_topic, qos::reliable(100))?;
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
-    let _input = crate::input::start(&cfg.input, tx)?;
+    let _input = crate::input::start(&cfg.input, tx, crate::policy::reorder_matrix(&cfg.policy.axis_reorder))?;
     let right = cfg.policy.hand == "right";
     let mut policy = VrPolicy::new(cfg.policy.clone());
     let mut stats = TeleopStats::default();
@@ -208,19 +208,23 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
                     ended_at.get_or_insert_with(Instant::now);
                     continue;
                 };
-                let (text, read_at) = match ev {
-                    InputEvent::Line { text, read_at } => (text, read_at),
+                let (reading, read_at) = match ev {
+                    InputEvent::Line { text, read_at } => match stats.lines.take(&text) {
+                        None => continue,
+                        Some(Err(e)) => { tracing::debug!("bad line: {e}"); continue; }
+                        Some(Ok(r)) => (r, read_at),
+                    },
+                    InputEvent::Reading { reading, read_at } => {
+                        stats.lines.readings += 1;
+                        (*reading, read_at)
+                    }
                     InputEvent::Note(n) => { tracing::info!("input: {n}"); continue; }
                     InputEvent::End => { tracing::info!("input ended"); ended_at = Some(Instant::now()); continue; }
+                    InputEvent::Quit => { tracing::info!("quit at the keyboard"); break; }
                 };
                 while let Some(s) = arm.try_take()? {
                     robot = Some(RobotView { cartesian_position: s.msg.cartesian_position, gripper_position: s.msg.gripper_position });
                 }
-                let reading = match stats.lines.take(&text) {
-                    None => continue,
-                    Some(Err(e)) => { tracing::debug!("bad line: {e}"); continue; }
-                    Some(Ok(r)) => r,
-                };
                 let hand = *reading.hand(right);
                 let Some(pose) = hand.pose else { continue };
                 let t = Clock::Wall.now().0;

@@ -71,12 +71,17 @@ impl PolicyConfig {
     }
 
     fn reorder(&self) -> Matrix4<f64> {
-        let mut m = Matrix4::zeros();
-        for (row, v) in self.axis_reorder.iter().enumerate() {
-            m[(row, v.unsigned_abs() as usize - 1)] = f64::from(v.signum());
-        }
-        m
+        reorder_matrix(&self.axis_reorder)
     }
+}
+
+/// DROID's `vec_to_reorder_mat`: row i takes VR axis |v_i| with the sign of v_i.
+pub fn reorder_matrix(v: &[i8; 4]) -> Matrix4<f64> {
+    let mut m = Matrix4::zeros();
+    for (row, v) in v.iter().enumerate() {
+        m[(row, v.unsigned_abs() as usize - 1)] = f64::from(v.signum());
+    }
+    m
 }
 
 /// The robot's side of the mapping: its TCP (xyz + extrinsic xyz Euler) and gripper (0..1).
