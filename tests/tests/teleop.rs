@@ -6,7 +6,10 @@
 //!   after it is pressed again (error against the trace reported, bounded at 5 mm);
 //! - with the grip released (the deadman) the arm holds while the controller moves 8 cm;
 //! - the one-frame tracking glitch (40 cm) is refused, not followed;
-//! - A ends the episode: recorded under success/ with success = true, steps from teleop.
+//! - A ends the episode: recorded under success/ with success = true, steps from teleop;
+//!   B (fail.logcat) records a failure;
+//! - a vanished controller (vanish.logcat) holds the arm within 100 ms;
+//! - the adb input starts the app and starts adb again when it drops.
 
 use labrig_msgs::Nanos;
 use labrig_runtime::frames::NAMESPACE_ENV;
@@ -233,6 +236,23 @@ fn last_stamp(dir: &Path, topic: &str) -> i64 {
         }
     }
     last
+}
+
+/// B ends the episode as a failure: recorded under failure/ with success = false, after the
+/// arm followed the trace's 3 cm toward -y.
+#[test]
+fn b_records_a_failure() {
+    let mut rig = Rig::start("teleop_b_records_a_failure", "teleop fail trace");
+    let stats = rig.play("fail.logcat");
+    assert_eq!(stats["events"], serde_json::json!(["failure (B/Y)"]));
+    let (dir, ep) = rig.recorded();
+    assert!(dir.starts_with(rig.root.join("failure")), "{}", dir.display());
+    assert_eq!(ep.metadata.unwrap().success, Some(false));
+    let moving: Vec<&labrig_msgs::labrig_msgs::Step> = ep.steps.iter().filter(|s| s.movement_enabled).collect();
+    let moved = sub(tcp(moving.last().unwrap()), tcp(moving[0]));
+    eprintln!("fail trace: moved {moved:?}");
+    let err = sub(moved, [0.0, -0.03, 0.0]).iter().map(|v| v * v).sum::<f64>().sqrt();
+    assert!(err < 0.005, "3 cm toward -y followed within 5 mm: {moved:?}");
 }
 
 /// The adb input: the node starts the headset app, runs `adb logcat`, and when adb exits (the
