@@ -230,6 +230,8 @@ pub struct Trajectory {
     /// Extrinsics of the external cameras (first step), by camera id.
     pub extrinsics: BTreeMap<String, [f64; 6]>,
     pub success: Option<bool>,
+    /// The file carries DROID's success/failure attributes (then `success` is its word).
+    pub labelled: bool,
 }
 
 /// A column of `doc` as rows of `W` float64, checked against `n` steps.
@@ -295,11 +297,13 @@ pub fn from_droid(
     episode_id: &str,
     serial_to_id: &BTreeMap<String, String>,
 ) -> Result<Trajectory, String> {
-    let n = doc
+    let n = *doc
         .datasets
         .get("action/joint_position")
-        .map(|c| c.shape[0])
-        .ok_or("trajectory.h5 has no `action/joint_position`: not a DROID trajectory")?;
+        .ok_or("trajectory.h5 has no `action/joint_position`: not a DROID trajectory")?
+        .shape
+        .first()
+        .ok_or("trajectory.h5 `action/joint_position` is a scalar, not one row per step")?;
     if n == 0 {
         return Err("trajectory.h5 holds no steps".into());
     }
@@ -450,13 +454,14 @@ pub fn from_droid(
             }
         })
         .collect();
+    // success/failure both false: an episode nobody judged (DROID's own can be).
+    let labelled = doc.attrs.contains_key("success") || doc.attrs.contains_key("failure");
     let success = match (doc.attrs.get("success"), doc.attrs.get("failure")) {
         (Some(Attr::Bool(true)), _) => Some(true),
         (_, Some(Attr::Bool(true))) => Some(false),
-        (Some(Attr::Bool(false)), _) => Some(false),
         _ => None,
     };
-    Ok(Trajectory { steps, cameras, hand_offset, extrinsics, success })
+    Ok(Trajectory { steps, cameras, hand_offset, extrinsics, success, labelled })
 }
 
 /// A root attribute of trajectory.h5 as text (DROID writes strings; numbers are accepted).
@@ -466,5 +471,37 @@ pub fn attr_text(doc: &H5Doc, key: &str) -> Option<String> {
         Attr::I64(i) => Some(i.to_string()),
         Attr::F64(f) => Some(f.to_string()),
         Attr::Bool(b) => Some(b.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use labrig_recorder::metadata::RigIdentity;
+
+    fn episode(success: Option<bool>) -> Episode {
+        let mut metadata = EpisodeMetadata::new(&RigIdentity::default(), "s", "t", 1_700_000_000_000_000_000);
+        metadata.success = success;
+        let steps = (0..3).map(|i| Step { step_index: i, ..Step::default() }).collect();
+        Episode { metadata, steps, cameras: Vec::new(), hand_offset: None }
+    }
+
+    #[test]
+    fn the_outcome_round_trips_unjudged_included() {
+        for success in [Some(true), Some(false), None] {
+            let t = from_droid(&to_droid(&episode(success)), "x", &BTreeMap::new()).unwrap();
+            assert!(t.labelled);
+            assert_eq!(t.success, success);
+            assert_eq!(t.steps.len(), 3);
+        }
+    }
+
+    #[test]
+    fn a_scalar_or_missing_action_is_named() {
+        let mut doc = to_droid(&episode(None));
+        doc.datasets.get_mut("action/joint_position").unwrap().shape = vec![];
+        assert!(from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().contains("is a scalar"));
+        doc.datasets.remove("action/joint_position");
+        assert!(from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().contains("no `action/joint_position`"));
     }
 }

@@ -118,7 +118,7 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
             *field = v;
         }
     }
-    if traj.success.is_some() {
+    if traj.labelled {
         meta.success = traj.success;
     }
     if !parsed.has_start {

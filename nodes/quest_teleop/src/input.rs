@@ -187,16 +187,20 @@ fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
 
 /// Plays `text` once; false when stopped or the node is gone.
 fn playback(text: &str, speed: f64, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool) -> bool {
-    let started = Instant::now();
-    let mut t0: Option<i64> = None;
+    // Each line is due its logcat time after the previous timed line; a step back or a jump
+    // of more than a minute (the time format changed, a year rolled over) counts as none.
+    let mut due = Instant::now();
+    let mut prev: Option<i64> = None;
     for line in text.lines() {
         if stop.load(Ordering::SeqCst) {
             return false;
         }
         if let Some(t) = crate::logcat::line_time_ns(line) {
-            let first = *t0.get_or_insert(t);
-            let offset = ((t - first).max(0) as f64 / speed) as u64;
-            let due = started + Duration::from_nanos(offset);
+            let step = prev.map_or(0, |p| t.saturating_sub(p));
+            prev = Some(t);
+            if (0..=60_000_000_000).contains(&step) {
+                due += Duration::from_nanos((step as f64 / speed) as u64);
+            }
             let now = Instant::now();
             if due > now {
                 sleep_unless_stopped(due - now, stop);
@@ -250,6 +254,13 @@ fn adb(cfg: &InputConfig, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool, c
             Ok(mut c) => {
                 let out = c.stdout.take();
                 if let Ok(mut slot) = child.lock() {
+                    // A stop that came while adb was starting: the drop has already looked
+                    // for a child to kill.
+                    if stop.load(Ordering::SeqCst) {
+                        let _ = c.kill();
+                        let _ = c.wait();
+                        return;
+                    }
                     *slot = Some(c);
                 }
                 note(format!(

@@ -80,7 +80,7 @@ pub fn line_time_ns(line: &str) -> Option<i64> {
         && s.len() >= 9
     {
         let secs: i64 = s.parse().ok()?;
-        return Some(secs * 1_000_000_000 + frac_ns(frac)?);
+        return secs.checked_mul(1_000_000_000)?.checked_add(frac_ns(frac)?);
     }
     // threadtime: MM-DD HH:MM:SS.mmm
     let (month, day) = first.split_once('-')?;
@@ -283,6 +283,7 @@ mod tests {
         assert_eq!(b - a, 977_000_000);
         assert_eq!(line_time_ns("garbage"), None);
         assert_eq!(line_time_ns("13-40 25:99:99.1 x"), None);
+        assert_eq!(line_time_ns("99999999999999.0 x"), None, "overflow is no time, not a panic");
     }
 
     #[test]

@@ -7,8 +7,8 @@
 //!   limit or the deadman is released;
 //! - `/rig/request` (EpisodeEvent): A/X success, B/Y failure, on the press.
 //!
-//! Safety: no reading for `stale_ms` disables motion (the origins are dropped: moving again
-//! takes a fresh grip press); `controller_timeout_s` without one marks the controller gone;
+//! Safety: no reading for `stale_ms` (or no `/arm/state` for `max_state_age_ms`) disables
+//! motion (the origins are dropped: moving again takes the grip let go and pressed again); `controller_timeout_s` without one marks the controller gone;
 //! a reading whose pose jumped more than `max_jump_m` / `max_jump_rad` from the last accepted
 //! one is refused (a tracking glitch: skipped, nothing published); only `jump_confirm`
 //! agreeing readings make the new place the reference, and then motion is disabled until the
@@ -48,6 +48,8 @@ pub struct TeleopConfig {
     pub gripper_delta: f64,
     /// The arm's state the mapping closes its loop on.
     pub state_topic: String,
+    /// An arm state older than this is not closed on: motion disabled (ms).
+    pub max_state_age_ms: f64,
 }
 
 impl Default for TeleopConfig {
@@ -63,6 +65,7 @@ impl Default for TeleopConfig {
             jump_confirm: 3,
             gripper_delta: 0.25,
             state_topic: "/arm/state".into(),
+            max_state_age_ms: 200.0,
         }
     }
 }
@@ -77,6 +80,7 @@ impl TeleopConfig {
             ("max_jump_m", self.max_jump_m),
             ("max_jump_rad", self.max_jump_rad),
             ("gripper_delta", self.gripper_delta),
+            ("max_state_age_ms", self.max_state_age_ms),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{k}: {v} must be positive"));
@@ -165,7 +169,7 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
     let mut policy = VrPolicy::new(cfg.policy.clone());
     let mut stats = TeleopStats::default();
     let mut latencies: Vec<f64> = Vec::new();
-    let mut robot: Option<RobotView> = None;
+    let mut robot: Option<(RobotView, Instant)> = None;
     let mut last_reading: Option<(Instant, Reading)> = None;
     let mut guard = JumpGuard::default();
     let mut prev_buttons = (false, false);
@@ -223,7 +227,8 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
                     InputEvent::Quit => { tracing::info!("quit at the keyboard"); break; }
                 };
                 while let Some(s) = arm.try_take()? {
-                    robot = Some(RobotView { cartesian_position: s.msg.cartesian_position, gripper_position: s.msg.gripper_position });
+                    let view = RobotView { cartesian_position: s.msg.cartesian_position, gripper_position: s.msg.gripper_position };
+                    robot = Some((view, Instant::now()));
                 }
                 let hand = *reading.hand(right);
                 let Some(pose) = hand.pose else { continue };
@@ -262,14 +267,18 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
                 }
                 last_reading = Some((read_at, reading));
                 stale_announced = false;
-                let Some(rv) = robot else {
+                // The mapping closes its loop on the arm's state: without a fresh one the
+                // action would chase an offset the arm may already have made up.
+                let Some(rv) = robot.filter(|(_, at)| at.elapsed().as_secs_f64() * 1e3 <= cfg.max_state_age_ms).map(|(v, _)| v) else {
                     if !warned_no_state {
-                        tracing::warn!("no {} yet: no actions until the arm's state arrives", cfg.state_topic);
+                        tracing::warn!("no fresh {}: motion disabled until the arm's state arrives", cfg.state_topic);
                         warned_no_state = true;
                     }
+                    policy.release();
                     state_pub.publish(state_msg(t, true, false, Some(&reading), None))?;
                     continue;
                 };
+                warned_no_state = false;
                 let Some(a) = policy.step(&reading, &rv) else { continue };
                 let gripper = (rv.gripper_position + a.velocity[6] * cfg.gripper_delta).clamp(0.0, 1.0);
                 seq += 1;

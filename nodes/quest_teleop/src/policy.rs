@@ -57,6 +57,15 @@ impl PolicyConfig {
             }
             seen[i - 1] = true;
         }
+        // The homogeneous coordinate stays put, and the 3x3 part must be a rotation (a
+        // reflection has no quaternion: the rotation actions would come out wrong).
+        let m = reorder_matrix(&self.axis_reorder);
+        if self.axis_reorder[3] != 4 || m.fixed_view::<3, 3>(0, 0).determinant() < 0.0 {
+            return Err(format!(
+                "policy.axis_reorder: {:?} must end in 4 and turn (not mirror) the axes (DROID's: [-2, -1, -3, 4])",
+                self.axis_reorder
+            ));
+        }
         for (k, v) in [
             ("position_gain", self.position_gain),
             ("rotation_gain", self.rotation_gain),
@@ -109,8 +118,11 @@ pub struct VrPolicy {
     reorder: Matrix4<f64>,
     /// inv(pose when forward was defined).
     vr_to_global: Matrix4<f64>,
-    define_forward: bool,
+    /// Forward follows the controller until the grip or the joystick is pressed (DROID).
+    reset_orientation: bool,
     enabled: bool,
+    /// After `release()`, motion waits for the grip to be let go and pressed again.
+    needs_release: bool,
     origin: Option<Origins>,
 }
 
@@ -130,7 +142,15 @@ fn euler_quat(e: &[f64]) -> UnitQuaternion<f64> {
 impl VrPolicy {
     pub fn new(cfg: PolicyConfig) -> VrPolicy {
         let reorder = cfg.reorder();
-        VrPolicy { cfg, reorder, vr_to_global: Matrix4::identity(), define_forward: true, enabled: false, origin: None }
+        VrPolicy {
+            cfg,
+            reorder,
+            vr_to_global: Matrix4::identity(),
+            reset_orientation: true,
+            enabled: false,
+            needs_release: false,
+            origin: None,
+        }
     }
 
     pub fn config(&self) -> &PolicyConfig {
@@ -146,9 +166,11 @@ impl VrPolicy {
         self.enabled
     }
 
-    /// Drops the origins (the controller vanished): motion needs a fresh grip press.
+    /// Drops the origins (the controller vanished, the arm's state went stale): motion needs
+    /// the grip let go and pressed again.
     pub fn release(&mut self) {
         self.enabled = false;
+        self.needs_release = true;
         self.origin = None;
     }
 
@@ -156,15 +178,20 @@ impl VrPolicy {
     pub fn step(&mut self, reading: &Reading, robot: &RobotView) -> Option<Action> {
         let hand = *reading.hand(self.right());
         let pose = hand.pose?;
-        // Forward: the first pose, and again after each joystick press (the pose when the
-        // joystick is let go).
+        // Forward (DROID): follows the controller until the grip or the joystick is pressed,
+        // then stays; a joystick press takes the pose at that press as the new forward.
         if hand.joystick_pressed {
-            self.define_forward = true;
-        } else if self.define_forward {
+            self.reset_orientation = true;
+        }
+        let mut forward_changed = false;
+        if self.reset_orientation {
+            if hand.joystick_pressed || hand.grip_pressed {
+                self.reset_orientation = false;
+            }
             if let Some(inv) = pose.try_inverse() {
+                forward_changed = inv != self.vr_to_global;
                 self.vr_to_global = inv;
             }
-            self.define_forward = false;
         }
         let m = self.reorder * self.vr_to_global * pose;
         let vr_pos = m.fixed_view::<3, 1>(0, 3).into_owned() * self.cfg.spatial_coeff;
@@ -174,9 +201,14 @@ impl VrPolicy {
             Vector3::new(robot.cartesian_position[0], robot.cartesian_position[1], robot.cartesian_position[2]);
         let robot_rot = euler_quat(&robot.cartesian_position[3..]);
 
+        if self.needs_release && !hand.grip_pressed {
+            self.needs_release = false;
+        }
         let was = self.enabled;
-        self.enabled = hand.grip_pressed;
-        if self.enabled && !was {
+        self.enabled = hand.grip_pressed && !self.needs_release;
+        // A press, or forward redefined while held (the old origin is in the old frame):
+        // both origins from here.
+        if self.enabled && (!was || forward_changed) {
             self.origin = Some(Origins { vr_pos, vr_rot, robot_pos, robot_rot });
         }
         if !self.enabled {
@@ -272,6 +304,36 @@ mod tests {
     }
 
     #[test]
+    fn after_a_release_motion_needs_the_grip_let_go_and_pressed_again() {
+        let mut p = VrPolicy::new(PolicyConfig::default());
+        p.step(&reading(at(0.0, 0.0, 0.0), true, 0.0), &HOME);
+        p.release();
+        // Still held: no motion, however far the hand goes.
+        let a = p.step(&reading(at(0.0, -0.2, 0.0), true, 0.0), &HOME).unwrap();
+        assert!(!a.movement_enabled && a.velocity == [0.0; 7]);
+        p.step(&reading(at(0.0, -0.2, 0.0), false, 0.0), &HOME);
+        let a = p.step(&reading(at(0.0, -0.2, 0.0), true, 0.0), &HOME).unwrap();
+        assert!(a.movement_enabled && a.velocity[..6].iter().all(|v| v.abs() < 1e-12), "a new origin: {a:?}");
+    }
+
+    #[test]
+    fn forward_follows_the_controller_until_the_first_press() {
+        let mut p = VrPolicy::new(PolicyConfig::default());
+        // Picked up from the table turned a quarter about vr y, then pressed: forward is
+        // the pose at the press, not the first one seen.
+        p.step(&reading(Matrix4::identity(), false, 0.0), &HOME);
+        let facing = Matrix4::from(Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2));
+        p.step(&reading(facing, true, 0.0), &HOME);
+        let a = p.step(&reading(facing * at(0.0, -0.01, 0.0), true, 0.0), &HOME).unwrap();
+        assert!((a.velocity[0] - 0.05).abs() < 1e-9, "{:?}", a.velocity);
+        // Forward redefined while held: origins re-zeroed there, no jump.
+        let mut j = reading(Matrix4::identity(), true, 0.0);
+        j.right.joystick_pressed = true;
+        let a = p.step(&j, &HOME).unwrap();
+        assert!(a.velocity[..6].iter().all(|v| v.abs() < 1e-12), "{:?}", a.velocity);
+    }
+
+    #[test]
     fn the_joystick_redefines_forward() {
         let mut p = VrPolicy::new(PolicyConfig::default());
         // Forward defined facing vr +x (a quarter turn about vr y).
@@ -292,6 +354,10 @@ mod tests {
     fn config_errors_name_the_field() {
         let bad = PolicyConfig { axis_reorder: [1, 1, 3, 4], ..PolicyConfig::default() };
         assert!(bad.validate().unwrap_err().contains("policy.axis_reorder"));
+        for mirror in [[1, 2, -3, 4], [4, -1, -3, 2]] {
+            let bad = PolicyConfig { axis_reorder: mirror, ..PolicyConfig::default() };
+            assert!(bad.validate().unwrap_err().contains("must end in 4"), "{mirror:?}");
+        }
         let bad = PolicyConfig { hand: "both".into(), ..PolicyConfig::default() };
         assert!(bad.validate().unwrap_err().contains("policy.hand"));
         let bad = PolicyConfig { position_gain: f64::NAN, ..PolicyConfig::default() };

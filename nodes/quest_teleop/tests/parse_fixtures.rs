@@ -48,3 +48,23 @@ fn the_square_trace_is_72_hz_with_the_documented_presses() {
     assert!((span - 8.5).abs() < 0.01, "{span}");
     assert!(times.windows(2).all(|w| w[1] >= w[0]));
 }
+
+/// Playing a file whose lines switch time format (threadtime, then epoch: 55 years apart)
+/// sends every line instead of sleeping to the far one (nextest ends a hung test after 5 min).
+#[test]
+fn playback_of_a_file_mixing_time_formats_sends_every_line() {
+    use labrig_teleop::input::{InputConfig, InputEvent, InputKind, start};
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let file = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mixed.logcat");
+    let cfg = InputConfig { kind: InputKind::Playback, file: Some(file), ..InputConfig::default() };
+    let _input = start(&cfg, tx, labrig_teleop::policy::reorder_matrix(&[-2, -1, -3, 4])).unwrap();
+    let mut lines = 0;
+    loop {
+        match rx.blocking_recv() {
+            Some(InputEvent::Line { .. }) => lines += 1,
+            Some(InputEvent::End) | None => break,
+            Some(_) => {}
+        }
+    }
+    assert_eq!(lines, 12);
+}
