@@ -45,6 +45,8 @@ apt_install fonts-dejavu-core
 # DROID raw export/import (issue 6): trajectory.h5 through Debian's libhdf5 (hdf5-metno finds
 # it with pkg-config), MP4 through ffmpeg/ffprobe (libx264).
 apt_install libhdf5-dev pkg-config ffmpeg
+# The Quest teleop node reads the headset's logcat through adb (issue 7).
+apt_install adb
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.

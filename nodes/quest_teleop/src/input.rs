@@ -225,7 +225,6 @@ fn adb_command(cfg: &InputConfig) -> Command {
 
 fn adb(cfg: &InputConfig, tx: &UnboundedSender<InputEvent>, stop: &AtomicBool, child: &Mutex<Option<Child>>) {
     let note = |s: String| {
-        tracing::info!("{s}");
         let _ = tx.send(InputEvent::Note(s));
     };
     while !stop.load(Ordering::SeqCst) {

@@ -176,6 +176,7 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
     let mut seq = 0u64;
     let mut ended_at: Option<Instant> = None;
     let mut input_open = true;
+    let mut notes: std::collections::HashMap<String, Instant> = std::collections::HashMap::new();
     let mut disabled_published_at = Instant::now() - Duration::from_secs(1);
     let mut stale_announced = false;
     let mut warned_no_state = false;
@@ -222,7 +223,16 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> an
                         stats.lines.readings += 1;
                         (*reading, read_at)
                     }
-                    InputEvent::Note(n) => { tracing::info!("input: {n}"); continue; }
+                    InputEvent::Note(n) => {
+                        // adb retrying every second says the same things each time: each at
+                        // most every 30 s.
+                        let due = notes.get(&n).is_none_or(|at: &Instant| at.elapsed() > Duration::from_secs(30));
+                        if due {
+                            tracing::info!("input: {n}");
+                            notes.insert(n, Instant::now());
+                        }
+                        continue;
+                    }
                     InputEvent::End => { tracing::info!("input ended"); ended_at = Some(Instant::now()); continue; }
                     InputEvent::Quit => { tracing::info!("quit at the keyboard"); break; }
                 };
