@@ -250,25 +250,7 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
     }
 }
 
-/// Every episode under `root` (directories holding an episode file; staging and hidden
-/// directories skipped), sorted.
+/// Every episode under `root` (directories holding an episode file), sorted.
 pub fn find_episodes(root: &Path) -> Vec<PathBuf> {
-    let mut found = Vec::new();
-    let mut stack = vec![root.to_owned()];
-    while let Some(d) = stack.pop() {
-        if d.join(labrig_recorder::episode::EPISODE_FILE).is_file() {
-            found.push(d);
-            continue;
-        }
-        let Ok(entries) = std::fs::read_dir(&d) else { continue };
-        for e in entries.flatten() {
-            let p = e.path();
-            let hidden = p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with('.'));
-            if p.is_dir() && !hidden {
-                stack.push(p);
-            }
-        }
-    }
-    found.sort();
-    found
+    crate::dirs_holding(root, labrig_recorder::episode::EPISODE_FILE)
 }

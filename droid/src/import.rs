@@ -49,22 +49,7 @@ pub struct Imported {
 
 /// DROID episode directories under `root`: every directory holding a trajectory.h5.
 pub fn find_droid_episodes(root: &Path) -> Vec<PathBuf> {
-    let mut found = Vec::new();
-    let mut stack = vec![root.to_owned()];
-    while let Some(d) = stack.pop() {
-        if d.join("trajectory.h5").is_file() {
-            found.push(d);
-            continue;
-        }
-        let Ok(entries) = std::fs::read_dir(&d) else { continue };
-        for e in entries.flatten() {
-            if e.path().is_dir() {
-                stack.push(e.path());
-            }
-        }
-    }
-    found.sort();
-    found
+    crate::dirs_holding(root, "trajectory.h5")
 }
 
 fn metadata_json(dir: &Path) -> anyhow::Result<PathBuf> {

@@ -206,31 +206,26 @@ pub fn rt() -> tokio::runtime::Runtime {
 /// Reads an episode directory with the reference readers (PyPI `mcap` + `mcap-ros2-support`,
 /// `rosbags` on the directory and on the bare file) through tests/peers/read_episode.py.
 pub fn read_episode_with_python(dir: &std::path::Path) -> serde_json::Value {
-    let python = std::env::var_os("LABRIG_READERS_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| cache_dir().join("venv-readers/bin/python"));
-    assert!(python.exists(), "the MCAP readers' venv {} is missing: run `bash scripts/setup.sh`", python.display());
-    let out = std::process::Command::new(&python)
-        .arg(repo_root().join("tests/peers/read_episode.py"))
-        .arg(dir)
-        .output()
-        .expect("running read_episode.py");
+    let out = peer_script("LABRIG_READERS_PYTHON", "venv-readers", "read_episode.py", dir);
     assert!(out.status.success(), "read_episode.py failed: {}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout).expect("read_episode.py prints JSON")
+}
+
+/// Runs `tests/peers/<script> <arg>` with the Python of a setup venv (`env` overrides it).
+fn peer_script(env: &str, venv: &str, script: &str, arg: &std::path::Path) -> std::process::Output {
+    let python = std::env::var_os(env).map(PathBuf::from).unwrap_or_else(|| cache_dir().join(venv).join("bin/python"));
+    assert!(python.exists(), "the venv {} is missing: run `bash scripts/setup.sh`", python.display());
+    std::process::Command::new(&python)
+        .arg(repo_root().join("tests/peers").join(script))
+        .arg(arg)
+        .output()
+        .unwrap_or_else(|e| panic!("running {script}: {e}"))
 }
 
 /// tests/peers/check_droid.py (h5py, json, ffprobe) on a DROID raw root: whether it matches
 /// DROID's layout, its per-episode reports, and the problems it printed.
 pub fn check_droid_with_python(root: &std::path::Path) -> (bool, Vec<serde_json::Value>, String) {
-    let python = std::env::var_os("LABRIG_DROID_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| cache_dir().join("venv-droid/bin/python"));
-    assert!(python.exists(), "the h5py venv {} is missing: run `bash scripts/setup.sh`", python.display());
-    let out = std::process::Command::new(&python)
-        .arg(repo_root().join("tests/peers/check_droid.py"))
-        .arg(root)
-        .output()
-        .expect("running check_droid.py");
+    let out = peer_script("LABRIG_DROID_PYTHON", "venv-droid", "check_droid.py", root);
     let reports = String::from_utf8_lossy(&out.stdout)
         .lines()
         .map(|l| serde_json::from_str(l).expect("check_droid.py prints JSON lines"))
