@@ -111,7 +111,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         }
         println!();
         println!("Inspect one again: labrig inspect <dir>; replay it: labrig replay <dir> --sim [--plot replay.png];");
-        println!("read them with any MCAP or rosbag2 reader.");
+        println!(
+            "read them with any MCAP or rosbag2 reader; as DROID raw data: labrig export droid <episodes dir> <out dir>."
+        );
     }
     Ok(if ok { ExitCode::SUCCESS } else { ExitCode::from(1) })
 }
