@@ -21,11 +21,12 @@
 //! `failure` (bool).
 
 use crate::h5doc::{Attr, Column, Data, H5Doc};
-use labrig_franka::ik::{pose_from_xyz_euler, xyz_euler};
+use labrig_arm::ik::{pose_from_xyz_euler, xyz_euler};
+use labrig_episode::metadata::EpisodeMetadata;
+use labrig_msgs::Invalid;
 use labrig_msgs::builtin_interfaces::Time;
 use labrig_msgs::labrig_msgs::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
 use labrig_msgs::std_msgs::Header;
-use labrig_recorder::metadata::EpisodeMetadata;
 use std::collections::BTreeMap;
 
 /// The camera DROID calls the hand camera (camera_type 0).
@@ -235,38 +236,38 @@ pub struct Trajectory {
 }
 
 /// A column of `doc` as rows of `W` float64, checked against `n` steps.
-fn rows<const W: usize>(doc: &H5Doc, key: &str, n: usize) -> Result<Vec<[f64; W]>, String> {
-    let col = doc.datasets.get(key).ok_or_else(|| format!("trajectory.h5 has no `{key}`"))?;
+fn rows<const W: usize>(doc: &H5Doc, key: &str, n: usize) -> Result<Vec<[f64; W]>, Invalid> {
+    let col = doc.datasets.get(key).ok_or_else(|| Invalid::new(key, format!("trajectory.h5 has no `{key}`")))?;
     let want: Vec<usize> = if W == 1 { vec![n] } else { vec![n, W] };
     let Data::F64(v) = &col.data else {
-        return Err(format!("trajectory.h5 `{key}` is {}, DROID's is float64", col.data.dtype()));
+        return Err(Invalid::new(key, format!("trajectory.h5 `{key}` is {}, DROID's is float64", col.data.dtype())));
     };
     if col.shape != want && !(W == 1 && col.shape == [n, 1]) {
-        return Err(format!("trajectory.h5 `{key}` has shape {:?}, expected {want:?}", col.shape));
+        return Err(Invalid::new(key, format!("trajectory.h5 `{key}` has shape {:?}, expected {want:?}", col.shape)));
     }
     Ok(v.chunks_exact(W).map(|c| c.try_into().expect("chunk of W")).collect())
 }
 
-fn opt_rows<const W: usize>(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<[f64; W]>>, String> {
+fn opt_rows<const W: usize>(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<[f64; W]>>, Invalid> {
     if doc.datasets.contains_key(key) { rows::<W>(doc, key, n).map(Some) } else { Ok(None) }
 }
 
-fn ints(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<i64>>, String> {
+fn ints(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<i64>>, Invalid> {
     let Some(col) = doc.datasets.get(key) else { return Ok(None) };
     if col.shape != [n] {
-        return Err(format!("trajectory.h5 `{key}` has shape {:?}, expected [{n}]", col.shape));
+        return Err(Invalid::new(key, format!("trajectory.h5 `{key}` has shape {:?}, expected [{n}]", col.shape)));
     }
     match &col.data {
         Data::I64(v) => Ok(Some(v.clone())),
         Data::F64(v) => Ok(Some(v.iter().map(|x| *x as i64).collect())),
-        Data::Bool(_) => Err(format!("trajectory.h5 `{key}` is bool, expected integers")),
+        Data::Bool(_) => Err(Invalid::new(key, format!("trajectory.h5 `{key}` is bool, expected integers"))),
     }
 }
 
-fn bools(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<bool>>, String> {
+fn bools(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<bool>>, Invalid> {
     let Some(col) = doc.datasets.get(key) else { return Ok(None) };
     if col.shape != [n] {
-        return Err(format!("trajectory.h5 `{key}` has shape {:?}, expected [{n}]", col.shape));
+        return Err(Invalid::new(key, format!("trajectory.h5 `{key}` has shape {:?}, expected [{n}]", col.shape)));
     }
     match &col.data {
         Data::Bool(v) => Ok(Some(v.clone())),
@@ -276,17 +277,18 @@ fn bools(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<bool>>, String> 
 }
 
 /// The first step's K of a (n, 3, 3) intrinsics column, where there is one.
-fn intrinsics(doc: &H5Doc, key: &str, n: usize) -> Result<Option<[f64; 9]>, String> {
+fn intrinsics(doc: &H5Doc, key: &str, n: usize) -> Result<Option<[f64; 9]>, Invalid> {
     match doc.datasets.get(key) {
         Some(Column { shape, data: Data::F64(v) }) if shape == &[n, 3, 3] => Ok(v[..9].try_into().ok()),
-        Some(c) => {
-            Err(format!("trajectory.h5 `{key}` is {} {:?}, expected float64 [{n}, 3, 3]", c.data.dtype(), c.shape))
-        }
+        Some(c) => Err(Invalid::new(
+            key,
+            format!("trajectory.h5 `{key}` is {} {:?}, expected float64 [{n}, 3, 3]", c.data.dtype(), c.shape),
+        )),
         None => Ok(None),
     }
 }
 
-fn scalars(doc: &H5Doc, key: &str, n: usize) -> Result<Vec<f64>, String> {
+fn scalars(doc: &H5Doc, key: &str, n: usize) -> Result<Vec<f64>, Invalid> {
     Ok(rows::<1>(doc, key, n)?.into_iter().map(|[x]| x).collect())
 }
 
@@ -296,16 +298,26 @@ pub fn from_droid(
     doc: &H5Doc,
     episode_id: &str,
     serial_to_id: &BTreeMap<String, String>,
-) -> Result<Trajectory, String> {
+) -> Result<Trajectory, Invalid> {
     let n = *doc
         .datasets
         .get("action/joint_position")
-        .ok_or("trajectory.h5 has no `action/joint_position`: not a DROID trajectory")?
+        .ok_or_else(|| {
+            Invalid::new(
+                "action/joint_position",
+                "trajectory.h5 has no `action/joint_position`: not a DROID trajectory",
+            )
+        })?
         .shape
         .first()
-        .ok_or("trajectory.h5 `action/joint_position` is a scalar, not one row per step")?;
+        .ok_or_else(|| {
+            Invalid::new(
+                "action/joint_position",
+                "trajectory.h5 `action/joint_position` is a scalar, not one row per step",
+            )
+        })?;
     if n == 0 {
-        return Err("trajectory.h5 holds no steps".into());
+        return Err(Invalid::new("trajectory", "trajectory.h5 holds no steps"));
     }
     let o = "observation/robot_state";
     let zeros7 = || vec![[0.0; 7]; n];
@@ -477,7 +489,7 @@ pub fn attr_text(doc: &H5Doc, key: &str) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_recorder::metadata::RigIdentity;
+    use labrig_episode::metadata::RigIdentity;
 
     fn episode(success: Option<bool>) -> Episode {
         let mut metadata = EpisodeMetadata::new(&RigIdentity::default(), "s", "t", 1_700_000_000_000_000_000);
@@ -500,8 +512,10 @@ mod tests {
     fn a_scalar_or_missing_action_is_named() {
         let mut doc = to_droid(&episode(None));
         doc.datasets.get_mut("action/joint_position").unwrap().shape = vec![];
-        assert!(from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().contains("is a scalar"));
+        assert!(from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().to_string().contains("is a scalar"));
         doc.datasets.remove("action/joint_position");
-        assert!(from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().contains("no `action/joint_position`"));
+        assert!(
+            from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().to_string().contains("no `action/joint_position`")
+        );
     }
 }

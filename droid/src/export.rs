@@ -9,12 +9,13 @@ use crate::droid::{self, Camera, Episode, HAND_CAMERA};
 use crate::h5doc;
 use crate::meta;
 use crate::video::Mp4Writer;
-use labrig_franka::ik::{pose_from_xyz_euler, xyz_euler};
+use labrig_arm::ik::{pose_from_xyz_euler, xyz_euler};
+use labrig_episode::inspect::read_episode;
+use labrig_episode::metadata::{Outcome, episode_dir};
 use labrig_msgs::Nanos;
 use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::tf2_msgs::TFMessage;
-use labrig_recorder::inspect::read_episode;
-use labrig_recorder::metadata::{Outcome, episode_dir};
+use labrig_msgs::topics;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -149,8 +150,8 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
         for m in mcap::MessageStream::new(&buf)? {
             let m = m.map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
             let topic = m.channel.topic.as_str();
-            let Some(rest) = topic.strip_prefix("/cameras/") else {
-                if topic == "/tf"
+            let Some(rest) = topic.strip_prefix(topics::CAMERAS_PREFIX) else {
+                if topic == topics::TF.name
                     && hand_offset.is_none()
                     && let Ok(tf) = labrig_msgs::decode::<TFMessage>(&m.data)
                 {
@@ -252,5 +253,5 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
 
 /// Every episode under `root` (directories holding an episode file), sorted.
 pub fn find_episodes(root: &Path) -> Vec<PathBuf> {
-    crate::dirs_holding(root, labrig_recorder::episode::EPISODE_FILE)
+    crate::dirs_holding(root, labrig_episode::episode::EPISODE_FILE)
 }

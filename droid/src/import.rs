@@ -11,13 +11,14 @@ use crate::droid::{self, Camera};
 use crate::h5doc;
 use crate::meta;
 use crate::video::Mp4Reader;
+use labrig_episode::bag::Reliability;
+use labrig_episode::episode::EpisodeWriter;
+use labrig_episode::metadata::{Outcome, episode_dir};
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
 use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::std_msgs::Header;
-use labrig_recorder::bag::Reliability;
-use labrig_recorder::episode::EpisodeWriter;
-use labrig_recorder::metadata::{Outcome, episode_dir};
+use labrig_msgs::topics;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -151,7 +152,7 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
 #[allow(clippy::too_many_arguments)]
 fn write_episode(
     dir: &Path,
-    mut meta: labrig_recorder::metadata::EpisodeMetadata,
+    mut meta: labrig_episode::metadata::EpisodeMetadata,
     steps: &[labrig_msgs::labrig_msgs::Step],
     cameras: &[Camera],
     hand_offset: Option<[f64; 6]>,
@@ -185,7 +186,7 @@ fn write_episode(
         note: "imported from DROID".into(),
         ..EpisodeEvent::default()
     };
-    w.write("/rig/episode", &event(EpisodeEventKind::Start, t0), t0, t0, Reliability::Reliable)?;
+    w.write(topics::RIG_EPISODE.name, &event(EpisodeEventKind::Start, t0), t0, t0, Reliability::Reliable)?;
     let mut frames = 0u64;
     let mut short = vec![false; cameras.len()];
     let mut last_t = t0;
@@ -207,7 +208,7 @@ fn write_episode(
                     p: [k[0], k[1], k[2], 0.0, k[3], k[4], k[5], 0.0, k[6], k[7], k[8], 0.0],
                     ..CameraInfo::default()
                 };
-                w.write(&format!("/cameras/{}/camera_info", cam.id), &info, t, t, Reliability::Reliable)?;
+                w.write(&topics::camera_info(&cam.id), &info, t, t, Reliability::Reliable)?;
             }
             // The video holds one frame per step; a step whose frame is its predecessor's
             // (same capture time) was one frame recorded once.
@@ -225,17 +226,17 @@ fn write_episode(
             if repeat {
                 continue;
             }
-            let jpeg = labrig_recorder::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, opts.jpeg_quality)
+            let jpeg = labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, opts.jpeg_quality)
                 .map_err(|e| anyhow::anyhow!("camera {}: {e}", cam.id))?;
             let img = CompressedImage {
                 header: Header { stamp: Nanos(fr.capture_ns).into(), frame_id: format!("{}_optical", cam.id) },
                 format: "jpeg".into(),
                 data: jpeg,
             };
-            w.write(&format!("/cameras/{}/image/compressed", cam.id), &img, t, fr.capture_ns, Reliability::BestEffort)?;
+            w.write(&topics::camera_image(&cam.id), &img, t, fr.capture_ns, Reliability::BestEffort)?;
             frames += 1;
         }
-        w.write("/rig/step", s, t, Nanos::from(s.header.stamp).0, Reliability::Reliable)?;
+        w.write(topics::RIG_STEP.name, s, t, Nanos::from(s.header.stamp).0, Reliability::Reliable)?;
     }
     for (c, cam) in cameras.iter().enumerate() {
         if let Some(r) = readers[c].as_mut()
@@ -253,7 +254,7 @@ fn write_episode(
         Some(true) => EpisodeEventKind::Success,
         _ => EpisodeEventKind::Failure,
     };
-    w.write("/rig/episode", &event(end, last_t), last_t, last_t, Reliability::Reliable)?;
+    w.write(topics::RIG_EPISODE.name, &event(end, last_t), last_t, last_t, Reliability::Reliable)?;
     w.finish()?;
     Ok(frames)
 }

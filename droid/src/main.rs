@@ -232,7 +232,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let r = match cli.command {
         Command::Export(a) => {
-            let is_episode = |p: &Path| p.join(labrig_recorder::episode::EPISODE_FILE).is_file();
+            let is_episode = |p: &Path| p.join(labrig_episode::episode::EPISODE_FILE).is_file();
             sources(&a.source, is_episode, find_episodes).map(|items| {
                 let opts = ExportOptions { overwrite: a.overwrite };
                 run_all(&items, "export", a.json, |p| export_episode(p, &a.out, &opts), export_line, |e| e.steps)

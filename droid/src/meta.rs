@@ -9,8 +9,9 @@
 //! goes under one extra key, `labrig`, so an exported episode imports back whole.
 
 use chrono::{DateTime, NaiveDateTime, Utc};
+use labrig_episode::metadata::EpisodeMetadata;
+use labrig_msgs::Invalid;
 use labrig_msgs::labrig_msgs::Step;
-use labrig_recorder::metadata::EpisodeMetadata;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 
@@ -118,12 +119,12 @@ pub struct Parsed {
     pub has_start: bool,
 }
 
-fn text(v: &Value, key: &str) -> Result<String, String> {
+fn text(v: &Value, key: &str) -> Result<String, Invalid> {
     match v.get(key) {
         Some(Value::String(s)) => Ok(s.clone()),
         Some(Value::Number(n)) => Ok(n.to_string()),
-        Some(Value::Null) | None => Err(format!("metadata JSON has no `{key}`")),
-        Some(other) => Err(format!("metadata JSON `{key}` is {other}, expected a string")),
+        Some(Value::Null) | None => Err(Invalid::new(key, format!("metadata JSON has no `{key}`"))),
+        Some(other) => Err(Invalid::new(key, format!("metadata JSON `{key}` is {other}, expected a string"))),
     }
 }
 
@@ -132,9 +133,9 @@ fn text_or(v: &Value, key: &str, default: &str) -> String {
 }
 
 /// Reads a DROID metadata JSON (DROID's own or one labrig wrote).
-pub fn parse(v: &Value) -> Result<Parsed, String> {
+pub fn parse(v: &Value) -> Result<Parsed, Invalid> {
     if !v.is_object() {
-        return Err("metadata JSON is not an object".into());
+        return Err(Invalid::new("metadata", "metadata JSON is not an object"));
     }
     let uuid = text(v, "uuid")?;
     let lab = text_or(v, "lab", uuid.split('+').next().unwrap_or("unknown"));
@@ -144,8 +145,12 @@ pub fn parse(v: &Value) -> Result<Parsed, String> {
     let mut camera_serials = BTreeMap::new();
     if let Some(cams) = labrig.and_then(|l| l.get("cameras")).and_then(Value::as_object) {
         for (id, serial) in cams {
-            let serial =
-                serial.as_str().ok_or_else(|| format!("metadata JSON `labrig.cameras.{id}` is not a string"))?;
+            let serial = serial.as_str().ok_or_else(|| {
+                Invalid::new(
+                    format!("labrig.cameras.{id}"),
+                    format!("metadata JSON `labrig.cameras.{id}` is not a string"),
+                )
+            })?;
             serial_to_id.insert(serial.to_owned(), id.clone());
             camera_serials.insert(id.clone(), serial.to_owned());
         }
@@ -159,13 +164,17 @@ pub fn parse(v: &Value) -> Result<Parsed, String> {
     }
     let mut extrinsics: BTreeMap<String, [f64; 6]> = BTreeMap::new();
     if let Some(e) = labrig.and_then(|l| l.get("extrinsics")) {
-        extrinsics =
-            serde_json::from_value(e.clone()).map_err(|e| format!("metadata JSON `labrig.extrinsics`: {e}"))?;
+        extrinsics = serde_json::from_value(e.clone())
+            .map_err(|e| Invalid::new("labrig.extrinsics", format!("metadata JSON `labrig.extrinsics`: {e}")))?;
     } else {
         for role in ["ext1", "ext2"] {
             if let Some(e) = v.get(format!("{role}_cam_extrinsics")).filter(|e| !e.is_null()) {
-                let e: [f64; 6] = serde_json::from_value(e.clone())
-                    .map_err(|err| format!("metadata JSON `{role}_cam_extrinsics`: {err}"))?;
+                let e: [f64; 6] = serde_json::from_value(e.clone()).map_err(|err| {
+                    Invalid::new(
+                        format!("{role}_cam_extrinsics"),
+                        format!("metadata JSON `{role}_cam_extrinsics`: {err}"),
+                    )
+                })?;
                 extrinsics.insert(role.to_owned(), e);
             }
         }
@@ -204,7 +213,7 @@ pub fn parse(v: &Value) -> Result<Parsed, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_recorder::metadata::RigIdentity;
+    use labrig_episode::metadata::RigIdentity;
 
     #[test]
     fn a_written_json_parses_back_to_the_same_metadata() {
@@ -249,6 +258,6 @@ mod tests {
         assert_eq!(p.serial_to_id["239"], "ext1");
         assert_eq!(p.meta.extrinsics["ext1"], [0.2, 0.5, 0.4, -2.0, 0.1, -1.0]);
         assert_eq!(p.action_source, Step::SOURCE_TELEOP);
-        assert!(parse(&json!({"lab": "x"})).unwrap_err().contains("no `uuid`"));
+        assert!(parse(&json!({"lab": "x"})).unwrap_err().to_string().contains("no `uuid`"));
     }
 }

@@ -207,7 +207,7 @@ mod tests {
 
     fn jpeg(w: u16, h: u16, shade: u8) -> Vec<u8> {
         let px: Vec<u8> = (0..w as usize * h as usize).flat_map(|i| [shade, (i % 251) as u8, 255 - shade]).collect();
-        labrig_recorder::jpeg::encode_rgb(&px, w, h, 90).unwrap()
+        labrig_episode::jpeg::encode_rgb(&px, w, h, 90).unwrap()
     }
 
     #[test]

@@ -32,7 +32,11 @@ pub enum CodecError {
     #[error("{type_name}: {extra} unexpected bytes after the end of the message (body is {body} bytes)")]
     TrailingBytes { type_name: &'static str, extra: usize, body: usize },
     #[error("{type_name}: invalid value: {reason}")]
-    Invalid { type_name: &'static str, reason: String },
+    Invalid {
+        type_name: &'static str,
+        #[source]
+        reason: crate::Invalid,
+    },
     #[error("{type_name}: cannot encode: {source}")]
     Encode {
         type_name: &'static str,

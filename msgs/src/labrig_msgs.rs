@@ -8,9 +8,9 @@
 //! Conventions (DROID's): gripper 0 = open, 1 = closed; cartesian positions are xyz (m) +
 //! euler xyz (rad) in the robot base frame; cartesian velocity actions are in [-1, 1] and scale
 //! to at most 0.075 m and 0.15 rad per control step.
-use crate::RosMessage;
 use crate::geometry_msgs::Pose;
 use crate::std_msgs::Header;
+use crate::{Invalid, RosMessage};
 use serde::{Deserialize, Serialize};
 
 /// DROID's reset pose of the FR3 (rad): `[0, -pi/5, 0, -4pi/5, 0, 3pi/5, 0]`.
@@ -46,14 +46,14 @@ macro_rules! versioned {
     ($($ty:ty),* $(,)?) => {$(
         impl $ty {
             /// Checks the schema version; called by [`crate::decode`] through `validate`.
-            fn check_version(&self) -> Result<(), String> {
+            fn check_version(&self) -> Result<(), Invalid> {
                 if self.version.0 == SCHEMA_VERSION {
                     Ok(())
                 } else {
-                    Err(format!(
+                    Err(Invalid::new("version", format!(
                         "schema version {} is not supported (this build reads version {SCHEMA_VERSION})",
                         self.version.0
-                    ))
+                    )))
                 }
             }
         }
@@ -73,7 +73,7 @@ macro_rules! labrig_message {
                     <$dep as RosMessage>::dependencies(out);
                 )*
             }
-            fn validate(&self) -> Result<(), String> {
+            fn validate(&self) -> Result<(), Invalid> {
                 self.check_version()?;
                 self.check_fields()
             }
@@ -98,15 +98,15 @@ pub enum ArmCommandMode {
 }
 
 impl TryFrom<u8> for ArmCommandMode {
-    type Error = String;
-    fn try_from(v: u8) -> Result<Self, String> {
+    type Error = Invalid;
+    fn try_from(v: u8) -> Result<Self, Invalid> {
         Ok(match v {
             0 => Self::CartesianVelocity,
             1 => Self::CartesianPosition,
             2 => Self::CartesianPositionAxisAngle,
             3 => Self::JointVelocity,
             4 => Self::JointPosition,
-            other => return Err(format!("unknown arm command mode {other} (expected 0..=4)")),
+            other => return Err(Invalid::new("mode", format!("unknown arm command mode {other} (expected 0..=4)"))),
         })
     }
 }
@@ -128,10 +128,10 @@ pub struct ArmCommand {
     pub seq: u64,
 }
 impl ArmCommand {
-    pub fn mode(&self) -> Result<ArmCommandMode, String> {
+    pub fn mode(&self) -> Result<ArmCommandMode, Invalid> {
         ArmCommandMode::try_from(self.mode)
     }
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         self.mode().map(|_| ())
     }
 }
@@ -157,7 +157,7 @@ pub struct ActionDict {
     pub target_gripper_position: f64,
 }
 impl ActionDict {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }
@@ -194,9 +194,9 @@ impl RobotState {
     pub const MODE_MOVING: u8 = 1;
     pub const MODE_STOPPED: u8 = 2;
     pub const MODE_FAULT: u8 = 3;
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         if self.mode > Self::MODE_FAULT {
-            return Err(format!("unknown robot mode {}", self.mode));
+            return Err(Invalid::new("mode", format!("unknown robot mode {}", self.mode)));
         }
         Ok(())
     }
@@ -219,7 +219,7 @@ pub struct GripperCommand {
     pub force: f64,
 }
 impl GripperCommand {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }
@@ -247,7 +247,7 @@ pub struct GripperState {
     pub current_ma: f64,
 }
 impl GripperState {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }
@@ -278,7 +278,7 @@ pub struct TeleopState {
     pub button_failure: bool,
 }
 impl TeleopState {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }
@@ -302,8 +302,8 @@ pub enum EpisodeEventKind {
 }
 
 impl TryFrom<u8> for EpisodeEventKind {
-    type Error = String;
-    fn try_from(v: u8) -> Result<Self, String> {
+    type Error = Invalid;
+    fn try_from(v: u8) -> Result<Self, Invalid> {
         Ok(match v {
             0 => Self::Start,
             1 => Self::Stop,
@@ -311,7 +311,7 @@ impl TryFrom<u8> for EpisodeEventKind {
             3 => Self::Failure,
             4 => Self::Discard,
             5 => Self::Reset,
-            other => return Err(format!("unknown episode event kind {other} (expected 0..=5)")),
+            other => return Err(Invalid::new("kind", format!("unknown episode event kind {other} (expected 0..=5)"))),
         })
     }
 }
@@ -327,10 +327,10 @@ pub struct EpisodeEvent {
     pub note: String,
 }
 impl EpisodeEvent {
-    pub fn kind(&self) -> Result<EpisodeEventKind, String> {
+    pub fn kind(&self) -> Result<EpisodeEventKind, Invalid> {
         EpisodeEventKind::try_from(self.kind)
     }
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         self.kind().map(|_| ())
     }
 }
@@ -357,14 +357,17 @@ pub struct ActionChunk {
     pub inference_ms: f64,
 }
 impl ActionChunk {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         let expected = self.horizon as usize * self.action_dim as usize;
         if self.actions.len() != expected {
-            return Err(format!(
-                "{} action values for horizon {} x action_dim {} (expected {expected})",
-                self.actions.len(),
-                self.horizon,
-                self.action_dim
+            return Err(Invalid::new(
+                "actions",
+                format!(
+                    "{} action values for horizon {} x action_dim {} (expected {expected})",
+                    self.actions.len(),
+                    self.horizon,
+                    self.action_dim
+                ),
             ));
         }
         Ok(())
@@ -393,7 +396,7 @@ pub struct CameraFrameRef {
     pub arrival_ns: i64,
 }
 impl CameraFrameRef {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }
@@ -415,7 +418,7 @@ pub struct ControlTiming {
     pub step_end: i64,
 }
 impl ControlTiming {
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }
@@ -450,9 +453,9 @@ impl Step {
     pub const SOURCE_POLICY: u8 = 2;
     pub const SOURCE_SCRIPTED: u8 = 3;
     pub const SOURCE_REPLAY: u8 = 4;
-    fn check_fields(&self) -> Result<(), String> {
+    fn check_fields(&self) -> Result<(), Invalid> {
         if self.action_source > Self::SOURCE_REPLAY {
-            return Err(format!("unknown action source {}", self.action_source));
+            return Err(Invalid::new("action_source", format!("unknown action source {}", self.action_source)));
         }
         self.robot_state.validate()?;
         self.timing.validate()?;

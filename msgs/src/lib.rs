@@ -12,6 +12,7 @@
 
 mod codec;
 pub mod geometry_msgs;
+mod invalid;
 pub mod labrig_msgs;
 pub mod registry;
 pub mod rosgraph_msgs;
@@ -20,8 +21,10 @@ pub mod std_msgs;
 pub mod std_srvs;
 pub mod tf2_msgs;
 mod time;
+pub mod topics;
 
 pub use codec::{CDR_BE, CDR_LE, CodecError, decode, decode_payload, encode};
+pub use invalid::Invalid;
 pub use registry::{TypeVisitor, known_types, visit_type};
 pub use time::{Nanos, builtin_interfaces};
 
@@ -39,7 +42,7 @@ pub trait RosMessage:
 
     /// Checks invariants the wire format cannot express (e.g. the schema version of a
     /// `labrig_msgs` type). Called by [`decode`].
-    fn validate(&self) -> Result<(), String> {
+    fn validate(&self) -> Result<(), Invalid> {
         Ok(())
     }
 }

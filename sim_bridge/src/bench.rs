@@ -1,9 +1,9 @@
 //! `labrig sim bench`: physics steps per second, render time per frame for the five cameras at
 //! two sizes and both mesh sets, and the real-time factor of physics + five cameras.
 
-use crate::expert::{CartesianIk, PickPlaceExpert};
-use crate::{ArmTarget, Meshes, SceneSpec, Sim};
 use labrig_msgs::Nanos;
+use labrig_sim::expert::{CartesianIk, PickPlaceExpert};
+use labrig_sim::{ArmTarget, Meshes, SceneSpec, Sim};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -46,7 +46,7 @@ fn drive(sim: &mut Sim, ticks: u64, render: bool) -> anyhow::Result<(Vec<f64>, V
         physics.push(t0.elapsed().as_secs_f64() * 1e3);
         if render {
             let t1 = Instant::now();
-            for camera in crate::rig::CAMERAS {
+            for camera in labrig_sim::rig::CAMERAS {
                 sim.render_into(camera, &mut buf)?;
             }
             rendering.push(t1.elapsed().as_secs_f64() * 1e3);
@@ -56,7 +56,7 @@ fn drive(sim: &mut Sim, ticks: u64, render: bool) -> anyhow::Result<(Vec<f64>, V
 }
 
 pub fn run(a: BenchArgs) -> anyhow::Result<ExitCode> {
-    let assets = crate::assets_dir(a.assets.as_deref());
+    let assets = labrig_sim::assets_dir(a.assets.as_deref());
     let spec = SceneSpec::default_pick_place();
     let period = Nanos::from_millis(50);
     let mut report = serde_json::Map::new();

@@ -33,11 +33,8 @@
 //! the physics step at that deadline on (mid-tick). A refused command is reported in `/arm/state` (`fault`, mode FAULT,
 //! `prev_command_successful = false`) and never reaches the physics.
 
-use crate::expert::euler_xyz;
-use crate::scene::SceneValues;
-use crate::{ArmTarget, Meshes, Sim};
-use labrig_franka::safety::{ArmView, SafetyConfig, SafetyFilter, Watchdog};
-use labrig_franka::{Fr3Kinematics, TcpOffset};
+use labrig_arm::safety::{ArmView, SafetyFilter, Watchdog};
+use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::builtin_interfaces::Time;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
@@ -46,12 +43,15 @@ use labrig_msgs::rosgraph_msgs::Clock as ClockMsg;
 use labrig_msgs::sensor_msgs::{CameraInfo, JointState};
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_msgs::topics;
 use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode, FramePublisher};
 use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
 use labrig_runtime::{RosConfig, Shutdown};
+use labrig_sim::expert::euler_xyz;
+use labrig_sim::scene::SceneValues;
+use labrig_sim::{ArmTarget, Meshes, Sim};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
 use std::path::PathBuf;
-use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 /// The joints `/joint_states` names (the FR3's seven and the 2F-85's driver).
@@ -60,7 +60,8 @@ pub const JOINT_NAMES: [&str; 8] =
 /// Robot base frame id.
 pub const BASE_FRAME: &str = "base";
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// One control period per arm command received: deterministic, independent of machine speed.
     Lockstep,
@@ -68,56 +69,41 @@ pub enum Mode {
     Realtime,
 }
 
-#[derive(Debug, clap::Args)]
-pub struct BridgeArgs {
+/// The bridge's config (TOML, every key optional, unknown keys refused; `labrig sim run`'s
+/// flags override it).
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BridgeConfig {
+    pub ros: RosConfig,
     /// Scene spec (TOML file) or a built-in scene: pick_place (default), drawer_open, drawer_close.
-    #[arg(long)]
     pub scene: Option<PathBuf>,
-    #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
     pub mode: Mode,
     /// Control period (ms).
-    #[arg(long, default_value_t = 50)]
     pub period_ms: i64,
     /// Camera image size.
-    #[arg(long, default_value_t = 128)]
     pub width: usize,
-    #[arg(long, default_value_t = 128)]
     pub height: usize,
-    #[arg(long, value_enum, default_value_t = Meshes::Collision)]
     pub meshes: Meshes,
-    /// Run without cameras (physics and state only).
-    #[arg(long)]
-    pub no_cameras: bool,
+    /// Render and send the five cameras (false: physics and state only).
+    pub cameras: bool,
     /// Publish the scripted expert's action for the current state every tick
     /// (`/sim/expert/action`, an ArmCommand in DROID's cartesian_position form with the
     /// gripper) and its progress (`/sim/expert/status`, JSON: phase, done, success judged on
     /// the physics): an action source for the rig loop, which decides whether to follow it.
-    #[arg(long)]
     pub expert: bool,
     /// Sim time on the wall clock's time line (Unix ns) instead of from 0: in realtime each
     /// step's state and frames are stamped with the wall time they were made at, as a real
     /// rig's, so a control loop on the wall clock pairs them with its ticks; time lost to a
     /// late tick or a scene rebuild is skipped, not caught up.
-    #[arg(long)]
     pub wall_clock_origin: bool,
     /// In realtime, run the bridge's thread (and the renderer threads it starts) at this
     /// SCHED_FIFO priority (1..99; needs root or CAP_SYS_NICE, else warned): the simulated
     /// hardware keeps its own pace on a busy machine, as real hardware does.
-    #[arg(long)]
     pub realtime_priority: Option<u8>,
     /// Stop after this many ticks (default: run until Ctrl-C).
-    #[arg(long)]
     pub max_ticks: Option<u64>,
-    /// DDS domain id (ROS_DOMAIN_ID is read as in every ROS 2 tool).
-    #[arg(long, env = "ROS_DOMAIN_ID", default_value_t = 0)]
-    pub domain_id: u16,
-    /// Let DDS use every network interface instead of 127.0.0.1 only.
-    #[arg(long)]
-    pub allow_network: bool,
-    /// Where setup extracted the MuJoCo models.
-    #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    /// Where setup extracted the MuJoCo models (default: $LABRIG_MUJOCO_DIR/assets).
     pub assets: Option<PathBuf>,
     /// Serve the arm and gripper topics under this prefix (`/sim` -> `/sim/arm/command`,
     /// `/sim/arm/state`, `/sim/gripper/command`, `/sim/gripper/state`), for the franka and
@@ -125,17 +111,167 @@ pub struct BridgeArgs {
     /// /tf, /clock and the cameras stay as they are. With a prefix the gripper follows
     /// `<prefix>/gripper/command` only (arm commands' `gripper_position` is ignored, as the
     /// real FR3 ignores it: the gripper node owns the gripper).
-    #[arg(long, default_value = "")]
     pub hardware_prefix: String,
 }
 
-pub fn run(a: BridgeArgs) -> anyhow::Result<ExitCode> {
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
-    let shutdown = Shutdown::new();
-    rt.block_on(async {
-        shutdown.trigger_on_signals()?;
-        bridge(a, shutdown).await
-    })
+impl Default for BridgeConfig {
+    fn default() -> Self {
+        BridgeConfig {
+            ros: RosConfig::default(),
+            scene: None,
+            seed: 0,
+            mode: Mode::Lockstep,
+            period_ms: 50,
+            width: 128,
+            height: 128,
+            meshes: Meshes::Collision,
+            cameras: true,
+            expert: false,
+            wall_clock_origin: false,
+            realtime_priority: None,
+            max_ticks: None,
+            assets: None,
+            hardware_prefix: String::new(),
+        }
+    }
+}
+
+impl BridgeConfig {
+    /// Checks what serde cannot, naming the key.
+    pub fn validate(&self) -> Result<(), Invalid> {
+        if !(self.period_ms > 0 && self.period_ms <= 1000) {
+            return Err(Invalid::new("period_ms", "--period-ms must be in 1..=1000"));
+        }
+        let hw = self.hardware_prefix.trim_end_matches('/');
+        if !(hw.is_empty() || (hw.starts_with('/') && hw[1..].split('/').all(|p| !p.is_empty()))) {
+            return Err(Invalid::new(
+                "hardware_prefix",
+                format!("--hardware-prefix {:?} must look like /sim", self.hardware_prefix),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The bridge as a node: `labrig-sim run` (`labrig_runtime::node_main_with`, with the sim's
+/// tools beside it).
+#[derive(Debug)]
+pub struct BridgeNode;
+
+/// `labrig-sim run`'s own flags.
+#[derive(Debug, clap::Args)]
+pub struct BridgeFlags {
+    /// Scene spec (TOML file) or a built-in scene: pick_place (default), drawer_open, drawer_close.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    #[arg(long)]
+    pub seed: Option<u64>,
+    #[arg(long, value_enum)]
+    pub mode: Option<Mode>,
+    /// Control period (ms).
+    #[arg(long)]
+    pub period_ms: Option<i64>,
+    /// Camera image size.
+    #[arg(long)]
+    pub width: Option<usize>,
+    #[arg(long)]
+    pub height: Option<usize>,
+    /// visual or collision.
+    #[arg(long)]
+    pub meshes: Option<Meshes>,
+    /// Run without cameras (physics and state only): cameras = false.
+    #[arg(long)]
+    pub no_cameras: bool,
+    /// Publish the scripted expert's action and progress (config `expert`).
+    #[arg(long)]
+    pub expert: bool,
+    /// Sim time on the wall clock's time line (config `wall_clock_origin`).
+    #[arg(long)]
+    pub wall_clock_origin: bool,
+    /// In realtime, the bridge's SCHED_FIFO priority (config `realtime_priority`).
+    #[arg(long)]
+    pub realtime_priority: Option<u8>,
+    /// Stop after this many ticks (default: run until Ctrl-C).
+    #[arg(long)]
+    pub max_ticks: Option<u64>,
+    /// Let DDS use every network interface instead of 127.0.0.1 only (ros.loopback_only = false).
+    #[arg(long)]
+    pub allow_network: bool,
+    /// Where setup extracted the MuJoCo models.
+    #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    pub assets: Option<PathBuf>,
+    /// Serve the arm and gripper topics under this prefix (config `hardware_prefix`).
+    #[arg(long)]
+    pub hardware_prefix: Option<String>,
+}
+
+impl labrig_runtime::Node for BridgeNode {
+    const NAME: &'static str = "labrig-sim";
+    const ABOUT: &'static str = "The simulated rig: MuJoCo FR3 + 2F-85 + five cameras";
+    const WORKER_THREADS: usize = 1;
+    type Config = BridgeConfig;
+    type Flags = BridgeFlags;
+    type Stats = ();
+
+    fn ros(config: &mut BridgeConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn apply(f: BridgeFlags, c: &mut BridgeConfig, _file: Option<&std::path::Path>) {
+        if f.scene.is_some() {
+            c.scene = f.scene;
+        }
+        if let Some(v) = f.seed {
+            c.seed = v;
+        }
+        if let Some(v) = f.mode {
+            c.mode = v;
+        }
+        if let Some(v) = f.period_ms {
+            c.period_ms = v;
+        }
+        if let Some(v) = f.width {
+            c.width = v;
+        }
+        if let Some(v) = f.height {
+            c.height = v;
+        }
+        if let Some(v) = f.meshes {
+            c.meshes = v;
+        }
+        if f.no_cameras {
+            c.cameras = false;
+        }
+        if f.expert {
+            c.expert = true;
+        }
+        if f.wall_clock_origin {
+            c.wall_clock_origin = true;
+        }
+        if f.realtime_priority.is_some() {
+            c.realtime_priority = f.realtime_priority;
+        }
+        if f.max_ticks.is_some() {
+            c.max_ticks = f.max_ticks;
+        }
+        if f.allow_network {
+            c.ros.loopback_only = false;
+        }
+        if f.assets.is_some() {
+            c.assets = f.assets;
+        }
+        if let Some(v) = f.hardware_prefix {
+            c.hardware_prefix = v;
+        }
+    }
+
+    fn validate(config: &BridgeConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+        bridge(config, shutdown).await
+    }
 }
 
 struct Publishers {
@@ -223,74 +359,57 @@ fn send_frames(
     Ok(())
 }
 
-/// The safety layer of the franka node, on the FR3's URDF, for the sim's control period.
-pub(crate) fn safety_filter(period: Nanos, urdf: Option<&std::path::Path>) -> anyhow::Result<SafetyFilter> {
-    let urdf = labrig_franka::urdf_path(urdf);
-    let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)?;
-    let ik = labrig_franka::ik::Ik::new(kin, labrig_franka::ik::IkConfig::default());
-    let cfg = SafetyConfig { period_s: period.as_secs_f64(), max_command_age_s: 0.0, ..SafetyConfig::default() };
-    SafetyFilter::new(ik, cfg).map_err(|e| anyhow::anyhow!(e))
-}
-
-async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(a.period_ms > 0 && a.period_ms <= 1000, "--period-ms must be in 1..=1000");
+async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     if let (Some(p), Mode::Realtime) = (a.realtime_priority, a.mode) {
         // Before the renderer exists: the threads it starts inherit the policy.
         if let Err(e) = labrig_runtime::realtime_priority(p) {
             tracing::warn!("{e}; the bridge runs at normal priority");
         }
     }
-    let (spec, assets) = crate::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
+    let (spec, assets) = labrig_sim::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
     let period = Nanos::from_millis(a.period_ms);
     let mut sim = Sim::new(&assets, &spec, a.seed, period)?;
-    if !a.no_cameras {
+    if a.cameras {
         sim.enable_cameras(a.width, a.height, a.meshes)?;
     }
     // A step that starts at wall time w ends at sim time w: its state and frames go out
     // stamped about when they were made, as a real rig's are.
     let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
-    let safety = safety_filter(period, None)?;
+    let safety = labrig_sim::safety_filter(period, None)?;
     let mut watchdog = Watchdog::new(safety.config().watchdog_ns());
 
-    let cfg = RosConfig { domain_id: a.domain_id, loopback_only: !a.allow_network, ..RosConfig::default() };
-    cfg.validate(std::path::Path::new("<command line>"))?;
+    let cfg = a.ros.clone();
     let hw = a.hardware_prefix.trim_end_matches('/');
-    anyhow::ensure!(
-        hw.is_empty() || (hw.starts_with('/') && hw[1..].split('/').all(|p| !p.is_empty())),
-        "--hardware-prefix {:?} must look like /sim",
-        a.hardware_prefix
-    );
     let arm_sets_gripper = hw.is_empty();
     let mut ros = Ros::new(&cfg, "labrig_sim")?;
-    let cameras: Vec<&'static str> = if a.no_cameras { vec![] } else { crate::rig::CAMERAS.to_vec() };
+    let cameras: Vec<&'static str> = if !a.cameras { vec![] } else { labrig_sim::rig::CAMERAS.to_vec() };
     let pubs = Publishers {
-        joint_states: ros.publisher("/joint_states", qos::reliable(10))?,
-        arm_state: ros.publisher(&format!("{hw}/arm/state"), qos::reliable(10))?,
-        gripper_state: ros.publisher(&format!("{hw}/gripper/state"), qos::reliable(10))?,
-        tf: ros.publisher("/tf", qos::reliable(10))?,
-        clock: ros.publisher("/clock", qos::reliable(10))?,
+        joint_states: ros.publisher_on(&topics::JOINT_STATES, 10)?,
+        arm_state: ros.publisher_at(hw, &topics::ARM_STATE, 10)?,
+        gripper_state: ros.publisher_at(hw, &topics::GRIPPER_STATE, 10)?,
+        tf: ros.publisher_on(&topics::TF, 10)?,
+        clock: ros.publisher_on(&topics::CLOCK, 10)?,
         camera_info: cameras
             .iter()
-            .map(|c| ros.publisher(&format!("/cameras/{c}/camera_info"), qos::reliable(10)))
+            .map(|c| ros.publisher(&topics::camera_info(c), qos::reliable(10)))
             .collect::<Result<_, _>>()?,
     };
-    let tf_static = ros.publisher::<TFMessage>("/tf_static", qos::latched(1))?;
-    let scene_pub = ros.publisher::<StringMsg>("/sim/scene", qos::latched(1))?;
+    let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;
+    let scene_pub = ros.publisher_on(&topics::SIM_SCENE, 1)?;
     let mut expert = if a.expert {
         Some(ExpertPub {
-            expert: crate::expert::Expert::new(&sim),
-            action: ros.publisher::<ArmCommand>("/sim/expert/action", qos::reliable(10))?,
-            status: ros.publisher::<StringMsg>("/sim/expert/status", qos::reliable(10))?,
+            expert: labrig_sim::expert::Expert::new(&sim),
+            action: ros.publisher_on(&topics::SIM_EXPERT_ACTION, 10)?,
+            status: ros.publisher_on(&topics::SIM_EXPERT_STATUS, 10)?,
             seq: 0,
             last: None,
         })
     } else {
         None
     };
-    let reset_sub: RosSubscription<StringMsg> = ros.subscription("/sim/reset", qos::reliable(10))?;
-    let arm_sub: RosSubscription<ArmCommand> = ros.subscription(&format!("{hw}/arm/command"), qos::reliable(100))?;
-    let gripper_sub: RosSubscription<GripperCommand> =
-        ros.subscription(&format!("{hw}/gripper/command"), qos::reliable(100))?;
+    let reset_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_RESET, 10)?;
+    let arm_sub: RosSubscription<ArmCommand> = ros.subscription_at(hw, &topics::ARM_COMMAND, 100)?;
+    let gripper_sub: RosSubscription<GripperCommand> = ros.subscription_at(hw, &topics::GRIPPER_COMMAND, 100)?;
     let frames = FrameNode::new()?;
     let mut frame_pubs: Vec<FramePublisher> = cameras
         .iter()
@@ -304,7 +423,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
 
     publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
     tracing::info!(
-        mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.domain_id,
+        mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.ros.domain_id,
         "sim bridge up"
     );
 
@@ -335,7 +454,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
             match serde_json::from_str::<ResetRequest>(&r.msg.data) {
                 Ok(req) => {
                     let mut next = Sim::new(&assets, &spec, req.seed, period)?;
-                    if !a.no_cameras {
+                    if a.cameras {
                         next.enable_cameras(a.width, a.height, a.meshes)?;
                     }
                     // On the wall clock's time line the rebuild's time is lost, as a real rig's.
@@ -355,7 +474,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
                     watchdog = Watchdog::new(safety.config().watchdog_ns());
                     publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
                     if let Some(e) = &mut expert {
-                        e.expert = crate::expert::Expert::new(&sim);
+                        e.expert = labrig_sim::expert::Expert::new(&sim);
                     }
                     tracing::info!(seed = req.seed, time_s = sim.time().as_secs_f64(), "new scene");
                     // The new scene's first state comes with its own frames: the episode's
@@ -509,7 +628,7 @@ async fn bridge(a: BridgeArgs, shutdown: Shutdown) -> anyhow::Result<ExitCode> {
         clipped = state.clipped,
         "sim bridge stopped"
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }
 
 /// `/sim/reset`'s request.
@@ -522,7 +641,7 @@ struct ResetRequest {
 /// The scripted expert as an action source on ROS: its action for the current state and its
 /// progress, after every step.
 struct ExpertPub {
-    expert: crate::expert::Expert,
+    expert: labrig_sim::expert::Expert,
     action: RosPublisher<ArmCommand>,
     status: RosPublisher<StringMsg>,
     seq: u64,
@@ -544,8 +663,8 @@ impl ExpertPub {
         cmd.header.stamp = sim.time().into();
         let status = serde_json::json!({
             "phase": format!("{:?}", act.phase),
-            "done": act.phase == crate::expert::Phase::Done,
-            "success": crate::expert::task_success(sim),
+            "done": act.phase == labrig_sim::expert::Phase::Done,
+            "success": labrig_sim::expert::task_success(sim),
             "seq": self.seq,
             "stamp_ns": sim.time().0,
             "seed": sim.scene().seed,
@@ -568,7 +687,7 @@ fn publish_scene(
     sim: &Sim,
     scene_pub: &RosPublisher<StringMsg>,
     tf_static: &RosPublisher<TFMessage>,
-    spec: &crate::scene::SceneSpec,
+    spec: &labrig_sim::scene::SceneSpec,
 ) -> anyhow::Result<()> {
     let scene: &SceneValues = sim.scene();
     // The sampled values, and the spec they came from (so a recording can rebuild the scene).

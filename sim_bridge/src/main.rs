@@ -1,40 +1,26 @@
 //! `labrig-sim` (run as `labrig sim ...`): the simulated rig's commands.
 
 use anyhow::Context;
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Subcommand};
 use labrig_msgs::Nanos;
 use labrig_sim::expert::{self, EpisodeResult};
+use labrig_sim::replay::ReplayOptions;
 use labrig_sim::{Meshes, Sim};
+use labrig_sim_bridge::bridge::BridgeNode;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-#[derive(Debug, Parser)]
-#[command(
-    name = "labrig sim",
-    bin_name = "labrig sim",
-    version,
-    about = "The simulated rig: MuJoCo FR3 + 2F-85 + five cameras"
-)]
-struct Cli {
-    /// Log at debug level (RUST_LOG overrides).
-    #[arg(long, short, global = true)]
-    verbose: bool,
-    #[command(subcommand)]
-    command: Command,
-}
-
+/// `labrig-sim`'s tools beside `run` (the bridge node, [`BridgeNode`]).
 #[derive(Debug, Subcommand)]
-enum Command {
+enum Tool {
     /// Render the five cameras of a scene to PNGs, with the scene's sampled values as JSON.
     Snapshot(SnapshotArgs),
     /// Run the scripted expert of the scene's task on many seeded scenes; report its success rate.
     Eval(EvalArgs),
-    /// Run the bridge: the rig behind the franka, gripper and camera nodes' ROS 2 topics.
-    Run(labrig_sim::bridge::BridgeArgs),
     /// Physics steps per second, render time per frame, real-time factor.
-    Bench(labrig_sim::bench::BenchArgs),
+    Bench(labrig_sim_bridge::bench::BenchArgs),
     /// Replay a recorded episode's actions against its rebuilt scene; compare the states (exit 5 beyond tolerances).
-    Replay(labrig_sim::replay::ReplayArgs),
+    Replay(ReplayArgs),
 }
 
 /// Which scene: a spec file (default: the built-in pick-and-place scene) and a seed.
@@ -62,7 +48,8 @@ struct SnapshotArgs {
     width: usize,
     #[arg(long, default_value_t = 240)]
     height: usize,
-    #[arg(long, value_enum, default_value_t = Meshes::Visual)]
+    /// visual or collision.
+    #[arg(long, default_value_t = Meshes::Visual)]
     meshes: Meshes,
 }
 
@@ -86,23 +73,56 @@ struct EvalArgs {
     min_success: Option<f64>,
 }
 
+/// Exit status when the replay deviates beyond the tolerances.
+const EXIT_DEVIATION: u8 = 5;
+
+#[derive(Debug, Args)]
+struct ReplayArgs {
+    /// The episode: its directory or its .mcap file.
+    episode: PathBuf,
+    /// Rebuild the scene from this spec (file or built-in name) instead of the episode's.
+    #[arg(long)]
+    scene: Option<PathBuf>,
+    /// The scene seed (default: the episode's).
+    #[arg(long)]
+    seed: Option<u64>,
+    #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    assets: Option<PathBuf>,
+    /// Render the five cameras every step (as the bridge does), for the speed figure.
+    #[arg(long)]
+    cameras: bool,
+    #[arg(long, default_value_t = 128)]
+    width: usize,
+    #[arg(long, default_value_t = 128)]
+    height: usize,
+    /// Tolerances: the replay fails (exit 5) when a maximum error exceeds one.
+    #[arg(long, default_value_t = 0.01)]
+    max_joint_error_rad: f64,
+    #[arg(long, default_value_t = 0.005)]
+    max_tcp_error_m: f64,
+    #[arg(long, default_value_t = 0.02)]
+    max_rotation_error_rad: f64,
+    #[arg(long, default_value_t = 0.05)]
+    max_gripper_error: f64,
+    /// Add this (rad) to every recorded joint-1 target: a what-if, and the proof the check fails.
+    #[arg(long, default_value_t = 0.0)]
+    perturb_joint1_rad: f64,
+    #[arg(long)]
+    json: bool,
+    /// Write a PNG: recorded vs replayed TCP trajectory, and the errors over time.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+}
+
 fn main() -> ExitCode {
-    let cli = Cli::parse();
-    labrig_runtime::logging::init(if cli.verbose { "debug" } else { "info" });
-    let result = match cli.command {
-        Command::Snapshot(a) => snapshot(a),
-        Command::Eval(a) => eval(a),
-        Command::Bench(a) => labrig_sim::bench::run(a),
-        Command::Run(a) => labrig_sim::bridge::run(a),
-        Command::Replay(a) => labrig_sim::replay::run(a),
-    };
-    match result {
-        Ok(code) => code,
-        Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::from(1)
+    labrig_runtime::node_main_with::<BridgeNode, Tool, _, _>(|tool, _shutdown| async move {
+        match tool {
+            Tool::Snapshot(a) => snapshot(a),
+            Tool::Eval(a) => eval(a),
+            Tool::Bench(a) => labrig_sim_bridge::bench::run(a),
+            Tool::Replay(a) => replay(a),
         }
-    }
+    })
 }
 
 fn snapshot(a: SnapshotArgs) -> anyhow::Result<ExitCode> {
@@ -186,4 +206,31 @@ fn eval(a: EvalArgs) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::from(4));
     }
     Ok(ExitCode::SUCCESS)
+}
+
+fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
+    let opts = ReplayOptions {
+        episode: a.episode,
+        scene: a.scene,
+        seed: a.seed,
+        assets: a.assets,
+        cameras: a.cameras,
+        width: a.width,
+        height: a.height,
+        max_joint_error_rad: a.max_joint_error_rad,
+        max_tcp_error_m: a.max_tcp_error_m,
+        max_rotation_error_rad: a.max_rotation_error_rad,
+        max_gripper_error: a.max_gripper_error,
+        perturb_joint1_rad: a.perturb_joint1_rad,
+    };
+    let r = labrig_sim::replay::replay(&opts)?;
+    if let Some(path) = &a.plot {
+        labrig_sim::replay::plot(&r, path)?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else {
+        print!("{}", labrig_sim::replay::text(&r));
+    }
+    Ok(if r.exceeded.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(EXIT_DEVIATION) })
 }

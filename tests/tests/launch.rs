@@ -52,6 +52,11 @@ fn bad_launch_configs_are_refused_with_the_problem_named() {
             "[rig]\nname = \"r\"\n[[node]]\nname = \"a\"\nprogram = \"rm\"\nhealth = \"/x\"\n".to_owned(),
             "unknown program `rm`",
         ),
+        (
+            // A node still to come is not a program yet: refused by name, not at spawn time.
+            "[rig]\nname = \"r\"\n[[node]]\nname = \"c\"\nprogram = \"labrig-cameras\"\nhealth = \"/x\"\n".to_owned(),
+            "unknown program `labrig-cameras`",
+        ),
     ];
     for (i, (text, want)) in cases.iter().enumerate() {
         let path = dir.path().join(format!("bad{i}.toml"));

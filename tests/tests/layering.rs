@@ -1,15 +1,26 @@
-//! Layering: msgs and runtime never depend on the heavy native crates (tch, mujoco, opencv),
-//! the CLI links neither MuJoCo nor libhdf5,
-//! and msgs stays a leaf (no async runtime, no DDS, no shared memory). Checked on the real
-//! dependency graph with `cargo tree`.
+//! Layering, checked on the real dependency graph (`cargo tree`, `cargo metadata`):
+//! - msgs is a leaf (no async runtime, DDS or shared memory);
+//! - the libraries (episode, arm, sim) carry no transport: no tokio, DDS or iceoryx2, so the
+//!   trainer and the dataset tools read episodes and step the sim without a node's baggage;
+//! - heavy native crates stay where they belong: tch in the policy crates, opencv in
+//!   calibration and the camera node, MuJoCo in the sim crates, libhdf5 in droid;
+//! - the CLI links neither MuJoCo nor libhdf5;
+//! - every crate's folder is named after it, and ARCHITECTURE.md's crate table lists every
+//!   workspace crate with its folder and exactly the labrig crates it depends on.
 
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet};
 use std::process::Command;
 
+fn cargo() -> Command {
+    let mut c = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    c.current_dir(labrig_tests::repo_root());
+    c
+}
+
 fn deps(package: &str) -> Vec<String> {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let out = Command::new(cargo)
+    let out = cargo()
         .args(["tree", "--offline", "-p", package, "-e", "normal,build", "--prefix", "none", "--format", "{p}"])
-        .current_dir(labrig_tests::repo_root())
         .output()
         .expect("cargo tree");
     assert!(out.status.success(), "cargo tree -p {package}: {}", String::from_utf8_lossy(&out.stderr));
@@ -21,39 +32,148 @@ fn deps(package: &str) -> Vec<String> {
         .collect()
 }
 
+fn matches(dep: &str, names: &[&str]) -> bool {
+    names.iter().any(|f| dep == *f || dep.starts_with(&format!("{f}-")))
+}
+
 fn assert_free_of(package: &str, forbidden: &[&str]) {
     let deps = deps(package);
     assert!(deps.len() > 1, "cargo tree listed nothing for {package}");
-    let bad: Vec<&String> =
-        deps.iter().filter(|d| forbidden.iter().any(|f| d.as_str() == *f || d.starts_with(&format!("{f}-")))).collect();
+    let bad: BTreeSet<&String> = deps.iter().filter(|d| matches(d, forbidden)).collect();
     assert!(bad.is_empty(), "{package} depends on {bad:?}");
 }
 
-const HEAVY: &[&str] = &["tch", "torch-sys", "mujoco-rs", "mujoco", "opencv", "opencv-sys"];
+const TRANSPORT: &[&str] = &["tokio", "rustdds", "ros2-client", "iceoryx2", "mio"];
+const TORCH: &[&str] = &["tch", "torch-sys"];
+const OPENCV: &[&str] = &["opencv", "opencv-sys"];
+const MUJOCO: &[&str] = &["mujoco-rs", "mujoco"];
+const HDF5: &[&str] = &["hdf5-metno", "hdf5-metno-sys"];
+
+/// The workspace's crates: name -> (folder relative to the root, labrig crates it depends on
+/// normally).
+fn workspace() -> BTreeMap<String, (String, BTreeSet<String>)> {
+    let out = cargo().args(["metadata", "--offline", "--format-version", "1", "--no-deps"]).output().unwrap();
+    assert!(out.status.success(), "cargo metadata: {}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let root = std::fs::canonicalize(labrig_tests::repo_root()).unwrap();
+    let mut crates = BTreeMap::new();
+    for p in v["packages"].as_array().unwrap() {
+        let name = p["name"].as_str().unwrap().to_owned();
+        let manifest = std::path::PathBuf::from(p["manifest_path"].as_str().unwrap());
+        let folder = manifest.parent().unwrap().strip_prefix(&root).unwrap().display().to_string();
+        let labrig: BTreeSet<String> = p["dependencies"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|d| d["kind"].is_null())
+            .filter_map(|d| d["name"].as_str())
+            .filter(|d| d.starts_with("labrig"))
+            .map(str::to_owned)
+            .collect();
+        crates.insert(name, (folder, labrig));
+    }
+    crates
+}
 
 #[test]
 fn msgs_is_a_leaf() {
-    let mut forbidden = HEAVY.to_vec();
-    forbidden.extend(["tokio", "rustdds", "ros2-client", "iceoryx2", "mio"]);
+    let mut forbidden = [TORCH, OPENCV, MUJOCO, HDF5].concat();
+    forbidden.extend(TRANSPORT);
     assert_free_of("labrig-msgs", &forbidden);
 }
 
 #[test]
-fn runtime_has_no_heavy_native_dependencies() {
-    assert_free_of("labrig-runtime", HEAVY);
+fn the_libraries_carry_no_transport() {
+    for lib in ["labrig-episode", "labrig-arm", "labrig-sim"] {
+        assert_free_of(lib, TRANSPORT);
+    }
+    assert_free_of("labrig-episode", &[MUJOCO, HDF5, TORCH, OPENCV].concat());
+    assert_free_of("labrig-arm", &[MUJOCO, HDF5, TORCH, OPENCV, &["franka-rs"]].concat());
 }
 
 #[test]
 fn the_check_sees_real_dependencies() {
-    // Guards the guard: runtime does depend on rustdds, so the tree lookup works.
+    // Guards the guard: runtime does depend on rustdds and the sim on MuJoCo.
     assert!(deps("labrig-runtime").iter().any(|d| d == "rustdds"));
+    assert!(deps("labrig-sim").iter().any(|d| matches(d, MUJOCO)));
+    assert!(deps("labrig-droid").iter().any(|d| d == "hdf5-metno-sys"), "the guard sees hdf5");
+}
+
+#[test]
+fn heavy_native_crates_stay_where_they_belong() {
+    let allowed: [(&[&str], &[&str]); 4] = [
+        (TORCH, &["labrig-policies", "labrig-policy-server"]),
+        (OPENCV, &["labrig-calibration", "labrig-cameras"]),
+        (MUJOCO, &["labrig-sim", "labrig-sim-bridge"]),
+        (HDF5, &["labrig-droid"]),
+    ];
+    let mut bad = Vec::new();
+    for name in workspace().keys().filter(|n| n.as_str() != "labrig-tests") {
+        let d = deps(name);
+        for (heavy, owners) in &allowed {
+            if !owners.contains(&name.as_str())
+                && let Some(h) = d.iter().find(|d| matches(d, heavy))
+            {
+                bad.push(format!("{name} depends on {h} (allowed in {owners:?} only)"));
+            }
+        }
+    }
+    assert!(bad.is_empty(), "{bad:#?}");
 }
 
 #[test]
 fn the_cli_links_neither_mujoco_nor_libhdf5() {
     // `labrig` execs labrig-sim (MuJoCo) and labrig-droid (libhdf5) from beside itself, so the
     // CLI runs where neither library is installed.
-    assert_free_of("labrig", &["mujoco-rs", "hdf5-metno", "hdf5-metno-sys"]);
-    assert_free_of("labrig-droid", HEAVY);
-    assert!(deps("labrig-droid").iter().any(|d| d == "hdf5-metno-sys"), "the guard sees hdf5");
+    assert_free_of("labrig", &[MUJOCO, HDF5].concat());
+    assert_free_of("labrig-droid", &[TORCH, OPENCV, MUJOCO].concat());
+}
+
+#[test]
+fn every_crate_lives_in_the_folder_of_its_name() {
+    let mut bad = Vec::new();
+    for (name, (folder, _)) in workspace() {
+        let last = folder.rsplit('/').next().unwrap().replace('_', "-");
+        let expected = if last == "labrig" { "labrig".to_owned() } else { format!("labrig-{last}") };
+        if name != expected {
+            bad.push(format!("{name} is in {folder}/ (that folder holds {expected})"));
+        }
+    }
+    assert!(bad.is_empty(), "{bad:#?}");
+}
+
+#[test]
+fn architecture_md_lists_every_crate_as_it_is() {
+    let text = std::fs::read_to_string(labrig_tests::repo_root().join("ARCHITECTURE.md")).unwrap();
+    let begin = text.find("<!-- crates:begin -->").expect("ARCHITECTURE.md has a <!-- crates:begin --> marker");
+    let end = text.find("<!-- crates:end -->").expect("ARCHITECTURE.md has a <!-- crates:end --> marker");
+    // | layer | `crate` | `folder/` | `labrig-a`, `labrig-b` | what else | never |
+    let mut listed: BTreeMap<String, (String, BTreeSet<String>)> = BTreeMap::new();
+    for line in text[begin..end].lines().filter(|l| l.starts_with('|')) {
+        let cells: Vec<&str> = line.trim_matches('|').split('|').map(str::trim).collect();
+        let Some(name) = cells.get(1).and_then(|c| c.strip_prefix('`')).and_then(|c| c.strip_suffix('`')) else {
+            continue;
+        };
+        let folder = cells[2].trim_matches('`').trim_end_matches('/').to_owned();
+        let uses: BTreeSet<String> = cells[3]
+            .split(',')
+            .map(|c| c.trim().trim_matches('`').to_owned())
+            .filter(|c| c.starts_with("labrig"))
+            .collect();
+        assert!(listed.insert(name.to_owned(), (folder, uses)).is_none(), "{name} is listed twice");
+    }
+    let actual = workspace();
+    let mut bad = Vec::new();
+    for (name, (folder, uses)) in &actual {
+        match listed.get(name) {
+            None => bad.push(format!("{name} ({folder}/) is not in ARCHITECTURE.md's crate table")),
+            Some((f, _)) if f != folder => bad.push(format!("{name}: the table says {f}/, it is in {folder}/")),
+            Some((_, u)) if u != uses => bad.push(format!("{name}: the table says it uses {u:?}, it uses {uses:?}")),
+            Some(_) => {}
+        }
+    }
+    for name in listed.keys().filter(|n| !actual.contains_key(*n)) {
+        bad.push(format!("the table lists {name}, which is not a workspace crate"));
+    }
+    assert!(bad.is_empty(), "{bad:#?}");
 }

@@ -2,14 +2,14 @@
 //! `mcap-ros2-support` (every message decoded through the schema embedded in the file) and
 //! `rosbags` 0.11.9 (the directory through metadata.yaml, and the bare .mcap).
 
+use labrig_episode::bag::Reliability;
+use labrig_episode::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::TransformStamped;
 use labrig_msgs::labrig_msgs::{CameraFrameRef, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::tf2_msgs::TFMessage;
-use labrig_recorder::bag::Reliability;
-use labrig_recorder::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
 use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
@@ -210,7 +210,7 @@ fn inspect_flags_bad_input() {
     let dir = root.path().join("bad");
     let mut w = EpisodeWriter::create(&dir, meta).unwrap();
     let step_schema = labrig_msgs::schema_text::<Step>();
-    let step_type = labrig_recorder::episode::RawType { name: "labrig_msgs/msg/Step", schema: &step_schema };
+    let step_type = labrig_episode::episode::RawType { name: "labrig_msgs/msg/Step", schema: &step_schema };
     for k in 0..10i64 {
         let t = T0 + k * TICK;
         // Step 4 never arrives (a missed tick); step 7 is garbage.

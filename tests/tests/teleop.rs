@@ -105,7 +105,7 @@ impl Rig {
     }
 
     /// Waits for the loop to finish its episode and the recorder to file it.
-    fn recorded(&mut self) -> (PathBuf, labrig_recorder::inspect::EpisodeData) {
+    fn recorded(&mut self) -> (PathBuf, labrig_episode::inspect::EpisodeData) {
         assert_eq!(self.control.wait_exit(Duration::from_secs(60)), Some(0), "the loop ends after its episode");
         let deadline = Instant::now() + Duration::from_secs(20);
         let dir = loop {
@@ -115,7 +115,7 @@ impl Rig {
             assert!(Instant::now() < deadline, "no episode recorded under {}", self.root.display());
             std::thread::sleep(Duration::from_millis(200));
         };
-        let ep = labrig_recorder::inspect::read_episode(&dir).unwrap();
+        let ep = labrig_episode::inspect::read_episode(&dir).unwrap();
         (dir, ep)
     }
 }
@@ -179,7 +179,7 @@ fn a_recorded_controller_trace_drives_the_sim_rig() {
         .fold(0.0, f64::max);
     assert!(max_step < 0.02, "largest TCP step {max_step}");
     // The recording carries the controller as the node saw it.
-    let topics = labrig_recorder::inspect::inspect(&dir).unwrap().topics;
+    let topics = labrig_episode::inspect::inspect(&dir).unwrap().topics;
     let count = |t: &str| topics.iter().find(|x| x.topic == t).map_or(0, |x| x.count);
     assert!(count("/teleop/state") > 300 && count("/teleop/action") > 300, "{topics:?}");
 }
@@ -225,7 +225,7 @@ fn a_vanished_controller_holds_the_arm_within_100_ms() {
 /// The newest header stamp on `topic` in an episode (read with the PyPI-independent path:
 /// this crate's own MCAP reader through labrig-recorder).
 fn last_stamp(dir: &Path, topic: &str) -> i64 {
-    let file = dir.join(labrig_recorder::episode::EPISODE_FILE);
+    let file = dir.join(labrig_episode::episode::EPISODE_FILE);
     let buf = std::fs::read(&file).unwrap();
     let mut last = i64::MIN;
     for m in mcap::MessageStream::new(&buf).unwrap() {
@@ -296,5 +296,11 @@ fn the_adb_input_starts_the_app_and_reconnects_when_adb_drops() {
     assert!(calls.contains("shell am start -n com.rail.oculus.teleop/com.rail.oculus.teleop.MainActivity"));
     assert!(calls.contains("logcat -T 0 -v epoch wE9ryARX:V *:S"), "{calls}");
     let readings = stats["lines"]["readings"].as_u64().unwrap();
-    assert_eq!(readings, 40 * logcats as u64, "every line of every run read: {stats}");
+    // Every line of every finished run is read; the run our SIGTERM cut short may have been
+    // logged by the stand-in before its lines reached the node (seen once under load: 584/600).
+    let finished = 40 * (logcats as u64 - 1);
+    assert!(
+        (finished..=40 * logcats as u64).contains(&readings),
+        "every line of every run read: {readings} readings from {logcats} runs of 40: {stats}"
+    );
 }

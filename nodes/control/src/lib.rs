@@ -13,3 +13,97 @@ pub mod frames;
 pub mod node;
 pub mod source;
 pub mod step;
+
+use labrig_msgs::Invalid;
+use labrig_runtime::{RosConfig, Shutdown};
+use node::{ClockKind, ControlConfig, SourceKind, Summary};
+use std::path::Path;
+
+/// The rig loop node: `labrig-control run` (`labrig_runtime::node_main`).
+#[derive(Debug)]
+pub struct ControlNode;
+
+/// `labrig-control run`'s own flags; each overrides the config key of its name.
+#[derive(Debug, clap::Args)]
+pub struct ControlFlags {
+    /// The action source (hold and teleop also turn auto_start off).
+    #[arg(long, value_enum)]
+    source: Option<SourceKind>,
+    /// The loop's clock: `sim` (the bridge's time; lockstep-safe) or `wall` (the real rig).
+    #[arg(long, value_enum)]
+    clock: Option<ClockKind>,
+    /// Episodes to run, then exit (0: until stopped).
+    #[arg(long)]
+    episodes: Option<u64>,
+    /// The first scene seed (`/sim/reset`); the next episodes take the following seeds.
+    #[arg(long)]
+    first_seed: Option<u64>,
+    /// Do not ask the sim for a new scene per episode (reseed = false).
+    #[arg(long)]
+    no_reseed: bool,
+    /// Episodes only from /rig/request (auto_start = false).
+    #[arg(long)]
+    manual: bool,
+    /// Step budget per episode.
+    #[arg(long)]
+    max_steps: Option<u64>,
+}
+
+impl labrig_runtime::Node for ControlNode {
+    const NAME: &'static str = "labrig-control";
+    const ABOUT: &'static str =
+        "The 20 Hz rig loop: observations, actions through the safety layer, Step records, episodes";
+    type Config = ControlConfig;
+    type Flags = ControlFlags;
+    type Stats = Summary;
+
+    fn ros(config: &mut ControlConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn apply(f: ControlFlags, cfg: &mut ControlConfig, _file: Option<&Path>) {
+        if let Some(s) = f.source {
+            cfg.source = s;
+            if s == SourceKind::Hold || s == SourceKind::Teleop {
+                cfg.auto_start = false;
+            }
+        }
+        if let Some(c) = f.clock {
+            cfg.clock = c;
+        }
+        if let Some(n) = f.episodes {
+            cfg.episodes = n;
+        }
+        if let Some(s) = f.first_seed {
+            cfg.first_seed = s;
+        }
+        if let Some(m) = f.max_steps {
+            cfg.max_steps = m;
+        }
+        if f.no_reseed {
+            cfg.reseed = false;
+        }
+        if f.manual {
+            cfg.auto_start = false;
+        }
+    }
+
+    fn validate(config: &ControlConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summary> {
+        let summary = node::run(config, shutdown).await?;
+        tracing::info!(
+            ticks = summary.ticks,
+            episodes = summary.episodes.len(),
+            held_ticks = summary.held_ticks,
+            missed_ticks = summary.missed_ticks,
+            jitter_p50_us = summary.jitter_us[0],
+            jitter_p99_us = summary.jitter_us[1],
+            jitter_max_us = summary.jitter_us[2],
+            "control loop stopped"
+        );
+        Ok(summary)
+    }
+}

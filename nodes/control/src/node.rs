@@ -28,17 +28,19 @@ use crate::frames::{FrameBook, FrameTimes};
 use crate::source::{ActionSource, Proposal, ScriptedExpert, Verdict};
 use crate::step::{Decision, Observation, TickTimes, make_step};
 use anyhow::Context;
-use labrig_franka::ik::{Ik, IkConfig, delta_to_velocity, pose_error, xyz_euler};
-use labrig_franka::safety::{ArmView, SafetyConfig, SafetyFilter};
-use labrig_franka::{Fr3Kinematics, Joints, TcpOffset};
+use labrig_arm::ik::{Ik, IkConfig, delta_to_velocity, pose_error, xyz_euler};
+use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter};
+use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
+use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{
     ActionDict, ArmCommand, ArmCommandMode, DROID_RESET_POSE, EpisodeEvent, EpisodeEventKind, GripperCommand,
     GripperState, RIG_CAMERAS, RobotState, Step,
 };
 use labrig_msgs::std_msgs::{Header, StringMsg};
+use labrig_msgs::topics;
 use labrig_runtime::frames::{FrameNode, FrameSubscriber};
-use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
+use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription};
 use labrig_runtime::{RosConfig, Shutdown};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -152,14 +154,17 @@ impl Default for ControlConfig {
 }
 
 impl ControlConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), Invalid> {
         if !(1..=1000).contains(&self.period_ms) {
-            return Err(format!("period_ms = {} must be in 1..=1000", self.period_ms));
+            return Err(Invalid::new("period_ms", format!("period_ms = {} must be in 1..=1000", self.period_ms)));
         }
         if (self.safety.period_s * 1e3 - self.period_ms as f64).abs() > 1e-6 {
-            return Err(format!(
-                "safety.period_s = {} must equal period_ms = {} (the per-step limits are per period)",
-                self.safety.period_s, self.period_ms
+            return Err(Invalid::new(
+                "safety.period_s",
+                format!(
+                    "safety.period_s = {} must equal period_ms = {} (the per-step limits are per period)",
+                    self.safety.period_s, self.period_ms
+                ),
             ));
         }
         for (name, v) in [
@@ -170,23 +175,32 @@ impl ControlConfig {
             ("reset_timeout_s", self.reset_timeout_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("{name} = {v} must be > 0"));
+                return Err(Invalid::new(name, format!("{name} = {v} must be > 0")));
             }
         }
         if self.realtime_priority > 99 {
-            return Err(format!("realtime_priority = {} must be 0..=99", self.realtime_priority));
+            return Err(Invalid::new(
+                "realtime_priority",
+                format!("realtime_priority = {} must be 0..=99", self.realtime_priority),
+            ));
         }
         if self.max_steps == 0 {
-            return Err("max_steps must be > 0".into());
+            return Err(Invalid::new("max_steps", "max_steps must be > 0"));
         }
         if self.source == SourceKind::Hold && self.auto_start {
-            return Err("auto_start needs an action source (source = \"hold\" has none)".into());
+            return Err(Invalid::new("auto_start", "auto_start needs an action source (source = \"hold\" has none)"));
         }
         if self.source == SourceKind::Teleop && self.auto_start {
-            return Err("auto_start: teleop episodes start on /rig/request (the operator), not by themselves".into());
+            return Err(Invalid::new(
+                "auto_start",
+                "auto_start: teleop episodes start on /rig/request (the operator), not by themselves",
+            ));
         }
         if !(self.teleop_max_age_ms.is_finite() && self.teleop_max_age_ms > 0.0) {
-            return Err(format!("teleop_max_age_ms: {} must be positive", self.teleop_max_age_ms));
+            return Err(Invalid::new(
+                "teleop_max_age_ms",
+                format!("teleop_max_age_ms: {} must be positive", self.teleop_max_age_ms),
+            ));
         }
         self.safety.validate()
     }
@@ -257,9 +271,9 @@ enum Between {
 }
 
 pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summary> {
-    cfg.validate().map_err(anyhow::Error::msg)?;
+    cfg.validate()?;
     let period = Nanos::from_millis(cfg.period_ms as i64);
-    let urdf = labrig_franka::urdf_path(cfg.urdf.as_deref());
+    let urdf = labrig_arm::urdf_path(cfg.urdf.as_deref());
     let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)
         .with_context(|| format!("loading the FR3 URDF {}", urdf.display()))?;
     let filter =
@@ -267,17 +281,17 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
 
     let mut ros = Ros::new(&cfg.ros, "labrig_control")?;
     let pubs = Pubs {
-        arm: ros.publisher("/arm/command", qos::reliable(10))?,
-        gripper: ros.publisher("/gripper/command", qos::reliable(10))?,
-        step: ros.publisher("/rig/step", qos::reliable(100))?,
-        episode: ros.publisher("/rig/episode", qos::reliable(100))?,
-        reset: ros.publisher("/sim/reset", qos::reliable(10))?,
-        status: ros.publisher("/control/status", qos::latched(1))?,
+        arm: ros.publisher_on(&topics::ARM_COMMAND, 10)?,
+        gripper: ros.publisher_on(&topics::GRIPPER_COMMAND, 10)?,
+        step: ros.publisher_on(&topics::RIG_STEP, 100)?,
+        episode: ros.publisher_on(&topics::RIG_EPISODE, 100)?,
+        reset: ros.publisher_on(&topics::SIM_RESET, 10)?,
+        status: ros.publisher_on(&topics::CONTROL_STATUS, 1)?,
     };
-    let arm_state: RosSubscription<RobotState> = ros.subscription("/arm/state", qos::reliable(10))?;
-    let gripper_state: RosSubscription<GripperState> = ros.subscription("/gripper/state", qos::reliable(10))?;
-    let scene_sub: RosSubscription<StringMsg> = ros.subscription("/sim/scene", qos::latched(1))?;
-    let requests: RosSubscription<EpisodeEvent> = ros.subscription("/rig/request", qos::reliable(10))?;
+    let arm_state: RosSubscription<RobotState> = ros.subscription_on(&topics::ARM_STATE, 10)?;
+    let gripper_state: RosSubscription<GripperState> = ros.subscription_on(&topics::GRIPPER_STATE, 10)?;
+    let scene_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_SCENE, 1)?;
+    let requests: RosSubscription<EpisodeEvent> = ros.subscription_on(&topics::RIG_REQUEST, 10)?;
     let mut source: Option<Box<dyn ActionSource>> = match cfg.source {
         SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(&mut ros)?)),
         SourceKind::Hold => None,
@@ -308,12 +322,12 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         tokio::time::sleep(Duration::from_millis(20)).await;
     };
     // Commands reach their subscriber before the first tick's (lockstep needs each one).
-    if !ros.wait_for_subscribers("/arm/command", 1, Duration::from_secs(30)).await {
+    if !ros.wait_for_subscribers(topics::ARM_COMMAND.name, 1, Duration::from_secs(30)).await {
         anyhow::bail!("nothing subscribes to /arm/command within 30 s");
     }
     if cfg.auto_start {
         // The recorder should hear the first episode's Start.
-        if !ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(30)).await {
+        if !ros.wait_for_subscribers(topics::RIG_EPISODE.name, 1, Duration::from_secs(30)).await {
             tracing::warn!("nothing subscribes to /rig/episode: episodes will not be recorded");
         }
     }
@@ -839,10 +853,10 @@ mod tests {
         let mut c = ControlConfig::default();
         assert_eq!(c.validate(), Ok(()));
         c.period_ms = 100;
-        assert!(c.validate().unwrap_err().contains("safety.period_s"));
+        assert!(c.validate().unwrap_err().to_string().contains("safety.period_s"));
         let c = ControlConfig { source: SourceKind::Hold, ..ControlConfig::default() };
-        assert!(c.validate().unwrap_err().contains("auto_start"));
+        assert!(c.validate().unwrap_err().to_string().contains("auto_start"));
         let c = ControlConfig { stale_frame_ms: f64::NAN, ..ControlConfig::default() };
-        assert!(c.validate().unwrap_err().contains("stale_frame_ms"));
+        assert!(c.validate().unwrap_err().to_string().contains("stale_frame_ms"));
     }
 }

@@ -6,7 +6,8 @@
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ArmCommand, Step, TeleopState};
 use labrig_msgs::std_msgs::StringMsg;
-use labrig_runtime::ros::{Ros, RosError, RosSubscription, qos};
+use labrig_msgs::topics;
+use labrig_runtime::ros::{Ros, RosError, RosSubscription};
 
 /// A source's action for one tick.
 #[derive(Debug, Clone, PartialEq)]
@@ -72,8 +73,8 @@ impl std::fmt::Debug for ScriptedExpert {
 impl ScriptedExpert {
     pub fn new(ros: &mut Ros) -> Result<ScriptedExpert, RosError> {
         Ok(ScriptedExpert {
-            actions: ros.subscription("/sim/expert/action", qos::reliable(100))?,
-            status: ros.subscription("/sim/expert/status", qos::reliable(100))?,
+            actions: ros.subscription_on(&topics::SIM_EXPERT_ACTION, 100)?,
+            status: ros.subscription_on(&topics::SIM_EXPERT_STATUS, 100)?,
             latest: None,
             progress: None,
             since_ns: i64::MIN,
@@ -175,8 +176,8 @@ impl std::fmt::Debug for Teleop {
 impl Teleop {
     pub fn new(ros: &mut Ros, max_age: std::time::Duration) -> Result<Teleop, RosError> {
         Ok(Teleop {
-            actions: ros.subscription("/teleop/action", qos::reliable(100))?,
-            states: ros.subscription("/teleop/state", qos::reliable(100))?,
+            actions: ros.subscription_on(&topics::TELEOP_ACTION, 100)?,
+            states: ros.subscription_on(&topics::TELEOP_STATE, 100)?,
             latest: None,
             state: None,
             max_age,

@@ -2,7 +2,7 @@
 //! has passed the safety layer; backends add their own limits on top (the FCI's rate limiter
 //! and reflexes), never fewer.
 
-use crate::Joints;
+use labrig_arm::Joints;
 
 /// One reading of the arm.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

@@ -3,9 +3,10 @@
 //! trajectory to the newest target, which is the shape of a 20 Hz rig; this wrapper keeps
 //! franka-rs behind [`ArmBackend`] so the node never sees its types.
 
-use crate::Joints;
 use crate::backend::{ArmBackend, ArmReading, BackendError};
 use franka::{Backend, FrankaError, JointTargetControl, JointTargetControlOptions, RealtimeConfig, Robot};
+use labrig_arm::Joints;
+use labrig_msgs::Invalid;
 use serde::Deserialize;
 use std::sync::Arc;
 
@@ -39,12 +40,18 @@ pub struct FciConfig {
 }
 
 impl FciConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), Invalid> {
         if !(self.limit_fraction.is_finite() && self.limit_fraction > 0.0 && self.limit_fraction <= 1.0) {
-            return Err(format!("franka config: `fci.limit_fraction` is {}, must be in (0, 1]", self.limit_fraction));
+            return Err(Invalid::new(
+                "fci.limit_fraction",
+                format!("franka config: `fci.limit_fraction` is {}, must be in (0, 1]", self.limit_fraction),
+            ));
         }
         if !(self.max_deviation_rad.is_finite() && self.max_deviation_rad > 0.0) {
-            return Err(format!("franka config: `fci.max_deviation_rad` is {}, must be > 0", self.max_deviation_rad));
+            return Err(Invalid::new(
+                "fci.max_deviation_rad",
+                format!("franka config: `fci.max_deviation_rad` is {}, must be > 0", self.max_deviation_rad),
+            ));
         }
         Ok(())
     }

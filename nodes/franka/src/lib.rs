@@ -1,43 +1,73 @@
-//! labrig-franka: the FR3 arm.
+//! labrig-franka: the FR3 arm node. The arm's maths (kinematics, IK, safety layer) is
+//! labrig-arm; this crate adds the hardware behind a trait and the ROS node around it.
 //!
-//! - [`kinematics`]: forward kinematics and the geometric Jacobian from the FR3's URDF.
-//! - [`ik`]: damped-least-squares IK steps (nullspace pull to the reset pose, joint-limit
-//!   margins) and DROID's action spaces (cartesian velocity scaling, absolute poses).
-//! - [`safety`]: the safety layer every command passes (NaN/stale refusal, workspace box,
-//!   joint limits and margins, per-step limits) and the watchdog.
+//! - [`backend`]: [`backend::ArmBackend`], what the node drives.
+//! - [`fci`]: a real FR3 (or franka-sim) through franka-rs over the FCI.
+//! - [`sim`]: the sim bridge's arm under `<prefix>/arm/*`.
+//! - [`node`]: `/arm/command` -> safety layer -> backend; state, target, joint states, tf.
 
-pub mod ik;
-pub mod kinematics;
-pub mod safety;
+pub mod backend;
+pub mod fci;
+pub mod node;
+pub mod sim;
 
-pub use kinematics::{Fr3Kinematics, Joints, TcpOffset};
+use labrig_msgs::Invalid;
+use labrig_runtime::{RosConfig, Shutdown};
+use node::{BackendKind, FrankaNodeConfig};
+use std::path::Path;
 
-use std::path::{Path, PathBuf};
+/// The FR3 arm node: `labrig-franka run` (`labrig_runtime::node_main`).
+#[derive(Debug)]
+pub struct FrankaNode;
 
-/// Where setup puts the FR3's URDF, relative to the repository root.
-pub const DEFAULT_URDF: &str = ".labrig/mujoco/assets/fr3/fr3.urdf";
-
-/// The FR3 URDF: `path` if given, else `$LABRIG_MUJOCO_DIR/assets/fr3/fr3.urdf` (setup's
-/// env.sh), else [`DEFAULT_URDF`] in the current directory or the repository this was built from.
-pub fn urdf_path(path: Option<&Path>) -> PathBuf {
-    if let Some(p) = path {
-        return p.to_owned();
-    }
-    if let Some(dir) = std::env::var_os("LABRIG_MUJOCO_DIR") {
-        return PathBuf::from(dir).join("assets/fr3/fr3.urdf");
-    }
-    let local = PathBuf::from(DEFAULT_URDF);
-    if local.exists() {
-        return local;
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(DEFAULT_URDF)
+/// `labrig-franka run`'s own flags.
+#[derive(Debug, clap::Args)]
+pub struct FrankaFlags {
+    /// fci: a real FR3 or franka-sim; sim: the sim bridge run with `--hardware-prefix /sim`.
+    #[arg(long, value_enum)]
+    backend: Option<BackendKind>,
+    /// The FR3's FCI address (franka-sim: 127.0.0.1).
+    #[arg(long)]
+    robot_ip: Option<String>,
+    /// Run without a realtime kernel (franka-sim, a development machine): fci.realtime = false.
+    #[arg(long)]
+    no_realtime: bool,
+    /// Keep trying to reach the FCI this long at start (a booting robot or simulator).
+    #[arg(long)]
+    connect_timeout_s: Option<f64>,
 }
 
-#[cfg(feature = "node")]
-pub mod backend;
-#[cfg(feature = "fci")]
-pub mod fci;
-#[cfg(feature = "node")]
-pub mod node;
-#[cfg(feature = "node")]
-pub mod sim;
+impl labrig_runtime::Node for FrankaNode {
+    const NAME: &'static str = "labrig-franka";
+    const ABOUT: &'static str = "The FR3 arm node: /arm/command -> safety layer -> FCI";
+    type Config = FrankaNodeConfig;
+    type Flags = FrankaFlags;
+    type Stats = ();
+
+    fn ros(config: &mut FrankaNodeConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn apply(f: FrankaFlags, cfg: &mut FrankaNodeConfig, _file: Option<&Path>) {
+        if let Some(b) = f.backend {
+            cfg.backend = b;
+        }
+        if let Some(ip) = f.robot_ip {
+            cfg.robot_ip = ip;
+        }
+        if f.no_realtime {
+            cfg.fci.realtime = false;
+        }
+        if let Some(t) = f.connect_timeout_s {
+            cfg.connect_timeout_s = t;
+        }
+    }
+
+    fn validate(config: &FrankaNodeConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: FrankaNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+        node::serve(config, shutdown).await
+    }
+}

@@ -12,18 +12,22 @@
 //! measured joints at that deadline, not at the next state tick.
 
 use crate::backend::{ArmBackend, ArmReading, BackendError};
-use crate::ik::{Ik, IkConfig, xyz_euler};
-use crate::safety::{ArmView, SafetyConfig, SafetyFilter, Watchdog};
-use crate::{Fr3Kinematics, Joints, TcpOffset};
+use crate::fci::FciArm;
+use crate::sim::SimArm;
 use futures::StreamExt;
+use labrig_arm::ik::{Ik, IkConfig, xyz_euler};
+use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter, Watchdog};
+use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
+use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
-use labrig_msgs::labrig_msgs::{ArmCommand, RobotState};
+use labrig_msgs::labrig_msgs::RobotState;
 use labrig_msgs::sensor_msgs::JointState;
 use labrig_msgs::std_msgs::Header;
-use labrig_msgs::std_srvs::{Trigger, TriggerResponse};
+use labrig_msgs::std_srvs::TriggerResponse;
 use labrig_msgs::tf2_msgs::TFMessage;
-use labrig_runtime::ros::{Ros, qos};
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use std::path::PathBuf;
@@ -59,8 +63,9 @@ pub struct FrankaNodeConfig {
     /// `/arm/state`, `/joint_states`, `/tf` per second.
     pub rate_hz: f64,
     pub safety: SafetyConfig,
-    #[cfg(feature = "fci")]
     pub fci: crate::fci::FciConfig,
+    /// Keep trying to reach the FCI this long at start (a booting robot or simulator), s.
+    pub connect_timeout_s: f64,
 }
 
 impl Default for FrankaNodeConfig {
@@ -69,28 +74,36 @@ impl Default for FrankaNodeConfig {
             ros: RosConfig::default(),
             backend: BackendKind::Fci,
             robot_ip: "172.16.0.2".into(),
-            sim_prefix: "/sim".into(),
+            sim_prefix: topics::SIM_HARDWARE_PREFIX.into(),
             urdf: None,
             rate_hz: 50.0,
             safety: SafetyConfig::default(),
-            #[cfg(feature = "fci")]
             fci: crate::fci::FciConfig::default(),
+            connect_timeout_s: 30.0,
         }
     }
 }
 
 impl FrankaNodeConfig {
-    pub fn validate(&self) -> Result<(), String> {
-        self.ros.validate(std::path::Path::new("franka config")).map_err(|e| e.to_string())?;
+    pub fn validate(&self) -> Result<(), Invalid> {
+        self.ros.validate(std::path::Path::new("franka config")).map_err(|e| Invalid::new("ros", e.to_string()))?;
         self.safety.validate()?;
         if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
-            return Err(format!("franka config: `rate_hz` is {}, must be 1..=1000", self.rate_hz));
+            return Err(Invalid::new(
+                "rate_hz",
+                format!("franka config: `rate_hz` is {}, must be 1..=1000", self.rate_hz),
+            ));
         }
         if self.robot_ip.is_empty() {
-            return Err("franka config: `robot_ip` is empty".into());
+            return Err(Invalid::new("robot_ip", "franka config: `robot_ip` is empty"));
         }
-        #[cfg(feature = "fci")]
         self.fci.validate()?;
+        if !(self.connect_timeout_s.is_finite() && (0.0..=86_400.0).contains(&self.connect_timeout_s)) {
+            return Err(Invalid::new(
+                "connect_timeout_s",
+                format!("franka config: `connect_timeout_s` is {}, must be 0..=86400", self.connect_timeout_s),
+            ));
+        }
         Ok(())
     }
 }
@@ -116,6 +129,29 @@ fn header(t: Nanos, frame: &str) -> Header {
     Header { stamp: t.into(), frame_id: frame.to_owned() }
 }
 
+/// Runs the node on the backend its config names: the sim bridge's arm, or the FR3's FCI
+/// (retried until `connect_timeout_s` while the robot or simulator boots).
+pub async fn serve(cfg: FrankaNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+    cfg.validate()?;
+    if cfg.backend == BackendKind::Sim {
+        let prefix = cfg.sim_prefix.clone();
+        return run(cfg, |ros, clock| Ok(Box::new(SimArm::new(ros, &prefix, clock.clone())?)), shutdown).await;
+    }
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(cfg.connect_timeout_s.max(0.0));
+    let arm = loop {
+        let (ip, fci) = (cfg.robot_ip.clone(), cfg.fci.clone());
+        match tokio::task::spawn_blocking(move || FciArm::connect(&ip, fci)).await? {
+            Ok(arm) => break arm,
+            Err(e) if std::time::Instant::now() < deadline && !shutdown.is_triggered() => {
+                tracing::info!("waiting for the FCI at {}: {e}", cfg.robot_ip);
+                tokio::time::sleep(std::time::Duration::from_millis(250)).await;
+            }
+            Err(e) => anyhow::bail!("{e} (FCI at {})", cfg.robot_ip),
+        }
+    };
+    run(cfg, |_, _| Ok(Box::new(arm)), shutdown).await
+}
+
 /// Runs the node until `shutdown` on the backend `make` builds (it gets the node's ROS handle
 /// and clock: wall time for `fci`, the bridge's `/clock` for `sim`).
 pub async fn run(
@@ -123,8 +159,8 @@ pub async fn run(
     make: impl FnOnce(&mut Ros, &Clock) -> anyhow::Result<Box<dyn ArmBackend>>,
     shutdown: Shutdown,
 ) -> anyhow::Result<()> {
-    cfg.validate().map_err(anyhow::Error::msg)?;
-    let kin = Fr3Kinematics::from_urdf_file(&crate::urdf_path(cfg.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
+    cfg.validate()?;
+    let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(cfg.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
     let filter =
         SafetyFilter::new(Ik::new(kin.clone(), IkConfig::default()), cfg.safety.clone()).map_err(anyhow::Error::msg)?;
     let mut watchdog = Watchdog::new(cfg.safety.watchdog_ns());
@@ -134,21 +170,17 @@ pub async fn run(
     let clock = if sim { Clock::manual(Nanos::ZERO) } else { Clock::Wall };
 
     let mut ros = Ros::new(&cfg.ros, "labrig_franka")?;
-    let sim_clock = if sim {
-        Some(ros.subscription::<labrig_msgs::rosgraph_msgs::Clock>("/clock", qos::reliable(10))?)
-    } else {
-        None
-    };
+    let sim_clock = if sim { Some(ros.subscription_on(&topics::CLOCK, 10)?) } else { None };
     let mut backend = make(&mut ros, &clock)?;
     let pubs = StatePubs {
-        arm_state: ros.publisher::<RobotState>("/arm/state", qos::reliable(10))?,
-        joint_states: ros.publisher::<JointState>("/joint_states", qos::reliable(10))?,
-        tf: ros.publisher::<TFMessage>("/tf", qos::reliable(10))?,
+        arm_state: ros.publisher_on(&topics::ARM_STATE, 10)?,
+        joint_states: ros.publisher_on(&topics::JOINT_STATES, 10)?,
+        tf: ros.publisher_on(&topics::TF, 10)?,
         sim,
     };
-    let arm_target = ros.publisher::<JointState>("/arm/target", qos::reliable(10))?;
-    let commands = ros.subscription::<ArmCommand>("/arm/command", qos::reliable(100))?;
-    let mut recover_rx = ros.server::<Trigger>("/arm/recover", qos::reliable(10))?.forward();
+    let arm_target = ros.publisher_on(&topics::ARM_TARGET, 10)?;
+    let commands = ros.subscription_on(&topics::ARM_COMMAND, 100)?;
+    let mut recover_rx = ros.server_on(&topics::ARM_RECOVER)?.forward();
 
     let mut report = Report { last_ok: true, ..Report::default() };
     // The first reading (the sim bridge may still be starting).
@@ -438,13 +470,12 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("unknown field `workspace_mn`"), "{err}");
-        #[cfg(feature = "fci")]
         {
             let cfg = FrankaNodeConfig {
                 fci: crate::fci::FciConfig { limit_fraction: 1.5, ..Default::default() },
                 ..Default::default()
             };
-            assert!(cfg.validate().unwrap_err().contains("fci.limit_fraction"));
+            assert!(cfg.validate().unwrap_err().to_string().contains("fci.limit_fraction"));
         }
     }
 }

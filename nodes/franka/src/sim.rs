@@ -5,11 +5,12 @@
 //! With a prefix the bridge ignores arm commands' gripper field (the gripper node owns the
 //! gripper), as the real FR3 does.
 
-use crate::Joints;
 use crate::backend::{ArmBackend, ArmReading, BackendError};
+use labrig_arm::Joints;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState};
+use labrig_msgs::topics;
 use labrig_runtime::Clock;
-use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription, qos};
+use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
 use std::time::{Duration, Instant};
 
 /// No state from the bridge for this long: the connection is lost.
@@ -38,8 +39,8 @@ impl SimArm {
         let p = prefix.trim_end_matches('/');
         Ok(SimArm {
             prefix: p.to_owned(),
-            command: ros.publisher(&format!("{p}/arm/command"), qos::reliable(100))?,
-            state: ros.subscription(&format!("{p}/arm/state"), qos::reliable(100))?,
+            command: ros.publisher_at(p, &topics::ARM_COMMAND, 100)?,
+            state: ros.subscription_at(p, &topics::ARM_STATE, 100)?,
             clock,
             latest: None,
             target: [0.0; 7],

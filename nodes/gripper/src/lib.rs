@@ -14,3 +14,78 @@ pub mod sim;
 
 pub use driver::{DriverConfig, GripperError, Robotiq2F85};
 pub use emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};
+
+use labrig_msgs::Invalid;
+use labrig_runtime::{RosConfig, Shutdown};
+use node::{Backend, GripperNodeConfig};
+use std::path::Path;
+
+/// The gripper node: `labrig-gripper run` (`labrig_runtime::node_main_with`, with the
+/// [`GripperTools`]).
+#[derive(Debug)]
+pub struct GripperNode;
+
+/// `labrig-gripper run`'s own flags.
+#[derive(Debug, clap::Args)]
+pub struct GripperFlags {
+    #[arg(long, value_enum)]
+    backend: Option<Backend>,
+    /// Serial device of the 2F-85.
+    #[arg(long)]
+    port: Option<String>,
+}
+
+/// `labrig-gripper`'s tools beside `run`.
+#[derive(Debug, clap::Subcommand)]
+pub enum GripperTools {
+    /// Serve an emulated 2F-85 on a new pseudo-terminal, print its path, run until Ctrl-C.
+    Emulate {
+        /// An object between the fingers: closing stops at this position (0..255 counts).
+        #[arg(long)]
+        object_at: Option<u8>,
+    },
+}
+
+impl GripperTools {
+    pub async fn run(self, shutdown: Shutdown) -> anyhow::Result<std::process::ExitCode> {
+        match self {
+            GripperTools::Emulate { object_at } => {
+                let emu = Emulated2F85::new(EmulatorConfig::default());
+                emu.place_object(object_at);
+                let pty = emu.serve_on_pty()?;
+                println!("{}", pty.path());
+                shutdown.wait().await;
+                Ok(std::process::ExitCode::SUCCESS)
+            }
+        }
+    }
+}
+
+impl labrig_runtime::Node for GripperNode {
+    const NAME: &'static str = "labrig-gripper";
+    const ABOUT: &'static str = "The Robotiq 2F-85 gripper node (Modbus RTU)";
+    type Config = GripperNodeConfig;
+    type Flags = GripperFlags;
+    type Stats = ();
+
+    fn ros(config: &mut GripperNodeConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn apply(f: GripperFlags, cfg: &mut GripperNodeConfig, _file: Option<&Path>) {
+        if let Some(b) = f.backend {
+            cfg.backend = b;
+        }
+        if let Some(p) = f.port {
+            cfg.port = p;
+        }
+    }
+
+    fn validate(config: &GripperNodeConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+        node::run(config, shutdown).await
+    }
+}

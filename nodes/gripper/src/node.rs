@@ -12,9 +12,11 @@ use crate::driver::{DriverConfig, GripperError, Robotiq2F85};
 use crate::emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};
 use crate::registers::{Status, counts_to_droid, droid_to_counts, fault_meaning};
 use crate::sim::SimGripper;
+use labrig_msgs::Invalid;
 use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
-use labrig_msgs::std_srvs::{Trigger, TriggerResponse};
-use labrig_runtime::ros::{Ros, qos};
+use labrig_msgs::std_srvs::TriggerResponse;
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use std::time::Duration;
@@ -58,7 +60,7 @@ impl Default for GripperNodeConfig {
             ros: RosConfig::default(),
             backend: Backend::Robotiq,
             port: "/dev/ttyUSB0".into(),
-            sim_prefix: "/sim".into(),
+            sim_prefix: topics::SIM_HARDWARE_PREFIX.into(),
             slave: crate::registers::SLAVE_ID,
             baud: crate::registers::BAUD_RATE,
             request_timeout_ms: 100,
@@ -72,9 +74,9 @@ impl Default for GripperNodeConfig {
 
 impl GripperNodeConfig {
     /// Checks what serde cannot, naming the key.
-    pub fn validate(&self) -> Result<(), String> {
-        self.ros.validate(std::path::Path::new("gripper config")).map_err(|e| e.to_string())?;
-        let bad = |k: &str, why: String| Err(format!("gripper config: `{k}` {why}"));
+    pub fn validate(&self) -> Result<(), Invalid> {
+        self.ros.validate(std::path::Path::new("gripper config")).map_err(|e| Invalid::new("ros", e.to_string()))?;
+        let bad = |k: &str, why: String| Err(Invalid::new(k, format!("gripper config: `{k}` {why}")));
         if !(self.rate_hz.is_finite() && (1.0..=200.0).contains(&self.rate_hz)) {
             return bad("rate_hz", format!("is {}, must be 1..=200", self.rate_hz));
         }
@@ -105,10 +107,10 @@ struct Wanted {
 }
 
 /// Checks a `/gripper/command`; fills in the default speed and force for zeros.
-fn wanted(cmd: &GripperCommand, cfg: &GripperNodeConfig) -> Result<Wanted, String> {
+fn wanted(cmd: &GripperCommand, cfg: &GripperNodeConfig) -> Result<Wanted, Invalid> {
     for (name, v) in [("position", cmd.position), ("speed", cmd.speed), ("force", cmd.force)] {
         if !v.is_finite() || !(0.0..=1.0).contains(&v) {
-            return Err(format!("refused gripper command: {name} {v} is outside 0..1"));
+            return Err(Invalid::new(name, format!("refused gripper command: {name} {v} is outside 0..1")));
         }
     }
     let or_default = |v: f64, d: f64| droid_to_counts(if v == 0.0 { d } else { v });
@@ -187,7 +189,7 @@ impl Gripper {
 
 /// Runs the node until `shutdown`.
 pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
-    cfg.validate().map_err(anyhow::Error::msg)?;
+    cfg.validate()?;
     let mut ros = Ros::new(&cfg.ros, "labrig_gripper")?;
     // The emulated backend serves a 2F-85 on a pty inside the node; the driver is the same.
     let mut _emulator: Option<PtyEmulator> = None;
@@ -213,10 +215,10 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
         }
     };
 
-    let state_pub = ros.publisher::<GripperState>("/gripper/state", qos::reliable(10))?;
-    let cmd_sub = ros.subscription::<GripperCommand>("/gripper/command", qos::reliable(100))?;
+    let state_pub = ros.publisher_on(&topics::GRIPPER_STATE, 10)?;
+    let cmd_sub = ros.subscription_on(&topics::GRIPPER_COMMAND, 100)?;
     // Answered by the loop between ticks.
-    let mut activate_rx = ros.server::<Trigger>("/gripper/activate", qos::reliable(10))?.forward();
+    let mut activate_rx = ros.server_on(&topics::GRIPPER_ACTIVATE)?.forward();
     let clock = Clock::Wall;
     let activation_timeout = Duration::from_secs_f64(cfg.activation_timeout_s);
 
@@ -280,7 +282,7 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
                 Err(why) => {
                     refused += 1;
                     tracing::warn!("{why}");
-                    refusal = why;
+                    refusal = why.to_string();
                 }
             }
         }
@@ -335,7 +337,7 @@ mod tests {
                 .unwrap_err();
         assert!(err.to_string().contains("unknown field `prot`"), "{err}");
         let cfg = GripperNodeConfig { force: 1.5, ..Default::default() };
-        assert_eq!(cfg.validate().unwrap_err(), "gripper config: `force` is 1.5, must be 0..=1");
+        assert_eq!(cfg.validate().unwrap_err().to_string(), "gripper config: `force` is 1.5, must be 0..=1");
     }
 
     #[test]
@@ -352,6 +354,6 @@ mod tests {
         let w = wanted(&GripperCommand { position: 1.0, ..Default::default() }, &cfg).unwrap();
         assert_eq!(w, Wanted { position: 255, speed: 255, force: 128 });
         let err = wanted(&GripperCommand { position: 0.5, speed: -0.1, ..Default::default() }, &cfg).unwrap_err();
-        assert_eq!(err, "refused gripper command: speed -0.1 is outside 0..1");
+        assert_eq!(err.to_string(), "refused gripper command: speed -0.1 is outside 0..1");
     }
 }

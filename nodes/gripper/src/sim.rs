@@ -6,7 +6,8 @@
 use crate::driver::GripperError;
 use crate::registers::{Activation, Object, Status, counts_to_droid, droid_to_counts};
 use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
-use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription, qos};
+use labrig_msgs::topics;
+use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
 use std::time::{Duration, Instant};
 
 /// No state from the bridge for this long: the link is lost.
@@ -32,8 +33,8 @@ impl SimGripper {
         let p = prefix.trim_end_matches('/');
         Ok(SimGripper {
             prefix: p.to_owned(),
-            command: ros.publisher(&format!("{p}/gripper/command"), qos::reliable(10))?,
-            state: ros.subscription(&format!("{p}/gripper/state"), qos::reliable(100))?,
+            command: ros.publisher_at(p, &topics::GRIPPER_COMMAND, 10)?,
+            state: ros.subscription_at(p, &topics::GRIPPER_STATE, 100)?,
             latest: None,
             last: None,
             requested: 0,

@@ -9,9 +9,9 @@
 use clap::Args;
 use indicatif::ProgressBar;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState};
-use labrig_msgs::sensor_msgs::JointState;
-use labrig_runtime::ros::{Ros, qos};
+use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
 use serde_json::json;
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -80,7 +80,7 @@ pub fn run(a: FrankaArgs) -> anyhow::Result<ExitCode> {
             .map_err(|e| anyhow::anyhow!("cannot start franka-sim ({}): {e}", python.display()))?,
     );
     let _node = Killed(
-        Command::new(crate::cli::sibling_binary("labrig-franka")?)
+        Command::new(crate::programs::sibling_binary("labrig-franka")?)
             .args(["run", "--robot-ip", &format!("127.0.0.1:{}", a.port), "--no-realtime"])
             .args(["--domain-id", &a.domain_id.to_string()])
             .stdout(Stdio::null())
@@ -91,11 +91,11 @@ pub fn run(a: FrankaArgs) -> anyhow::Result<ExitCode> {
     let (internal, round_trip, lost) = rt.block_on(async {
         let cfg = labrig_runtime::RosConfig { domain_id: a.domain_id, ..Default::default() };
         let mut ros = Ros::new(&cfg, "labrig_bench_franka")?;
-        let cmd = ros.publisher::<ArmCommand>("/arm/command", qos::reliable(100))?;
-        let targets = ros.subscription::<JointState>("/arm/target", qos::reliable(1000))?;
-        let states = ros.subscription::<RobotState>("/arm/state", qos::reliable(1000))?;
+        let cmd = ros.publisher_on(&topics::ARM_COMMAND, 100)?;
+        let targets = ros.subscription_on(&topics::ARM_TARGET, 1000)?;
+        let states = ros.subscription_on(&topics::ARM_STATE, 1000)?;
         anyhow::ensure!(
-            ros.wait_for_subscribers("/arm/command", 1, Duration::from_secs(90)).await,
+            ros.wait_for_subscribers(topics::ARM_COMMAND.name, 1, Duration::from_secs(90)).await,
             "the franka node did not come up within 90 s"
         );
         let start = loop {

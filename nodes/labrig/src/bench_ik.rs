@@ -3,9 +3,9 @@
 //! — on a cartesian circle (r = 8 cm, 5 s a turn) and on DROID velocity commands.
 
 use clap::Args;
-use labrig_franka::ik::{self, Ik, IkConfig};
-use labrig_franka::safety::{ArmView, SafetyConfig, SafetyFilter};
-use labrig_franka::{Fr3Kinematics, TcpOffset};
+use labrig_arm::ik::{self, Ik, IkConfig};
+use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter};
+use labrig_arm::{Fr3Kinematics, TcpOffset};
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
 use nalgebra::Vector3;
 use serde_json::json;
@@ -18,7 +18,7 @@ pub struct IkArgs {
     /// Ticks (commands) per measured series.
     #[arg(long, default_value_t = 2000)]
     ticks: usize,
-    /// The FR3 URDF (default: from setup, see `labrig_franka::urdf_path`).
+    /// The FR3 URDF (default: from setup, see `labrig_arm::urdf_path`).
     #[arg(long)]
     urdf: Option<PathBuf>,
     #[arg(long)]
@@ -33,7 +33,7 @@ fn summary(mut us: Vec<f64>) -> serde_json::Value {
 
 pub fn run(a: IkArgs) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(a.ticks >= 10, "--ticks must be at least 10");
-    let kin = Fr3Kinematics::from_urdf_file(&labrig_franka::urdf_path(a.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
+    let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(a.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
     let ik = Ik::new(kin.clone(), IkConfig::default());
     let filter = SafetyFilter::new(ik.clone(), SafetyConfig { max_command_age_s: 0.0, ..SafetyConfig::default() })
         .map_err(|e| anyhow::anyhow!(e))?;

@@ -151,7 +151,7 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
     }
     let (mut bytes, mut dropped, mut flagged, mut steps, mut recorded_s) = (0u64, 0u64, 0u64, 0u64, 0.0);
     for e in &episodes {
-        let i = labrig_recorder::inspect::inspect(e).map_err(anyhow::Error::msg)?;
+        let i = labrig_episode::inspect::inspect(e).map_err(anyhow::Error::msg)?;
         bytes += std::fs::metadata(&i.path).map_or(0, |m| m.len());
         dropped += i.cameras.iter().map(|c| c.dropped).sum::<u64>();
         flagged += u64::from(!i.flags.is_empty());

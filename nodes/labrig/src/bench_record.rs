@@ -5,12 +5,13 @@
 //! chunk closes (what a crash can no longer take) and the totals: MB/s, CPU, JPEG time.
 
 use clap::Args;
+use labrig_episode::bag::Reliability;
+use labrig_episode::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{CameraFrameRef, RIG_CAMERAS, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
-use labrig_recorder::bag::Reliability;
-use labrig_recorder::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
+use labrig_msgs::topics;
 use serde_json::json;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -72,11 +73,11 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
                 *px = ((x + y + k as usize * 3 + c * 40 + (i % 3) * 60) % 256) as u8;
             }
             let j0 = Instant::now();
-            let data = labrig_recorder::jpeg::encode_rgb(&rgb, a.size, a.size, 90).map_err(anyhow::Error::msg)?;
+            let data = labrig_episode::jpeg::encode_rgb(&rgb, a.size, a.size, 90).map_err(anyhow::Error::msg)?;
             jpeg_us.push(j0.elapsed().as_secs_f64() * 1e6);
             jpeg_bytes += data.len() as u64;
             let img = CompressedImage { header: header(&format!("{cam}_optical")), format: "jpeg".into(), data };
-            w.write(&format!("/cameras/{cam}/image/compressed"), &img, t, t, Reliability::BestEffort)?;
+            w.write(&topics::camera_image(cam), &img, t, t, Reliability::BestEffort)?;
             refs.push(CameraFrameRef {
                 camera_id: (*cam).into(),
                 sequence: k,
@@ -88,7 +89,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
         for j in 0..2 {
             let ts = t + j * 25_000_000;
             let s = RobotState { header: header("base"), joint_positions: [k as f64 * 1e-3; 7], ..Default::default() };
-            w.write("/arm/state", &s, ts, ts, Reliability::Reliable)?;
+            w.write(topics::ARM_STATE.name, &s, ts, ts, Reliability::Reliable)?;
         }
         let step = Step {
             header: header("base"),
@@ -97,7 +98,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
             action_source: Step::SOURCE_SCRIPTED,
             ..Default::default()
         };
-        w.write("/rig/step", &step, t, t, Reliability::Reliable)?;
+        w.write(topics::RIG_STEP.name, &step, t, t, Reliability::Reliable)?;
         if w.closed_chunks() != closed {
             closed = w.closed_chunks();
             println!("{}", json!({ "closed_chunks": closed, "steps": k, "messages": w.messages() }));

@@ -7,8 +7,9 @@
 
 use clap::Args;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, RobotState};
-use labrig_runtime::ros::{Ros, qos};
+use labrig_msgs::labrig_msgs::RobotState;
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
 use serde_json::json;
 use std::path::PathBuf;
 use std::process::{Command, ExitCode, Stdio};
@@ -47,9 +48,9 @@ pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
     let (node, received) = rt.block_on(async {
         let cfg = labrig_runtime::RosConfig { domain_id: a.domain_id, ..Default::default() };
         let mut ros = Ros::new(&cfg, "labrig_bench_teleop")?;
-        let state = ros.publisher::<RobotState>("/arm/state", qos::reliable(100))?;
-        let actions = ros.subscription::<ArmCommand>("/teleop/action", qos::reliable(1000))?;
-        let child = Command::new(crate::cli::sibling_binary("labrig-teleop")?)
+        let state = ros.publisher_on(&topics::ARM_STATE, 100)?;
+        let actions = ros.subscription_on(&topics::TELEOP_ACTION, 1000)?;
+        let child = Command::new(crate::programs::sibling_binary("labrig-teleop")?)
             .args(["run", "--json", "--exit-at-end", "--speed", &a.speed.to_string()])
             .args(["--domain-id", &a.domain_id.to_string(), "--file"])
             .arg(&trace)

@@ -1,7 +1,7 @@
 //! Argument parsing and dispatch.
 
-use clap::{Args, Parser, Subcommand};
-use labrig_runtime::RosConfig;
+use crate::programs::node;
+use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 #[derive(Debug, Parser)]
@@ -88,24 +88,26 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The 20 Hz rig loop: `labrig control run [--source scripted|hold|teleop] [--clock sim|wall]`
+    /// (see `labrig control run --help`).
+    #[command(disable_help_flag = true)]
+    Control {
+        /// Arguments for labrig-control.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// The episode recorder: `labrig recorder run --root episodes` (see `labrig recorder run --help`).
+    #[command(disable_help_flag = true)]
+    Recorder {
+        /// Arguments for labrig-recorder.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
 }
 
 /// Runs `labrig-sim` (built beside this binary; the only program that links MuJoCo) with `args`.
 pub fn sim(args: &[String]) -> anyhow::Result<ExitCode> {
     node("labrig-sim", args)
-}
-
-/// Runs the node program `name` (built beside this binary) with `args`.
-pub fn node(name: &str, args: &[String]) -> anyhow::Result<ExitCode> {
-    let exe = sibling_binary(name)?;
-    let status = std::process::Command::new(&exe)
-        .args(args)
-        .status()
-        .map_err(|e| anyhow::anyhow!("cannot run {}: {e}", exe.display()))?;
-    Ok(match status.code() {
-        Some(c) => ExitCode::from(c.clamp(0, 255) as u8),
-        None => ExitCode::from(1),
-    })
 }
 
 /// `labrig replay <episode> --sim ...` -> `labrig-sim replay <episode> ...` (the simulated rig
@@ -137,38 +139,6 @@ pub fn convert(verb: &str, args: &[String]) -> anyhow::Result<ExitCode> {
             node("labrig-droid", &[verb.to_owned(), "--help".to_owned()])
         }
         Some(other) => anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid)"),
-    }
-}
-
-/// A labrig program installed next to the running `labrig` binary.
-pub fn sibling_binary(name: &str) -> anyhow::Result<std::path::PathBuf> {
-    let me = std::env::current_exe()?;
-    let path = me.with_file_name(name);
-    anyhow::ensure!(
-        path.exists(),
-        "{} not found next to {}: build it with `cargo build -p {name}` (scripts/labrig does)",
-        path.display(),
-        me.display()
-    );
-    Ok(path)
-}
-
-/// How to join ROS 2 (shared by every command that does).
-#[derive(Debug, Clone, Args)]
-pub struct RosArgs {
-    /// DDS domain id (ROS_DOMAIN_ID is read as in every ROS 2 tool).
-    #[arg(long, env = "ROS_DOMAIN_ID", default_value_t = 0)]
-    pub domain_id: u16,
-    /// Let DDS use every network interface instead of 127.0.0.1 only.
-    #[arg(long)]
-    pub allow_network: bool,
-}
-
-impl RosArgs {
-    pub fn config(&self) -> anyhow::Result<RosConfig> {
-        let cfg = RosConfig { domain_id: self.domain_id, loopback_only: !self.allow_network, ..RosConfig::default() };
-        cfg.validate(std::path::Path::new("<command line>"))?;
-        Ok(cfg)
     }
 }
 
@@ -239,5 +209,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
         Command::Teleop { args } => node("labrig-teleop", &args),
+        Command::Control { args } => node("labrig-control", &args),
+        Command::Recorder { args } => node("labrig-recorder", &args),
     }
 }

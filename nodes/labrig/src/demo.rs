@@ -9,9 +9,10 @@ use crate::launch::{LaunchConfig, Output};
 use anyhow::{Context, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS, Step};
+use labrig_msgs::labrig_msgs::{EpisodeEventKind, RIG_CAMERAS};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::StringMsg;
+use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, qos};
 use labrig_runtime::{RosConfig, Shutdown};
 use serde_json::json;
@@ -81,7 +82,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     let mut reports = Vec::new();
     let mut ok = recorded.len() as u64 == args.episodes;
     for (k, dir) in recorded.iter().enumerate() {
-        let inspection = labrig_recorder::inspect::inspect(dir).map_err(anyhow::Error::msg)?;
+        let inspection = labrig_episode::inspect::inspect(dir).map_err(anyhow::Error::msg)?;
         let sheet = out.join(format!("episode_{k}_cameras.png"));
         contact_sheet(&inspection.path, &sheet).with_context(|| format!("contact sheet of {}", dir.display()))?;
         ok &= inspection.flags.is_empty();
@@ -119,7 +120,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
 }
 
 /// A few lines per episode (the whole report: `labrig inspect <dir>`).
-fn summary_text(k: usize, dir: &Path, i: &labrig_recorder::inspect::Inspection) -> String {
+fn summary_text(k: usize, dir: &Path, i: &labrig_episode::inspect::Inspection) -> String {
     use std::fmt::Write;
     let mut s = String::new();
     let meta = i.metadata.as_ref();
@@ -142,7 +143,7 @@ fn summary_text(k: usize, dir: &Path, i: &labrig_recorder::inspect::Inspection) 
         std::fs::metadata(&i.path).map_or(0.0, |m| m.len() as f64 / 1e6),
         frames.join(", ")
     );
-    let pct = |p: &Option<labrig_recorder::inspect::Percentiles>| {
+    let pct = |p: &Option<labrig_episode::inspect::Percentiles>| {
         p.as_ref().map_or("-".into(), |p| format!("p50 {:.3} / p99 {:.3} / max {:.3} ms", p.p50, p.p99, p.max))
     };
     let _ = writeln!(
@@ -162,9 +163,9 @@ async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> anyho
     let ros_cfg = RosConfig { domain_id: args.domain_id, ..RosConfig::default() };
     ros_cfg.validate(Path::new("<command line>"))?;
     let mut ros = Ros::new(&ros_cfg, "labrig_demo")?;
-    let events = ros.subscription::<EpisodeEvent>("/rig/episode", qos::reliable(100))?;
-    let steps = ros.subscription::<Step>("/rig/step", qos::reliable(1000))?;
-    let status = ros.subscription::<StringMsg>("/recorder/status", qos::reliable(100))?;
+    let events = ros.subscription_on(&topics::RIG_EPISODE, 100)?;
+    let steps = ros.subscription_on(&topics::RIG_STEP, 1000)?;
+    let status = ros.subscription::<StringMsg>(topics::RECORDER_STATUS.name, qos::reliable(100))?;
     let bar = ProgressBar::new(args.episodes);
     bar.set_style(ProgressStyle::with_template("{spinner} demo {bar:25} {pos}/{len} episodes  {msg}  [{elapsed}]")?);
     if args.json {
@@ -240,7 +241,8 @@ pub fn contact_sheet(mcap_file: &Path, png_out: &Path) -> anyhow::Result<()> {
     let mut frames: Vec<Vec<Vec<u8>>> = vec![Vec::new(); RIG_CAMERAS.len()];
     for m in mcap::MessageStream::new(&buf)? {
         let m = m?;
-        let Some(cam) = m.channel.topic.strip_prefix("/cameras/").and_then(|t| t.strip_suffix("/image/compressed"))
+        let Some(cam) =
+            m.channel.topic.strip_prefix(topics::CAMERAS_PREFIX).and_then(|t| t.strip_suffix("/image/compressed"))
         else {
             continue;
         };

@@ -2,11 +2,11 @@
 //! loop (on `/rig/request`). The loop applies it if it makes sense in its state (a Success
 //! while idle is refused, named in its log) and publishes what happened on `/rig/episode`.
 
-use crate::cli::RosArgs;
+use crate::programs::RosArgs;
 use clap::{Args, ValueEnum};
 use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
-use labrig_msgs::std_msgs::StringMsg;
-use labrig_runtime::ros::{Ros, qos};
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -46,19 +46,19 @@ pub fn run(a: EpisodeArgs) -> anyhow::Result<ExitCode> {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     rt.block_on(async {
         let mut ros = Ros::new(&cfg, "labrig_episode")?;
-        let publisher = ros.publisher::<EpisodeEvent>("/rig/request", qos::reliable(10))?;
-        let status = ros.subscription::<StringMsg>("/control/status", qos::latched(1))?;
+        let publisher = ros.publisher_on(&topics::RIG_REQUEST, 10)?;
+        let status = ros.subscription_on(&topics::CONTROL_STATUS, 1)?;
         // The loop is running (its latched status is out) and listens for requests.
         let deadline = std::time::Instant::now() + Duration::from_secs_f64(a.wait.max(0.1));
         let mut running = false;
         while std::time::Instant::now() < deadline {
             running |= status.try_take()?.is_some();
-            if running && ros.subscription_count("/rig/request") > 0 {
+            if running && ros.subscription_count(topics::RIG_REQUEST.name) > 0 {
                 break;
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        if !running || ros.subscription_count("/rig/request") == 0 {
+        if !running || ros.subscription_count(topics::RIG_REQUEST.name) == 0 {
             eprintln!("no rig loop (labrig-control) on domain {} within {} s", cfg.domain_id, a.wait);
             return Ok(ExitCode::from(2));
         }

@@ -16,7 +16,7 @@ pub struct InspectArgs {
 }
 
 pub fn run(a: InspectArgs) -> anyhow::Result<ExitCode> {
-    let i = labrig_recorder::inspect::inspect(&a.episode).map_err(anyhow::Error::msg)?;
+    let i = labrig_episode::inspect::inspect(&a.episode).map_err(anyhow::Error::msg)?;
     if a.json {
         println!("{}", serde_json::to_string(&i)?);
     } else {

@@ -20,17 +20,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitCode};
 use std::time::{Duration, Instant};
 
-/// The programs a launch config may start (beside the `labrig` binary).
-pub const PROGRAMS: [&str; 8] = [
-    "labrig-sim",
-    "labrig-franka",
-    "labrig-gripper",
-    "labrig-recorder",
-    "labrig-control",
-    "labrig-cameras",
-    "labrig-teleop",
-    "labrig-policy-server",
-];
+/// The programs a launch config may start (built beside the `labrig` binary). Only programs
+/// that exist: a config naming another one (a node still to come, a typo) is refused by name.
+pub const PROGRAMS: [&str; 6] =
+    ["labrig-sim", "labrig-franka", "labrig-gripper", "labrig-recorder", "labrig-control", "labrig-teleop"];
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
@@ -207,7 +200,7 @@ struct Running {
 }
 
 fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Result<Child> {
-    let exe = crate::cli::sibling_binary(&spec.program)?;
+    let exe = crate::programs::sibling_binary(&spec.program)?;
     let mut cmd = Command::new(&exe);
     // Quiet: the nodes log warnings and errors only (unless RUST_LOG says otherwise).
     if out == Output::Quiet && std::env::var_os("RUST_LOG").is_none() {

@@ -14,5 +14,6 @@ pub mod episode;
 pub mod inspect;
 pub mod json;
 pub mod launch;
+pub mod programs;
 pub mod recover;
 pub mod topic;

@@ -18,7 +18,7 @@ pub struct RecoverArgs {
 
 pub fn run(a: RecoverArgs) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(a.dir.is_dir(), "{} is not an episode directory", a.dir.display());
-    let r = labrig_recorder::recover::recover_in_place(&a.dir)?;
+    let r = labrig_episode::recover::recover_in_place(&a.dir)?;
     let secs = (r.end_ns - r.start_ns).max(0) as f64 / 1e9;
     if a.json {
         println!(
@@ -34,7 +34,7 @@ pub fn run(a: RecoverArgs) -> anyhow::Result<ExitCode> {
             r.chunks,
             r.metadata,
             r.attachments,
-            a.dir.join(labrig_recorder::episode::EPISODE_FILE).display(),
+            a.dir.join(labrig_episode::episode::EPISODE_FILE).display(),
             r.stopped
         );
     }

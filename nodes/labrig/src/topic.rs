@@ -1,8 +1,8 @@
 //! `labrig topic list|echo|hz`: ROS 2 graph tools that work against any ROS 2 node, for labs
 //! without a ROS installation. Every wait is bounded.
 
-use crate::cli::RosArgs;
 use crate::json::{abbreviate, decode_to_json, to_yamlish};
+use crate::programs::RosArgs;
 use anyhow::{Context, bail};
 use clap::Args;
 use futures::StreamExt;

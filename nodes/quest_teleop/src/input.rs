@@ -8,6 +8,7 @@
 //!   the line's own logcat time) scaled by `speed`; lines without a time go out at once;
 //!   `repeat` plays it again and again.
 
+use labrig_msgs::Invalid;
 use serde::Deserialize;
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
@@ -48,6 +49,8 @@ pub struct InputConfig {
     pub speed: f64,
     /// Playback: start again at the end (a controller that never leaves; the sim rig).
     pub repeat: bool,
+    /// Playback: the node exits a second after the file ends (benchmarks, tests).
+    pub exit_at_end: bool,
     /// Keyboard: the controller's move per key press (m) and turn (rad).
     pub keyboard_step_m: f64,
     pub keyboard_step_rad: f64,
@@ -66,6 +69,7 @@ impl Default for InputConfig {
             file: None,
             speed: 1.0,
             repeat: false,
+            exit_at_end: false,
             keyboard_step_m: 0.005,
             keyboard_step_rad: 0.05,
             keyboard_hz: 50.0,
@@ -74,12 +78,12 @@ impl Default for InputConfig {
 }
 
 impl InputConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), Invalid> {
         if self.kind == InputKind::Playback && self.file.is_none() {
-            return Err("input.file: playback needs a recorded logcat file".into());
+            return Err(Invalid::new("input.file", "input.file: playback needs a recorded logcat file"));
         }
         if !(self.speed.is_finite() && self.speed > 0.0) {
-            return Err(format!("input.speed: {} must be positive", self.speed));
+            return Err(Invalid::new("input.speed", format!("input.speed: {} must be positive", self.speed)));
         }
         for (k, v) in [
             ("keyboard_step_m", self.keyboard_step_m),
@@ -87,11 +91,14 @@ impl InputConfig {
             ("keyboard_hz", self.keyboard_hz),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("input.{k}: {v} must be positive"));
+                return Err(Invalid::new(format!("input.{k}"), format!("input.{k}: {v} must be positive")));
             }
         }
         if !(self.reconnect_s.is_finite() && self.reconnect_s >= 0.0) {
-            return Err(format!("input.reconnect_s: {} must be >= 0", self.reconnect_s));
+            return Err(Invalid::new(
+                "input.reconnect_s",
+                format!("input.reconnect_s: {} must be >= 0", self.reconnect_s),
+            ));
         }
         Ok(())
     }
@@ -141,7 +148,7 @@ pub fn start(
     tx: UnboundedSender<InputEvent>,
     reorder: nalgebra::Matrix4<f64>,
 ) -> anyhow::Result<Input> {
-    cfg.validate().map_err(|e| anyhow::anyhow!(e))?;
+    cfg.validate()?;
     let stop = Arc::new(AtomicBool::new(false));
     let child: Arc<Mutex<Option<Child>>> = Arc::new(Mutex::new(None));
     let (cfg2, stop2, child2) = (cfg.clone(), stop.clone(), child.clone());

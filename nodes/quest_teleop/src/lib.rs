@@ -1,4 +1,5 @@
-//! labrig-teleop: the Quest teleoperation node (DROID's oculus_reader + VRPolicy lineage).
+//! labrig-quest-teleop (program `labrig-teleop`, `labrig teleop`): the Quest teleoperation node
+//! (DROID's oculus_reader + VRPolicy lineage).
 //!
 //! - [`logcat`]: the headset app's logcat lines -> both controllers' poses and buttons.
 //! - [`policy`]: DROID's VRPolicy: deadman, origins, forward, gains -> cartesian velocity.
@@ -11,3 +12,91 @@ pub mod keyboard;
 pub mod logcat;
 pub mod node;
 pub mod policy;
+
+use input::InputKind;
+use labrig_msgs::Invalid;
+use labrig_runtime::{RosConfig, Shutdown};
+use node::{TeleopConfig, TeleopStats};
+use std::path::{Path, PathBuf};
+
+/// The teleop node: `labrig-teleop run` (`labrig_runtime::node_main`).
+#[derive(Debug)]
+pub struct TeleopNode;
+
+/// `labrig-teleop run`'s own flags.
+#[derive(Debug, clap::Args)]
+pub struct TeleopFlags {
+    /// Where lines come from: the headset over adb, a recorded logcat file, or the keyboard.
+    #[arg(long, value_enum)]
+    input: Option<InputKind>,
+    /// Playback: the recorded logcat file (implies --input playback).
+    #[arg(long)]
+    file: Option<PathBuf>,
+    /// Playback time scale.
+    #[arg(long)]
+    speed: Option<f64>,
+    /// Playback: start again at the end.
+    #[arg(long)]
+    repeat: bool,
+    /// adb: the headset's serial or ip:port.
+    #[arg(long)]
+    device: Option<String>,
+    /// The controller that drives the arm: right or left.
+    #[arg(long)]
+    hand: Option<String>,
+    /// Exit a second after a playback ends.
+    #[arg(long)]
+    exit_at_end: bool,
+}
+
+impl labrig_runtime::Node for TeleopNode {
+    const NAME: &'static str = "labrig-teleop";
+    const ABOUT: &'static str =
+        "Quest controller (logcat) -> DROID's VRPolicy -> /teleop/action, /teleop/state, /rig/request";
+    type Config = TeleopConfig;
+    type Flags = TeleopFlags;
+    type Stats = TeleopStats;
+
+    fn ros(config: &mut TeleopConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn apply(f: TeleopFlags, cfg: &mut TeleopConfig, file: Option<&Path>) {
+        // A trace named in a config file is relative to that file.
+        if let (Some(trace), Some(dir)) = (cfg.input.file.as_mut(), file.and_then(Path::parent))
+            && trace.is_relative()
+        {
+            *trace = dir.join(&*trace);
+        }
+        if let Some(k) = f.input {
+            cfg.input.kind = k;
+        }
+        if let Some(trace) = f.file {
+            cfg.input.kind = InputKind::Playback;
+            cfg.input.file = Some(trace);
+        }
+        if f.repeat {
+            cfg.input.repeat = true;
+        }
+        if f.exit_at_end {
+            cfg.input.exit_at_end = true;
+        }
+        if let Some(s) = f.speed {
+            cfg.input.speed = s;
+        }
+        if let Some(d) = f.device {
+            cfg.input.device = d;
+        }
+        if let Some(h) = f.hand {
+            cfg.policy.hand = h;
+        }
+    }
+
+    fn validate(config: &TeleopConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<TeleopStats> {
+        node::run(config, shutdown).await
+    }
+}

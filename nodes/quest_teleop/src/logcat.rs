@@ -129,13 +129,16 @@ pub fn parse_line(line: &str) -> Result<Reading, LineError> {
     parse_payload(payload(line)?)
 }
 
-fn numbers(text: &str) -> Result<Vec<f64>, String> {
+/// Why a value in a line is not a number: the text says which.
+struct BadNumber(String);
+
+fn numbers(text: &str) -> Result<Vec<f64>, BadNumber> {
     text.split(' ')
         .filter(|t| !t.is_empty())
         .map(|t| match t.parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
-            Ok(_) => Err(format!("{t} is not finite")),
-            Err(_) => Err(format!("{t:?} is not a number")),
+            Ok(_) => Err(BadNumber(format!("{t} is not finite"))),
+            Err(_) => Err(BadNumber(format!("{t:?} is not a number"))),
         })
         .collect()
 }
@@ -152,7 +155,7 @@ pub fn parse_payload(payload: &str) -> Result<Reading, LineError> {
             "l" => &mut r.left,
             other => return Err(LineError::Transform(short(part), format!("unknown side {other:?}"))),
         };
-        let v = numbers(values).map_err(|e| LineError::Transform(short(part), e))?;
+        let v = numbers(values).map_err(|BadNumber(e)| LineError::Transform(short(part), e))?;
         // A side with other than 16 numbers is dropped (as the app's own reader does).
         if v.len() == 16 {
             hand.pose = Some(Matrix4::from_row_slice(&v));
@@ -181,7 +184,7 @@ pub fn parse_payload(payload: &str) -> Result<Reading, LineError> {
             };
             *flag = true;
         } else {
-            let v = numbers(values).map_err(|e| LineError::Button(short(name), e))?;
+            let v = numbers(values).map_err(|BadNumber(e)| LineError::Button(short(name), e))?;
             analog.insert(name, v);
         }
     }

@@ -17,10 +17,12 @@
 use crate::input::{InputConfig, InputEvent};
 use crate::logcat::{LineStats, Reading};
 use crate::policy::{PolicyConfig, RobotView, VrPolicy};
+use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::{Point, Pose, Quaternion};
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, EpisodeEvent, EpisodeEventKind, RobotState, TeleopState};
 use labrig_msgs::std_msgs::Header;
+use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use nalgebra::{Matrix4, Rotation3, UnitQuaternion};
@@ -64,14 +66,14 @@ impl Default for TeleopConfig {
             max_jump_rad: 0.5,
             jump_confirm: 3,
             gripper_delta: 0.25,
-            state_topic: "/arm/state".into(),
+            state_topic: topics::ARM_STATE.name.into(),
             max_state_age_ms: 200.0,
         }
     }
 }
 
 impl TeleopConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), Invalid> {
         self.input.validate()?;
         self.policy.validate()?;
         for (k, v) in [
@@ -83,7 +85,7 @@ impl TeleopConfig {
             ("max_state_age_ms", self.max_state_age_ms),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("{k}: {v} must be positive"));
+                return Err(Invalid::new(k, format!("{k}: {v} must be positive")));
             }
         }
         Ok(())
@@ -155,13 +157,14 @@ impl JumpGuard {
     }
 }
 
-/// Runs the node until `shutdown` (or, with `exit_at_end`, a second after a playback ends).
-pub async fn run(cfg: TeleopConfig, shutdown: Shutdown, exit_at_end: bool) -> anyhow::Result<TeleopStats> {
+/// Runs the node until `shutdown` (or, with `input.exit_at_end`, a second after a playback ends).
+pub async fn run(cfg: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<TeleopStats> {
+    let exit_at_end = cfg.input.exit_at_end;
     cfg.validate().map_err(|e| anyhow::anyhow!("teleop config: {e}"))?;
     let mut ros = Ros::new(&cfg.ros, "labrig_teleop")?;
-    let state_pub = ros.publisher::<TeleopState>("/teleop/state", qos::reliable(100))?;
-    let action_pub = ros.publisher::<ArmCommand>("/teleop/action", qos::reliable(100))?;
-    let request_pub = ros.publisher::<EpisodeEvent>("/rig/request", qos::reliable(10))?;
+    let state_pub = ros.publisher_on(&topics::TELEOP_STATE, 100)?;
+    let action_pub = ros.publisher_on(&topics::TELEOP_ACTION, 100)?;
+    let request_pub = ros.publisher_on(&topics::RIG_REQUEST, 10)?;
     let arm = ros.subscription::<RobotState>(&cfg.state_topic, qos::reliable(100))?;
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
     let _input = crate::input::start(&cfg.input, tx, crate::policy::reorder_matrix(&cfg.policy.axis_reorder))?;
@@ -377,9 +380,9 @@ mod tests {
     #[test]
     fn config_is_validated_by_field() {
         let c = TeleopConfig { stale_ms: 0.0, ..TeleopConfig::default() };
-        assert!(c.validate().unwrap_err().contains("stale_ms"));
+        assert!(c.validate().unwrap_err().to_string().contains("stale_ms"));
         let mut c = TeleopConfig::default();
         c.input.kind = crate::input::InputKind::Playback;
-        assert!(c.validate().unwrap_err().contains("input.file"));
+        assert!(c.validate().unwrap_err().to_string().contains("input.file"));
     }
 }

@@ -10,6 +10,7 @@
 //! space). Each grip press re-zeroes both origins; a joystick press redefines forward.
 
 use crate::logcat::Reading;
+use labrig_msgs::Invalid;
 use nalgebra::{Matrix4, Rotation3, UnitQuaternion, Vector3};
 use serde::Deserialize;
 
@@ -42,17 +43,20 @@ impl Default for PolicyConfig {
 }
 
 impl PolicyConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), Invalid> {
         if self.hand != "right" && self.hand != "left" {
-            return Err(format!("policy.hand: {:?}, expected \"right\" or \"left\"", self.hand));
+            return Err(Invalid::new(
+                "policy.hand",
+                format!("policy.hand: {:?}, expected \"right\" or \"left\"", self.hand),
+            ));
         }
         let mut seen = [false; 4];
         for v in self.axis_reorder {
             let i = v.unsigned_abs() as usize;
             if !(1..=4).contains(&i) || seen[i - 1] {
-                return Err(format!(
-                    "policy.axis_reorder: {:?} is not a signed permutation of 1..4",
-                    self.axis_reorder
+                return Err(Invalid::new(
+                    "policy.axis_reorder",
+                    format!("policy.axis_reorder: {:?} is not a signed permutation of 1..4", self.axis_reorder),
                 ));
             }
             seen[i - 1] = true;
@@ -61,9 +65,12 @@ impl PolicyConfig {
         // reflection has no quaternion: the rotation actions would come out wrong).
         let m = reorder_matrix(&self.axis_reorder);
         if self.axis_reorder[3] != 4 || m.fixed_view::<3, 3>(0, 0).determinant() < 0.0 {
-            return Err(format!(
-                "policy.axis_reorder: {:?} must end in 4 and turn (not mirror) the axes (DROID's: [-2, -1, -3, 4])",
-                self.axis_reorder
+            return Err(Invalid::new(
+                "policy.axis_reorder",
+                format!(
+                    "policy.axis_reorder: {:?} must end in 4 and turn (not mirror) the axes (DROID's: [-2, -1, -3, 4])",
+                    self.axis_reorder
+                ),
             ));
         }
         for (k, v) in [
@@ -73,7 +80,7 @@ impl PolicyConfig {
             ("spatial_coeff", self.spatial_coeff),
         ] {
             if !v.is_finite() || v <= 0.0 {
-                return Err(format!("policy.{k}: {v} must be a positive number"));
+                return Err(Invalid::new(format!("policy.{k}"), format!("policy.{k}: {v} must be a positive number")));
             }
         }
         Ok(())
@@ -353,14 +360,14 @@ mod tests {
     #[test]
     fn config_errors_name_the_field() {
         let bad = PolicyConfig { axis_reorder: [1, 1, 3, 4], ..PolicyConfig::default() };
-        assert!(bad.validate().unwrap_err().contains("policy.axis_reorder"));
+        assert!(bad.validate().unwrap_err().to_string().contains("policy.axis_reorder"));
         for mirror in [[1, 2, -3, 4], [4, -1, -3, 2]] {
             let bad = PolicyConfig { axis_reorder: mirror, ..PolicyConfig::default() };
-            assert!(bad.validate().unwrap_err().contains("must end in 4"), "{mirror:?}");
+            assert!(bad.validate().unwrap_err().to_string().contains("must end in 4"), "{mirror:?}");
         }
         let bad = PolicyConfig { hand: "both".into(), ..PolicyConfig::default() };
-        assert!(bad.validate().unwrap_err().contains("policy.hand"));
+        assert!(bad.validate().unwrap_err().to_string().contains("policy.hand"));
         let bad = PolicyConfig { position_gain: f64::NAN, ..PolicyConfig::default() };
-        assert!(bad.validate().unwrap_err().contains("policy.position_gain"));
+        assert!(bad.validate().unwrap_err().to_string().contains("policy.position_gain"));
     }
 }

@@ -1,7 +1,7 @@
 //! The parser on the committed logcat fixtures (tests/fixtures/make_traces.py writes them from
 //! the documented line format).
 
-use labrig_teleop::logcat::{LineStats, line_time_ns};
+use labrig_quest_teleop::logcat::{LineStats, line_time_ns};
 
 fn fixture(name: &str) -> String {
     std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name)).unwrap()
@@ -53,11 +53,11 @@ fn the_square_trace_is_72_hz_with_the_documented_presses() {
 /// sends every line instead of sleeping to the far one (nextest ends a hung test after 5 min).
 #[test]
 fn playback_of_a_file_mixing_time_formats_sends_every_line() {
-    use labrig_teleop::input::{InputConfig, InputEvent, InputKind, start};
+    use labrig_quest_teleop::input::{InputConfig, InputEvent, InputKind, start};
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
     let file = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mixed.logcat");
     let cfg = InputConfig { kind: InputKind::Playback, file: Some(file), ..InputConfig::default() };
-    let _input = start(&cfg, tx, labrig_teleop::policy::reorder_matrix(&[-2, -1, -3, 4])).unwrap();
+    let _input = start(&cfg, tx, labrig_quest_teleop::policy::reorder_matrix(&[-2, -1, -3, 4])).unwrap();
     let mut lines = 0;
     loop {
         match rx.blocking_recv() {

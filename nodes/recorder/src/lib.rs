@@ -1,18 +1,48 @@
-//! labrig-recorder: episodes as MCAP files in the rosbag2 layout, with DROID's metadata.
-//!
-//! - [`metadata`]: DROID's episode metadata record and directory layout.
-//! - [`bag`]: the rosbag2 description (QoS text, `rosbag2` record, `metadata.yaml`).
-//! - [`episode`]: [`episode::EpisodeWriter`], one episode being written.
-//! - [`node`]: the recorder node (DDS topics + shared-memory frames -> episodes).
-//! - [`recover`]: an episode whose recorder died, made whole up to its last closed chunk.
+//! labrig-recorder: the recorder node (DDS topics + shared-memory frames -> one episode per
+//! `/rig/episode` start/end). The episode format itself (writing, reading, inspection,
+//! recovery) is labrig-episode; this crate adds only the transport.
 
-pub mod bag;
-pub mod episode;
-pub mod inspect;
-pub mod jpeg;
-pub mod metadata;
 pub mod node;
-pub mod recover;
 
-pub use episode::{EpisodeSummary, EpisodeWriter, RecorderError};
-pub use metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
+use labrig_msgs::Invalid;
+use labrig_runtime::{RosConfig, Shutdown};
+use node::RecorderConfig;
+use std::path::{Path, PathBuf};
+
+/// The recorder node: `labrig-recorder run` (`labrig_runtime::node_main`).
+#[derive(Debug)]
+pub struct RecorderNode;
+
+/// `labrig-recorder run`'s own flags.
+#[derive(Debug, clap::Args)]
+pub struct RecorderFlags {
+    /// Where episodes go (`root`).
+    #[arg(long)]
+    root: Option<PathBuf>,
+}
+
+impl labrig_runtime::Node for RecorderNode {
+    const NAME: &'static str = "labrig-recorder";
+    const ABOUT: &'static str = "Records the rig's episodes as DROID-format MCAP";
+    type Config = RecorderConfig;
+    type Flags = RecorderFlags;
+    type Stats = ();
+
+    fn ros(config: &mut RecorderConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn apply(f: RecorderFlags, cfg: &mut RecorderConfig, _file: Option<&Path>) {
+        if let Some(r) = f.root {
+            cfg.root = r;
+        }
+    }
+
+    fn validate(config: &RecorderConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+        node::run(config, shutdown).await
+    }
+}

@@ -12,13 +12,15 @@
 //! `/recorder/status` (std_msgs/String, JSON) says what it is doing once a second and after
 //! every episode.
 
-use crate::bag::Reliability;
-use crate::episode::{EpisodeWriter, RawType, RecorderError};
-use crate::metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS};
+use labrig_episode::bag::Reliability;
+use labrig_episode::episode::{EpisodeError, EpisodeWriter, RawType};
+use labrig_episode::metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
+use labrig_msgs::Invalid;
+use labrig_msgs::labrig_msgs::{EpisodeEventKind, RIG_CAMERAS};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_msgs::topics;
 use labrig_msgs::{Nanos, RosMessage, TypeVisitor, dds_type_name, visit_type};
 use labrig_runtime::frames::{FrameEncoding, FrameNode, FrameSubscriber};
 use labrig_runtime::ros::{RawSubscription, Ros, qos};
@@ -54,22 +56,20 @@ fn spec(topic: &str, type_name: &str, latched: bool) -> TopicSpec {
 /// The rig's topics recorded by default.
 pub fn default_topics() -> Vec<TopicSpec> {
     let mut t = vec![
-        spec("/rig/step", "labrig_msgs/msg/Step", false),
-        spec("/rig/episode", "labrig_msgs/msg/EpisodeEvent", false),
-        spec("/arm/state", "labrig_msgs/msg/RobotState", false),
-        spec("/arm/command", "labrig_msgs/msg/ArmCommand", false),
-        spec("/gripper/state", "labrig_msgs/msg/GripperState", false),
-        spec("/gripper/command", "labrig_msgs/msg/GripperCommand", false),
-        spec("/joint_states", "sensor_msgs/msg/JointState", false),
-        spec("/tf", "tf2_msgs/msg/TFMessage", false),
-        spec("/tf_static", "tf2_msgs/msg/TFMessage", true),
-        spec("/sim/scene", "std_msgs/msg/String", true),
-        spec("/teleop/state", "labrig_msgs/msg/TeleopState", false),
-        spec("/teleop/action", "labrig_msgs/msg/ArmCommand", false),
+        spec(topics::RIG_STEP.name, "labrig_msgs/msg/Step", false),
+        spec(topics::RIG_EPISODE.name, "labrig_msgs/msg/EpisodeEvent", false),
+        spec(topics::ARM_STATE.name, "labrig_msgs/msg/RobotState", false),
+        spec(topics::ARM_COMMAND.name, "labrig_msgs/msg/ArmCommand", false),
+        spec(topics::GRIPPER_STATE.name, "labrig_msgs/msg/GripperState", false),
+        spec(topics::GRIPPER_COMMAND.name, "labrig_msgs/msg/GripperCommand", false),
+        spec(topics::JOINT_STATES.name, "sensor_msgs/msg/JointState", false),
+        spec(topics::TF.name, "tf2_msgs/msg/TFMessage", false),
+        spec(topics::TF_STATIC.name, "tf2_msgs/msg/TFMessage", true),
+        spec(topics::SIM_SCENE.name, "std_msgs/msg/String", true),
+        spec(topics::TELEOP_STATE.name, "labrig_msgs/msg/TeleopState", false),
+        spec(topics::TELEOP_ACTION.name, "labrig_msgs/msg/ArmCommand", false),
     ];
-    t.extend(
-        RIG_CAMERAS.iter().map(|c| spec(&format!("/cameras/{c}/camera_info"), "sensor_msgs/msg/CameraInfo", false)),
-    );
+    t.extend(RIG_CAMERAS.iter().map(|c| spec(&topics::camera_info(c), topics::CAMERA_INFO_TYPE, false)));
     t
 }
 
@@ -142,13 +142,13 @@ fn write_frame(
     frame: &labrig_runtime::frames::Frame,
     quality: u8,
     log_ns: i64,
-) -> Result<(), RecorderError> {
+) -> Result<(), EpisodeError> {
     let h = *frame.header();
     if h.encoding() != Some(FrameEncoding::Rgb8) {
         tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
         return Ok(());
     }
-    let data = match crate::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality) {
+    let data = match labrig_episode::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality) {
         Ok(d) => d,
         Err(e) => {
             tracing::warn!("camera {camera}: {e}");
@@ -160,7 +160,7 @@ fn write_frame(
         format: "jpeg".into(),
         data,
     };
-    let topic = format!("/cameras/{camera}/image/compressed");
+    let topic = topics::camera_image(camera);
     ep.writer.write(&topic, &img, log_ns, h.capture_ns, Reliability::BestEffort)?;
     ep.frames += 1;
     Ok(())
@@ -180,8 +180,26 @@ fn finish_closing(ep: Episode, root: &std::path::Path) -> serde_json::Value {
 }
 
 /// Runs the node until `shutdown`.
+impl RecorderConfig {
+    /// Checks what serde cannot, naming the key.
+    pub fn validate(&self) -> Result<(), Invalid> {
+        if !(1..=100).contains(&self.jpeg_quality) {
+            return Err(Invalid::new("jpeg_quality", "recorder config: `jpeg_quality` must be 1..=100"));
+        }
+        for (k, t) in self.topics.iter().enumerate() {
+            if visit_type(&t.type_name, SchemaOf).is_none() {
+                return Err(Invalid::new(
+                    format!("topics[{k}].type"),
+                    format!("recorder config: topic {}: unknown type {}", t.topic, t.type_name),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
-    anyhow::ensure!((1..=100).contains(&cfg.jpeg_quality), "recorder config: `jpeg_quality` must be 1..=100");
+    cfg.validate()?;
     let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
     let mut topics = Vec::new();
     for t in &cfg.topics {
@@ -191,8 +209,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
         let sub = ros.raw_subscription(&t.topic, &dds_type_name(&t.type_name), q)?;
         topics.push(Recorded { spec: t.clone(), schema, sub });
     }
-    let events = ros.subscription::<EpisodeEvent>("/rig/episode", qos::reliable(100))?;
-    let status = ros.publisher::<StringMsg>("/recorder/status", qos::latched(1))?;
+    let events = ros.subscription_on(&topics::RIG_EPISODE, 100)?;
+    let status = ros.publisher_on(&topics::RECORDER_STATUS, 1)?;
     let frames = match &cfg.frames_namespace {
         Some(ns) => FrameNode::new_in(ns)?,
         None => FrameNode::new()?,
@@ -274,7 +292,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                                     tracing::warn!("{}: {e}", r.spec.topic);
                                 }
                             }
-                            if let Err(e) = writer.write("/rig/episode", &ev, start_ns, sent_ns, Reliability::Reliable)
+                            if let Err(e) =
+                                writer.write(topics::RIG_EPISODE.name, &ev, start_ns, sent_ns, Reliability::Reliable)
                             {
                                 tracing::warn!("/rig/episode: {e}");
                             }
@@ -317,9 +336,13 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                         let outcome =
                             if kind == EpisodeEventKind::Success { Outcome::Success } else { Outcome::Failure };
                         ep.writer.metadata_mut().success = Some(outcome == Outcome::Success);
-                        if let Err(e) =
-                            ep.writer.write("/rig/episode", &ev, clock.now().0, sent_ns, Reliability::Reliable)
-                        {
+                        if let Err(e) = ep.writer.write(
+                            topics::RIG_EPISODE.name,
+                            &ev,
+                            clock.now().0,
+                            sent_ns,
+                            Reliability::Reliable,
+                        ) {
                             tracing::warn!("/rig/episode: {e}");
                         }
                         ep.closing =
@@ -340,7 +363,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
             }
         }
         // Topics.
-        let mut failed: Option<RecorderError> = drain_topics(&topics, &mut context, episode.as_mut(), false);
+        let mut failed: Option<EpisodeError> = drain_topics(&topics, &mut context, episode.as_mut(), false);
         // Camera frames (JPEG).
         for (camera, sub) in &cameras {
             loop {
@@ -422,7 +445,7 @@ fn drain_topics(
     ctx: &mut Context,
     mut episode: Option<&mut Episode>,
     latched_only: bool,
-) -> Option<RecorderError> {
+) -> Option<EpisodeError> {
     for r in topics.iter().filter(|r| r.spec.latched || !latched_only) {
         loop {
             let sample = match r.sub.try_take() {
@@ -434,13 +457,13 @@ fn drain_topics(
                 }
             };
             // Episode events are written as the episode starts and ends, not here.
-            if r.spec.topic == "/rig/episode" {
+            if r.spec.topic == topics::RIG_EPISODE.name {
                 continue;
             }
             let cdr = sample.msg.to_cdr_bytes();
-            if r.spec.topic == "/tf_static" {
+            if r.spec.topic == topics::TF_STATIC.name {
                 ctx.tf_static = labrig_msgs::decode::<TFMessage>(&cdr).ok();
-            } else if r.spec.topic == "/sim/scene" {
+            } else if r.spec.topic == topics::SIM_SCENE.name {
                 ctx.scene_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
             }
             if r.spec.latched {
@@ -478,7 +501,7 @@ fn unused(path: PathBuf) -> PathBuf {
 fn end(ep: Episode, outcome: Outcome, root: &std::path::Path, why: &str) -> serde_json::Value {
     let Episode { mut writer, staging, .. } = ep;
     let start_ns = writer.metadata_mut().start_ns;
-    writer.metadata_mut().trajectory_length = writer.count("/rig/step");
+    writer.metadata_mut().trajectory_length = writer.count(topics::RIG_STEP.name);
     match writer.finish() {
         Ok(summary) => {
             // Two episodes may start in the same second (DROID's directory names are to the

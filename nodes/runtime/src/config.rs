@@ -22,6 +22,9 @@ pub enum ConfigError {
     Parse { path: PathBuf, message: String },
     #[error("invalid config {path}: `{key}` {reason}")]
     Invalid { path: PathBuf, key: String, reason: String },
+    /// A value breaks a rule of the node's (its message names the key).
+    #[error("invalid config {path}: {rule}")]
+    Rule { path: PathBuf, rule: labrig_msgs::Invalid },
 }
 
 /// Reads and parses a TOML config file into `T`.

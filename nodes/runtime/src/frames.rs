@@ -156,10 +156,7 @@ pub fn default_namespace() -> Option<String> {
 
 /// The iceoryx2 service name of a camera's frames in `namespace`.
 pub fn service_name_in(namespace: Option<&str>, camera_id: &str) -> String {
-    match namespace {
-        Some(ns) => format!("labrig/{ns}/camera/{camera_id}/frames"),
-        None => format!("labrig/camera/{camera_id}/frames"),
-    }
+    labrig_msgs::topics::frame_service(namespace, camera_id)
 }
 
 /// The iceoryx2 service name of a camera's frames (in this process's default namespace).

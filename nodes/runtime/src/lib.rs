@@ -1,6 +1,7 @@
 //! labrig-runtime: what every labrig node shares.
 //!
 //! - [`config`]: typed TOML config, unknown keys rejected with the key named, parse-then-validate.
+//! - [`node`]: the one shape of a node: a [`node::Node`] declaration and `node_main`.
 //! - [`lifecycle`]: SIGINT/SIGTERM -> a [`lifecycle::Shutdown`] token every loop watches.
 //! - [`clock`]: one [`clock::Clock`]: wall time on hardware, sim time from `/clock`, or a mock.
 //! - [`ros`]: ROS 2 through ros2-client with explicit QoS, DDS on loopback unless configured
@@ -16,8 +17,10 @@ pub mod config;
 pub mod frames;
 pub mod lifecycle;
 pub mod logging;
+pub mod node;
 pub mod ros;
 
 pub use clock::Clock;
 pub use config::{ConfigError, RosConfig, load_config};
-pub use lifecycle::{NodeContext, NodeError, Shutdown, main_node, realtime_priority, run_node};
+pub use lifecycle::{PriorityError, Shutdown, realtime_priority};
+pub use node::{Node, node_main, node_main_with};

@@ -9,6 +9,7 @@
 
 use crate::config::RosConfig;
 use futures::{Stream, StreamExt};
+use labrig_msgs::topics::{Service, Topic};
 use labrig_msgs::{CodecError, Nanos, RosMessage, RosService, decode_payload};
 use ros2_client::{
     Context, MessageTypeName, Name, Node, NodeName, NodeOptions, ServiceMapping, ServiceTypeName, qos::QosProfile,
@@ -73,6 +74,17 @@ pub mod qos {
     /// (`/tf_static`, camera_info, episode metadata).
     pub fn latched(depth: usize) -> QosProfile {
         reliable(depth).durability(Durability::TransientLocal)
+    }
+
+    /// The profile of a contract topic's [`labrig_msgs::topics::Delivery`] with this endpoint's
+    /// history `depth`.
+    pub fn of(delivery: labrig_msgs::topics::Delivery, depth: usize) -> QosProfile {
+        use labrig_msgs::topics::Delivery;
+        match delivery {
+            Delivery::Reliable => reliable(depth),
+            Delivery::Latched => latched(depth),
+            Delivery::BestEffort => best_effort(depth),
+        }
     }
 }
 
@@ -168,6 +180,51 @@ impl Ros {
             self.node.create_topic(&name, message_type_name::<T>(), &qos).map_err(|e| create(e.to_string()))?;
         let publisher = self.node.create_publisher::<T>(&ros_topic, Some(qos)).map_err(|e| create(e.to_string()))?;
         Ok(RosPublisher { publisher, topic: topic.to_owned() })
+    }
+
+    /// A publisher on a contract topic ([`labrig_msgs::topics`]): its name, type and delivery,
+    /// with this endpoint's history `depth`.
+    pub fn publisher_on<T: RosMessage>(&mut self, topic: &Topic<T>, depth: usize) -> Result<RosPublisher<T>, RosError> {
+        self.publisher(topic.name, qos::of(topic.delivery, depth))
+    }
+
+    /// [`Ros::publisher_on`] under a prefix (`/sim` + `/arm/state`).
+    pub fn publisher_at<T: RosMessage>(
+        &mut self,
+        prefix: &str,
+        topic: &Topic<T>,
+        depth: usize,
+    ) -> Result<RosPublisher<T>, RosError> {
+        self.publisher(&topic.at(prefix), qos::of(topic.delivery, depth))
+    }
+
+    /// A subscription to a contract topic, with this endpoint's history `depth`.
+    pub fn subscription_on<T: RosMessage>(
+        &mut self,
+        topic: &Topic<T>,
+        depth: usize,
+    ) -> Result<RosSubscription<T>, RosError> {
+        self.subscription(topic.name, qos::of(topic.delivery, depth))
+    }
+
+    /// [`Ros::subscription_on`] under a prefix.
+    pub fn subscription_at<T: RosMessage>(
+        &mut self,
+        prefix: &str,
+        topic: &Topic<T>,
+        depth: usize,
+    ) -> Result<RosSubscription<T>, RosError> {
+        self.subscription(&topic.at(prefix), qos::of(topic.delivery, depth))
+    }
+
+    /// A server of a contract service.
+    pub fn server_on<S: RosService>(&mut self, service: &Service<S>) -> Result<RosServer<S>, RosError> {
+        self.server(service.name, qos::reliable(10))
+    }
+
+    /// A client of a contract service.
+    pub fn client_on<S: RosService>(&mut self, service: &Service<S>) -> Result<RosClient<S>, RosError> {
+        self.client(service.name, qos::reliable(10))
     }
 
     /// A typed subscription with explicit QoS, decoding with labrig-msgs' strict codec.

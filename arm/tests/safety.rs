@@ -1,9 +1,9 @@
 //! The safety layer on the FR3's real kinematics (fr3.urdf from setup): refusals name the
 //! field and limit, clips keep every command inside the limits, the watchdog trips on time.
 
-use labrig_franka::ik::{Ik, IkConfig};
-use labrig_franka::safety::{ArmView, Clip, Refusal, SafetyConfig, SafetyFilter, Watchdog};
-use labrig_franka::{Fr3Kinematics, TcpOffset, urdf_path};
+use labrig_arm::ik::{Ik, IkConfig};
+use labrig_arm::safety::{ArmView, Clip, Refusal, SafetyConfig, SafetyFilter, Watchdog};
+use labrig_arm::{Fr3Kinematics, TcpOffset, urdf_path};
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
 use proptest::prelude::*;
 
@@ -102,7 +102,7 @@ fn cartesian_commands_stay_in_the_workspace_and_within_a_step() {
     assert!(moved <= 0.075 + 1e-3, "moved {moved} m in one step");
     // An absolute pose 1 m below: one step down at most, and never under the workspace floor.
     let mut c = command(ArmCommandMode::CartesianPosition);
-    let mut xyz_euler = labrig_franka::ik::xyz_euler(&here);
+    let mut xyz_euler = labrig_arm::ik::xyz_euler(&here);
     xyz_euler[2] = -1.0;
     c.cartesian_position = xyz_euler;
     let ok = f.filter(&c, &at_reset(), NOW).unwrap();
@@ -156,9 +156,9 @@ fn the_watchdog_trips_after_two_periods_once() {
 #[test]
 fn bad_safety_configs_name_the_field() {
     let cfg = SafetyConfig { workspace_min: [0.5, -0.6, 0.02], workspace_max: [0.4, 0.6, 0.9], ..Default::default() };
-    assert!(cfg.validate().unwrap_err().contains("safety.workspace_min[0]"));
+    assert!(cfg.validate().unwrap_err().to_string().contains("safety.workspace_min[0]"));
     let cfg = SafetyConfig { velocity_fraction: 1.5, ..Default::default() };
-    assert!(cfg.validate().unwrap_err().contains("safety.velocity_fraction"));
+    assert!(cfg.validate().unwrap_err().to_string().contains("safety.velocity_fraction"));
 }
 
 fn any_mode() -> impl Strategy<Value = ArmCommandMode> {

@@ -22,7 +22,7 @@ pub const DROID_RECORD: &str = "droid_episode";
 pub const CHUNK_NS: i64 = 1_000_000_000;
 
 #[derive(Debug, thiserror::Error)]
-pub enum RecorderError {
+pub enum EpisodeError {
     #[error("{path}: {what}: {source}")]
     Io {
         path: PathBuf,
@@ -50,12 +50,12 @@ fn mcap_detail(e: &mcap::McapError) -> String {
     }
 }
 
-impl RecorderError {
+impl EpisodeError {
     /// The disk is full (or the quota is): recording must stop, earlier files stay.
     pub fn is_disk_full(&self) -> bool {
         let io = match self {
-            RecorderError::Io { source, .. } => Some(source),
-            RecorderError::Mcap { source: mcap::McapError::Io(e), .. } => Some(e),
+            EpisodeError::Io { source, .. } => Some(source),
+            EpisodeError::Mcap { source: mcap::McapError::Io(e), .. } => Some(e),
             _ => None,
         };
         io.is_some_and(|e| e.raw_os_error() == Some(28) || e.kind() == std::io::ErrorKind::StorageFull)
@@ -113,8 +113,8 @@ impl std::fmt::Debug for EpisodeWriter {
 impl EpisodeWriter {
     /// Creates `dir` (and its parents) and starts `dir/episode_0.mcap` with DROID's metadata
     /// as its first record, so even a file cut short says what it is.
-    pub fn create(dir: &Path, meta: EpisodeMetadata) -> Result<EpisodeWriter, RecorderError> {
-        let io = |what, source| RecorderError::Io { path: dir.to_owned(), what, source };
+    pub fn create(dir: &Path, meta: EpisodeMetadata) -> Result<EpisodeWriter, EpisodeError> {
+        let io = |what, source| EpisodeError::Io { path: dir.to_owned(), what, source };
         std::fs::create_dir_all(dir).map_err(|e| io("creating the episode directory", e))?;
         let path = dir.join(EPISODE_FILE);
         let file = File::create(&path).map_err(|e| io("creating the episode file", e))?;
@@ -125,7 +125,7 @@ impl EpisodeWriter {
             .compression(Some(Compression::Zstd))
             .compression_threads(0)
             .chunk_size(None);
-        let mcap_err = |source| RecorderError::Mcap { path: path.clone(), source };
+        let mcap_err = |source| EpisodeError::Mcap { path: path.clone(), source };
         let mut writer = Writer::with_options(BufWriter::with_capacity(1 << 20, file), opts).map_err(mcap_err)?;
         writer.write_metadata(&Metadata { name: DROID_RECORD.into(), metadata: meta.to_record() }).map_err(mcap_err)?;
         let mut w = EpisodeWriter {
@@ -170,26 +170,26 @@ impl EpisodeWriter {
         &mut self.meta
     }
 
-    fn mcap_err(&self) -> impl Fn(mcap::McapError) -> RecorderError + '_ {
-        |source| RecorderError::Mcap { path: self.path.clone(), source }
+    fn mcap_err(&self) -> impl Fn(mcap::McapError) -> EpisodeError + '_ {
+        |source| EpisodeError::Mcap { path: self.path.clone(), source }
     }
 
-    fn sync(&mut self) -> Result<(), RecorderError> {
+    fn sync(&mut self) -> Result<(), EpisodeError> {
         let path = self.path.clone();
-        self.writer.flush().map_err(|source| RecorderError::Mcap { path: path.clone(), source })?;
-        self.sync.sync_data().map_err(|source| RecorderError::Io { path, what: "syncing the episode file", source })
+        self.writer.flush().map_err(|source| EpisodeError::Mcap { path: path.clone(), source })?;
+        self.sync.sync_data().map_err(|source| EpisodeError::Io { path, what: "syncing the episode file", source })
     }
 
     fn channel(
         &mut self,
         topic: &str,
         type_name: &str,
-        schema: impl FnOnce(&mut Self) -> Result<u16, RecorderError>,
+        schema: impl FnOnce(&mut Self) -> Result<u16, EpisodeError>,
         reliability: Reliability,
-    ) -> Result<u16, RecorderError> {
+    ) -> Result<u16, EpisodeError> {
         if let Some(c) = self.channels.get(topic) {
             if c.topic.type_name != type_name {
-                return Err(RecorderError::TypeChanged {
+                return Err(EpisodeError::TypeChanged {
                     topic: topic.to_owned(),
                     first: c.topic.type_name.clone(),
                     now: type_name.to_owned(),
@@ -215,13 +215,13 @@ impl EpisodeWriter {
         log_ns: i64,
         publish_ns: i64,
         reliability: Reliability,
-    ) -> Result<(), RecorderError> {
-        let bytes = labrig_msgs::encode(msg).map_err(|e| RecorderError::Encode {
+    ) -> Result<(), EpisodeError> {
+        let bytes = labrig_msgs::encode(msg).map_err(|e| EpisodeError::Encode {
             topic: topic.to_owned(),
             type_name: T::TYPE_NAME,
             message: e.to_string(),
         })?;
-        let schema = |w: &mut Self| -> Result<u16, RecorderError> {
+        let schema = |w: &mut Self| -> Result<u16, EpisodeError> {
             if let Some(&id) = w.schemas.get(T::TYPE_NAME) {
                 return Ok(id);
             }
@@ -244,8 +244,8 @@ impl EpisodeWriter {
         log_ns: i64,
         publish_ns: i64,
         reliability: Reliability,
-    ) -> Result<(), RecorderError> {
-        let schema = |w: &mut Self| -> Result<u16, RecorderError> {
+    ) -> Result<(), EpisodeError> {
+        let schema = |w: &mut Self| -> Result<u16, EpisodeError> {
             if let Some(&id) = w.raw_schemas.get(ty.name) {
                 return Ok(id);
             }
@@ -264,7 +264,7 @@ impl EpisodeWriter {
         bytes: &[u8],
         log_ns: i64,
         publish_ns: i64,
-    ) -> Result<(), RecorderError> {
+    ) -> Result<(), EpisodeError> {
         // Close the chunk once it spans a second of log time: flushed and fsynced, so a crash
         // loses at most the chunk still open.
         let chunk_start = *self.chunk_start_ns.get_or_insert(log_ns);
@@ -290,7 +290,7 @@ impl EpisodeWriter {
     }
 
     /// Attaches a file (calibration, a scene spec).
-    pub fn attach(&mut self, name: &str, media_type: &str, data: &[u8], time_ns: i64) -> Result<(), RecorderError> {
+    pub fn attach(&mut self, name: &str, media_type: &str, data: &[u8], time_ns: i64) -> Result<(), EpisodeError> {
         let t = time_ns.max(0) as u64;
         let attachment = Attachment {
             log_time: t,
@@ -306,7 +306,7 @@ impl EpisodeWriter {
     /// Ends the episode: the final DROID record (outcome, length), the `rosbag2` record, the
     /// summary, an fsync, then `metadata.yaml` (written beside the file, atomically). Every
     /// error is returned, none is swallowed.
-    pub fn finish(mut self) -> Result<EpisodeSummary, RecorderError> {
+    pub fn finish(mut self) -> Result<EpisodeSummary, EpisodeError> {
         let meta = Metadata { name: DROID_RECORD.into(), metadata: self.meta.to_record() };
         self.writer.write_metadata(&meta).map_err(self.mcap_err())?;
         let info = self.bag_info();
@@ -315,7 +315,7 @@ impl EpisodeWriter {
             .map_err(self.mcap_err())?;
         self.writer.finish().map_err(self.mcap_err())?;
         let EpisodeWriter { writer, sync, path, dir, .. } = self;
-        let io = |what, source| RecorderError::Io { path: path.clone(), what, source };
+        let io = |what, source| EpisodeError::Io { path: path.clone(), what, source };
         writer.into_inner().flush().map_err(|e| io("writing the episode file", e))?;
         sync.sync_all().map_err(|e| io("syncing the episode file", e))?;
         write_metadata_yaml(&dir, &info)?;
@@ -337,10 +337,10 @@ impl EpisodeWriter {
 }
 
 /// Writes `dir/metadata.yaml` through a temporary file and a rename.
-pub fn write_metadata_yaml(dir: &Path, info: &BagInfo) -> Result<(), RecorderError> {
+pub fn write_metadata_yaml(dir: &Path, info: &BagInfo) -> Result<(), EpisodeError> {
     let path = dir.join("metadata.yaml");
     let tmp = dir.join(".metadata.yaml.tmp");
-    let io = |what, source| RecorderError::Io { path: path.clone(), what, source };
+    let io = |what, source| EpisodeError::Io { path: path.clone(), what, source };
     std::fs::write(&tmp, info.metadata_yaml()).map_err(|e| io("writing metadata.yaml", e))?;
     std::fs::rename(&tmp, &path).map_err(|e| io("renaming metadata.yaml into place", e))
 }

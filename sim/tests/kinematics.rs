@@ -1,8 +1,8 @@
 //! The franka node's URDF kinematics (labrig-franka) against MuJoCo's own model of the rig:
 //! the flange and the 2F-85's pinch point for 1,000 random joint configurations.
 
-use labrig_franka::kinematics::TcpOffset;
-use labrig_franka::{Fr3Kinematics, urdf_path};
+use labrig_arm::kinematics::TcpOffset;
+use labrig_arm::{Fr3Kinematics, urdf_path};
 use labrig_msgs::Nanos;
 use labrig_sim::rig::DEFAULT_ASSETS;
 use labrig_sim::{SceneSpec, Sim};
@@ -16,7 +16,7 @@ fn sim() -> Sim {
 }
 
 fn kin() -> Fr3Kinematics {
-    let urdf = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join(labrig_franka::DEFAULT_URDF);
+    let urdf = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join(labrig_arm::DEFAULT_URDF);
     Fr3Kinematics::from_urdf_file(&urdf_path(Some(&urdf)), TcpOffset::ROBOTIQ_2F85).unwrap()
 }
 
@@ -86,7 +86,7 @@ fn the_urdf_jacobian_matches_mujocos() {
 /// (Along the path it lags the timed target by the servos' delay; reported, not judged.)
 #[test]
 fn ik_tracks_a_cartesian_path_in_the_sim() {
-    use labrig_franka::ik::{Ik, IkConfig};
+    use labrig_arm::ik::{Ik, IkConfig};
     let mut sim = sim();
     let ik = Ik::new(kin(), IkConfig::default());
     let bounds = ik.bounds();

@@ -5,7 +5,7 @@
 //! `metadata.yaml` from what it copied. A chunk is copied only if every record in it parses.
 
 use crate::bag::{BagInfo, TopicInfo};
-use crate::episode::{RecorderError, write_metadata_yaml};
+use crate::episode::{EpisodeError, write_metadata_yaml};
 use mcap::read::{ChunkReader, LinearReader, Options};
 use mcap::records::Record;
 use mcap::{Attachment, Compression, WriteOptions, Writer};
@@ -30,10 +30,10 @@ pub struct RecoverReport {
 
 /// Copies what is complete in `input` into `output` (a new file) and writes `metadata.yaml`
 /// beside `output`.
-pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecorderError> {
-    let io = |path: &Path, what, source| RecorderError::Io { path: path.to_owned(), what, source };
+pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeError> {
+    let io = |path: &Path, what, source| EpisodeError::Io { path: path.to_owned(), what, source };
     let buf = std::fs::read(input).map_err(|e| io(input, "reading the episode", e))?;
-    let mcap_err = |source| RecorderError::Mcap { path: output.to_owned(), source };
+    let mcap_err = |source| EpisodeError::Mcap { path: output.to_owned(), source };
     let mut out: Option<Writer<BufWriter<File>>> = None;
     let mut schemas: BTreeMap<u16, String> = BTreeMap::new();
     let mut topics: BTreeMap<u16, TopicInfo> = BTreeMap::new();
@@ -46,7 +46,7 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecorderErr
         end_ns: 0,
         stopped: "complete file".into(),
     };
-    let mut copy = |rec: Record<'_>, out: &mut Option<Writer<BufWriter<File>>>| -> Result<(), RecorderError> {
+    let mut copy = |rec: Record<'_>, out: &mut Option<Writer<BufWriter<File>>>| -> Result<(), EpisodeError> {
         if let Record::Header(h) = &rec {
             let file = File::create(output).map_err(|e| io(output, "creating the recovered file", e))?;
             let opts = WriteOptions::new()
@@ -105,7 +105,7 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecorderErr
         Ok(())
     };
     let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
-        .map_err(|source| RecorderError::Mcap { path: input.to_owned(), source })?;
+        .map_err(|source| EpisodeError::Mcap { path: input.to_owned(), source })?;
     for rec in reader {
         let rec = match rec {
             Ok(r) => r,
@@ -136,7 +136,7 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecorderErr
         }
     }
     let Some(mut w) = out else {
-        return Err(RecorderError::Io {
+        return Err(EpisodeError::Io {
             path: input.to_owned(),
             what: "recovering",
             source: std::io::Error::new(std::io::ErrorKind::InvalidData, "not an MCAP file: no header record survived"),
@@ -165,10 +165,10 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, RecorderErr
 
 /// `labrig recover <episode_dir>`: recovers `episode_0.mcap` in place. The damaged file is
 /// kept as `episode_0.mcap.damaged`; the directory's metadata.yaml describes the recovered one.
-pub fn recover_in_place(dir: &Path) -> Result<RecoverReport, RecorderError> {
+pub fn recover_in_place(dir: &Path) -> Result<RecoverReport, EpisodeError> {
     let file = dir.join(crate::episode::EPISODE_FILE);
     let damaged = dir.join(format!("{}.damaged", crate::episode::EPISODE_FILE));
-    let io = |what, source| RecorderError::Io { path: file.clone(), what, source };
+    let io = |what, source| EpisodeError::Io { path: file.clone(), what, source };
     if !damaged.exists() {
         std::fs::rename(&file, &damaged).map_err(|e| io("keeping the damaged file", e))?;
     }

@@ -355,7 +355,7 @@ impl SceneSpec {
         Ok(spec)
     }
 
-    /// The scene labrig uses when none is given (`sim_bridge/scenes/pick_place.toml`).
+    /// The scene labrig uses when none is given (`sim/scenes/pick_place.toml`).
     pub fn default_pick_place() -> SceneSpec {
         SceneSpec::builtin("pick_place").expect("pick_place is built in")
     }
@@ -631,11 +631,11 @@ pub fn table_texture(values: &SceneValues, jitter: [f64; 3]) -> Vec<u8> {
     out
 }
 
-/// The built-in pick-and-place spec (also `sim_bridge/scenes/pick_place.toml`).
+/// The built-in pick-and-place spec (also `sim/scenes/pick_place.toml`).
 pub const DEFAULT_SPEC: &str = include_str!("../scenes/pick_place.toml");
 
 /// The scenes built into the binary, by name (`--scene drawer_open`); the files are in
-/// `sim_bridge/scenes/`.
+/// `sim/scenes/`.
 pub const BUILTIN_SCENES: [(&str, &str); 3] = [
     ("pick_place", DEFAULT_SPEC),
     ("drawer_open", include_str!("../scenes/drawer_open.toml")),

@@ -6,6 +6,7 @@
 use crate::metadata::EpisodeMetadata;
 use labrig_msgs::labrig_msgs::Step;
 use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::topics;
 use labrig_msgs::{TypeVisitor, visit_type};
 use mcap::read::{ChunkReader, LinearReader, Options};
 use mcap::records::Record;
@@ -103,8 +104,28 @@ struct Topic {
     stamps: Vec<i64>,
 }
 
+/// An episode file that cannot be read at all (damage after a readable start is reported in
+/// the [`Inspection`], not here).
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    #[error("{}: {source}", file.display())]
+    Io {
+        file: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: not an MCAP file ({reason})", file.display())]
+    NotMcap { file: PathBuf, reason: String },
+    #[error("{}: {source}", file.display())]
+    Metadata {
+        file: PathBuf,
+        #[source]
+        source: crate::metadata::MetadataError,
+    },
+}
+
 /// Reads `path` (an episode file or its directory).
-pub fn inspect(path: &Path) -> Result<Inspection, String> {
+pub fn inspect(path: &Path) -> Result<Inspection, ReadError> {
     let Scan { file, complete, damage, topics, steps, droid } = scan(path)?;
     Ok(summarise(file, complete, damage, topics, steps, droid))
 }
@@ -121,10 +142,14 @@ pub struct EpisodeData {
 }
 
 /// Reads an episode's steps and metadata (`path`: the episode file or its directory).
-pub fn read_episode(path: &Path) -> Result<EpisodeData, String> {
+pub fn read_episode(path: &Path) -> Result<EpisodeData, ReadError> {
     let Scan { file, complete, mut steps, droid, .. } = scan(path)?;
     steps.sort_by_key(|s| s.step_index);
-    let metadata = droid.as_ref().map(EpisodeMetadata::from_record).transpose()?;
+    let metadata = droid
+        .as_ref()
+        .map(EpisodeMetadata::from_record)
+        .transpose()
+        .map_err(|source| ReadError::Metadata { file: file.clone(), source })?;
     Ok(EpisodeData { file, complete, metadata, steps })
 }
 
@@ -138,15 +163,20 @@ struct Scan {
 }
 
 /// One pass over every record of the file (chunks included), up to the first damage.
-fn scan(path: &Path) -> Result<Scan, String> {
+fn scan(path: &Path) -> Result<Scan, ReadError> {
     let file = if path.is_dir() { path.join(crate::episode::EPISODE_FILE) } else { path.to_owned() };
-    let buf = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let buf = match std::fs::read(&file) {
+        Ok(buf) => buf,
+        Err(source) => return Err(ReadError::Io { file, source }),
+    };
     if !buf.starts_with(mcap::MAGIC) {
-        return Err(format!("{}: not an MCAP file (it does not start with MCAP's magic bytes)", file.display()));
+        return Err(ReadError::NotMcap { file, reason: "it does not start with MCAP's magic bytes".into() });
     }
     let complete = mcap::Summary::read(&buf).ok().flatten().is_some();
-    let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
-        .map_err(|e| format!("{}: not an MCAP file: {e}", file.display()))?;
+    let reader = match LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into()) {
+        Ok(r) => r,
+        Err(e) => return Err(ReadError::NotMcap { file, reason: e.to_string() }),
+    };
     let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut channels: HashMap<u16, (String, String)> = HashMap::new();
     let mut topics: BTreeMap<String, Topic> = BTreeMap::new();
@@ -284,7 +314,7 @@ fn summarise(
         if t.type_name != "sensor_msgs/msg/CompressedImage" {
             continue;
         }
-        let camera = name.trim_start_matches("/cameras/").split('/').next().unwrap_or(name).to_owned();
+        let camera = name.trim_start_matches(topics::CAMERAS_PREFIX).split('/').next().unwrap_or(name).to_owned();
         let mut stamps = t.stamps.clone();
         stamps.sort_unstable();
         let dropped = stamps

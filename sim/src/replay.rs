@@ -11,59 +11,86 @@
 //! Compared per step before each action: joints, TCP position and orientation, gripper; at the
 //! end, the task's success then (metadata) and now (the expert's predicate on the physics).
 
-use crate::bridge::safety_filter;
 use crate::expert::{euler_xyz, task_success};
+use crate::safety_filter;
 use crate::scene::SceneSpec;
-use crate::{ArmTarget, Meshes, Sim};
-use anyhow::Context;
-use labrig_franka::safety::ArmView;
+use crate::{ArmTarget, Meshes, Sim, SimError};
+use labrig_arm::safety::ArmView;
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState, Step};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
 use serde::Serialize;
 use std::path::PathBuf;
-use std::process::ExitCode;
 use std::time::Instant;
 
-/// Exit status when the replay deviates beyond the tolerances.
-pub const EXIT_DEVIATION: u8 = 5;
-
-#[derive(Debug, clap::Args)]
-pub struct ReplayArgs {
+/// What to replay and how strictly to judge it.
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
     /// The episode: its directory or its .mcap file.
     pub episode: PathBuf,
     /// Rebuild the scene from this spec (file or built-in name) instead of the episode's.
-    #[arg(long)]
     pub scene: Option<PathBuf>,
     /// The scene seed (default: the episode's).
-    #[arg(long)]
     pub seed: Option<u64>,
-    #[arg(long, env = "LABRIG_SIM_ASSETS")]
     pub assets: Option<PathBuf>,
     /// Render the five cameras every step (as the bridge does), for the speed figure.
-    #[arg(long)]
     pub cameras: bool,
-    #[arg(long, default_value_t = 128)]
     pub width: usize,
-    #[arg(long, default_value_t = 128)]
     pub height: usize,
-    /// Tolerances: the replay fails (exit 5) when a maximum error exceeds one.
-    #[arg(long, default_value_t = 0.01)]
+    /// Tolerances: the replay fails when a maximum error exceeds one.
     pub max_joint_error_rad: f64,
-    #[arg(long, default_value_t = 0.005)]
     pub max_tcp_error_m: f64,
-    #[arg(long, default_value_t = 0.02)]
     pub max_rotation_error_rad: f64,
-    #[arg(long, default_value_t = 0.05)]
     pub max_gripper_error: f64,
     /// Add this (rad) to every recorded joint-1 target: a what-if, and the proof the check fails.
-    #[arg(long, default_value_t = 0.0)]
     pub perturb_joint1_rad: f64,
-    #[arg(long)]
-    pub json: bool,
-    /// Write a PNG: recorded vs replayed TCP trajectory, and the errors over time.
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
+}
+
+/// Why an episode could not be replayed (a replay that deviates is a [`Report`] with
+/// `exceeded` set, not an error).
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error(transparent)]
+    Read(#[from] labrig_episode::ReadError),
+    #[error("{}: no /rig/step records{hint}: nothing to replay", file.display())]
+    NoSteps { file: PathBuf, hint: &'static str },
+    #[error("{}: step {index} is missing (found index {found} there): replay needs every step", file.display())]
+    MissingStep { file: PathBuf, index: usize, found: u64 },
+    #[error("{}: steps 0 and 1 have the same stamp", file.display())]
+    SameStamp { file: PathBuf },
+    /// The episode's metadata does not say which scene it was recorded in.
+    #[error("{0}")]
+    Scene(String),
+    #[error("scene {scene} seed {seed}: {source}")]
+    Build {
+        scene: String,
+        seed: u64,
+        #[source]
+        source: SimError,
+    },
+    #[error("{what}: {source}")]
+    Sim {
+        what: String,
+        #[source]
+        source: SimError,
+    },
+    #[error(transparent)]
+    Spec(#[from] crate::scene::SceneError),
+    #[error(transparent)]
+    Safety(#[from] crate::SafetySetupError),
+    #[error("holding: {0}")]
+    Hold(labrig_arm::safety::Refusal),
+}
+
+#[derive(Debug, Clone)]
+struct FontMissing(String);
+
+/// The plot could not be drawn or written.
+#[derive(Debug, thiserror::Error)]
+#[error("plotting to {}: {reason}", path.display())]
+pub struct PlotError {
+    pub path: PathBuf,
+    pub reason: String,
 }
 
 /// Max and RMS of one error series.
@@ -119,44 +146,33 @@ fn rotation(euler: &[f64]) -> Rotation3<f64> {
 }
 
 /// The scene of a recorded episode: its spec and seed from the metadata's sim scene.
-fn recorded_scene(sim_scene: Option<&str>) -> anyhow::Result<(SceneSpec, u64)> {
-    let json = sim_scene.context(
-        "the episode has no sim scene in its metadata (not recorded in the simulated rig?): give --scene and --seed",
-    )?;
-    let v: serde_json::Value = serde_json::from_str(json).context("the episode's sim scene is not JSON")?;
-    let spec = v.get("spec").cloned().context(
-        "the episode's sim scene has no spec (recorded before scenes carried theirs): give --scene (e.g. pick_place)",
-    )?;
-    let spec: SceneSpec = serde_json::from_value(spec).context("the episode's scene spec")?;
-    let seed = v["seed"].as_u64().context("the episode's sim scene has no seed")?;
+fn recorded_scene(sim_scene: Option<&str>) -> Result<(SceneSpec, u64), ReplayError> {
+    let scene = |m: &str| ReplayError::Scene(m.to_owned());
+    let json = sim_scene.ok_or_else(|| {
+        scene("the episode has no sim scene in its metadata (not recorded in the simulated rig?): give --scene and --seed")
+    })?;
+    let v: serde_json::Value = serde_json::from_str(json)
+        .map_err(|e| ReplayError::Scene(format!("the episode's sim scene is not JSON: {e}")))?;
+    let spec = v.get("spec").cloned().ok_or_else(|| {
+        scene("the episode's sim scene has no spec (recorded before scenes carried theirs): give --scene (e.g. pick_place)")
+    })?;
+    let spec: SceneSpec =
+        serde_json::from_value(spec).map_err(|e| ReplayError::Scene(format!("the episode's scene spec: {e}")))?;
+    let seed = v["seed"].as_u64().ok_or_else(|| scene("the episode's sim scene has no seed"))?;
     Ok((spec, seed))
 }
 
-pub fn run(a: ReplayArgs) -> anyhow::Result<ExitCode> {
-    let r = replay(&a)?;
-    if let Some(path) = &a.plot {
-        plot(&r, path).with_context(|| format!("plotting to {}", path.display()))?;
-    }
-    if a.json {
-        println!("{}", serde_json::to_string(&r)?);
-    } else {
-        print!("{}", text(&r));
-    }
-    Ok(if r.exceeded.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(EXIT_DEVIATION) })
-}
-
-pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
-    let ep = labrig_recorder::inspect::read_episode(&a.episode).map_err(anyhow::Error::msg)?;
-    anyhow::ensure!(
-        !ep.steps.is_empty(),
-        "{}: no /rig/step records{}: nothing to replay",
-        ep.file.display(),
-        if ep.complete {
+/// Replays `a.episode` against its rebuilt scene and compares the states.
+pub fn replay(a: &ReplayOptions) -> Result<Report, ReplayError> {
+    let ep = labrig_episode::read_episode(&a.episode)?;
+    if ep.steps.is_empty() {
+        let hint = if ep.complete {
             ""
         } else {
             " in its readable part (the file is unfinished or truncated; try `labrig recover`)"
-        }
-    );
+        };
+        return Err(ReplayError::NoSteps { file: ep.file.clone(), hint });
+    }
     let meta = ep.metadata.as_ref();
     let (spec, seed) = match &a.scene {
         Some(path) => {
@@ -174,28 +190,28 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
     };
     let steps: &[Step] = &ep.steps;
     for (k, s) in steps.iter().enumerate() {
-        anyhow::ensure!(
-            s.step_index == k as u64,
-            "{}: step {k} is missing (found index {} there): replay needs every step",
-            ep.file.display(),
-            s.step_index
-        );
+        if s.step_index != k as u64 {
+            return Err(ReplayError::MissingStep { file: ep.file.clone(), index: k, found: s.step_index });
+        }
     }
     let stamp = |s: &Step| Nanos::from(s.header.stamp).0;
     let period = if steps.len() > 1 { Nanos(stamp(&steps[1]) - stamp(&steps[0])) } else { Nanos::from_millis(50) };
-    anyhow::ensure!(period.0 > 0, "{}: steps 0 and 1 have the same stamp", ep.file.display());
+    if period.0 <= 0 {
+        return Err(ReplayError::SameStamp { file: ep.file.clone() });
+    }
     let assets = crate::assets_dir(a.assets.as_deref());
     let safety = safety_filter(period, None)?;
-    let build = || -> anyhow::Result<Sim> {
-        let mut sim =
-            Sim::new(&assets, &spec, seed, period).with_context(|| format!("scene {} seed {seed}", spec.name))?;
+    let build = || -> Result<Sim, ReplayError> {
+        let built = |source| ReplayError::Build { scene: spec.name.clone(), seed, source };
+        let mut sim = Sim::new(&assets, &spec, seed, period).map_err(built)?;
         if a.cameras {
-            sim.enable_cameras(a.width, a.height, Meshes::Collision)?;
+            sim.enable_cameras(a.width, a.height, Meshes::Collision).map_err(built)?;
         }
         Ok(sim)
     };
+    let sim_err = |what: String| move |source| ReplayError::Sim { what, source };
     // The arm held after the scene loaded (the loop's hold: its measured joints, gripper open).
-    let hold = |sim: &mut Sim, commanded: &mut Option<[f64; 7]>| -> anyhow::Result<()> {
+    let hold = |sim: &mut Sim, commanded: &mut Option<[f64; 7]>| -> Result<(), ReplayError> {
         let cmd = ArmCommand {
             mode: ArmCommandMode::JointPosition as u8,
             joint_position: commanded.unwrap_or_else(|| sim.joint_positions()),
@@ -203,10 +219,10 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
         };
         let view =
             ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
-        let ok = safety.filter(&cmd, &view, sim.time().0).map_err(|e| anyhow::anyhow!("holding: {e}"))?;
+        let ok = safety.filter(&cmd, &view, sim.time().0).map_err(ReplayError::Hold)?;
         let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
-        sim.check(&t)?;
-        sim.step(&t)?;
+        sim.check(&t).map_err(sim_err("holding".into()))?;
+        sim.step(&t).map_err(sim_err("holding".into()))?;
         *commanded = Some(ok.joints);
         Ok(())
     };
@@ -277,8 +293,8 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
         match safety.filter(&cmd, &view, sim.time().0) {
             Ok(ok) => {
                 let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
-                sim.check(&t).with_context(|| format!("step {k}"))?;
-                sim.step(&t)?;
+                sim.check(&t).map_err(sim_err(format!("step {k}")))?;
+                sim.step(&t).map_err(sim_err(format!("step {k}")))?;
                 commanded = Some(ok.joints);
             }
             Err(e) => {
@@ -289,7 +305,7 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
         }
         if a.cameras {
             for cam in crate::rig::CAMERAS {
-                sim.render_into(cam, &mut rgb)?;
+                sim.render_into(cam, &mut rgb).map_err(sim_err(format!("step {k}: rendering {cam}")))?;
             }
         }
     }
@@ -333,7 +349,8 @@ pub fn replay(a: &ReplayArgs) -> anyhow::Result<Report> {
     })
 }
 
-fn text(r: &Report) -> String {
+/// The report as the text `labrig replay` prints.
+pub fn text(r: &Report) -> String {
     use std::fmt::Write;
     let mut s = String::new();
     let _ = writeln!(s, "replay of {} ({} steps) in scene {} seed {}", r.episode.display(), r.steps, r.scene, r.seed);
@@ -362,30 +379,30 @@ fn text(r: &Report) -> String {
 }
 
 /// A sans-serif TrueType font for the plot's text (Debian's DejaVu, installed by setup).
-fn register_font() -> anyhow::Result<()> {
-    static DONE: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
+/// The error is the reason (kept as text so every later plot repeats the first attempt's).
+fn register_font() -> Result<(), FontMissing> {
+    static DONE: std::sync::OnceLock<Result<(), FontMissing>> = std::sync::OnceLock::new();
     DONE.get_or_init(|| {
         let candidates = ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"];
         let path = candidates.iter().find(|p| std::path::Path::new(p).exists()).ok_or_else(|| {
-            format!(
+            FontMissing(format!(
                 "no DejaVuSans.ttf for the plot's text (looked in {candidates:?}; apt-get install fonts-dejavu-core)"
-            )
+            ))
         })?;
         let bytes: &'static [u8] =
-            Box::leak(std::fs::read(path).map_err(|e| format!("{path}: {e}"))?.into_boxed_slice());
+            Box::leak(std::fs::read(path).map_err(|e| FontMissing(format!("{path}: {e}")))?.into_boxed_slice());
         plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
-            .map_err(|_| format!("{path} is not a font ab_glyph can read"))
+            .map_err(|_| FontMissing(format!("{path} is not a font ab_glyph can read")))
     })
     .clone()
-    .map_err(anyhow::Error::msg)
 }
 
 /// Top: recorded (solid) and replayed (dashed) TCP x, y, z over time. Bottom: the TCP position
 /// error (mm) and the largest joint error (mrad) per step.
-pub fn plot(r: &Report, path: &std::path::Path) -> anyhow::Result<()> {
+pub fn plot(r: &Report, path: &std::path::Path) -> Result<(), PlotError> {
     use plotters::prelude::*;
-    register_font()?;
-    let err = |e| anyhow::anyhow!("{e:?}");
+    let err = |e| PlotError { path: path.to_owned(), reason: format!("{e:?}") };
+    register_font().map_err(|FontMissing(reason)| PlotError { path: path.to_owned(), reason })?;
     let root = BitMapBackend::new(path, (1200, 900)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
     let (top, bottom) = root.split_vertically(520);

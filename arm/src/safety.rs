@@ -22,6 +22,7 @@
 
 use crate::ik::{self, Ik};
 use crate::kinematics::{DOF, Joints};
+use labrig_msgs::Invalid;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
@@ -74,9 +75,13 @@ impl Default for SafetyConfig {
 
 impl SafetyConfig {
     /// Checks the limits make sense; the error names the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), Invalid> {
         let pos = |name: &str, v: f64| {
-            if v.is_finite() && v > 0.0 { Ok(()) } else { Err(format!("safety.{name} = {v} must be > 0")) }
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(Invalid::new(format!("safety.{name}"), format!("safety.{name} = {v} must be > 0")))
+            }
         };
         pos("period_s", self.period_s)?;
         pos("velocity_fraction", self.velocity_fraction)?;
@@ -86,21 +91,33 @@ impl SafetyConfig {
         pos("max_lead_m", self.max_lead_m)?;
         pos("max_lead_rad", self.max_lead_rad)?;
         if self.velocity_fraction > 1.0 {
-            return Err(format!("safety.velocity_fraction = {} must be <= 1", self.velocity_fraction));
+            return Err(Invalid::new(
+                "safety.velocity_fraction",
+                format!("safety.velocity_fraction = {} must be <= 1", self.velocity_fraction),
+            ));
         }
         for k in 0..3 {
             if self.workspace_min[k].partial_cmp(&self.workspace_max[k]) != Some(std::cmp::Ordering::Less) {
-                return Err(format!(
-                    "safety.workspace_min[{k}] = {} must be below workspace_max[{k}] = {}",
-                    self.workspace_min[k], self.workspace_max[k]
+                return Err(Invalid::new(
+                    format!("safety.workspace_min[{k}]"),
+                    format!(
+                        "safety.workspace_min[{k}] = {} must be below workspace_max[{k}] = {}",
+                        self.workspace_min[k], self.workspace_max[k]
+                    ),
                 ));
             }
         }
         if !(0.0..0.5).contains(&self.joint_margin_rad) {
-            return Err(format!("safety.joint_margin_rad = {} must be in [0, 0.5)", self.joint_margin_rad));
+            return Err(Invalid::new(
+                "safety.joint_margin_rad",
+                format!("safety.joint_margin_rad = {} must be in [0, 0.5)", self.joint_margin_rad),
+            ));
         }
         if self.max_command_age_s.is_nan() || self.max_command_age_s < 0.0 {
-            return Err(format!("safety.max_command_age_s = {} must be >= 0", self.max_command_age_s));
+            return Err(Invalid::new(
+                "safety.max_command_age_s",
+                format!("safety.max_command_age_s = {} must be >= 0", self.max_command_age_s),
+            ));
         }
         Ok(())
     }
@@ -176,7 +193,7 @@ pub struct SafetyFilter {
 }
 
 impl SafetyFilter {
-    pub fn new(ik: Ik, cfg: SafetyConfig) -> Result<SafetyFilter, String> {
+    pub fn new(ik: Ik, cfg: SafetyConfig) -> Result<SafetyFilter, Invalid> {
         cfg.validate()?;
         let kin = ik.kinematics();
         let bounds = kin.limits().map(|[lo, hi]| [lo + cfg.joint_margin_rad, hi - cfg.joint_margin_rad]);

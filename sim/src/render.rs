@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 /// Which meshes the cameras see. The FR3 and 2F-85 visual meshes have ~300k triangles and cost
 /// most of a frame on a CPU renderer; their collision meshes look coarser and render ~3x faster.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Meshes {
     /// The detailed visual meshes (snapshots, people looking at the rig).
@@ -18,6 +18,31 @@ pub enum Meshes {
     #[default]
     Collision,
 }
+
+impl std::str::FromStr for Meshes {
+    type Err = UnknownMeshes;
+    fn from_str(s: &str) -> Result<Meshes, UnknownMeshes> {
+        match s {
+            "visual" => Ok(Meshes::Visual),
+            "collision" => Ok(Meshes::Collision),
+            other => Err(UnknownMeshes(other.to_owned())),
+        }
+    }
+}
+
+impl std::fmt::Display for Meshes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Meshes::Visual => "visual",
+            Meshes::Collision => "collision",
+        })
+    }
+}
+
+/// A `--meshes` value that is neither `visual` nor `collision`.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("unknown meshes `{0}` (expected visual or collision)")]
+pub struct UnknownMeshes(pub String);
 
 /// One rendered frame per camera, RGB8, row-major, top row first.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -120,9 +120,11 @@ impl EpisodeMetadata {
     }
 
     /// Reads a `droid_episode` record back.
-    pub fn from_record(m: &BTreeMap<String, String>) -> Result<EpisodeMetadata, String> {
-        let get = |k: &str| m.get(k).cloned().ok_or_else(|| format!("droid_episode metadata has no `{k}`"));
-        let num = |k: &str| get(k)?.parse::<i64>().map_err(|e| format!("droid_episode `{k}`: {e}"));
+    pub fn from_record(m: &BTreeMap<String, String>) -> Result<EpisodeMetadata, MetadataError> {
+        let get = |k: &'static str| m.get(k).cloned().ok_or(MetadataError::Missing { key: k });
+        let bad =
+            |key: &'static str| move |e: &dyn std::fmt::Display| MetadataError::Invalid { key, reason: e.to_string() };
+        let num = |k: &'static str| get(k)?.parse::<i64>().map_err(|e| bad(k)(&e));
         Ok(EpisodeMetadata {
             uuid: get("uuid")?,
             lab: get("lab")?,
@@ -136,13 +138,22 @@ impl EpisodeMetadata {
                 _ => None,
             },
             robot_serial: get("robot_serial")?,
-            camera_serials: serde_json::from_str(&get("camera_serials")?).map_err(|e| e.to_string())?,
-            extrinsics: serde_json::from_str(&get("extrinsics")?).map_err(|e| e.to_string())?,
+            camera_serials: serde_json::from_str(&get("camera_serials")?).map_err(|e| bad("camera_serials")(&e))?,
+            extrinsics: serde_json::from_str(&get("extrinsics")?).map_err(|e| bad("extrinsics")(&e))?,
             start_ns: num("start_ns")?,
             trajectory_length: num("trajectory_length")? as u64,
             sim_scene: m.get("sim_scene").cloned(),
         })
     }
+}
+
+/// A `droid_episode` record that cannot be read back.
+#[derive(Debug, thiserror::Error)]
+pub enum MetadataError {
+    #[error("droid_episode metadata has no `{key}`")]
+    Missing { key: &'static str },
+    #[error("droid_episode `{key}`: {reason}")]
+    Invalid { key: &'static str, reason: String },
 }
 
 fn utc(ns: i64) -> DateTime<Utc> {
@@ -200,6 +211,6 @@ mod tests {
         assert_eq!(m.to_record()["current_task"], "put the cube in the bin");
         let mut r = m.to_record();
         r.remove("lab");
-        assert_eq!(EpisodeMetadata::from_record(&r).unwrap_err(), "droid_episode metadata has no `lab`");
+        assert_eq!(EpisodeMetadata::from_record(&r).unwrap_err().to_string(), "droid_episode metadata has no `lab`");
     }
 }

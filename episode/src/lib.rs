@@ -1,0 +1,23 @@
+//! labrig-episode: the episode format, as a library any tool can read and write without a node.
+//!
+//! - [`metadata`]: DROID's episode metadata record and directory layout.
+//! - [`bag`]: the rosbag2 description (QoS text, `rosbag2` record, `metadata.yaml`).
+//! - [`episode`]: [`episode::EpisodeWriter`], one episode being written.
+//! - [`inspect`]: one pass over an episode file (summary, steps, metadata).
+//! - [`recover`]: an episode whose recorder died, made whole up to its last closed chunk.
+//! - [`jpeg`]: camera frames as JPEG.
+//!
+//! Depends on labrig-msgs, mcap, serde, chrono, jpeg-encoder. Must never depend on tokio, DDS,
+//! iceoryx2 or the heavy native crates (checked by `tests/tests/layering.rs`): the trainer and the
+//! dataset tools read thousands of episodes with it.
+
+pub mod bag;
+pub mod episode;
+pub mod inspect;
+pub mod jpeg;
+pub mod metadata;
+pub mod recover;
+
+pub use episode::{EpisodeError, EpisodeSummary, EpisodeWriter};
+pub use inspect::{EpisodeData, Inspection, ReadError, inspect, read_episode};
+pub use metadata::{EpisodeMetadata, MetadataError, Outcome, RigIdentity, episode_dir};
