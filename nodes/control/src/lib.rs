@@ -6,11 +6,15 @@
 //! - [`step`]: one `labrig_msgs/Step` record per tick from the observation, the action and
 //!   the tick's timing.
 //! - [`source`]: action sources behind one trait (the sim's scripted expert now).
-//! - [`node`]: the node (`labrig-control run`) wiring them to ROS 2 and shared memory.
+//! - [`rig`]: the loop as a state machine ([`rig::RigLoop`]: begin a tick, observe, decide,
+//!   act), driven tick by tick by the node or by a test with in-memory inputs and outputs.
+//! - [`node`]: the node (`labrig-control run`) feeding the state machine from ROS 2 and shared
+//!   memory on the sim's or the wall clock.
 
 pub mod episode;
 pub mod frames;
 pub mod node;
+pub mod rig;
 pub mod source;
 pub mod step;
 

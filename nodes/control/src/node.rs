@@ -23,32 +23,27 @@
 //! runs and the arm node's watchdog stays fed. Step timing (DROID's step_start ..
 //! step_end) is on the loop's clock: in sim, the tick's sim time plus wall time spent in it.
 
-use crate::episode::{Effect, Ending, Episodes, State};
-use crate::frames::{FrameBook, FrameTimes};
-use crate::source::{ActionSource, Proposal, ScriptedExpert, Verdict};
-use crate::step::{Decision, Observation, TickTimes, make_step};
+use crate::frames::FrameTimes;
+use crate::rig::{RigLoop, RigOutputs};
+use crate::source::{ActionSource, ScriptedExpert};
 use anyhow::Context;
 use labrig_arm::ik::{Ik, IkConfig, delta_to_velocity, pose_error, xyz_euler};
-use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter};
+use labrig_arm::safety::{SafetyConfig, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
 use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{
-    ActionDict, ArmCommand, ArmCommandMode, DROID_RESET_POSE, EpisodeEvent, EpisodeEventKind, GripperCommand,
-    GripperState, RIG_CAMERAS, RobotState, Step,
+    ActionDict, ArmCommand, ArmCommandMode, EpisodeEvent, GripperCommand, GripperState, RIG_CAMERAS, RobotState, Step,
 };
-use labrig_msgs::std_msgs::{Header, StringMsg};
+use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::frames::{FrameNode, FrameSubscriber};
-use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription};
+use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
 use labrig_runtime::{RosConfig, Shutdown};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-
-/// In sim time, a state this close to a period after the last tick starts the next one.
-const TICK_TOLERANCE_NS: i64 = 1_000_000;
 
 /// DROID's `max_gripper_delta`: a full-scale gripper velocity moves it this far per step.
 pub const MAX_GRIPPER_DELTA: f64 = 0.25;
@@ -245,34 +240,8 @@ struct Pubs {
     status: RosPublisher<StringMsg>,
 }
 
-/// The latest scene the sim published (`/sim/scene`).
-#[derive(Debug, Clone, Default)]
-struct Scene {
-    seed: Option<u64>,
-    instruction: String,
-}
-
-impl Scene {
-    fn parse(json: &str) -> Result<Scene, serde_json::Error> {
-        let v: serde_json::Value = serde_json::from_str(json)?;
-        Ok(Scene { seed: v["seed"].as_u64(), instruction: v["instruction"].as_str().unwrap_or_default().to_owned() })
-    }
-}
-
-/// What the loop is doing between episodes.
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Between {
-    /// Waiting for `/sim/scene` to show this seed.
-    Reseeding {
-        seed: u64,
-        asked_at: i64,
-    },
-    Ready,
-}
-
 pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summary> {
     cfg.validate()?;
-    let period = Nanos::from_millis(cfg.period_ms as i64);
     let urdf = labrig_arm::urdf_path(cfg.urdf.as_deref());
     let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)
         .with_context(|| format!("loading the FR3 URDF {}", urdf.display()))?;
@@ -305,12 +274,10 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     };
     let cams: Vec<(String, FrameSubscriber)> =
         cfg.cameras.iter().map(|c| Ok((c.clone(), frame_node.subscriber(c)?))).collect::<anyhow::Result<_>>()?;
-    let camera_names: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
-    let mut book = FrameBook::new(&camera_names);
 
     // The first state (the arm node or the sim bridge may still be starting).
     let waited = Instant::now();
-    let mut robot: RobotState = loop {
+    let robot: RobotState = loop {
         if let Some(s) = arm_state.try_take()? {
             break s.msg;
         }
@@ -342,43 +309,12 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     tracing::info!(source = ?cfg.source, clock = ?cfg.clock, episodes = cfg.episodes, "control loop up");
     let _ = pubs.status.publish(StringMsg { data: json!({ "state": "Idle", "ticks": 0 }).to_string() });
 
-    let mut gripper: Option<GripperState> = None;
-    let mut scene = Scene::default();
-    let mut episodes = Episodes::default();
-    let mut between = Between::Ready;
-    let mut summary = Summary::default();
-    let mut commanded: Option<Joints> = None;
-    let mut gripper_target = 0.0f64;
-    let mut seq = 0u64;
-    let mut episode_id = String::new();
-    let mut episode_seed: Option<u64> = None;
-    let mut episode_instruction = String::new();
-    let mut next_seed = cfg.first_seed;
-    let mut reset_started: i64 = 0;
-    let mut last_tick_ns: Option<i64> = None;
-    let mut last_tick_wall: Option<Instant> = None;
-    let mut jitter_ns: Vec<i64> = Vec::new();
-    let mut skew_ns: Vec<i64> = Vec::new();
-    let started = Instant::now();
+    let mut rig = RigLoop::new(cfg.clone(), kin, filter, robot);
+    let mut out = RosOutputs(pubs);
+    let period = rig.period();
     let mut next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
-    // An operator's event and its note (a Start's task instruction).
-    let mut pending_request: Option<(EpisodeEventKind, String)> = None;
-
-    let publish_event = |kind: EpisodeEventKind, id: &str, note: &str, t: i64| {
-        let ev = EpisodeEvent {
-            header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
-            kind: kind as u8,
-            episode_id: id.to_owned(),
-            note: note.to_owned(),
-            ..Default::default()
-        };
-        if let Err(e) = pubs.episode.publish(ev) {
-            tracing::error!("/rig/episode: {e}");
-        }
-    };
-
     'ticks: while !shutdown.is_triggered() {
-        // Wait for the tick.
+        // 1. Wait for the tick.
         let tick_ns = match cfg.clock {
             ClockKind::Sim => loop {
                 if shutdown.is_triggered() {
@@ -390,9 +326,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 }
                 if let Some(s) = newest {
                     let t = Nanos::from(s.header.stamp).0;
-                    robot = s;
-                    // A new period (an arm node may publish states faster than the loop runs).
-                    if last_tick_ns.is_none_or(|l| t >= l + period.0 - TICK_TOLERANCE_NS) {
+                    rig.set_robot(s);
+                    if rig.is_new_tick(t) {
                         break t;
                     }
                 }
@@ -409,70 +344,43 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 let now = Instant::now();
                 // Behind by more than a period: skip the lost ticks, count them.
                 let behind = now.saturating_duration_since(next_wall).as_nanos() as i64 / period.0;
-                summary.missed_ticks += behind as u64;
+                rig.count_missed(behind as u64);
                 next_wall += Duration::from_nanos((period.0 * (behind + 1)) as u64);
                 while let Some(s) = arm_state.try_take()? {
-                    robot = s.msg;
+                    rig.set_robot(s.msg);
                 }
                 labrig_runtime::Clock::Wall.now().0
             }
         };
-        let tick_wall = Instant::now();
-        if let (Some(l), ClockKind::Sim) = (last_tick_ns, cfg.clock) {
-            let missed = (tick_ns - l) / period.0 - 1;
-            if missed > 0 {
-                summary.missed_ticks += missed as u64;
-            }
-        }
-        if let Some(w) = last_tick_wall {
-            jitter_ns.push((tick_wall.duration_since(w).as_nanos() as i64 - period.0).abs());
-        }
-        let prev_tick_ns = last_tick_ns.replace(tick_ns);
-        last_tick_wall = Some(tick_wall);
-        summary.ticks += 1;
-        // The loop's clock inside the tick.
-        let now = |at: Instant| tick_ns + at.duration_since(tick_wall).as_nanos() as i64;
-        let step_start = now(Instant::now());
+        rig.begin_tick(tick_ns, Instant::now());
 
-        // Everything that arrived.
+        // 2. Everything that arrived (on the sim's clock, the tick's own gripper state and
+        // frames trail its arm state on their own channels: wait for them, bounded).
         while let Some(g) = gripper_state.try_take()? {
-            gripper = Some(g.msg);
+            rig.push_gripper(g.msg);
         }
-        // On the sim's clock the gripper's state of this same instant follows the arm's on its
-        // own topic: wait for it (bounded), so a step's gripper reading is not a tick old.
-        if cfg.clock == ClockKind::Sim && gripper.is_some() {
-            let stamp = |g: &Option<GripperState>| g.as_ref().map_or(i64::MIN, |g| Nanos::from(g.header.stamp).0);
-            let deadline = Instant::now() + Duration::from_millis(500);
-            while stamp(&gripper) < tick_ns && Instant::now() < deadline && !shutdown.is_triggered() {
-                tokio::time::sleep(Duration::from_micros(100)).await;
-                while let Some(g) = gripper_state.try_take()? {
-                    gripper = Some(g.msg);
-                }
+        let deadline = Instant::now() + Duration::from_millis(500);
+        while rig.gripper_behind() && Instant::now() < deadline && !shutdown.is_triggered() {
+            tokio::time::sleep(Duration::from_micros(100)).await;
+            while let Some(g) = gripper_state.try_take()? {
+                rig.push_gripper(g.msg);
             }
         }
         while let Some(s) = scene_sub.try_take()? {
-            match Scene::parse(&s.msg.data) {
-                Ok(sc) => scene = sc,
-                Err(e) => tracing::warn!("/sim/scene is not JSON: {e}"),
-            }
+            rig.push_scene(&s.msg.data);
         }
-        // On the sim's clock a camera that kept pace with the last tick has this tick's frame
-        // on its way (it trails the state on its own channel; after a scene rebuild by more):
-        // wait for it (bounded), so a step never pairs this state with the last tick's image.
         let frames_deadline = Instant::now() + Duration::from_millis(200);
         loop {
             for (name, sub) in &cams {
                 while let Some(f) = sub.receive()? {
                     let h = f.header();
-                    book.push(
+                    rig.push_frame(
                         name,
                         FrameTimes { sequence: h.sequence, capture_ns: h.capture_ns, arrival_ns: h.arrival_ns },
                     );
                 }
             }
-            let waiting =
-                cfg.clock == ClockKind::Sim && prev_tick_ns.is_some_and(|p| !book.keeping_pace(p, tick_ns).is_empty());
-            if !waiting || Instant::now() >= frames_deadline || shutdown.is_triggered() {
+            if !rig.frames_pending() || Instant::now() >= frames_deadline || shutdown.is_triggered() {
                 break;
             }
             tokio::time::sleep(Duration::from_micros(100)).await;
@@ -481,280 +389,70 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             tracing::warn!("/rig/request: {e}");
             None
         }) {
-            match r.msg.kind() {
-                Ok(k) => pending_request = Some((k, r.msg.note)),
-                Err(e) => tracing::warn!("/rig/request: {e}"),
-            }
+            rig.push_request(&r.msg);
         }
         if let Some(s) = source.as_mut() {
             s.poll()?;
         }
-
-        // Episode events: the operator's, then the loop's own.
-        let mut skip_command = false;
-        let (mut event, mut instruction) = match pending_request.take() {
-            Some((k, note)) => (Some(k), note),
-            None => (None, String::new()),
-        };
-        if instruction.is_empty() {
-            instruction.clone_from(&scene.instruction);
-        }
-        let state = episodes.state();
-        if state == State::Idle && cfg.episodes > 0 && summary.episodes.len() as u64 >= cfg.episodes {
+        // 3. The episodes asked for are done.
+        if rig.done() {
             break;
         }
-        if let Between::Reseeding { seed, asked_at } = between {
-            // Lockstep: the state after the rebuild is the first tick of the new scene (the
-            // bridge resumes a period on); its scene message may trail it on its own topic.
-            if cfg.clock == ClockKind::Sim && tick_ns > asked_at && scene.seed != Some(seed) {
-                let deadline = Instant::now() + Duration::from_secs(30);
-                while scene.seed != Some(seed) && Instant::now() < deadline && !shutdown.is_triggered() {
-                    tokio::time::sleep(Duration::from_micros(200)).await;
-                    while let Some(m) = scene_sub.try_take()? {
-                        scene = Scene::parse(&m.msg.data).unwrap_or(scene);
-                    }
+        // The new scene's message may trail its first state.
+        if rig.scene_due().is_some() {
+            let deadline = Instant::now() + Duration::from_secs(30);
+            while rig.scene_due().is_some() && Instant::now() < deadline && !shutdown.is_triggered() {
+                tokio::time::sleep(Duration::from_micros(200)).await;
+                while let Some(m) = scene_sub.try_take()? {
+                    rig.push_scene(&m.msg.data);
                 }
-            }
-            if scene.seed == Some(seed) {
-                // This tick starts the episode, from the new scene's first state.
-                between = Between::Ready;
-                commanded = None;
-            } else if tick_ns - asked_at > 30_000_000_000 {
-                anyhow::bail!(
-                    "the sim did not load scene seed {seed} within 30 s of /sim/reset (is it `labrig sim run`?)"
-                );
             }
         }
-        if event.is_none() && state == State::Idle && cfg.auto_start && between == Between::Ready {
-            // Not before the source has an action for now (after a scene rebuild it may lag).
-            let age_ns = (cfg.max_action_age_ms * 1e6) as i64;
-            let source_ready =
-                cfg.clock == ClockKind::Sim || source.as_mut().is_none_or(|s| s.action(tick_ns, age_ns).is_ok());
-            // Nor while a camera that has been sending lags (after a scene rebuild, say).
-            let lagging = book.at(tick_ns, (cfg.stale_frame_ms * 1e6) as i64).stale;
-            if !lagging.is_empty() && summary.ticks.is_multiple_of(40) {
-                let seen = book.at(i64::MAX, i64::MAX).refs;
-                let ages: Vec<f64> = seen.iter().map(|r| (tick_ns - r.capture_ns) as f64 / 1e6).collect();
-                tracing::warn!(cameras = ?lagging, ages_ms = ?ages, "waiting for fresh frames before starting the episode");
-            }
-            if !source_ready || !lagging.is_empty() {
-            } else if cfg.reseed {
-                if scene.seed == Some(next_seed) && episode_seed.is_none_or(|s| s != next_seed) {
-                    event = Some(EpisodeEventKind::Start);
-                } else {
-                    let msg = StringMsg { data: json!({ "seed": next_seed }).to_string() };
-                    pubs.reset.publish(msg)?;
-                    between = Between::Reseeding { seed: next_seed, asked_at: tick_ns };
-                    // Lockstep: no step of the old scene after this; the next state is the new one's.
-                    skip_command = cfg.clock == ClockKind::Sim;
-                }
-            } else {
-                event = Some(EpisodeEventKind::Start);
-            }
-        }
-        if event.is_none() && episodes.recording() {
-            let verdict = source.as_ref().map_or(Verdict::Running, |s| s.verdict(tick_ns));
-            event = match verdict {
-                Verdict::Succeeded => Some(EpisodeEventKind::Success),
-                Verdict::Failed => Some(EpisodeEventKind::Failure),
-                Verdict::Running if episodes.steps >= cfg.max_steps => {
-                    tracing::warn!(steps = episodes.steps, "step budget spent: the episode failed");
-                    Some(EpisodeEventKind::Failure)
-                }
-                Verdict::Running => None,
-            };
-        }
-        if let State::Resetting(_) = state {
-            let home =
-                robot.joint_positions.iter().zip(DROID_RESET_POSE).all(|(q, h)| (q - h).abs() < cfg.home_tolerance_rad);
-            if home {
-                event = Some(EpisodeEventKind::Reset);
-            } else if tick_ns - reset_started > (cfg.reset_timeout_s * 1e9) as i64 {
-                let worst =
-                    robot.joint_positions.iter().zip(DROID_RESET_POSE).map(|(q, h)| (q - h).abs()).fold(0.0, f64::max);
-                anyhow::bail!(
-                    "the arm did not reach the reset pose within {} s ({worst:.3} rad away; mode {}, {:?})",
-                    cfg.reset_timeout_s,
-                    robot.mode,
-                    robot.fault
-                );
-            }
-        }
-        if let Some(kind) = event {
-            match episodes.on(kind) {
-                Ok(Effect::StartRecording) => {
-                    episode_id = episode_uuid(&cfg.lab, &cfg.user, &summary.episodes);
-                    episode_seed = scene.seed;
-                    if let Some(s) = source.as_mut() {
-                        s.restart(tick_ns);
-                    }
-                    publish_event(kind, &episode_id, &instruction, tick_ns);
-                    tracing::info!(episode = %episode_id, seed = ?scene.seed, %instruction, "episode started");
-                    episode_instruction.clone_from(&instruction);
-                }
-                Ok(Effect::EndRecording(ending)) => {
-                    publish_event(kind, &episode_id, "", tick_ns);
-                    let outcome = match ending {
-                        Ending::Success => "success",
-                        Ending::Failure => "failure",
-                        Ending::Discarded => "discarded",
-                    };
-                    tracing::info!(episode = %episode_id, steps = episodes.steps, outcome, "episode ended");
-                    summary.episodes.push(EpisodeReport {
-                        episode_id: episode_id.clone(),
-                        seed: episode_seed,
-                        instruction: episode_instruction.clone(),
-                        outcome: outcome.into(),
-                        steps: episodes.steps,
-                    });
-                    reset_started = tick_ns;
-                    if cfg.reseed {
-                        next_seed += 1;
-                    }
-                }
-                Ok(Effect::Ready) => {
-                    publish_event(kind, &episode_id, "", tick_ns);
-                    tracing::info!("the arm is home");
-                }
-                Err(refused) => tracing::warn!("{refused}"),
-            }
-        }
-
+        // 4. Episode events.
+        rig.decide(source.as_deref_mut(), &mut out)?;
         // Lockstep: the source's action for this state comes right after the state.
-        if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, episodes.recording()) {
+        if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, rig.recording()) {
             let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
             while !s.has(tick_ns) && Instant::now() < deadline && !shutdown.is_triggered() {
                 tokio::time::sleep(Duration::from_micros(100)).await;
                 s.poll()?;
             }
         }
-        // The action: the source's while recording, home while resetting, else hold.
-        let policy_start = now(Instant::now());
-        let view = ArmView { measured: robot.joint_positions, commanded: commanded.unwrap_or(robot.joint_positions) };
-        let (proposal, source_kind) = match episodes.state() {
-            State::Recording => match source.as_mut() {
-                Some(s) => match s.action(tick_ns, (cfg.max_action_age_ms * 1e6) as i64) {
-                    Ok(p) => (Some(p), s.kind()),
-                    Err(e) => {
-                        tracing::warn!("{e}: holding");
-                        summary.held_ticks += 1;
-                        (None, s.kind())
-                    }
-                },
-                None => (None, Step::SOURCE_NONE),
-            },
-            State::Resetting(_) => {
-                let cmd = ArmCommand {
-                    mode: ArmCommandMode::JointPosition as u8,
-                    joint_position: DROID_RESET_POSE,
-                    gripper_position: 0.0,
-                    ..Default::default()
-                };
-                (Some(Proposal { command: cmd, movement_enabled: true }), Step::SOURCE_NONE)
-            }
-            State::Idle => (None, Step::SOURCE_NONE),
-        };
-        let hold = || ArmCommand {
-            mode: ArmCommandMode::JointPosition as u8,
-            joint_position: view.commanded,
-            gripper_position: gripper_target,
-            ..Default::default()
-        };
-        let (mut wanted, mut moving) = match proposal.filter(|p| p.movement_enabled) {
-            Some(p) => (p.command, true),
-            None => (hold(), false),
-        };
-        let safe = match filter.filter(&wanted, &view, tick_ns) {
-            Ok(s) => s,
-            Err(refusal) => {
-                moving = false;
-                // The record holds what was done (a hold), never the refused values.
-                wanted = hold();
-                summary.refused += 1;
-                summary.held_ticks += 1;
-                tracing::warn!("refused the action: {refusal}; holding");
-                filter.filter(&wanted, &view, tick_ns).map_err(|e| anyhow::anyhow!("cannot even hold the arm: {e}"))?
-            }
-        };
-        let action = action_dict(&kin, &robot, gripper.as_ref(), &wanted, &safe.joints, safe.gripper);
-        // Send.
-        let sleep_start = now(Instant::now());
-        seq += 1;
-        let stamp: labrig_msgs::builtin_interfaces::Time = Nanos(tick_ns).into();
-        let control_start = now(Instant::now());
-        if skip_command {
-            continue 'ticks;
-        }
-        if let Err(e) = pubs.gripper.publish(GripperCommand {
-            header: Header { stamp, frame_id: String::new() },
-            position: safe.gripper,
-            speed: 1.0,
-            force: 0.5,
-            ..Default::default()
-        }) {
-            tracing::warn!("/gripper/command: {e}");
-        }
-        pubs.arm.publish(ArmCommand {
-            header: Header { stamp, frame_id: "base".into() },
-            mode: ArmCommandMode::JointPosition as u8,
-            joint_position: safe.joints,
-            gripper_position: safe.gripper,
-            seq,
-            ..Default::default()
-        })?;
-        commanded = Some(safe.joints);
-        gripper_target = safe.gripper;
-        if episodes.recording() {
-            let frames = book.at(tick_ns, (cfg.stale_frame_ms * 1e6) as i64);
-            if !frames.missing.is_empty() || !frames.stale.is_empty() {
-                tracing::debug!(missing = ?frames.missing, stale = ?frames.stale, "cameras");
-            }
-            summary.steps_missing_frames += u64::from(!frames.missing.is_empty());
-            summary.steps_stale_frames += u64::from(!frames.stale.is_empty());
-            skew_ns.push(frames.skew_ns);
-            let times = TickTimes {
-                tick_ns,
-                step_start,
-                policy_start,
-                sleep_start,
-                control_start,
-                step_end: now(Instant::now()),
-            };
-            let obs = Observation { robot: robot.clone(), gripper: gripper.clone(), frames };
-            let decision = Decision { action, source: source_kind, movement_enabled: moving };
-            pubs.step.publish(make_step(&episode_id, episodes.steps, &obs, &decision, &times))?;
-            episodes.tick();
-        }
-        if summary.ticks % 20 == 0 {
-            let status = json!({
-                "state": format!("{:?}", episodes.state()),
-                "episode": episode_id,
-                "steps": episodes.steps,
-                "episodes": summary.episodes.len(),
-                "ticks": summary.ticks,
-                "held_ticks": summary.held_ticks,
-                "missed_ticks": summary.missed_ticks,
-                "seconds": started.elapsed().as_secs_f64(),
-            });
-            let _ = pubs.status.publish(StringMsg { data: status.to_string() });
-        }
+        // 5. The action, the commands, the record.
+        rig.act(source.as_deref_mut(), &mut out)?;
     }
-    // An episode still open when the loop stops ends as a failure, so the recorder closes it.
-    if episodes.recording() {
-        let t = last_tick_ns.unwrap_or(0);
-        let _ = episodes.on(EpisodeEventKind::Stop);
-        publish_event(EpisodeEventKind::Stop, &episode_id, "the control loop stopped", t);
-    }
-    summary.jitter_us = percentiles_us(&mut jitter_ns);
-    summary.skew_us = percentiles_us(&mut skew_ns);
-    summary.seconds = started.elapsed().as_secs_f64();
+    let summary = rig.finish(&mut out);
     // The last events reach their readers (the recorder) before the participant goes.
     tokio::time::sleep(Duration::from_millis(1000)).await;
     Ok(summary)
 }
 
+/// The loop's outputs on ROS 2.
+struct RosOutputs(Pubs);
+
+impl RigOutputs for RosOutputs {
+    fn arm(&mut self, cmd: ArmCommand) -> Result<(), RosError> {
+        self.0.arm.publish(cmd)
+    }
+    fn gripper(&mut self, cmd: GripperCommand) -> Result<(), RosError> {
+        self.0.gripper.publish(cmd)
+    }
+    fn step(&mut self, step: Step) -> Result<(), RosError> {
+        self.0.step.publish(step)
+    }
+    fn episode(&mut self, event: EpisodeEvent) -> Result<(), RosError> {
+        self.0.episode.publish(event)
+    }
+    fn reset_scene(&mut self, seed: u64) -> Result<(), RosError> {
+        self.0.reset.publish(StringMsg { data: json!({ "seed": seed }).to_string() })
+    }
+    fn status(&mut self, json: String) -> Result<(), RosError> {
+        self.0.status.publish(StringMsg { data: json })
+    }
+}
+
 /// p50, p99 and max of `v` (ns) in us; NaN when empty.
-fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
+pub(crate) fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
     v.sort_unstable();
     let at = |q: f64| v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).map_or(f64::NAN, |&x| x as f64 / 1e3);
     [at(0.5), at(0.99), at(1.0)]
@@ -762,7 +460,7 @@ fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
 
 /// DROID's uuid `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>` (wall time); a second episode in the
 /// same second gets `-2`, `-3`, ...
-fn episode_uuid(lab: &str, user: &str, earlier: &[EpisodeReport]) -> String {
+pub(crate) fn episode_uuid(lab: &str, user: &str, earlier: &[EpisodeReport]) -> String {
     let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64);
     let base = format!("{lab}+{user}+{}", droid_timestamp(secs));
     let taken = |id: &str| earlier.iter().any(|e| e.episode_id == id);
@@ -779,7 +477,7 @@ fn droid_timestamp(secs: i64) -> String {
 
 /// DROID's action dictionary for one step: the checked joint targets and every other form of
 /// the same action (target pose by FK, velocities as the normalised deltas DROID records).
-fn action_dict(
+pub(crate) fn action_dict(
     kin: &Fr3Kinematics,
     robot: &RobotState,
     gripper: Option<&GripperState>,

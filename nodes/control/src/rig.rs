@@ -1,0 +1,860 @@
+//! The rig loop as a state machine: what one tick does, apart from where its inputs come from
+//! and where its outputs go. The node ([`crate::node::run`]) feeds it from ROS 2 and shared
+//! memory on the sim's or the wall clock; a test feeds it in memory on a manual clock and reads
+//! what it sent ([`RigOutputs`]), tick by tick.
+//!
+//! One tick, in order:
+//! 1. [`RigLoop::begin_tick`] at the tick's time (missed ticks, jitter);
+//! 2. observe: [`RigLoop::set_robot`], [`RigLoop::push_gripper`], [`RigLoop::push_scene`],
+//!    [`RigLoop::push_frame`], [`RigLoop::push_request`] (the node may wait, bounded, for the
+//!    tick's own gripper state, frames and scene: [`RigLoop::gripper_behind`],
+//!    [`RigLoop::frames_pending`], [`RigLoop::scene_due`]);
+//! 3. [`RigLoop::done`]: the episodes asked for are over;
+//! 4. [`RigLoop::decide`]: episode events (the operator's, the source's verdict, the step
+//!    budget, home reached, a new scene) and their effects;
+//! 5. [`RigLoop::act`]: the action (the source's while recording, home while resetting, else
+//!    hold) through the safety layer, the commands, the Step record, the status.
+
+use crate::episode::{Effect, Ending, Episodes, State};
+use crate::frames::{FrameBook, FrameTimes};
+use crate::node::{ClockKind, ControlConfig, EpisodeReport, Summary, action_dict, episode_uuid, percentiles_us};
+use crate::source::{ActionSource, Proposal, Verdict};
+use crate::step::{Decision, Observation, TickTimes, make_step};
+use labrig_arm::safety::{ArmView, Refusal, SafetyFilter};
+use labrig_arm::{Fr3Kinematics, Joints};
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{
+    ArmCommand, ArmCommandMode, DROID_RESET_POSE, EpisodeEvent, EpisodeEventKind, GripperCommand, GripperState,
+    RobotState, Step,
+};
+use labrig_msgs::std_msgs::Header;
+use labrig_runtime::ros::RosError;
+use serde_json::json;
+use std::time::Instant;
+
+/// In sim time, a state this close to a period after the last tick starts the next one.
+pub const TICK_TOLERANCE_NS: i64 = 1_000_000;
+
+/// Where a tick's outputs go: ROS 2 in the node, vectors in a test.
+pub trait RigOutputs {
+    fn arm(&mut self, cmd: ArmCommand) -> Result<(), RosError>;
+    fn gripper(&mut self, cmd: GripperCommand) -> Result<(), RosError>;
+    fn step(&mut self, step: Step) -> Result<(), RosError>;
+    fn episode(&mut self, event: EpisodeEvent) -> Result<(), RosError>;
+    /// Ask the sim for a new scene (`/sim/reset`).
+    fn reset_scene(&mut self, seed: u64) -> Result<(), RosError>;
+    /// The loop's status (JSON), latched.
+    fn status(&mut self, json: String) -> Result<(), RosError>;
+}
+
+/// Why the loop stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum LoopError {
+    #[error(transparent)]
+    Ros(#[from] RosError),
+    #[error("the sim did not load scene seed {seed} within 30 s of /sim/reset (is it `labrig sim run`?)")]
+    SceneTimeout { seed: u64 },
+    #[error(
+        "the arm did not reach the reset pose within {timeout_s} s ({worst_rad:.3} rad away; mode {mode}, {fault:?})"
+    )]
+    NotHome { timeout_s: f64, worst_rad: f64, mode: u8, fault: String },
+    #[error("cannot even hold the arm: {0}")]
+    CannotHold(Refusal),
+}
+
+/// The latest scene the sim published (`/sim/scene`).
+#[derive(Debug, Clone, Default)]
+struct Scene {
+    seed: Option<u64>,
+    instruction: String,
+}
+
+impl Scene {
+    fn parse(json: &str) -> Result<Scene, serde_json::Error> {
+        let v: serde_json::Value = serde_json::from_str(json)?;
+        Ok(Scene { seed: v["seed"].as_u64(), instruction: v["instruction"].as_str().unwrap_or_default().to_owned() })
+    }
+}
+
+/// What the loop is doing between episodes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Between {
+    /// Waiting for `/sim/scene` to show this seed.
+    Reseeding {
+        seed: u64,
+        asked_at: i64,
+    },
+    Ready,
+}
+
+/// The current tick.
+#[derive(Debug, Clone, Copy)]
+struct Tick {
+    ns: i64,
+    wall: Instant,
+    prev_ns: Option<i64>,
+    step_start: i64,
+    /// Lockstep, a new scene asked for: no command this tick (the next state is the new scene's).
+    skip_command: bool,
+}
+
+impl Tick {
+    /// The loop's clock inside the tick: the tick's time plus the wall time spent in it.
+    fn now(&self) -> i64 {
+        self.ns + Instant::now().duration_since(self.wall).as_nanos() as i64
+    }
+}
+
+/// The rig loop's state between ticks.
+#[derive(Debug)]
+pub struct RigLoop {
+    cfg: ControlConfig,
+    period: Nanos,
+    kin: Fr3Kinematics,
+    filter: SafetyFilter,
+    book: FrameBook,
+    robot: RobotState,
+    gripper: Option<GripperState>,
+    scene: Scene,
+    episodes: Episodes,
+    between: Between,
+    summary: Summary,
+    commanded: Option<Joints>,
+    gripper_target: f64,
+    seq: u64,
+    episode_id: String,
+    episode_seed: Option<u64>,
+    episode_instruction: String,
+    next_seed: u64,
+    reset_started: i64,
+    last_tick_ns: Option<i64>,
+    last_tick_wall: Option<Instant>,
+    jitter_ns: Vec<i64>,
+    skew_ns: Vec<i64>,
+    started: Instant,
+    /// An operator's event and its note (a Start's task instruction).
+    pending_request: Option<(EpisodeEventKind, String)>,
+    tick: Option<Tick>,
+}
+
+impl RigLoop {
+    /// A loop starting from the arm's first state.
+    pub fn new(cfg: ControlConfig, kin: Fr3Kinematics, filter: SafetyFilter, robot: RobotState) -> RigLoop {
+        let camera_names: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
+        RigLoop {
+            period: Nanos::from_millis(cfg.period_ms as i64),
+            book: FrameBook::new(&camera_names),
+            next_seed: cfg.first_seed,
+            cfg,
+            kin,
+            filter,
+            robot,
+            gripper: None,
+            scene: Scene::default(),
+            episodes: Episodes::default(),
+            between: Between::Ready,
+            summary: Summary::default(),
+            commanded: None,
+            gripper_target: 0.0,
+            seq: 0,
+            episode_id: String::new(),
+            episode_seed: None,
+            episode_instruction: String::new(),
+            reset_started: 0,
+            last_tick_ns: None,
+            last_tick_wall: None,
+            jitter_ns: Vec::new(),
+            skew_ns: Vec::new(),
+            started: Instant::now(),
+            pending_request: None,
+            tick: None,
+        }
+    }
+
+    pub fn period(&self) -> Nanos {
+        self.period
+    }
+
+    /// The last tick's time (ns), if there was one.
+    pub fn last_tick_ns(&self) -> Option<i64> {
+        self.last_tick_ns
+    }
+
+    pub fn summary(&self) -> &Summary {
+        &self.summary
+    }
+
+    pub fn state(&self) -> State {
+        self.episodes.state()
+    }
+
+    pub fn recording(&self) -> bool {
+        self.episodes.recording()
+    }
+
+    /// Counts ticks the wall clock skipped (it runs on regardless of the loop).
+    pub fn count_missed(&mut self, ticks: u64) {
+        self.summary.missed_ticks += ticks;
+    }
+
+    /// On the sim's clock: whether a state stamped `t` starts a new tick (the arm node may
+    /// publish states faster than the loop runs).
+    pub fn is_new_tick(&self, t: i64) -> bool {
+        self.last_tick_ns.is_none_or(|l| t >= l + self.period.0 - TICK_TOLERANCE_NS)
+    }
+
+    /// Step 1: a tick at `tick_ns` on the loop's clock, begun at wall time `wall`.
+    pub fn begin_tick(&mut self, tick_ns: i64, wall: Instant) {
+        if let (Some(l), ClockKind::Sim) = (self.last_tick_ns, self.cfg.clock) {
+            let missed = (tick_ns - l) / self.period.0 - 1;
+            if missed > 0 {
+                self.summary.missed_ticks += missed as u64;
+            }
+        }
+        if let Some(w) = self.last_tick_wall {
+            self.jitter_ns.push((wall.duration_since(w).as_nanos() as i64 - self.period.0).abs());
+        }
+        let prev_ns = self.last_tick_ns.replace(tick_ns);
+        self.last_tick_wall = Some(wall);
+        self.summary.ticks += 1;
+        let mut tick = Tick { ns: tick_ns, wall, prev_ns, step_start: 0, skip_command: false };
+        tick.step_start = tick.now();
+        self.tick = Some(tick);
+    }
+
+    fn tick(&self) -> Tick {
+        self.tick.expect("begin_tick before the tick's other steps")
+    }
+
+    /// Step 2: the arm's newest state.
+    pub fn set_robot(&mut self, state: RobotState) {
+        self.robot = state;
+    }
+
+    pub fn push_gripper(&mut self, state: GripperState) {
+        self.gripper = Some(state);
+    }
+
+    /// On the sim's clock the gripper's state of the tick's instant follows the arm's on its
+    /// own topic: true while the newest one is older than the tick (wait for it, bounded).
+    pub fn gripper_behind(&self) -> bool {
+        let stamp = self.gripper.as_ref().map_or(i64::MIN, |g| Nanos::from(g.header.stamp).0);
+        self.cfg.clock == ClockKind::Sim && self.gripper.is_some() && stamp < self.tick().ns
+    }
+
+    /// A `/sim/scene` message (JSON); a bad one is logged and ignored.
+    pub fn push_scene(&mut self, json: &str) {
+        match Scene::parse(json) {
+            Ok(sc) => self.scene = sc,
+            Err(e) => tracing::warn!("/sim/scene is not JSON: {e}"),
+        }
+    }
+
+    pub fn push_frame(&mut self, camera: &str, frame: FrameTimes) {
+        self.book.push(camera, frame);
+    }
+
+    /// On the sim's clock a camera that kept pace with the last tick has this tick's frame on
+    /// its way: true while one is missing (wait for it, bounded, so a step never pairs this
+    /// state with the last tick's image).
+    pub fn frames_pending(&self) -> bool {
+        let t = self.tick();
+        self.cfg.clock == ClockKind::Sim && t.prev_ns.is_some_and(|p| !self.book.keeping_pace(p, t.ns).is_empty())
+    }
+
+    /// An operator's request (`/rig/request`); the newest one of a tick wins.
+    pub fn push_request(&mut self, event: &EpisodeEvent) {
+        match event.kind() {
+            Ok(k) => self.pending_request = Some((k, event.note.clone())),
+            Err(e) => tracing::warn!("/rig/request: {e}"),
+        }
+    }
+
+    /// Lockstep after `/sim/reset`: the state after the rebuild is the new scene's first tick,
+    /// and its scene message may trail it on its own topic. `Some(seed)` while it is due and
+    /// not here yet (wait for it, bounded).
+    pub fn scene_due(&self) -> Option<u64> {
+        match self.between {
+            Between::Reseeding { seed, asked_at }
+                if self.cfg.clock == ClockKind::Sim && self.tick().ns > asked_at && self.scene.seed != Some(seed) =>
+            {
+                Some(seed)
+            }
+            _ => None,
+        }
+    }
+
+    /// Step 3: idle with the episodes asked for done: the loop ends.
+    pub fn done(&self) -> bool {
+        self.episodes.state() == State::Idle
+            && self.cfg.episodes > 0
+            && self.summary.episodes.len() as u64 >= self.cfg.episodes
+    }
+
+    /// Step 4: this tick's episode event, if any, and its effects.
+    pub fn decide(
+        &mut self,
+        mut source: Option<&mut (dyn ActionSource + '_)>,
+        out: &mut dyn RigOutputs,
+    ) -> Result<(), LoopError> {
+        let tick_ns = self.tick().ns;
+        let (mut event, mut instruction) = match self.pending_request.take() {
+            Some((k, note)) => (Some(k), note),
+            None => (None, String::new()),
+        };
+        if instruction.is_empty() {
+            instruction.clone_from(&self.scene.instruction);
+        }
+        let state = self.episodes.state();
+        if let Between::Reseeding { seed, asked_at } = self.between {
+            if self.scene.seed == Some(seed) {
+                // This tick starts the episode, from the new scene's first state.
+                self.between = Between::Ready;
+                self.commanded = None;
+            } else if tick_ns - asked_at > 30_000_000_000 {
+                return Err(LoopError::SceneTimeout { seed });
+            }
+        }
+        if event.is_none() && state == State::Idle && self.cfg.auto_start && self.between == Between::Ready {
+            // Not before the source has an action for now (after a scene rebuild it may lag).
+            let age_ns = (self.cfg.max_action_age_ms * 1e6) as i64;
+            let source_ready =
+                self.cfg.clock == ClockKind::Sim || source.as_mut().is_none_or(|s| s.action(tick_ns, age_ns).is_ok());
+            // Nor while a camera that has been sending lags (after a scene rebuild, say).
+            let lagging = self.book.at(tick_ns, (self.cfg.stale_frame_ms * 1e6) as i64).stale;
+            if !lagging.is_empty() && self.summary.ticks.is_multiple_of(40) {
+                let seen = self.book.at(i64::MAX, i64::MAX).refs;
+                let ages: Vec<f64> = seen.iter().map(|r| (tick_ns - r.capture_ns) as f64 / 1e6).collect();
+                tracing::warn!(cameras = ?lagging, ages_ms = ?ages, "waiting for fresh frames before starting the episode");
+            }
+            if !source_ready || !lagging.is_empty() {
+            } else if self.cfg.reseed {
+                if self.scene.seed == Some(self.next_seed) && self.episode_seed.is_none_or(|s| s != self.next_seed) {
+                    event = Some(EpisodeEventKind::Start);
+                } else {
+                    out.reset_scene(self.next_seed)?;
+                    self.between = Between::Reseeding { seed: self.next_seed, asked_at: tick_ns };
+                    // Lockstep: no step of the old scene after this; the next state is the new one's.
+                    if let Some(t) = self.tick.as_mut() {
+                        t.skip_command = self.cfg.clock == ClockKind::Sim;
+                    }
+                }
+            } else {
+                event = Some(EpisodeEventKind::Start);
+            }
+        }
+        if event.is_none() && self.episodes.recording() {
+            let verdict = source.as_ref().map_or(Verdict::Running, |s| s.verdict(tick_ns));
+            event = match verdict {
+                Verdict::Succeeded => Some(EpisodeEventKind::Success),
+                Verdict::Failed => Some(EpisodeEventKind::Failure),
+                Verdict::Running if self.episodes.steps >= self.cfg.max_steps => {
+                    tracing::warn!(steps = self.episodes.steps, "step budget spent: the episode failed");
+                    Some(EpisodeEventKind::Failure)
+                }
+                Verdict::Running => None,
+            };
+        }
+        if let State::Resetting(_) = state {
+            let away = |q: &f64, h: f64| (q - h).abs();
+            let home = self
+                .robot
+                .joint_positions
+                .iter()
+                .zip(DROID_RESET_POSE)
+                .all(|(q, h)| away(q, h) < self.cfg.home_tolerance_rad);
+            if home {
+                event = Some(EpisodeEventKind::Reset);
+            } else if tick_ns - self.reset_started > (self.cfg.reset_timeout_s * 1e9) as i64 {
+                let worst_rad = self
+                    .robot
+                    .joint_positions
+                    .iter()
+                    .zip(DROID_RESET_POSE)
+                    .map(|(q, h)| away(q, h))
+                    .fold(0.0, f64::max);
+                return Err(LoopError::NotHome {
+                    timeout_s: self.cfg.reset_timeout_s,
+                    worst_rad,
+                    mode: self.robot.mode,
+                    fault: self.robot.fault.clone(),
+                });
+            }
+        }
+        if let Some(kind) = event {
+            self.apply(kind, &instruction, source, out);
+        }
+        Ok(())
+    }
+
+    fn publish_event(&self, out: &mut dyn RigOutputs, kind: EpisodeEventKind, note: &str, t: i64) {
+        let ev = EpisodeEvent {
+            header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
+            kind: kind as u8,
+            episode_id: self.episode_id.clone(),
+            note: note.to_owned(),
+            ..Default::default()
+        };
+        if let Err(e) = out.episode(ev) {
+            tracing::error!("/rig/episode: {e}");
+        }
+    }
+
+    fn apply(
+        &mut self,
+        kind: EpisodeEventKind,
+        instruction: &str,
+        source: Option<&mut (dyn ActionSource + '_)>,
+        out: &mut dyn RigOutputs,
+    ) {
+        let tick_ns = self.tick().ns;
+        match self.episodes.on(kind) {
+            Ok(Effect::StartRecording) => {
+                self.episode_id = episode_uuid(&self.cfg.lab, &self.cfg.user, &self.summary.episodes);
+                self.episode_seed = self.scene.seed;
+                if let Some(s) = source {
+                    s.restart(tick_ns);
+                }
+                self.publish_event(out, kind, instruction, tick_ns);
+                tracing::info!(episode = %self.episode_id, seed = ?self.scene.seed, %instruction, "episode started");
+                self.episode_instruction = instruction.to_owned();
+            }
+            Ok(Effect::EndRecording(ending)) => {
+                self.publish_event(out, kind, "", tick_ns);
+                let outcome = match ending {
+                    Ending::Success => "success",
+                    Ending::Failure => "failure",
+                    Ending::Discarded => "discarded",
+                };
+                tracing::info!(episode = %self.episode_id, steps = self.episodes.steps, outcome, "episode ended");
+                self.summary.episodes.push(EpisodeReport {
+                    episode_id: self.episode_id.clone(),
+                    seed: self.episode_seed,
+                    instruction: self.episode_instruction.clone(),
+                    outcome: outcome.into(),
+                    steps: self.episodes.steps,
+                });
+                self.reset_started = tick_ns;
+                if self.cfg.reseed {
+                    self.next_seed += 1;
+                }
+            }
+            Ok(Effect::Ready) => {
+                self.publish_event(out, kind, "", tick_ns);
+                tracing::info!("the arm is home");
+            }
+            Err(refused) => tracing::warn!("{refused}"),
+        }
+    }
+
+    /// Step 5: the tick's action through the safety layer, the commands, the Step record.
+    pub fn act(
+        &mut self,
+        source: Option<&mut (dyn ActionSource + '_)>,
+        out: &mut dyn RigOutputs,
+    ) -> Result<(), LoopError> {
+        let tick = self.tick();
+        let tick_ns = tick.ns;
+        let policy_start = tick.now();
+        let robot = &self.robot;
+        let view =
+            ArmView { measured: robot.joint_positions, commanded: self.commanded.unwrap_or(robot.joint_positions) };
+        let (proposal, source_kind) = match self.episodes.state() {
+            State::Recording => match source {
+                Some(s) => match s.action(tick_ns, (self.cfg.max_action_age_ms * 1e6) as i64) {
+                    Ok(p) => (Some(p), s.kind()),
+                    Err(e) => {
+                        tracing::warn!("{e}: holding");
+                        self.summary.held_ticks += 1;
+                        (None, s.kind())
+                    }
+                },
+                None => (None, Step::SOURCE_NONE),
+            },
+            State::Resetting(_) => {
+                let cmd = ArmCommand {
+                    mode: ArmCommandMode::JointPosition as u8,
+                    joint_position: DROID_RESET_POSE,
+                    gripper_position: 0.0,
+                    ..Default::default()
+                };
+                (Some(Proposal { command: cmd, movement_enabled: true }), Step::SOURCE_NONE)
+            }
+            State::Idle => (None, Step::SOURCE_NONE),
+        };
+        let gripper_target = self.gripper_target;
+        let hold = || ArmCommand {
+            mode: ArmCommandMode::JointPosition as u8,
+            joint_position: view.commanded,
+            gripper_position: gripper_target,
+            ..Default::default()
+        };
+        let (mut wanted, mut moving) = match proposal.filter(|p| p.movement_enabled) {
+            Some(p) => (p.command, true),
+            None => (hold(), false),
+        };
+        let safe = match self.filter.filter(&wanted, &view, tick_ns) {
+            Ok(s) => s,
+            Err(refusal) => {
+                moving = false;
+                // The record holds what was done (a hold), never the refused values.
+                wanted = hold();
+                self.summary.refused += 1;
+                self.summary.held_ticks += 1;
+                tracing::warn!("refused the action: {refusal}; holding");
+                self.filter.filter(&wanted, &view, tick_ns).map_err(LoopError::CannotHold)?
+            }
+        };
+        let action = action_dict(&self.kin, &self.robot, self.gripper.as_ref(), &wanted, &safe.joints, safe.gripper);
+        let sleep_start = tick.now();
+        self.seq += 1;
+        let stamp: labrig_msgs::builtin_interfaces::Time = Nanos(tick_ns).into();
+        let control_start = tick.now();
+        if tick.skip_command {
+            return Ok(());
+        }
+        if let Err(e) = out.gripper(GripperCommand {
+            header: Header { stamp, frame_id: String::new() },
+            position: safe.gripper,
+            speed: 1.0,
+            force: 0.5,
+            ..Default::default()
+        }) {
+            tracing::warn!("/gripper/command: {e}");
+        }
+        out.arm(ArmCommand {
+            header: Header { stamp, frame_id: "base".into() },
+            mode: ArmCommandMode::JointPosition as u8,
+            joint_position: safe.joints,
+            gripper_position: safe.gripper,
+            seq: self.seq,
+            ..Default::default()
+        })?;
+        self.commanded = Some(safe.joints);
+        self.gripper_target = safe.gripper;
+        if self.episodes.recording() {
+            let frames = self.book.at(tick_ns, (self.cfg.stale_frame_ms * 1e6) as i64);
+            if !frames.missing.is_empty() || !frames.stale.is_empty() {
+                tracing::debug!(missing = ?frames.missing, stale = ?frames.stale, "cameras");
+            }
+            self.summary.steps_missing_frames += u64::from(!frames.missing.is_empty());
+            self.summary.steps_stale_frames += u64::from(!frames.stale.is_empty());
+            self.skew_ns.push(frames.skew_ns);
+            let times = TickTimes {
+                tick_ns,
+                step_start: tick.step_start,
+                policy_start,
+                sleep_start,
+                control_start,
+                step_end: tick.now(),
+            };
+            let obs = Observation { robot: self.robot.clone(), gripper: self.gripper.clone(), frames };
+            let decision = Decision { action, source: source_kind, movement_enabled: moving };
+            out.step(make_step(&self.episode_id, self.episodes.steps, &obs, &decision, &times))?;
+            self.episodes.tick();
+        }
+        if self.summary.ticks.is_multiple_of(20) {
+            let status = json!({
+                "state": format!("{:?}", self.episodes.state()),
+                "episode": self.episode_id,
+                "steps": self.episodes.steps,
+                "episodes": self.summary.episodes.len(),
+                "ticks": self.summary.ticks,
+                "held_ticks": self.summary.held_ticks,
+                "missed_ticks": self.summary.missed_ticks,
+                "seconds": self.started.elapsed().as_secs_f64(),
+            });
+            let _ = out.status(status.to_string());
+        }
+        Ok(())
+    }
+
+    /// The loop stops: an episode still open ends as a failure (so the recorder closes it);
+    /// the run's summary.
+    pub fn finish(mut self, out: &mut dyn RigOutputs) -> Summary {
+        if self.episodes.recording() {
+            let t = self.last_tick_ns.unwrap_or(0);
+            let _ = self.episodes.on(EpisodeEventKind::Stop);
+            self.publish_event(out, EpisodeEventKind::Stop, "the control loop stopped", t);
+        }
+        self.summary.jitter_us = percentiles_us(&mut self.jitter_ns);
+        self.summary.skew_us = percentiles_us(&mut self.skew_ns);
+        self.summary.seconds = self.started.elapsed().as_secs_f64();
+        self.summary
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The loop driven tick by tick on a manual clock, with an in-memory action source and
+    //! outputs: no processes, no DDS.
+    use super::*;
+    use crate::node::SourceKind;
+    use crate::source::SourceError;
+    use labrig_arm::TcpOffset;
+    use labrig_arm::ik::{Ik, IkConfig};
+    use labrig_arm::safety::SafetyConfig;
+    use std::collections::VecDeque;
+
+    const PERIOD: i64 = 50_000_000;
+
+    #[derive(Debug, Default)]
+    struct Sent {
+        arm: Vec<ArmCommand>,
+        gripper: Vec<GripperCommand>,
+        steps: Vec<Step>,
+        events: Vec<EpisodeEvent>,
+        resets: Vec<u64>,
+    }
+
+    impl Sent {
+        fn kinds(&self) -> Vec<EpisodeEventKind> {
+            self.events.iter().map(|e| e.kind().unwrap()).collect()
+        }
+    }
+
+    impl RigOutputs for Sent {
+        fn arm(&mut self, cmd: ArmCommand) -> Result<(), RosError> {
+            self.arm.push(cmd);
+            Ok(())
+        }
+        fn gripper(&mut self, cmd: GripperCommand) -> Result<(), RosError> {
+            self.gripper.push(cmd);
+            Ok(())
+        }
+        fn step(&mut self, step: Step) -> Result<(), RosError> {
+            self.steps.push(step);
+            Ok(())
+        }
+        fn episode(&mut self, event: EpisodeEvent) -> Result<(), RosError> {
+            self.events.push(event);
+            Ok(())
+        }
+        fn reset_scene(&mut self, seed: u64) -> Result<(), RosError> {
+            self.resets.push(seed);
+            Ok(())
+        }
+        fn status(&mut self, _json: String) -> Result<(), RosError> {
+            Ok(())
+        }
+    }
+
+    /// A source that hands out queued actions and a verdict the test sets.
+    #[derive(Debug, Default)]
+    struct Queue {
+        actions: VecDeque<Result<Proposal, SourceError>>,
+        verdict: Option<Verdict>,
+        restarts: u32,
+    }
+
+    impl ActionSource for Queue {
+        fn name(&self) -> &'static str {
+            "test queue"
+        }
+        fn kind(&self) -> u8 {
+            Step::SOURCE_SCRIPTED
+        }
+        fn poll(&mut self) -> Result<(), RosError> {
+            Ok(())
+        }
+        fn has(&self, _tick_ns: i64) -> bool {
+            true
+        }
+        fn action(&mut self, _tick_ns: i64, _max_age_ns: i64) -> Result<Proposal, SourceError> {
+            self.actions.pop_front().unwrap_or(Err(SourceError::Silent { from: "test queue" }))
+        }
+        fn verdict(&self, _tick_ns: i64) -> Verdict {
+            self.verdict.unwrap_or(Verdict::Running)
+        }
+        fn restart(&mut self, _start_ns: i64) {
+            self.restarts += 1;
+        }
+    }
+
+    fn joints_at(offset: f64) -> [f64; 7] {
+        let mut q = DROID_RESET_POSE;
+        q[0] += offset;
+        q
+    }
+
+    fn state(joints: [f64; 7]) -> RobotState {
+        RobotState { joint_positions: joints, ..Default::default() }
+    }
+
+    fn rig(max_steps: u64) -> RigLoop {
+        let cfg = ControlConfig {
+            source: SourceKind::Hold,
+            clock: ClockKind::Sim,
+            auto_start: false,
+            reseed: false,
+            episodes: 1,
+            max_steps,
+            cameras: vec![],
+            frames_namespace: None,
+            ..ControlConfig::default()
+        };
+        cfg.validate().unwrap();
+        let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(None), TcpOffset::ROBOTIQ_2F85).unwrap();
+        let filter = SafetyFilter::new(
+            Ik::new(kin.clone(), IkConfig::default()),
+            SafetyConfig { max_command_age_s: 0.0, ..SafetyConfig::default() },
+        )
+        .unwrap();
+        RigLoop::new(cfg, kin, filter, state(DROID_RESET_POSE))
+    }
+
+    fn go(joints: [f64; 7]) -> Result<Proposal, SourceError> {
+        let command =
+            ArmCommand { mode: ArmCommandMode::JointPosition as u8, joint_position: joints, ..Default::default() };
+        Ok(Proposal { command, movement_enabled: true })
+    }
+
+    /// One tick at `k` periods with the arm where it was last commanded (a perfect arm).
+    fn tick(rig: &mut RigLoop, k: i64, source: &mut Queue, out: &mut Sent) {
+        if let Some(last) = out.arm.last() {
+            rig.set_robot(state(last.joint_position));
+        }
+        rig.begin_tick(k * PERIOD, Instant::now());
+        rig.decide(Some(source), out).unwrap();
+        rig.act(Some(source), out).unwrap();
+    }
+
+    fn request(rig: &mut RigLoop, kind: EpisodeEventKind, note: &str) {
+        rig.push_request(&EpisodeEvent { kind: kind as u8, note: note.into(), ..Default::default() });
+    }
+
+    #[test]
+    fn idle_it_holds_the_arm_and_records_nothing() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        src.actions.push_back(go(joints_at(0.01)));
+        for k in 0..3 {
+            tick(&mut rig, k, &mut src, &mut out);
+        }
+        assert_eq!(out.arm.len(), 3, "the arm is commanded every tick, holding");
+        assert!(out.arm.iter().all(|c| c.joint_position == DROID_RESET_POSE));
+        assert!(out.steps.is_empty() && out.events.is_empty());
+        assert_eq!(src.actions.len(), 1, "idle, the source is not asked");
+        assert_eq!(out.arm.iter().map(|c| c.seq).collect::<Vec<_>>(), [1, 2, 3]);
+    }
+
+    #[test]
+    fn an_episode_starts_is_judged_goes_home_and_ends_the_run() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        tick(&mut rig, 0, &mut src, &mut out);
+        request(&mut rig, EpisodeEventKind::Start, "put the cube in the bin");
+        src.actions.extend([go(joints_at(0.01)), go(joints_at(0.02)), go(joints_at(0.03))]);
+        for k in 1..4 {
+            tick(&mut rig, k, &mut src, &mut out);
+        }
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start]);
+        assert_eq!(out.events[0].note, "put the cube in the bin");
+        assert_eq!(src.restarts, 1);
+        assert_eq!(out.steps.len(), 3);
+        assert_eq!(out.steps.iter().map(|s| s.step_index).collect::<Vec<_>>(), [0, 1, 2]);
+        assert!(out.steps.iter().all(|s| s.movement_enabled && s.episode_id == out.events[0].episode_id));
+        assert!((out.arm.last().unwrap().joint_position[0] - joints_at(0.03)[0]).abs() < 1e-12);
+        // Each step records the state it acted on and the action it sent.
+        assert_eq!(out.steps[1].robot_state.joint_positions, joints_at(0.01));
+        assert_eq!(out.steps[1].action.joint_position, joints_at(0.02));
+        assert_eq!(Nanos::from(out.steps[2].header.stamp).0, 3 * PERIOD);
+
+        src.verdict = Some(Verdict::Succeeded);
+        tick(&mut rig, 4, &mut src, &mut out);
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Success]);
+        assert_eq!(out.steps.len(), 3, "no step after the verdict");
+        assert_eq!(rig.summary().episodes[0].outcome, "success");
+        assert_eq!(rig.summary().episodes[0].steps, 3);
+        assert!(matches!(rig.state(), State::Resetting(_)));
+        assert!(!rig.done(), "not done before the arm is home");
+        // Resetting: the arm is sent home in steps the safety layer allows, then Reset.
+        let mut k = 5;
+        while !rig.done() {
+            tick(&mut rig, k, &mut src, &mut out);
+            k += 1;
+            assert!(k < 200, "never home: {:?}", out.arm.last());
+        }
+        assert_eq!(out.kinds().last(), Some(&EpisodeEventKind::Reset));
+        assert_eq!(rig.state(), State::Idle);
+        let summary = rig.finish(&mut out);
+        assert_eq!(summary.episodes.len(), 1);
+        assert_eq!(out.kinds().len(), 3, "finish adds no Stop when no episode is open");
+    }
+
+    #[test]
+    fn a_nan_action_is_refused_and_recorded_as_the_hold_it_became() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        request(&mut rig, EpisodeEventKind::Start, "");
+        let mut nan = joints_at(0.01);
+        nan[3] = f64::NAN;
+        src.actions.extend([go(joints_at(0.01)), go(nan)]);
+        tick(&mut rig, 0, &mut src, &mut out);
+        tick(&mut rig, 1, &mut src, &mut out);
+        assert_eq!(rig.summary().refused, 1);
+        assert_eq!(rig.summary().held_ticks, 1);
+        let held = out.arm.last().unwrap();
+        assert_eq!(held.joint_position, joints_at(0.01), "the arm holds its last good target");
+        let step = out.steps.last().unwrap();
+        assert!(!step.movement_enabled);
+        assert_eq!(step.action.joint_position, joints_at(0.01));
+        assert!(step.action.target_cartesian_position.iter().all(|v| v.is_finite()), "{:?}", step.action);
+    }
+
+    #[test]
+    fn a_stale_or_missing_action_holds_the_arm() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        request(&mut rig, EpisodeEventKind::Start, "");
+        src.actions.extend([
+            go(joints_at(0.01)),
+            Err(SourceError::Stale { from: "test queue", age_ms: 400.0, limit_ms: 150.0 }),
+        ]);
+        for k in 0..3 {
+            tick(&mut rig, k, &mut src, &mut out);
+        }
+        assert_eq!(rig.summary().held_ticks, 2, "stale, then silent");
+        assert_eq!(rig.summary().refused, 0, "nothing reached the safety layer to refuse");
+        assert!(out.arm[1..].iter().all(|c| c.joint_position == joints_at(0.01)));
+        assert_eq!(out.steps.iter().map(|s| s.movement_enabled).collect::<Vec<_>>(), [true, false, false]);
+        assert!(out.steps.iter().all(|s| s.action_source == Step::SOURCE_SCRIPTED));
+    }
+
+    #[test]
+    fn the_step_budget_fails_an_episode_and_a_stop_closes_an_open_one() {
+        let (mut rig, mut src, mut out) = (rig(2), Queue::default(), Sent::default());
+        request(&mut rig, EpisodeEventKind::Start, "");
+        src.actions.extend([go(joints_at(0.01)), go(joints_at(0.02)), go(joints_at(0.03))]);
+        for k in 0..3 {
+            tick(&mut rig, k, &mut src, &mut out);
+        }
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Failure]);
+        assert_eq!(out.steps.len(), 2);
+        assert_eq!(rig.summary().episodes[0].outcome, "failure");
+
+        let (mut rig, mut src, mut out) = (self::rig(100), Queue::default(), Sent::default());
+        request(&mut rig, EpisodeEventKind::Start, "");
+        tick(&mut rig, 0, &mut src, &mut out);
+        let summary = rig.finish(&mut out);
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
+        assert_eq!(out.events[1].note, "the control loop stopped");
+        assert_eq!(summary.ticks, 1);
+    }
+
+    #[test]
+    fn an_event_out_of_place_is_refused_and_changes_nothing() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        request(&mut rig, EpisodeEventKind::Success, "");
+        tick(&mut rig, 0, &mut src, &mut out);
+        assert!(out.events.is_empty());
+        assert_eq!(rig.state(), State::Idle);
+    }
+
+    #[test]
+    fn ticks_on_the_sim_clock_count_the_periods_they_skip() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        assert!(rig.is_new_tick(0));
+        tick(&mut rig, 0, &mut src, &mut out);
+        assert!(!rig.is_new_tick(PERIOD / 2), "a state inside the period is not a tick");
+        assert!(rig.is_new_tick(PERIOD - TICK_TOLERANCE_NS / 2));
+        tick(&mut rig, 3, &mut src, &mut out);
+        assert_eq!(rig.summary().missed_ticks, 2);
+    }
+}
