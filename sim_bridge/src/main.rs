@@ -115,13 +115,11 @@ struct ReplayArgs {
 }
 
 fn main() -> ExitCode {
-    labrig_runtime::node_main_with::<BridgeNode, Tool, _, _>(|tool, _shutdown| async move {
-        match tool {
-            Tool::Snapshot(a) => snapshot(a),
-            Tool::Eval(a) => eval(a),
-            Tool::Bench(a) => labrig_sim_bridge::bench::run(a),
-            Tool::Replay(a) => replay(a),
-        }
+    labrig_runtime::node_main_with::<BridgeNode, Tool, _>(|tool, _, _| match tool {
+        Tool::Snapshot(a) => snapshot(a),
+        Tool::Eval(a) => eval(a),
+        Tool::Bench(a) => labrig_sim_bridge::bench::run(a),
+        Tool::Replay(a) => replay(a),
     })
 }
 

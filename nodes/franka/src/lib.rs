@@ -7,6 +7,8 @@
 //! - [`node`]: `/arm/command` -> safety layer -> backend; state, target, joint states, tf.
 
 pub mod backend;
+pub mod bench;
+pub mod bench_ik;
 pub mod fci;
 pub mod node;
 pub mod sim;
@@ -70,4 +72,13 @@ impl labrig_runtime::Node for FrankaNode {
     async fn run(config: FrankaNodeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         node::serve(config, shutdown).await
     }
+}
+
+/// `labrig-franka`'s tools beside `run`.
+#[derive(Debug, clap::Subcommand)]
+pub enum FrankaTools {
+    /// The node against franka-sim: command-to-backend latency (`labrig bench franka`).
+    Bench(bench::FrankaArgs),
+    /// The node's command path per tick: URDF FK + Jacobian, IK, the safety filter (`labrig bench ik`).
+    BenchIk(bench_ik::IkArgs),
 }

@@ -88,23 +88,6 @@ pub struct ShmReport {
     pub poll_us: u64,
 }
 
-/// CPU seconds (user + system) a process has used, from `/proc/<proc>/stat` (`proc`: a pid,
-/// or `self`); None when it is gone or unreadable.
-pub(crate) fn cpu_seconds_of(proc: &str) -> Option<f64> {
-    let stat = std::fs::read_to_string(format!("/proc/{proc}/stat")).ok()?;
-    // Fields after the command name (which may hold spaces and parentheses) start at field 3
-    // (state); utime is field 14, stime 15.
-    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
-    let ticks = |i: usize| fields.get(i - 3).and_then(|f| f.parse::<f64>().ok());
-    // USER_HZ is 100 on every Linux labrig runs on.
-    Some((ticks(14)? + ticks(15)?) / 100.0)
-}
-
-/// CPU seconds this process has used (NaN if /proc cannot say).
-pub(crate) fn process_cpu_seconds() -> f64 {
-    cpu_seconds_of("self").unwrap_or(f64::NAN)
-}
-
 fn percentile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
         return f64::NAN;
@@ -136,7 +119,7 @@ pub fn shm_publisher(args: ShmPublisherArgs) -> anyhow::Result<ExitCode> {
     let period = Duration::from_secs_f64(1.0 / args.rate);
     let frames = (args.seconds * args.rate).round() as u64;
     let start = Instant::now();
-    let cpu0 = process_cpu_seconds();
+    let cpu0 = labrig_runtime::cpu::process_cpu_seconds();
     let clock = Clock::Wall;
     for i in 0..frames {
         let due = start + period * i as u32;
@@ -149,7 +132,7 @@ pub fn shm_publisher(args: ShmPublisherArgs) -> anyhow::Result<ExitCode> {
     }
     let report = PublisherReport {
         published: frames,
-        cpu_s: process_cpu_seconds() - cpu0,
+        cpu_s: labrig_runtime::cpu::process_cpu_seconds() - cpu0,
         wall_s: start.elapsed().as_secs_f64(),
     };
     println!("{}", serde_json::to_string(&report)?);
@@ -187,7 +170,7 @@ pub fn run_shm(args: &ShmArgs) -> anyhow::Result<ShmReport> {
         children.push(child);
     }
     let clock = Clock::Wall;
-    let cpu0 = process_cpu_seconds();
+    let cpu0 = labrig_runtime::cpu::process_cpu_seconds();
     let mut latencies: Vec<Vec<f64>> = vec![Vec::new(); args.streams];
     let mut gaps = vec![0u64; args.streams];
     let mut last_seq: Vec<Option<u64>> = vec![None; args.streams];
@@ -229,7 +212,7 @@ pub fn run_shm(args: &ShmArgs) -> anyhow::Result<ShmReport> {
         std::thread::sleep(Duration::from_micros(args.poll_us));
     }
     bar.finish_and_clear();
-    let sub_cpu = process_cpu_seconds() - cpu0;
+    let sub_cpu = labrig_runtime::cpu::process_cpu_seconds() - cpu0;
     let wall = started.elapsed().as_secs_f64();
     let mut streams = Vec::new();
     let mut all = Vec::new();

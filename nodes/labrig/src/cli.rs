@@ -158,12 +158,27 @@ pub enum BenchCommand {
     Shm(crate::bench::ShmArgs),
     /// The rig loop free-running for minutes: tick jitter, missed ticks, dropped frames, recorder CPU, MB/s.
     Loop(crate::bench_loop::LoopArgs),
-    /// Recording an episode: writer MB/s, CPU, JPEG encoding (synthetic 5-camera rig).
-    Record(crate::bench_record::RecordArgs),
-    /// The franka node against franka-sim: command-to-backend latency (in the node and round trip).
-    Franka(crate::bench_franka::FrankaArgs),
-    /// The franka node's command path per tick: URDF FK + Jacobian, IK, the safety filter.
-    Ik(crate::bench_ik::IkArgs),
+    /// Recording an episode: writer MB/s, CPU, JPEG encoding (synthetic 5-camera rig); `labrig-recorder bench`.
+    #[command(disable_help_flag = true)]
+    Record {
+        /// The options of `labrig-recorder bench` (see `labrig bench record --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// The franka node against franka-sim: command-to-backend latency (in the node and round trip); `labrig-franka bench`.
+    #[command(disable_help_flag = true)]
+    Franka {
+        /// The options of `labrig-franka bench` (see `labrig bench franka --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// The franka node's command path per tick: URDF FK + Jacobian, IK, the safety filter; `labrig-franka bench-ik`.
+    #[command(disable_help_flag = true)]
+    Ik {
+        /// The options of `labrig-franka bench-ik` (see `labrig bench ik --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// DROID export and import throughput (steps/s) of one episode: `labrig bench export
     /// <episode> [--repeat 5] [--json]`.
     #[command(disable_help_flag = true)]
@@ -172,8 +187,13 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
-    /// The Quest teleop node: logcat line in -> action out, p50/p99 (a recorded trace played).
-    Teleop(crate::bench_teleop::TeleopArgs),
+    /// The Quest teleop node: logcat line in -> action out, p50/p99 (a recorded trace played); `labrig-teleop bench`.
+    #[command(disable_help_flag = true)]
+    Teleop {
+        /// The options of `labrig-teleop bench` (see `labrig bench teleop --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -187,11 +207,11 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Topic(TopicCommand::Hz(a)) => crate::topic::hz(a),
         Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
-        Command::Bench(BenchCommand::Ik(a)) => crate::bench_ik::run(a),
-        Command::Bench(BenchCommand::Franka(a)) => crate::bench_franka::run(a),
-        Command::Bench(BenchCommand::Record(a)) => crate::bench_record::run(a),
+        Command::Bench(BenchCommand::Ik { args }) => node("labrig-franka", &tool("bench-ik", args)),
+        Command::Bench(BenchCommand::Franka { args }) => node("labrig-franka", &tool("bench", args)),
+        Command::Bench(BenchCommand::Record { args }) => node("labrig-recorder", &tool("bench", args)),
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
-        Command::Bench(BenchCommand::Teleop(a)) => crate::bench_teleop::run(a),
+        Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
@@ -212,4 +232,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Control { args } => node("labrig-control", &args),
         Command::Recorder { args } => node("labrig-recorder", &args),
     }
+}
+
+/// `<tool> <args...>`: a node program's tool invocation.
+fn tool(name: &str, args: Vec<String>) -> Vec<String> {
+    std::iter::once(name.to_owned()).chain(args).collect()
 }

@@ -3,11 +3,7 @@
 //! `main()` only parses arguments and calls [`cli::run`], so every command is testable.
 
 pub mod bench;
-pub mod bench_franka;
-pub mod bench_ik;
 pub mod bench_loop;
-pub mod bench_record;
-pub mod bench_teleop;
 pub mod cli;
 pub mod demo;
 pub mod episode;

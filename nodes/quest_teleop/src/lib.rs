@@ -7,6 +7,7 @@
 //!   back at its own timing, or the keyboard ([`keyboard`]: a virtual controller).
 //! - [`node`]: the ROS 2 node: `/teleop/state`, `/teleop/action`, `/rig/request`.
 
+pub mod bench;
 pub mod input;
 pub mod keyboard;
 pub mod logcat;
@@ -99,4 +100,11 @@ impl labrig_runtime::Node for TeleopNode {
     async fn run(config: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<TeleopStats> {
         node::run(config, shutdown).await
     }
+}
+
+/// `labrig-teleop`'s tools beside `run`.
+#[derive(Debug, clap::Subcommand)]
+pub enum TeleopTools {
+    /// The node's latency, logcat line in -> action out (`labrig bench teleop`).
+    Bench(bench::TeleopArgs),
 }

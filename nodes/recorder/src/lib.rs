@@ -2,6 +2,7 @@
 //! `/rig/episode` start/end). The episode format itself (writing, reading, inspection,
 //! recovery) is labrig-episode; this crate adds only the transport.
 
+pub mod bench;
 pub mod node;
 
 use labrig_msgs::Invalid;
@@ -45,4 +46,11 @@ impl labrig_runtime::Node for RecorderNode {
     async fn run(config: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         node::run(config, shutdown).await
     }
+}
+
+/// `labrig-recorder`'s tools beside `run`.
+#[derive(Debug, clap::Subcommand)]
+pub enum RecorderTools {
+    /// Recording an episode: writer MB/s, CPU, JPEG encoding (`labrig bench record`).
+    Bench(bench::RecordArgs),
 }

@@ -7,6 +7,7 @@
 //! - [`ros`]: ROS 2 through ros2-client with explicit QoS, DDS on loopback unless configured
 //!   otherwise, typed publishers/subscriptions/services over labrig-msgs' codec.
 //! - [`frames`]: iceoryx2 zero-copy camera frame channels with a [`frames::FrameHeader`].
+//! - [`cpu`]: a process's CPU seconds from /proc (the benchmarks).
 //! - [`logging`]: tracing setup with the project's level policy.
 //!
 //! Depends on labrig-msgs, ros2-client/rustdds, iceoryx2, tokio. Must never depend on tch,
@@ -14,6 +15,7 @@
 
 pub mod clock;
 pub mod config;
+pub mod cpu;
 pub mod frames;
 pub mod lifecycle;
 pub mod logging;

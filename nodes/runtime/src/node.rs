@@ -107,17 +107,17 @@ pub enum StartError {
 
 /// `main` of a node program with no tools: `fn main() -> ExitCode { node_main::<MyNode>() }`.
 pub fn node_main<N: Node>() -> ExitCode {
-    node_main_with::<N, NoTools, _, _>(|tool, _| async move { match tool {} })
+    node_main_with::<N, NoTools, _>(|tool, _, _| match tool {})
 }
 
-/// `main` of a node program that also carries tools (`<program> <tool> ...`), run with the
-/// same logging, runtime and signal handling as the node.
-pub fn node_main_with<N, T, H, Fut>(tool: H) -> ExitCode
+/// `main` of a node program that also carries tools (`<program> <tool> ...`: the node's
+/// benchmark, an emulator, ...), with the same logging and signal handling as the node. A tool
+/// runs outside the runtime (it may start its own, or `block_on` the one it is given).
+pub fn node_main_with<N, T, H>(tool: H) -> ExitCode
 where
     N: Node,
     T: Subcommand,
-    H: FnOnce(T, Shutdown) -> Fut,
-    Fut: Future<Output = anyhow::Result<ExitCode>>,
+    H: FnOnce(T, &tokio::runtime::Runtime, Shutdown) -> anyhow::Result<ExitCode>,
 {
     let parsed = match parse::<N, T>(std::env::args_os()) {
         Ok(p) => p,
@@ -132,14 +132,14 @@ where
             return ExitCode::FAILURE;
         }
     };
-    let result = rt.block_on(async {
-        let shutdown = Shutdown::new();
-        shutdown.trigger_on_signals()?;
-        match parsed {
-            Parsed::Tool(t) => tool(t, shutdown).await,
-            Parsed::Run(run) => run_node::<N>(*run, shutdown).await.map(|()| ExitCode::SUCCESS),
-        }
-    });
+    let shutdown = Shutdown::new();
+    let result = match rt.block_on(async { shutdown.trigger_on_signals() }) {
+        Err(e) => Err(e.into()),
+        Ok(()) => match parsed {
+            Parsed::Tool(t) => tool(t, &rt, shutdown),
+            Parsed::Run(run) => rt.block_on(run_node::<N>(*run, shutdown)).map(|()| ExitCode::SUCCESS),
+        },
+    };
     match result {
         Ok(code) => code,
         Err(e) => {

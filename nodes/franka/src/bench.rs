@@ -80,7 +80,7 @@ pub fn run(a: FrankaArgs) -> anyhow::Result<ExitCode> {
             .map_err(|e| anyhow::anyhow!("cannot start franka-sim ({}): {e}", python.display()))?,
     );
     let _node = Killed(
-        Command::new(crate::programs::sibling_binary("labrig-franka")?)
+        Command::new(std::env::current_exe()?)
             .args(["run", "--robot-ip", &format!("127.0.0.1:{}", a.port), "--no-realtime"])
             .args(["--domain-id", &a.domain_id.to_string()])
             .stdout(Stdio::null())

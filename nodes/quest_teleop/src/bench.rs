@@ -1,4 +1,4 @@
-//! `labrig bench teleop`: the Quest teleop node's latency, logcat line in -> action out.
+//! `labrig bench teleop` (`labrig-teleop bench`): the Quest teleop node's latency, logcat line in -> action out.
 //! Starts `labrig-teleop run` playing a recorded controller trace (the committed
 //! square.logcat by default) on a private DDS domain, plays the arm's `/arm/state` to it
 //! at 50 Hz from this process, and measures:
@@ -40,9 +40,8 @@ fn summary(mut v: Vec<f64>) -> serde_json::Value {
 }
 
 pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
-    let trace = a.trace.unwrap_or_else(|| {
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../quest_teleop/tests/fixtures/square.logcat")
-    });
+    let trace =
+        a.trace.unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/square.logcat"));
     anyhow::ensure!(trace.is_file(), "{}: no such trace", trace.display());
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let (node, received) = rt.block_on(async {
@@ -50,7 +49,7 @@ pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
         let mut ros = Ros::new(&cfg, "labrig_bench_teleop")?;
         let state = ros.publisher_on(&topics::ARM_STATE, 100)?;
         let actions = ros.subscription_on(&topics::TELEOP_ACTION, 1000)?;
-        let child = Command::new(crate::programs::sibling_binary("labrig-teleop")?)
+        let child = Command::new(std::env::current_exe()?)
             .args(["run", "--json", "--exit-at-end", "--speed", &a.speed.to_string()])
             .args(["--domain-id", &a.domain_id.to_string(), "--file"])
             .arg(&trace)
