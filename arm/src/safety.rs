@@ -22,8 +22,8 @@
 
 use crate::ik::{self, Ik};
 use crate::kinematics::{DOF, Joints};
-use labrig_msgs::Invalid;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::{Invalid, Nanos};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -34,8 +34,8 @@ pub struct SafetyConfig {
     /// Control period (s): per-step limits are per this period.
     pub period_s: f64,
     /// The TCP's allowed box in the robot base frame (m).
-    pub workspace_min: [f64; 3],
-    pub workspace_max: [f64; 3],
+    pub workspace_min_m: [f64; 3],
+    pub workspace_max_m: [f64; 3],
     /// Joints stay this far inside the FR3's limits (rad).
     pub joint_margin_rad: f64,
     /// Fraction of each joint's velocity limit one step may use.
@@ -59,8 +59,8 @@ impl Default for SafetyConfig {
     fn default() -> Self {
         SafetyConfig {
             period_s: 0.05,
-            workspace_min: [0.15, -0.6, 0.02],
-            workspace_max: [0.9, 0.6, 0.9],
+            workspace_min_m: [0.15, -0.6, 0.02],
+            workspace_max_m: [0.9, 0.6, 0.9],
             joint_margin_rad: 0.02,
             velocity_fraction: 0.8,
             max_step_m: ik::MAX_LIN_DELTA,
@@ -97,12 +97,12 @@ impl SafetyConfig {
             ));
         }
         for k in 0..3 {
-            if self.workspace_min[k].partial_cmp(&self.workspace_max[k]) != Some(std::cmp::Ordering::Less) {
+            if self.workspace_min_m[k].partial_cmp(&self.workspace_max_m[k]) != Some(std::cmp::Ordering::Less) {
                 return Err(Invalid::new(
-                    format!("safety.workspace_min[{k}]"),
+                    format!("safety.workspace_min_m[{k}]"),
                     format!(
-                        "safety.workspace_min[{k}] = {} must be below workspace_max[{k}] = {}",
-                        self.workspace_min[k], self.workspace_max[k]
+                        "safety.workspace_min_m[{k}] = {} must be below workspace_max_m[{k}] = {}",
+                        self.workspace_min_m[k], self.workspace_max_m[k]
                     ),
                 ));
             }
@@ -123,8 +123,8 @@ impl SafetyConfig {
     }
 
     /// The watchdog's timeout (ns).
-    pub fn watchdog_ns(&self) -> i64 {
-        (self.watchdog_periods * self.period_s * 1e9).round() as i64
+    pub fn watchdog_timeout(&self) -> Nanos {
+        Nanos((self.watchdog_periods * self.period_s * 1e9).round() as i64)
     }
 }
 
@@ -214,9 +214,9 @@ impl SafetyFilter {
         self.max_joint_step
     }
 
-    /// Checks `cmd` against the limits and turns it into joint targets. `now_ns` is the
+    /// Checks `cmd` against the limits and turns it into joint targets. `now` is the
     /// node's clock (same time base as the command stamps).
-    pub fn filter(&self, cmd: &ArmCommand, arm: &ArmView, now_ns: i64) -> Result<SafeCommand, Refusal> {
+    pub fn filter(&self, cmd: &ArmCommand, arm: &ArmView, now: Nanos) -> Result<SafeCommand, Refusal> {
         let mode = cmd.mode().map_err(|_| Refusal::UnknownMode(cmd.mode))?;
         let finite = |field: &'static str, v: &[f64]| -> Result<(), Refusal> {
             match v.iter().position(|x| !x.is_finite()) {
@@ -237,7 +237,7 @@ impl SafetyFilter {
         }
         let stamp = cmd.header.stamp.sec as i64 * 1_000_000_000 + cmd.header.stamp.nanosec as i64;
         if self.cfg.max_command_age_s > 0.0 {
-            let age = (now_ns - stamp) as f64 * 1e-9;
+            let age = (now.0 - stamp) as f64 * 1e-9;
             if age.abs() > self.cfg.max_command_age_s {
                 return Err(Refusal::Stale { age_ms: age * 1e3, limit_ms: self.cfg.max_command_age_s * 1e3 });
             }
@@ -319,7 +319,7 @@ impl SafetyFilter {
     fn cartesian(&self, mut target: Isometry3<f64>, arm: &ArmView, clipped: &mut Vec<Clip>) -> Joints {
         for axis in 0..3 {
             let v = target.translation.vector[axis];
-            let (lo, hi) = (self.cfg.workspace_min[axis], self.cfg.workspace_max[axis]);
+            let (lo, hi) = (self.cfg.workspace_min_m[axis], self.cfg.workspace_max_m[axis]);
             if v < lo || v > hi {
                 let limit = v.clamp(lo, hi);
                 clipped.push(Clip::Workspace { axis, value: v, limit });
@@ -357,7 +357,7 @@ impl SafetyFilter {
             }
         }
         let tcp = kin.tcp_pose(&out).translation.vector;
-        let inside = (0..3).all(|k| tcp[k] >= self.cfg.workspace_min[k] && tcp[k] <= self.cfg.workspace_max[k]);
+        let inside = (0..3).all(|k| tcp[k] >= self.cfg.workspace_min_m[k] && tcp[k] <= self.cfg.workspace_max_m[k]);
         if !inside {
             return Err(Refusal::OutsideWorkspace { tcp: [tcp.x, tcp.y, tcp.z] });
         }
@@ -392,28 +392,28 @@ impl SafetyFilter {
 /// timeout (two control periods by default, 100 ms at 20 Hz).
 #[derive(Debug, Clone)]
 pub struct Watchdog {
-    timeout_ns: i64,
-    last_ns: Option<i64>,
+    timeout: Nanos,
+    last: Option<Nanos>,
     tripped: bool,
 }
 
 impl Watchdog {
-    pub fn new(timeout_ns: i64) -> Watchdog {
-        Watchdog { timeout_ns, last_ns: None, tripped: false }
+    pub fn new(timeout: Nanos) -> Watchdog {
+        Watchdog { timeout, last: None, tripped: false }
     }
 
-    /// A fresh, accepted command arrived at `now_ns`.
-    pub fn feed(&mut self, now_ns: i64) {
-        self.last_ns = Some(now_ns);
+    /// A fresh, accepted command arrived at `now`.
+    pub fn feed(&mut self, now: Nanos) {
+        self.last = Some(now);
         self.tripped = false;
     }
 
-    /// Whether the arm must hold at `now_ns`: commands were flowing and stopped for the
-    /// timeout or longer. Returns `Some(silence_ns)` the first time it trips, for the report.
-    pub fn check(&mut self, now_ns: i64) -> Option<i64> {
-        let last = self.last_ns?;
-        let silence = now_ns - last;
-        if silence >= self.timeout_ns && !self.tripped {
+    /// Whether the arm must hold at `now`: commands were flowing and stopped for the
+    /// timeout or longer. Returns `Some(silence)` the first time it trips, for the report.
+    pub fn check(&mut self, now: Nanos) -> Option<Nanos> {
+        let last = self.last?;
+        let silence = now - last;
+        if silence >= self.timeout && !self.tripped {
             self.tripped = true;
             return Some(silence);
         }
@@ -423,9 +423,9 @@ impl Watchdog {
     /// When the watchdog trips if no command comes first: `None` before the first command
     /// and while it is holding. A control loop that steps in coarse ticks uses it to stop
     /// mid-tick, on time, rather than at the next tick.
-    pub fn deadline(&self) -> Option<i64> {
-        match (self.last_ns, self.tripped) {
-            (Some(last), false) => Some(last + self.timeout_ns),
+    pub fn deadline(&self) -> Option<Nanos> {
+        match (self.last, self.tripped) {
+            (Some(last), false) => Some(last + self.timeout),
             _ => None,
         }
     }

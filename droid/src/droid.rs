@@ -492,7 +492,8 @@ mod tests {
     use labrig_episode::metadata::RigIdentity;
 
     fn episode(success: Option<bool>) -> Episode {
-        let mut metadata = EpisodeMetadata::new(&RigIdentity::default(), "s", "t", 1_700_000_000_000_000_000);
+        let mut metadata =
+            EpisodeMetadata::new(&RigIdentity::default(), "s", "t", labrig_msgs::Nanos(1_700_000_000_000_000_000));
         metadata.success = success;
         let steps = (0..3).map(|i| Step { step_index: i, ..Step::default() }).collect();
         Episode { metadata, steps, cameras: Vec::new(), hand_offset: None }

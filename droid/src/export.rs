@@ -126,7 +126,7 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
     let outcome = if metadata.success == Some(true) { Outcome::Success } else { Outcome::Failure };
     let json_name = meta::file_name(&metadata.uuid);
     let dir = crate::destination(
-        &episode_dir(out_root, outcome, metadata.start_ns),
+        &episode_dir(out_root, outcome, Nanos(metadata.start_ns)),
         |d| d.join(&json_name).is_file(),
         opts.overwrite,
     )?;

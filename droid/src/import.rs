@@ -122,7 +122,7 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
     // The recorder's metadata.yaml names the episode's uuid.
     let uuid = meta.uuid.clone();
     let same = |d: &Path| std::fs::read_to_string(d.join("metadata.yaml")).is_ok_and(|y| y.contains(&uuid));
-    let dir = crate::destination(&episode_dir(out_root, outcome, meta.start_ns), same, opts.overwrite)?;
+    let dir = crate::destination(&episode_dir(out_root, outcome, Nanos(meta.start_ns)), same, opts.overwrite)?;
     let partial = dir.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
     let mut warnings = Vec::new();
@@ -186,7 +186,13 @@ fn write_episode(
         note: "imported from DROID".into(),
         ..EpisodeEvent::default()
     };
-    w.write(topics::RIG_EPISODE.name, &event(EpisodeEventKind::Start, t0), t0, t0, Reliability::Reliable)?;
+    w.write(
+        topics::RIG_EPISODE.name,
+        &event(EpisodeEventKind::Start, t0),
+        Nanos(t0),
+        Nanos(t0),
+        Reliability::Reliable,
+    )?;
     let mut frames = 0u64;
     let mut short = vec![false; cameras.len()];
     let mut last_t = t0;
@@ -208,7 +214,7 @@ fn write_episode(
                     p: [k[0], k[1], k[2], 0.0, k[3], k[4], k[5], 0.0, k[6], k[7], k[8], 0.0],
                     ..CameraInfo::default()
                 };
-                w.write(&topics::camera_info(&cam.id), &info, t, t, Reliability::Reliable)?;
+                w.write(&topics::camera_info(&cam.id), &info, Nanos(t), Nanos(t), Reliability::Reliable)?;
             }
             // The video holds one frame per step; a step whose frame is its predecessor's
             // (same capture time) was one frame recorded once.
@@ -233,10 +239,10 @@ fn write_episode(
                 format: "jpeg".into(),
                 data: jpeg,
             };
-            w.write(&topics::camera_image(&cam.id), &img, t, fr.capture_ns, Reliability::BestEffort)?;
+            w.write(&topics::camera_image(&cam.id), &img, Nanos(t), Nanos(fr.capture_ns), Reliability::BestEffort)?;
             frames += 1;
         }
-        w.write(topics::RIG_STEP.name, s, t, Nanos::from(s.header.stamp).0, Reliability::Reliable)?;
+        w.write(topics::RIG_STEP.name, s, Nanos(t), Nanos::from(s.header.stamp), Reliability::Reliable)?;
     }
     for (c, cam) in cameras.iter().enumerate() {
         if let Some(r) = readers[c].as_mut()
@@ -254,7 +260,7 @@ fn write_episode(
         Some(true) => EpisodeEventKind::Success,
         _ => EpisodeEventKind::Failure,
     };
-    w.write(topics::RIG_EPISODE.name, &event(end, last_t), last_t, last_t, Reliability::Reliable)?;
+    w.write(topics::RIG_EPISODE.name, &event(end, last_t), Nanos(last_t), Nanos(last_t), Reliability::Reliable)?;
     w.finish()?;
     Ok(frames)
 }

@@ -219,7 +219,12 @@ mod tests {
     fn a_written_json_parses_back_to_the_same_metadata() {
         let mut rig = RigIdentity::default();
         rig.camera_serials.insert("wrist".into(), "18026681".into());
-        let mut m = EpisodeMetadata::new(&rig, "scene 3", "put the cube in the bin", 1_688_722_943_123_456_789);
+        let mut m = EpisodeMetadata::new(
+            &rig,
+            "scene 3",
+            "put the cube in the bin",
+            labrig_msgs::Nanos(1_688_722_943_123_456_789),
+        );
         m.success = Some(false);
         m.trajectory_length = 7;
         m.extrinsics.insert("ext1".into(), [0.1, -0.2, 0.3, 1.0, 0.5, -3.0]);

@@ -6,7 +6,7 @@
 
 use crate::bag::{BagInfo, Reliability, TopicInfo, qos_yaml};
 use crate::metadata::EpisodeMetadata;
-use labrig_msgs::RosMessage;
+use labrig_msgs::{Nanos, RosMessage};
 use mcap::records::{MessageHeader, Metadata};
 use mcap::{Attachment, Compression, WriteOptions, Writer};
 use std::collections::HashMap;
@@ -206,14 +206,14 @@ impl EpisodeWriter {
         Ok(id)
     }
 
-    /// Writes a message on `topic`. `log_ns` = when the recorder received it, `publish_ns` =
-    /// its header stamp (DESIGN.md's time model).
+    /// Writes a message on `topic`. `log` = when the recorder received it, `publish` = its
+    /// header stamp (DESIGN.md's time model).
     pub fn write<T: RosMessage>(
         &mut self,
         topic: &str,
         msg: &T,
-        log_ns: i64,
-        publish_ns: i64,
+        log: Nanos,
+        publish: Nanos,
         reliability: Reliability,
     ) -> Result<(), EpisodeError> {
         let bytes = labrig_msgs::encode(msg).map_err(|e| EpisodeError::Encode {
@@ -231,7 +231,7 @@ impl EpisodeWriter {
             Ok(id)
         };
         let channel = self.channel(topic, T::TYPE_NAME, schema, reliability)?;
-        self.write_bytes(channel, topic, &bytes, log_ns, publish_ns)
+        self.write_bytes(channel, topic, &bytes, log.0, publish.0)
     }
 
     /// Writes a message already in CDR (with its encapsulation header), of a type given by
@@ -241,8 +241,8 @@ impl EpisodeWriter {
         topic: &str,
         ty: &RawType<'_>,
         cdr: &[u8],
-        log_ns: i64,
-        publish_ns: i64,
+        log: Nanos,
+        publish: Nanos,
         reliability: Reliability,
     ) -> Result<(), EpisodeError> {
         let schema = |w: &mut Self| -> Result<u16, EpisodeError> {
@@ -254,7 +254,7 @@ impl EpisodeWriter {
             Ok(id)
         };
         let channel = self.channel(topic, ty.name, schema, reliability)?;
-        self.write_bytes(channel, topic, cdr, log_ns, publish_ns)
+        self.write_bytes(channel, topic, cdr, log.0, publish.0)
     }
 
     fn write_bytes(
@@ -290,8 +290,8 @@ impl EpisodeWriter {
     }
 
     /// Attaches a file (calibration, a scene spec).
-    pub fn attach(&mut self, name: &str, media_type: &str, data: &[u8], time_ns: i64) -> Result<(), EpisodeError> {
-        let t = time_ns.max(0) as u64;
+    pub fn attach(&mut self, name: &str, media_type: &str, data: &[u8], time: Nanos) -> Result<(), EpisodeError> {
+        let t = time.0.max(0) as u64;
         let attachment = Attachment {
             log_time: t,
             create_time: t,

@@ -6,6 +6,7 @@
 //! file carries its own description.
 
 use chrono::{DateTime, Datelike, Utc};
+use labrig_msgs::Nanos;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -76,9 +77,10 @@ pub struct EpisodeMetadata {
 }
 
 impl EpisodeMetadata {
-    pub fn new(rig: &RigIdentity, scene_id: &str, task_instruction: &str, start_ns: i64) -> EpisodeMetadata {
+    pub fn new(rig: &RigIdentity, scene_id: &str, task_instruction: &str, start: Nanos) -> EpisodeMetadata {
+        let start_ns = start.0;
         EpisodeMetadata {
-            uuid: episode_uuid(&rig.lab, &rig.user, start_ns),
+            uuid: episode_uuid(&rig.lab, &rig.user, start),
             lab: rig.lab.clone(),
             building: rig.building.clone(),
             user: rig.user.clone(),
@@ -167,13 +169,13 @@ fn asctime(t: &DateTime<Utc>) -> String {
 }
 
 /// DROID's episode id: `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>`.
-pub fn episode_uuid(lab: &str, user: &str, start_ns: i64) -> String {
-    format!("{lab}+{user}+{}", utc(start_ns).format("%Y-%m-%d-%Hh-%Mm-%Ss"))
+pub fn episode_uuid(lab: &str, user: &str, start: Nanos) -> String {
+    format!("{lab}+{user}+{}", utc(start.0).format("%Y-%m-%d-%Hh-%Mm-%Ss"))
 }
 
 /// `<root>/{success|failure}/<YYYY-MM-DD>/<asctime>/`.
-pub fn episode_dir(root: &Path, outcome: Outcome, start_ns: i64) -> PathBuf {
-    let t = utc(start_ns);
+pub fn episode_dir(root: &Path, outcome: Outcome, start: Nanos) -> PathBuf {
+    let t = utc(start.0);
     root.join(outcome.dir()).join(t.format("%Y-%m-%d").to_string()).join(asctime(&t))
 }
 
@@ -186,13 +188,13 @@ mod tests {
 
     #[test]
     fn names_follow_droid() {
-        assert_eq!(episode_uuid("IRIS", "7dfa2da3", T), "IRIS+7dfa2da3+2023-07-07-09h-42m-23s");
+        assert_eq!(episode_uuid("IRIS", "7dfa2da3", Nanos(T)), "IRIS+7dfa2da3+2023-07-07-09h-42m-23s");
         assert_eq!(
-            episode_dir(Path::new("/data"), Outcome::Success, T),
+            episode_dir(Path::new("/data"), Outcome::Success, Nanos(T)),
             Path::new("/data/success/2023-07-07/Fri_Jul__7_09:42:23_2023")
         );
         assert_eq!(
-            episode_dir(Path::new("/d"), Outcome::Failure, T + 7 * 86_400_000_000_000),
+            episode_dir(Path::new("/d"), Outcome::Failure, Nanos(T + 7 * 86_400_000_000_000)),
             Path::new("/d/failure/2023-07-14/Fri_Jul_14_09:42:23_2023")
         );
     }
@@ -201,7 +203,7 @@ mod tests {
     fn the_record_round_trips() {
         let mut rig = RigIdentity::default();
         rig.camera_serials.insert("ext1".into(), "ZED2-123".into());
-        let mut m = EpisodeMetadata::new(&rig, "pick_place_cube", "put the cube in the bin", T);
+        let mut m = EpisodeMetadata::new(&rig, "pick_place_cube", "put the cube in the bin", Nanos(T));
         m.extrinsics.insert("ext1".into(), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]);
         m.success = Some(true);
         m.trajectory_length = 123;

@@ -13,6 +13,10 @@ impl Nanos {
     pub const fn from_secs_f64(s: f64) -> Nanos {
         Nanos((s * 1e9) as i64)
     }
+    /// Seconds (a config value) to the nearest nanosecond.
+    pub fn from_secs_rounded(s: f64) -> Nanos {
+        Nanos((s * 1e9).round() as i64)
+    }
     pub const fn from_millis(ms: i64) -> Nanos {
         Nanos(ms * 1_000_000)
     }

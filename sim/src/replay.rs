@@ -219,7 +219,7 @@ pub fn replay(a: &ReplayOptions) -> Result<Report, ReplayError> {
         };
         let view =
             ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
-        let ok = safety.filter(&cmd, &view, sim.time().0).map_err(ReplayError::Hold)?;
+        let ok = safety.filter(&cmd, &view, sim.time()).map_err(ReplayError::Hold)?;
         let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
         sim.check(&t).map_err(sim_err("holding".into()))?;
         sim.step(&t).map_err(sim_err("holding".into()))?;
@@ -290,7 +290,7 @@ pub fn replay(a: &ReplayOptions) -> Result<Report, ReplayError> {
         };
         let view =
             ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
-        match safety.filter(&cmd, &view, sim.time().0) {
+        match safety.filter(&cmd, &view, sim.time()) {
             Ok(ok) => {
                 let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
                 sim.check(&t).map_err(sim_err(format!("step {k}")))?;

@@ -79,8 +79,8 @@ pub struct BridgeConfig {
     pub scene: Option<PathBuf>,
     pub seed: u64,
     pub mode: Mode,
-    /// Control period (ms).
-    pub period_ms: i64,
+    /// Control period (s).
+    pub period_s: f64,
     /// Camera image size.
     pub width: usize,
     pub height: usize,
@@ -121,7 +121,7 @@ impl Default for BridgeConfig {
             scene: None,
             seed: 0,
             mode: Mode::Lockstep,
-            period_ms: 50,
+            period_s: 0.05,
             width: 128,
             height: 128,
             meshes: Meshes::Collision,
@@ -139,8 +139,8 @@ impl Default for BridgeConfig {
 impl BridgeConfig {
     /// Checks what serde cannot, naming the key.
     pub fn validate(&self) -> Result<(), Invalid> {
-        if !(self.period_ms > 0 && self.period_ms <= 1000) {
-            return Err(Invalid::new("period_ms", "--period-ms must be in 1..=1000"));
+        if !(self.period_s.is_finite() && (0.001..=1.0).contains(&self.period_s)) {
+            return Err(Invalid::new("period_s", format!("period_s = {} must be in 0.001..=1", self.period_s)));
         }
         let hw = self.hardware_prefix.trim_end_matches('/');
         if !(hw.is_empty() || (hw.starts_with('/') && hw[1..].split('/').all(|p| !p.is_empty()))) {
@@ -168,9 +168,9 @@ pub struct BridgeFlags {
     pub seed: Option<u64>,
     #[arg(long, value_enum)]
     pub mode: Option<Mode>,
-    /// Control period (ms).
+    /// Control period (s).
     #[arg(long)]
-    pub period_ms: Option<i64>,
+    pub period_s: Option<f64>,
     /// Camera image size.
     #[arg(long)]
     pub width: Option<usize>,
@@ -227,8 +227,8 @@ impl labrig_runtime::Node for BridgeNode {
         if let Some(v) = f.mode {
             c.mode = v;
         }
-        if let Some(v) = f.period_ms {
-            c.period_ms = v;
+        if let Some(v) = f.period_s {
+            c.period_s = v;
         }
         if let Some(v) = f.width {
             c.width = v;
@@ -367,7 +367,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         }
     }
     let (spec, assets) = labrig_sim::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
-    let period = Nanos::from_millis(a.period_ms);
+    let period = Nanos::from_secs_rounded(a.period_s);
     let mut sim = Sim::new(&assets, &spec, a.seed, period)?;
     if a.cameras {
         sim.enable_cameras(a.width, a.height, a.meshes)?;
@@ -376,7 +376,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     // stamped about when they were made, as a real rig's are.
     let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
     let safety = labrig_sim::safety_filter(period, None)?;
-    let mut watchdog = Watchdog::new(safety.config().watchdog_ns());
+    let mut watchdog = Watchdog::new(safety.config().watchdog_timeout());
 
     let cfg = a.ros.clone();
     let hw = a.hardware_prefix.trim_end_matches('/');
@@ -471,7 +471,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                         clipped: state.clipped,
                         ..Default::default()
                     };
-                    watchdog = Watchdog::new(safety.config().watchdog_ns());
+                    watchdog = Watchdog::new(safety.config().watchdog_timeout());
                     publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
                     if let Some(e) = &mut expert {
                         e.expert = labrig_sim::expert::Expert::new(&sim);
@@ -582,13 +582,13 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         // where it is (it decelerates on the servos) from the physics step at the deadline on,
         // not at the next tick.
         let t0 = sim.time().0;
-        let stop_at = watchdog.deadline().filter(|&d| d < t0 + period.0).map(|d| {
+        let stop_at = watchdog.deadline().map(|d| d.0).filter(|&d| d < t0 + period.0).map(|d| {
             let substep = sim.substep().0.max(1);
             ((d - t0).max(0) + substep - 1) / substep
         });
         let stepped = match stop_at {
             Some(after) => sim.step_then_hold(&target, after as u32).map(|held| {
-                let silence = watchdog.check(t0 + after * sim.substep().0).unwrap_or(0);
+                let silence = watchdog.check(Nanos(t0 + after * sim.substep().0)).unwrap_or(Nanos::ZERO).0;
                 state.arm = Some(ArmTarget { joints: held, gripper: state.gripper });
                 state.holding = true;
                 state.fault = format!(
@@ -748,7 +748,7 @@ fn accept(
         commanded: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints),
     };
     let checked = if arm_sets_gripper {
-        safety.filter(cmd, &view, sim.time().0).map_err(|e| e.to_string()).and_then(|ok| {
+        safety.filter(cmd, &view, sim.time()).map_err(|e| e.to_string()).and_then(|ok| {
             let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
             sim.check(&t).map(|()| (t, ok.clipped)).map_err(|e| e.to_string())
         })
@@ -774,7 +774,7 @@ fn accept(
             state.last_ok = true;
             state.holding = false;
             state.fault.clear();
-            watchdog.feed(arrival_ns);
+            watchdog.feed(Nanos(arrival_ns));
         }
         Err(reason) => {
             state.refused += 1;

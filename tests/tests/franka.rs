@@ -237,7 +237,7 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
     // FR3's own self-collision reflex stops it.
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("franka.toml");
-    std::fs::write(&config, "[safety]\nworkspace_min = [-0.9, -0.9, -0.3]\n").unwrap();
+    std::fs::write(&config, "[safety]\nworkspace_min_m = [-0.9, -0.9, -0.3]\n").unwrap();
     let mut node = franka_node(domain, port, Some(&config));
     rt().block_on(async move {
         let mut rig = Rig::new(domain).await;

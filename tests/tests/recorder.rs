@@ -31,23 +31,31 @@ fn header(t: i64, frame: &str) -> Header {
 
 /// Writes a 2 s episode: Step at 20 Hz, two cameras at 20 Hz, /tf at 20 Hz, /arm/state at 50 Hz.
 fn write_episode(root: &Path) -> (std::path::PathBuf, EpisodeMetadata) {
-    let mut meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "put the cube in the bin", T0);
+    let mut meta =
+        EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "put the cube in the bin", Nanos(T0));
     meta.extrinsics.insert("ext1".into(), [0.5, -0.4, 0.6, 0.1, 0.2, 0.3]);
-    let dir = episode_dir(root, Outcome::Success, T0);
+    let dir = episode_dir(root, Outcome::Success, Nanos(T0));
     let mut w = EpisodeWriter::create(&dir, meta.clone()).unwrap();
-    w.attach("scene.json", "application/json", br#"{"seed": 3}"#, T0).unwrap();
+    w.attach("scene.json", "application/json", br#"{"seed": 3}"#, Nanos(T0)).unwrap();
     for k in 0..100i64 {
         let t = T0 + k * 20_000_000;
         let state =
             RobotState { header: header(t, "base"), joint_positions: [k as f64 * 0.01; 7], ..Default::default() };
-        w.write("/arm/state", &state, t + 1_000, t, Reliability::Reliable).unwrap();
+        w.write("/arm/state", &state, Nanos(t + 1_000), Nanos(t), Reliability::Reliable).unwrap();
     }
     for k in 0..40i64 {
         let t = T0 + k * TICK;
         for cam in ["ext1", "wrist"] {
             let img =
                 CompressedImage { header: header(t, &format!("{cam}_optical")), format: "jpeg".into(), data: jpeg(k) };
-            w.write(&format!("/cameras/{cam}/image/compressed"), &img, t + 2_000, t, Reliability::BestEffort).unwrap();
+            w.write(
+                &format!("/cameras/{cam}/image/compressed"),
+                &img,
+                Nanos(t + 2_000),
+                Nanos(t),
+                Reliability::BestEffort,
+            )
+            .unwrap();
         }
         let tf = TFMessage {
             transforms: vec![TransformStamped {
@@ -56,7 +64,7 @@ fn write_episode(root: &Path) -> (std::path::PathBuf, EpisodeMetadata) {
                 ..Default::default()
             }],
         };
-        w.write("/tf", &tf, t + 3_000, t, Reliability::Reliable).unwrap();
+        w.write("/tf", &tf, Nanos(t + 3_000), Nanos(t), Reliability::Reliable).unwrap();
         let step = Step {
             header: header(t, "base"),
             episode_id: meta.uuid.clone(),
@@ -75,7 +83,7 @@ fn write_episode(root: &Path) -> (std::path::PathBuf, EpisodeMetadata) {
             action_source: Step::SOURCE_SCRIPTED,
             ..Default::default()
         };
-        w.write("/rig/step", &step, t + 4_000, t, Reliability::Reliable).unwrap();
+        w.write("/rig/step", &step, Nanos(t + 4_000), Nanos(t), Reliability::Reliable).unwrap();
     }
     w.metadata_mut().success = Some(true);
     w.metadata_mut().trajectory_length = 40;
@@ -166,7 +174,7 @@ fn a_full_disk_stops_recording_and_keeps_earlier_episodes() {
     let full_dir = root.path().join("failure/next");
     std::fs::create_dir_all(&full_dir).unwrap();
     std::os::unix::fs::symlink("/dev/full", full_dir.join("episode_0.mcap")).unwrap();
-    let meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "again", T0 + 60_000_000_000);
+    let meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "again", Nanos(T0 + 60_000_000_000));
     let err = EpisodeWriter::create(&full_dir, meta).unwrap_err();
     assert!(err.is_disk_full(), "{err:?}");
     assert!(err.to_string().contains("No space left on device"), "{err}");
@@ -206,7 +214,7 @@ fn inspect_reports_a_good_episode() {
 #[test]
 fn inspect_flags_bad_input() {
     let root = tempfile::tempdir().unwrap();
-    let meta = EpisodeMetadata::new(&RigIdentity::default(), "s", "t", T0);
+    let meta = EpisodeMetadata::new(&RigIdentity::default(), "s", "t", Nanos(T0));
     let dir = root.path().join("bad");
     let mut w = EpisodeWriter::create(&dir, meta).unwrap();
     let step_schema = labrig_msgs::schema_text::<Step>();
@@ -215,15 +223,16 @@ fn inspect_flags_bad_input() {
         let t = T0 + k * TICK;
         // Step 4 never arrives (a missed tick); step 7 is garbage.
         if k == 7 {
-            w.write_cdr("/rig/step", &step_type, &[0, 1, 0, 0, 0xde, 0xad], t, t, Reliability::Reliable).unwrap();
+            w.write_cdr("/rig/step", &step_type, &[0, 1, 0, 0, 0xde, 0xad], Nanos(t), Nanos(t), Reliability::Reliable)
+                .unwrap();
         } else if k != 4 {
             let step = Step { header: header(t, "base"), step_index: k as u64, ..Default::default() };
-            w.write("/rig/step", &step, t, t, Reliability::Reliable).unwrap();
+            w.write("/rig/step", &step, Nanos(t), Nanos(t), Reliability::Reliable).unwrap();
         }
         // /arm/state: the sample of tick 5 is logged before the one of tick 4.
         let log = if k == 5 { T0 + 3 * TICK + 1 } else { t };
         let s = RobotState { header: header(t, "base"), ..Default::default() };
-        w.write("/arm/state", &s, log, t, Reliability::Reliable).unwrap();
+        w.write("/arm/state", &s, Nanos(log), Nanos(t), Reliability::Reliable).unwrap();
     }
     w.finish().unwrap();
     let (code, v) = inspect(&dir);
@@ -238,11 +247,12 @@ fn inspect_flags_bad_input() {
 
     // A camera whose frames 3..5 are missing.
     let dir = root.path().join("gaps");
-    let mut w = EpisodeWriter::create(&dir, EpisodeMetadata::new(&RigIdentity::default(), "s", "t", T0)).unwrap();
+    let mut w =
+        EpisodeWriter::create(&dir, EpisodeMetadata::new(&RigIdentity::default(), "s", "t", Nanos(T0))).unwrap();
     for k in (0..10i64).filter(|k| !(3..6).contains(k)) {
         let t = T0 + k * TICK;
         let img = CompressedImage { header: header(t, "ext1_optical"), format: "jpeg".into(), data: jpeg(k) };
-        w.write("/cameras/ext1/image/compressed", &img, t, t, Reliability::BestEffort).unwrap();
+        w.write("/cameras/ext1/image/compressed", &img, Nanos(t), Nanos(t), Reliability::BestEffort).unwrap();
     }
     w.finish().unwrap();
     let (_, v) = inspect(&dir);

@@ -2,6 +2,7 @@
 //! tick, the newest frame captured at or before the tick (frames from the future are not
 //! used: they were not there when the action was chosen), and the skew across cameras.
 
+use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::CameraFrameRef;
 use std::collections::{BTreeMap, VecDeque};
 
@@ -56,7 +57,8 @@ impl FrameBook {
     /// Cameras that kept pace with the last tick (their newest frame was captured at or after
     /// `prev_tick_ns`) but have nothing yet for the tick at `tick_ns`: on the sim's clock
     /// their frame of this tick is on its way.
-    pub fn keeping_pace(&self, prev_tick_ns: i64, tick_ns: i64) -> Vec<&str> {
+    pub fn keeping_pace(&self, prev_tick: Nanos, tick: Nanos) -> Vec<&str> {
+        let (prev_tick_ns, tick_ns) = (prev_tick.0, tick.0);
         self.order
             .iter()
             .filter(|c| self.cameras[*c].back().is_some_and(|f| f.capture_ns >= prev_tick_ns && f.capture_ns < tick_ns))
@@ -65,7 +67,8 @@ impl FrameBook {
     }
 
     /// The frames for a tick at `tick_ns`: per camera the newest captured at or before it.
-    pub fn at(&self, tick_ns: i64, stale_ns: i64) -> TickFrames {
+    pub fn at(&self, tick: Nanos, stale: Nanos) -> TickFrames {
+        let (tick_ns, stale_ns) = (tick.0, stale.0);
         let mut refs = Vec::new();
         let (mut missing, mut stale) = (Vec::new(), Vec::new());
         for cam in &self.order {
@@ -110,7 +113,7 @@ mod tests {
             b.push("wrist", f(k, k as i64 * 33_000_000 + 5_000_000));
         }
         // A frame from after the tick is not used.
-        let t = b.at(100_000_000, 50_000_000);
+        let t = b.at(Nanos(100_000_000), Nanos(50_000_000));
         assert_eq!(t.refs.len(), 2);
         assert_eq!((t.refs[0].camera_id.as_str(), t.refs[0].sequence), ("ext1", 3)); // 99 ms
         assert_eq!((t.refs[1].camera_id.as_str(), t.refs[1].sequence), ("wrist", 2)); // 71 ms
@@ -118,7 +121,7 @@ mod tests {
         assert_eq!(t.missing, vec!["rs1".to_string()]);
         assert!(t.stale.is_empty());
         // Long after the last frames: stale.
-        let t = b.at(1_000_000_000, 50_000_000);
+        let t = b.at(Nanos(1_000_000_000), Nanos(50_000_000));
         assert_eq!(t.stale, vec!["ext1".to_string(), "wrist".to_string()]);
     }
 
@@ -128,11 +131,11 @@ mod tests {
         b.push("ext1", f(0, 50));
         b.push("wrist", f(0, 50));
         b.push("rs1", f(0, 0)); // a slower camera: behind the last tick already
-        assert_eq!(b.keeping_pace(50, 100), vec!["ext1", "wrist"]);
+        assert_eq!(b.keeping_pace(Nanos(50), Nanos(100)), vec!["ext1", "wrist"]);
         b.push("ext1", f(1, 100));
-        assert_eq!(b.keeping_pace(50, 100), vec!["wrist"]);
+        assert_eq!(b.keeping_pace(Nanos(50), Nanos(100)), vec!["wrist"]);
         b.push("wrist", f(1, 100));
-        assert!(b.keeping_pace(50, 100).is_empty());
+        assert!(b.keeping_pace(Nanos(50), Nanos(100)).is_empty());
     }
 
     #[test]
@@ -141,11 +144,11 @@ mod tests {
         b.push("ext1", f(2, 20));
         b.push("ext1", f(1, 10));
         b.push("ext1", f(3, 30));
-        assert_eq!(b.at(25, 100).refs[0].sequence, 2);
-        assert_eq!(b.at(15, 100).refs[0].sequence, 1);
+        assert_eq!(b.at(Nanos(25), Nanos(100)).refs[0].sequence, 2);
+        assert_eq!(b.at(Nanos(15), Nanos(100)).refs[0].sequence, 1);
         for k in 0..100 {
             b.push("ext1", f(10 + k, 100 + k as i64));
         }
-        assert!(b.at(15, 100).refs.is_empty(), "old frames age out");
+        assert!(b.at(Nanos(15), Nanos(100)).refs.is_empty(), "old frames age out");
     }
 }

@@ -79,7 +79,7 @@ pub struct ControlConfig {
     pub source: SourceKind,
     pub clock: ClockKind,
     /// Control period (ms); DROID: 50 (20 Hz).
-    pub period_ms: u64,
+    pub period_s: f64,
     /// Start episodes without an operator (the scripted expert).
     pub auto_start: bool,
     /// Episodes to run before the node exits (0: until stopped).
@@ -93,14 +93,14 @@ pub struct ControlConfig {
     pub cameras: Vec<String>,
     pub frames_namespace: Option<String>,
     /// A camera frame older than this at a tick is stale (ms).
-    pub stale_frame_ms: f64,
+    pub stale_frame_s: f64,
     /// A source action older than this at a tick is refused (ms; realtime only, lockstep
     /// waits for the tick's own action).
-    pub max_action_age_ms: f64,
+    pub max_action_age_s: f64,
     /// Teleop: an action that arrived longer ago than this is not followed (ms). The headset
     /// sends ~72 readings/s, so 35 ms is ~2 missed ones; with a 50 ms tick a vanished
     /// controller holds the arm within 35 + 50 ms.
-    pub teleop_max_age_ms: f64,
+    pub teleop_max_age_s: f64,
     /// How long a lockstep tick waits for the source's action before holding (s).
     pub source_timeout_s: f64,
     /// The arm counts as home when every joint is this close to DROID's reset pose (rad).
@@ -124,7 +124,7 @@ impl Default for ControlConfig {
             ros: RosConfig::default(),
             source: SourceKind::Scripted,
             clock: ClockKind::Sim,
-            period_ms: 50,
+            period_s: 0.05,
             auto_start: true,
             episodes: 0,
             reseed: true,
@@ -132,9 +132,9 @@ impl Default for ControlConfig {
             max_steps: 400,
             cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
             frames_namespace: labrig_runtime::frames::default_namespace(),
-            stale_frame_ms: 100.0,
-            max_action_age_ms: 150.0,
-            teleop_max_age_ms: 35.0,
+            stale_frame_s: 0.1,
+            max_action_age_s: 0.15,
+            teleop_max_age_s: 0.035,
             source_timeout_s: 5.0,
             home_tolerance_rad: 0.02,
             reset_timeout_s: 20.0,
@@ -150,21 +150,21 @@ impl Default for ControlConfig {
 
 impl ControlConfig {
     pub fn validate(&self) -> Result<(), Invalid> {
-        if !(1..=1000).contains(&self.period_ms) {
-            return Err(Invalid::new("period_ms", format!("period_ms = {} must be in 1..=1000", self.period_ms)));
+        if !(self.period_s.is_finite() && (0.001..=1.0).contains(&self.period_s)) {
+            return Err(Invalid::new("period_s", format!("period_s = {} must be in 0.001..=1", self.period_s)));
         }
-        if (self.safety.period_s * 1e3 - self.period_ms as f64).abs() > 1e-6 {
+        if (self.safety.period_s - self.period_s).abs() > 1e-9 {
             return Err(Invalid::new(
                 "safety.period_s",
                 format!(
-                    "safety.period_s = {} must equal period_ms = {} (the per-step limits are per period)",
-                    self.safety.period_s, self.period_ms
+                    "safety.period_s = {} must equal period_s = {} (the per-step limits are per period)",
+                    self.safety.period_s, self.period_s
                 ),
             ));
         }
         for (name, v) in [
-            ("stale_frame_ms", self.stale_frame_ms),
-            ("max_action_age_ms", self.max_action_age_ms),
+            ("stale_frame_s", self.stale_frame_s),
+            ("max_action_age_s", self.max_action_age_s),
             ("source_timeout_s", self.source_timeout_s),
             ("home_tolerance_rad", self.home_tolerance_rad),
             ("reset_timeout_s", self.reset_timeout_s),
@@ -191,10 +191,10 @@ impl ControlConfig {
                 "auto_start: teleop episodes start on /rig/request (the operator), not by themselves",
             ));
         }
-        if !(self.teleop_max_age_ms.is_finite() && self.teleop_max_age_ms > 0.0) {
+        if !(self.teleop_max_age_s.is_finite() && self.teleop_max_age_s > 0.0) {
             return Err(Invalid::new(
-                "teleop_max_age_ms",
-                format!("teleop_max_age_ms: {} must be positive", self.teleop_max_age_ms),
+                "teleop_max_age_s",
+                format!("teleop_max_age_s: {} must be positive", self.teleop_max_age_s),
             ));
         }
         self.safety.validate()
@@ -223,7 +223,7 @@ pub struct Summary {
     pub missed_ticks: u64,
     /// Wall-clock period deviation of consecutive ticks (us): p50, p99, max.
     pub jitter_us: [f64; 3],
-    /// Recorded steps with a camera missing, or with a frame older than `stale_frame_ms`.
+    /// Recorded steps with a camera missing, or with a frame older than `stale_frame_s`.
     pub steps_missing_frames: u64,
     pub steps_stale_frames: u64,
     /// Camera skew per recorded step (us): p50, p99, max.
@@ -265,7 +265,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(&mut ros)?)),
         SourceKind::Hold => None,
         SourceKind::Teleop => {
-            Some(Box::new(crate::source::Teleop::new(&mut ros, Duration::from_secs_f64(cfg.teleop_max_age_ms / 1e3))?))
+            Some(Box::new(crate::source::Teleop::new(&mut ros, Duration::from_secs_f64(cfg.teleop_max_age_s))?))
         }
     };
     let frame_node = match &cfg.frames_namespace {
@@ -327,7 +327,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 if let Some(s) = newest {
                     let t = Nanos::from(s.header.stamp).0;
                     rig.set_robot(s);
-                    if rig.is_new_tick(t) {
+                    if rig.is_new_tick(Nanos(t)) {
                         break t;
                     }
                 }
@@ -352,7 +352,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 labrig_runtime::Clock::Wall.now().0
             }
         };
-        rig.begin_tick(tick_ns, Instant::now());
+        rig.begin_tick(Nanos(tick_ns), Instant::now());
 
         // 2. Everything that arrived (on the sim's clock, the tick's own gripper state and
         // frames trail its arm state on their own channels: wait for them, bounded).
@@ -413,7 +413,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         // Lockstep: the source's action for this state comes right after the state.
         if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, rig.recording()) {
             let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
-            while !s.has(tick_ns) && Instant::now() < deadline && !shutdown.is_triggered() {
+            while !s.has(Nanos(tick_ns)) && Instant::now() < deadline && !shutdown.is_triggered() {
                 tokio::time::sleep(Duration::from_micros(100)).await;
                 s.poll()?;
             }
@@ -542,7 +542,7 @@ mod tests {
         let c: ControlConfig = labrig_runtime::load_config(&p).unwrap();
         assert_eq!(c.validate(), Ok(()));
         assert_eq!((c.source, c.clock, c.auto_start), (SourceKind::Teleop, ClockKind::Wall, false));
-        assert_eq!(c.teleop_max_age_ms, 35.0);
+        assert_eq!(c.teleop_max_age_s, 0.035);
         assert_eq!(c.safety.max_command_age_s, 0.0);
     }
 
@@ -550,11 +550,11 @@ mod tests {
     fn configs_are_checked_by_field() {
         let mut c = ControlConfig::default();
         assert_eq!(c.validate(), Ok(()));
-        c.period_ms = 100;
+        c.period_s = 0.1;
         assert!(c.validate().unwrap_err().to_string().contains("safety.period_s"));
         let c = ControlConfig { source: SourceKind::Hold, ..ControlConfig::default() };
         assert!(c.validate().unwrap_err().to_string().contains("auto_start"));
-        let c = ControlConfig { stale_frame_ms: f64::NAN, ..ControlConfig::default() };
-        assert!(c.validate().unwrap_err().to_string().contains("stale_frame_ms"));
+        let c = ControlConfig { stale_frame_s: f64::NAN, ..ControlConfig::default() };
+        assert!(c.validate().unwrap_err().to_string().contains("stale_frame_s"));
     }
 }

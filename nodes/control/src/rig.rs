@@ -142,7 +142,7 @@ impl RigLoop {
     pub fn new(cfg: ControlConfig, kin: Fr3Kinematics, filter: SafetyFilter, robot: RobotState) -> RigLoop {
         let camera_names: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
         RigLoop {
-            period: Nanos::from_millis(cfg.period_ms as i64),
+            period: Nanos::from_secs_rounded(cfg.period_s),
             book: FrameBook::new(&camera_names),
             next_seed: cfg.first_seed,
             cfg,
@@ -175,9 +175,9 @@ impl RigLoop {
         self.period
     }
 
-    /// The last tick's time (ns), if there was one.
-    pub fn last_tick_ns(&self) -> Option<i64> {
-        self.last_tick_ns
+    /// The last tick's time, if there was one.
+    pub fn last_tick(&self) -> Option<Nanos> {
+        self.last_tick_ns.map(Nanos)
     }
 
     pub fn summary(&self) -> &Summary {
@@ -199,12 +199,13 @@ impl RigLoop {
 
     /// On the sim's clock: whether a state stamped `t` starts a new tick (the arm node may
     /// publish states faster than the loop runs).
-    pub fn is_new_tick(&self, t: i64) -> bool {
-        self.last_tick_ns.is_none_or(|l| t >= l + self.period.0 - TICK_TOLERANCE_NS)
+    pub fn is_new_tick(&self, t: Nanos) -> bool {
+        self.last_tick_ns.is_none_or(|l| t.0 >= l + self.period.0 - TICK_TOLERANCE_NS)
     }
 
-    /// Step 1: a tick at `tick_ns` on the loop's clock, begun at wall time `wall`.
-    pub fn begin_tick(&mut self, tick_ns: i64, wall: Instant) {
+    /// Step 1: a tick at `tick` on the loop's clock, begun at wall time `wall`.
+    pub fn begin_tick(&mut self, tick: Nanos, wall: Instant) {
+        let tick_ns = tick.0;
         if let (Some(l), ClockKind::Sim) = (self.last_tick_ns, self.cfg.clock) {
             let missed = (tick_ns - l) / self.period.0 - 1;
             if missed > 0 {
@@ -259,7 +260,8 @@ impl RigLoop {
     /// state with the last tick's image).
     pub fn frames_pending(&self) -> bool {
         let t = self.tick();
-        self.cfg.clock == ClockKind::Sim && t.prev_ns.is_some_and(|p| !self.book.keeping_pace(p, t.ns).is_empty())
+        self.cfg.clock == ClockKind::Sim
+            && t.prev_ns.is_some_and(|p| !self.book.keeping_pace(Nanos(p), Nanos(t.ns)).is_empty())
     }
 
     /// An operator's request (`/rig/request`); the newest one of a tick wins.
@@ -317,13 +319,13 @@ impl RigLoop {
         }
         if event.is_none() && state == State::Idle && self.cfg.auto_start && self.between == Between::Ready {
             // Not before the source has an action for now (after a scene rebuild it may lag).
-            let age_ns = (self.cfg.max_action_age_ms * 1e6) as i64;
-            let source_ready =
-                self.cfg.clock == ClockKind::Sim || source.as_mut().is_none_or(|s| s.action(tick_ns, age_ns).is_ok());
+            let age_ns = Nanos::from_secs_rounded(self.cfg.max_action_age_s).0;
+            let source_ready = self.cfg.clock == ClockKind::Sim
+                || source.as_mut().is_none_or(|s| s.action(Nanos(tick_ns), Nanos(age_ns)).is_ok());
             // Nor while a camera that has been sending lags (after a scene rebuild, say).
-            let lagging = self.book.at(tick_ns, (self.cfg.stale_frame_ms * 1e6) as i64).stale;
+            let lagging = self.book.at(Nanos(tick_ns), Nanos::from_secs_rounded(self.cfg.stale_frame_s)).stale;
             if !lagging.is_empty() && self.summary.ticks.is_multiple_of(40) {
-                let seen = self.book.at(i64::MAX, i64::MAX).refs;
+                let seen = self.book.at(Nanos(i64::MAX), Nanos(i64::MAX)).refs;
                 let ages: Vec<f64> = seen.iter().map(|r| (tick_ns - r.capture_ns) as f64 / 1e6).collect();
                 tracing::warn!(cameras = ?lagging, ages_ms = ?ages, "waiting for fresh frames before starting the episode");
             }
@@ -344,7 +346,7 @@ impl RigLoop {
             }
         }
         if event.is_none() && self.episodes.recording() {
-            let verdict = source.as_ref().map_or(Verdict::Running, |s| s.verdict(tick_ns));
+            let verdict = source.as_ref().map_or(Verdict::Running, |s| s.verdict(Nanos(tick_ns)));
             event = match verdict {
                 Verdict::Succeeded => Some(EpisodeEventKind::Success),
                 Verdict::Failed => Some(EpisodeEventKind::Failure),
@@ -413,7 +415,7 @@ impl RigLoop {
                 self.episode_id = episode_uuid(&self.cfg.lab, &self.cfg.user, &self.summary.episodes);
                 self.episode_seed = self.scene.seed;
                 if let Some(s) = source {
-                    s.restart(tick_ns);
+                    s.restart(Nanos(tick_ns));
                 }
                 self.publish_event(out, kind, instruction, tick_ns);
                 tracing::info!(episode = %self.episode_id, seed = ?self.scene.seed, %instruction, "episode started");
@@ -461,7 +463,7 @@ impl RigLoop {
             ArmView { measured: robot.joint_positions, commanded: self.commanded.unwrap_or(robot.joint_positions) };
         let (proposal, source_kind) = match self.episodes.state() {
             State::Recording => match source {
-                Some(s) => match s.action(tick_ns, (self.cfg.max_action_age_ms * 1e6) as i64) {
+                Some(s) => match s.action(Nanos(tick_ns), Nanos::from_secs_rounded(self.cfg.max_action_age_s)) {
                     Ok(p) => (Some(p), s.kind()),
                     Err(e) => {
                         tracing::warn!("{e}: holding");
@@ -493,7 +495,7 @@ impl RigLoop {
             Some(p) => (p.command, true),
             None => (hold(), false),
         };
-        let safe = match self.filter.filter(&wanted, &view, tick_ns) {
+        let safe = match self.filter.filter(&wanted, &view, Nanos(tick_ns)) {
             Ok(s) => s,
             Err(refusal) => {
                 moving = false;
@@ -502,7 +504,7 @@ impl RigLoop {
                 self.summary.refused += 1;
                 self.summary.held_ticks += 1;
                 tracing::warn!("refused the action: {refusal}; holding");
-                self.filter.filter(&wanted, &view, tick_ns).map_err(LoopError::CannotHold)?
+                self.filter.filter(&wanted, &view, Nanos(tick_ns)).map_err(LoopError::CannotHold)?
             }
         };
         let action = action_dict(&self.kin, &self.robot, self.gripper.as_ref(), &wanted, &safe.joints, safe.gripper);
@@ -533,7 +535,7 @@ impl RigLoop {
         self.commanded = Some(safe.joints);
         self.gripper_target = safe.gripper;
         if self.episodes.recording() {
-            let frames = self.book.at(tick_ns, (self.cfg.stale_frame_ms * 1e6) as i64);
+            let frames = self.book.at(Nanos(tick_ns), Nanos::from_secs_rounded(self.cfg.stale_frame_s));
             if !frames.missing.is_empty() || !frames.stale.is_empty() {
                 tracing::debug!(missing = ?frames.missing, stale = ?frames.stale, "cameras");
             }
@@ -657,16 +659,16 @@ mod tests {
         fn poll(&mut self) -> Result<(), RosError> {
             Ok(())
         }
-        fn has(&self, _tick_ns: i64) -> bool {
+        fn has(&self, _tick: Nanos) -> bool {
             true
         }
-        fn action(&mut self, _tick_ns: i64, _max_age_ns: i64) -> Result<Proposal, SourceError> {
+        fn action(&mut self, _tick: Nanos, _max_age: Nanos) -> Result<Proposal, SourceError> {
             self.actions.pop_front().unwrap_or(Err(SourceError::Silent { from: "test queue" }))
         }
-        fn verdict(&self, _tick_ns: i64) -> Verdict {
+        fn verdict(&self, _tick: Nanos) -> Verdict {
             self.verdict.unwrap_or(Verdict::Running)
         }
-        fn restart(&mut self, _start_ns: i64) {
+        fn restart(&mut self, _start: Nanos) {
             self.restarts += 1;
         }
     }
@@ -714,7 +716,7 @@ mod tests {
         if let Some(last) = out.arm.last() {
             rig.set_robot(state(last.joint_position));
         }
-        rig.begin_tick(k * PERIOD, Instant::now());
+        rig.begin_tick(Nanos(k * PERIOD), Instant::now());
         rig.decide(Some(source), out).unwrap();
         rig.act(Some(source), out).unwrap();
     }
@@ -850,10 +852,10 @@ mod tests {
     #[test]
     fn ticks_on_the_sim_clock_count_the_periods_they_skip() {
         let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
-        assert!(rig.is_new_tick(0));
+        assert!(rig.is_new_tick(Nanos(0)));
         tick(&mut rig, 0, &mut src, &mut out);
-        assert!(!rig.is_new_tick(PERIOD / 2), "a state inside the period is not a tick");
-        assert!(rig.is_new_tick(PERIOD - TICK_TOLERANCE_NS / 2));
+        assert!(!rig.is_new_tick(Nanos(PERIOD / 2)), "a state inside the period is not a tick");
+        assert!(rig.is_new_tick(Nanos(PERIOD - TICK_TOLERANCE_NS / 2)));
         tick(&mut rig, 3, &mut src, &mut out);
         assert_eq!(rig.summary().missed_ticks, 2);
     }

@@ -40,15 +40,15 @@ pub trait ActionSource: Send {
     fn kind(&self) -> u8;
     /// Takes what arrived since the last call.
     fn poll(&mut self) -> Result<(), RosError>;
-    /// Whether the action for `tick_ns` has arrived (lockstep waits for it).
-    fn has(&self, tick_ns: i64) -> bool;
-    /// The action for the tick at `tick_ns`; `max_age_ns` bounds how old it may be.
-    fn action(&mut self, tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError>;
+    /// Whether the action for the tick at `tick` has arrived (lockstep waits for it).
+    fn has(&self, tick: Nanos) -> bool;
+    /// The action for the tick at `tick`; `max_age` bounds how old it may be.
+    fn action(&mut self, tick: Nanos, max_age: Nanos) -> Result<Proposal, SourceError>;
     /// The task's state as the source judges it at the tick (its newest judgement since the
     /// episode began).
-    fn verdict(&self, tick_ns: i64) -> Verdict;
-    /// A new episode begins at `start_ns` (a source with memory of the last one forgets it).
-    fn restart(&mut self, start_ns: i64);
+    fn verdict(&self, tick: Nanos) -> Verdict;
+    /// A new episode begins at `start` (a source with memory of the last one forgets it).
+    fn restart(&mut self, start: Nanos);
 }
 
 /// The sim bridge's scripted expert (`labrig sim run --expert`): its action for every sim
@@ -110,12 +110,14 @@ impl ActionSource for ScriptedExpert {
         Ok(())
     }
 
-    fn has(&self, tick_ns: i64) -> bool {
+    fn has(&self, tick: Nanos) -> bool {
+        let tick_ns = tick.0;
         self.latest.as_ref().is_some_and(|a| stamp_ns(a) >= tick_ns)
             && self.progress.is_some_and(|(t, _, _)| t >= tick_ns)
     }
 
-    fn action(&mut self, tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError> {
+    fn action(&mut self, tick: Nanos, max_age: Nanos) -> Result<Proposal, SourceError> {
+        let (tick_ns, max_age_ns) = (tick.0, max_age.0);
         let source = "the scripted expert";
         let a = self.latest.as_ref().ok_or(SourceError::Silent { from: source })?;
         let age = tick_ns - stamp_ns(a);
@@ -129,7 +131,7 @@ impl ActionSource for ScriptedExpert {
         Ok(Proposal { command: a.clone(), movement_enabled: true })
     }
 
-    fn verdict(&self, _tick_ns: i64) -> Verdict {
+    fn verdict(&self, _tick: Nanos) -> Verdict {
         match self.progress {
             Some((t, true, ok)) if t >= self.since_ns => {
                 if ok {
@@ -144,8 +146,8 @@ impl ActionSource for ScriptedExpert {
 
     /// Actions are matched to ticks by their sim-time stamps; verdicts count from the
     /// episode's first tick.
-    fn restart(&mut self, start_ns: i64) {
-        self.since_ns = start_ns;
+    fn restart(&mut self, start: Nanos) {
+        self.since_ns = start.0;
     }
 }
 
@@ -206,11 +208,12 @@ impl ActionSource for Teleop {
     }
 
     /// Teleop runs at its own rate: a tick never waits for it.
-    fn has(&self, _tick_ns: i64) -> bool {
+    fn has(&self, _tick: Nanos) -> bool {
         true
     }
 
-    fn action(&mut self, _tick_ns: i64, max_age_ns: i64) -> Result<Proposal, SourceError> {
+    fn action(&mut self, _tick: Nanos, max_age: Nanos) -> Result<Proposal, SourceError> {
+        let max_age_ns = max_age.0;
         let source = "teleop";
         let (a, sent) = self.latest.as_ref().ok_or(SourceError::Silent { from: source })?;
         let limit = (self.max_age.as_nanos() as i64).min(max_age_ns);
@@ -222,9 +225,9 @@ impl ActionSource for Teleop {
         Ok(Proposal { command: a.clone(), movement_enabled: enabled })
     }
 
-    fn verdict(&self, _tick_ns: i64) -> Verdict {
+    fn verdict(&self, _tick: Nanos) -> Verdict {
         Verdict::Running
     }
 
-    fn restart(&mut self, _start_ns: i64) {}
+    fn restart(&mut self, _start: Nanos) {}
 }

@@ -79,7 +79,7 @@ mod tests {
         let mut book = FrameBook::new(&["ext1", "wrist"]);
         book.push("ext1", FrameTimes { sequence: 7, capture_ns: 990, arrival_ns: 995 });
         book.push("wrist", FrameTimes { sequence: 9, capture_ns: 970, arrival_ns: 980 });
-        let frames = book.at(1_000, 50);
+        let frames = book.at(Nanos(1_000), Nanos(50));
         let robot = RobotState { joint_positions: [0.1; 7], ..Default::default() };
         let gripper = GripperState { position: 0.4, ..Default::default() };
         let action = ActionDict { gripper_position: 1.0, ..Default::default() };

@@ -6,6 +6,7 @@ use clap::Args;
 use labrig_arm::ik::{self, Ik, IkConfig};
 use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, TcpOffset};
+use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
 use nalgebra::Vector3;
 use serde_json::json;
@@ -65,7 +66,7 @@ pub fn run(a: IkArgs) -> anyhow::Result<ExitCode> {
         };
         let view = ArmView { measured: q, commanded: q };
         let t0 = Instant::now();
-        let ok = filter.filter(&cmd, &view, 0).map_err(|e| anyhow::anyhow!("tick {t}: {e}"))?;
+        let ok = filter.filter(&cmd, &view, Nanos::ZERO).map_err(|e| anyhow::anyhow!("tick {t}: {e}"))?;
         filter_us.push(t0.elapsed().as_secs_f64() * 1e6);
         q = ok.joints;
     }
@@ -79,7 +80,7 @@ pub fn run(a: IkArgs) -> anyhow::Result<ExitCode> {
         };
         let view = ArmView { measured: q, commanded: q };
         let t0 = Instant::now();
-        let ok = filter.filter(&cmd, &view, 0).map_err(|e| anyhow::anyhow!("velocity tick {t}: {e}"))?;
+        let ok = filter.filter(&cmd, &view, Nanos::ZERO).map_err(|e| anyhow::anyhow!("velocity tick {t}: {e}"))?;
         vel_us.push(t0.elapsed().as_secs_f64() * 1e6);
         q = ok.joints;
     }

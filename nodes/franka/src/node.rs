@@ -163,7 +163,7 @@ pub async fn run(
     let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(cfg.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
     let filter =
         SafetyFilter::new(Ik::new(kin.clone(), IkConfig::default()), cfg.safety.clone()).map_err(anyhow::Error::msg)?;
-    let mut watchdog = Watchdog::new(cfg.safety.watchdog_ns());
+    let mut watchdog = Watchdog::new(cfg.safety.watchdog_timeout());
     // In sim, time is the bridge's: commands are stamped in it and, in lockstep, it stands
     // still between commands, so the watchdog runs on it too (checked each state tick).
     let sim = cfg.backend == BackendKind::Sim;
@@ -231,7 +231,7 @@ pub async fn run(
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut stream = Box::pin(commands.stream());
     loop {
-        let deadline = watchdog.deadline().filter(|_| !sim).map(|d| started + Duration::from_nanos(d.max(0) as u64));
+        let deadline = watchdog.deadline().filter(|_| !sim).map(|d| started + Duration::from_nanos(d.0.max(0) as u64));
         tokio::select! {
             _ = shutdown.wait() => break,
             Some(served) = recover_rx.recv() => {
@@ -254,8 +254,8 @@ pub async fn run(
                 if deadline.is_some() => {
                 let rest = deadline.expect("guarded").saturating_duration_since(Instant::now());
                 std::thread::sleep(rest);
-                if let Some(silence) = watchdog.check(started.elapsed().as_nanos() as i64) {
-                    hold(&mut *backend, &mut report, silence, &bounds);
+                if let Some(silence) = watchdog.check(Nanos(started.elapsed().as_nanos() as i64)) {
+                    hold(&mut *backend, &mut report, silence.0, &bounds);
                     pubs.publish(&clock, &kin, &reading, &report);
                 }
             }
@@ -284,7 +284,7 @@ pub async fn run(
                     continue;
                 }
                 let view = ArmView { measured: reading.q, commanded: report.commanded.unwrap_or(reading.q) };
-                match filter.filter(&cmd, &view, clock.now().0) {
+                match filter.filter(&cmd, &view, clock.now()) {
                     Ok(ok) => {
                         if !ok.clipped.is_empty() {
                             report.clipped += 1;
@@ -310,7 +310,7 @@ pub async fn run(
                                 report.last_ok = true;
                                 report.holding = false;
                                 report.fault.clear();
-                                watchdog.feed(arrival);
+                                watchdog.feed(Nanos(arrival));
                             }
                             Err(BackendError::Refused(why)) => {
                                 report.refused += 1;
@@ -335,8 +335,8 @@ pub async fn run(
                     Ok(r) => reading = r,
                     Err(e) => down(&mut report, e),
                 }
-                if sim && let Some(silence) = watchdog.check(clock.now().0 + since_clock(clock_at)) {
-                    hold(&mut *backend, &mut report, silence, &bounds);
+                if sim && let Some(silence) = watchdog.check(Nanos(clock.now().0 + since_clock(clock_at))) {
+                    hold(&mut *backend, &mut report, silence.0, &bounds);
                 }
                 pubs.publish(&clock, &kin, &reading, &report);
             }

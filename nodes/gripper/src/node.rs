@@ -45,7 +45,7 @@ pub struct GripperNodeConfig {
     pub slave: u8,
     pub baud: u32,
     /// Deadline of one Modbus exchange.
-    pub request_timeout_ms: u64,
+    pub request_timeout_s: f64,
     pub activation_timeout_s: f64,
     /// Status reads and `/gripper/state` per second.
     pub rate_hz: f64,
@@ -63,7 +63,7 @@ impl Default for GripperNodeConfig {
             sim_prefix: topics::SIM_HARDWARE_PREFIX.into(),
             slave: crate::registers::SLAVE_ID,
             baud: crate::registers::BAUD_RATE,
-            request_timeout_ms: 100,
+            request_timeout_s: 0.1,
             activation_timeout_s: 10.0,
             rate_hz: 50.0,
             speed: 1.0,
@@ -85,8 +85,8 @@ impl GripperNodeConfig {
                 return bad(k, format!("is {v}, must be 0..=1"));
             }
         }
-        if self.request_timeout_ms == 0 || self.request_timeout_ms > 5000 {
-            return bad("request_timeout_ms", format!("is {}, must be 1..=5000", self.request_timeout_ms));
+        if !(self.request_timeout_s.is_finite() && (0.001..=5.0).contains(&self.request_timeout_s)) {
+            return bad("request_timeout_s", format!("is {}, must be 0.001..=5", self.request_timeout_s));
         }
         if !(self.activation_timeout_s.is_finite() && self.activation_timeout_s > 0.0) {
             return bad("activation_timeout_s", format!("is {}, must be > 0", self.activation_timeout_s));
@@ -210,7 +210,7 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
                 port,
                 slave: cfg.slave,
                 baud: cfg.baud,
-                request_timeout: Duration::from_millis(cfg.request_timeout_ms),
+                request_timeout: Duration::from_secs_f64(cfg.request_timeout_s),
             })?)
         }
     };

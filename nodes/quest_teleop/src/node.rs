@@ -7,7 +7,7 @@
 //!   limit or the deadman is released;
 //! - `/rig/request` (EpisodeEvent): A/X success, B/Y failure, on the press.
 //!
-//! Safety: no reading for `stale_ms` (or no `/arm/state` for `max_state_age_ms`) disables
+//! Safety: no reading for `stale_s` (or no `/arm/state` for `max_state_age_s`) disables
 //! motion (the origins are dropped: moving again takes the grip let go and pressed again); `controller_timeout_s` without one marks the controller gone;
 //! a reading whose pose jumped more than `max_jump_m` / `max_jump_rad` from the last accepted
 //! one is refused (a tracking glitch: skipped, nothing published); only `jump_confirm`
@@ -37,7 +37,7 @@ pub struct TeleopConfig {
     pub input: InputConfig,
     pub policy: PolicyConfig,
     /// No reading for this long disables motion (ms).
-    pub stale_ms: f64,
+    pub stale_s: f64,
     /// No reading for this long: the controller is gone (s; DROID: 5).
     pub controller_timeout_s: f64,
     /// A pose that moved more than this since the last accepted reading is refused (m).
@@ -51,7 +51,7 @@ pub struct TeleopConfig {
     /// The arm's state the mapping closes its loop on.
     pub state_topic: String,
     /// An arm state older than this is not closed on: motion disabled (ms).
-    pub max_state_age_ms: f64,
+    pub max_state_age_s: f64,
 }
 
 impl Default for TeleopConfig {
@@ -60,14 +60,14 @@ impl Default for TeleopConfig {
             ros: RosConfig::default(),
             input: InputConfig::default(),
             policy: PolicyConfig::default(),
-            stale_ms: 50.0,
+            stale_s: 0.05,
             controller_timeout_s: 5.0,
             max_jump_m: 0.05,
             max_jump_rad: 0.5,
             jump_confirm: 3,
             gripper_delta: 0.25,
             state_topic: topics::ARM_STATE.name.into(),
-            max_state_age_ms: 200.0,
+            max_state_age_s: 0.2,
         }
     }
 }
@@ -77,12 +77,12 @@ impl TeleopConfig {
         self.input.validate()?;
         self.policy.validate()?;
         for (k, v) in [
-            ("stale_ms", self.stale_ms),
+            ("stale_s", self.stale_s),
             ("controller_timeout_s", self.controller_timeout_s),
             ("max_jump_m", self.max_jump_m),
             ("max_jump_rad", self.max_jump_rad),
             ("gripper_delta", self.gripper_delta),
-            ("max_state_age_ms", self.max_state_age_ms),
+            ("max_state_age_s", self.max_state_age_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(Invalid::new(k, format!("{k}: {v} must be positive")));
@@ -282,7 +282,7 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<Teleop
                 stale_announced = false;
                 // The mapping closes its loop on the arm's state: without a fresh one the
                 // action would chase an offset the arm may already have made up.
-                let Some(rv) = robot.filter(|(_, at)| at.elapsed().as_secs_f64() * 1e3 <= cfg.max_state_age_ms).map(|(v, _)| v) else {
+                let Some(rv) = robot.filter(|(_, at)| at.elapsed().as_secs_f64() <= cfg.max_state_age_s).map(|(v, _)| v) else {
                     if !warned_no_state {
                         tracing::warn!("no fresh {}: motion disabled until the arm's state arrives", cfg.state_topic);
                         warned_no_state = true;
@@ -310,14 +310,14 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<Teleop
             }
             _ = tick.tick() => {
                 let age = last_reading.as_ref().map(|(at, _)| at.elapsed());
-                let stale = age.is_none_or(|a| a.as_secs_f64() * 1e3 > cfg.stale_ms);
+                let stale = age.is_none_or(|a| a.as_secs_f64() > cfg.stale_s);
                 if stale {
                     let just_now = !stale_announced && age.is_some();
                     if just_now {
                         stale_announced = true;
                         stats.stale_holds += 1;
                         policy.release();
-                        tracing::warn!("no controller reading for {} ms: motion disabled", cfg.stale_ms);
+                        tracing::warn!("no controller reading for {} ms: motion disabled", cfg.stale_s * 1e3);
                     }
                     // Disabled at once when it turned stale, then every 100 ms.
                     if just_now || disabled_published_at.elapsed() >= Duration::from_millis(100) {
@@ -378,9 +378,20 @@ mod tests {
     }
 
     #[test]
+    fn the_launch_configs_teleop_files_load_and_pass() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../launch_configs/nodes");
+        for name in ["teleop_quest.toml", "teleop_sim_trace.toml"] {
+            let c: TeleopConfig = labrig_runtime::load_config(&dir.join(name)).unwrap();
+            assert_eq!(c.validate(), Ok(()), "{name}");
+        }
+        let c: TeleopConfig = labrig_runtime::load_config(&dir.join("teleop_quest.toml")).unwrap();
+        assert_eq!((c.stale_s, c.max_state_age_s), (0.05, 0.2));
+    }
+
+    #[test]
     fn config_is_validated_by_field() {
-        let c = TeleopConfig { stale_ms: 0.0, ..TeleopConfig::default() };
-        assert!(c.validate().unwrap_err().to_string().contains("stale_ms"));
+        let c = TeleopConfig { stale_s: 0.0, ..TeleopConfig::default() };
+        assert!(c.validate().unwrap_err().to_string().contains("stale_s"));
         let mut c = TeleopConfig::default();
         c.input.kind = crate::input::InputKind::Playback;
         assert!(c.validate().unwrap_err().to_string().contains("input.file"));

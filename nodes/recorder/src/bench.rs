@@ -51,8 +51,8 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
         }
     };
     let t0 = now_ns();
-    let meta = EpisodeMetadata::new(&RigIdentity::default(), "bench", "record a synthetic episode", t0);
-    let dir = episode_dir(&root, Outcome::Success, t0);
+    let meta = EpisodeMetadata::new(&RigIdentity::default(), "bench", "record a synthetic episode", Nanos(t0));
+    let dir = episode_dir(&root, Outcome::Success, Nanos(t0));
     let mut w = EpisodeWriter::create(&dir, meta)?;
     println!("{}", json!({ "episode": dir }));
     let ticks = (a.seconds * 20.0).round() as u64;
@@ -77,7 +77,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
             jpeg_us.push(j0.elapsed().as_secs_f64() * 1e6);
             jpeg_bytes += data.len() as u64;
             let img = CompressedImage { header: header(&format!("{cam}_optical")), format: "jpeg".into(), data };
-            w.write(&topics::camera_image(cam), &img, t, t, Reliability::BestEffort)?;
+            w.write(&topics::camera_image(cam), &img, Nanos(t), Nanos(t), Reliability::BestEffort)?;
             refs.push(CameraFrameRef {
                 camera_id: (*cam).into(),
                 sequence: k,
@@ -89,7 +89,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
         for j in 0..2 {
             let ts = t + j * 25_000_000;
             let s = RobotState { header: header("base"), joint_positions: [k as f64 * 1e-3; 7], ..Default::default() };
-            w.write(topics::ARM_STATE.name, &s, ts, ts, Reliability::Reliable)?;
+            w.write(topics::ARM_STATE.name, &s, Nanos(ts), Nanos(ts), Reliability::Reliable)?;
         }
         let step = Step {
             header: header("base"),
@@ -98,7 +98,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
             action_source: Step::SOURCE_SCRIPTED,
             ..Default::default()
         };
-        w.write(topics::RIG_STEP.name, &step, t, t, Reliability::Reliable)?;
+        w.write(topics::RIG_STEP.name, &step, Nanos(t), Nanos(t), Reliability::Reliable)?;
         if w.closed_chunks() != closed {
             closed = w.closed_chunks();
             println!("{}", json!({ "closed_chunks": closed, "steps": k, "messages": w.messages() }));

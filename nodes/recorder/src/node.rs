@@ -161,7 +161,7 @@ fn write_frame(
         data,
     };
     let topic = topics::camera_image(camera);
-    ep.writer.write(&topic, &img, log_ns, h.capture_ns, Reliability::BestEffort)?;
+    ep.writer.write(&topic, &img, Nanos(log_ns), Nanos(h.capture_ns), Reliability::BestEffort)?;
     ep.frames += 1;
     Ok(())
 }
@@ -272,7 +272,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                         .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
                         .and_then(|v| v["spec_name"].as_str().map(str::to_owned))
                         .unwrap_or_default();
-                    let mut meta = EpisodeMetadata::new(&cfg.rig, &scene_id, &ev.note, start_ns);
+                    let mut meta = EpisodeMetadata::new(&cfg.rig, &scene_id, &ev.note, Nanos(start_ns));
                     if !ev.episode_id.is_empty() {
                         meta.uuid.clone_from(&ev.episode_id);
                     }
@@ -286,15 +286,24 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                             for r in topics.iter().filter(|r| r.spec.latched) {
                                 let Some((cdr, publish)) = context.latched.get(&r.spec.topic) else { continue };
                                 let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
-                                if let Err(e) =
-                                    writer.write_cdr(&r.spec.topic, &ty, cdr, start_ns, *publish, Reliability::Reliable)
-                                {
+                                if let Err(e) = writer.write_cdr(
+                                    &r.spec.topic,
+                                    &ty,
+                                    cdr,
+                                    Nanos(start_ns),
+                                    Nanos(*publish),
+                                    Reliability::Reliable,
+                                ) {
                                     tracing::warn!("{}: {e}", r.spec.topic);
                                 }
                             }
-                            if let Err(e) =
-                                writer.write(topics::RIG_EPISODE.name, &ev, start_ns, sent_ns, Reliability::Reliable)
-                            {
+                            if let Err(e) = writer.write(
+                                topics::RIG_EPISODE.name,
+                                &ev,
+                                Nanos(start_ns),
+                                Nanos(sent_ns),
+                                Reliability::Reliable,
+                            ) {
                                 tracing::warn!("/rig/episode: {e}");
                             }
                             tracing::info!(dir = %staging.display(), "recording");
@@ -339,8 +348,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                         if let Err(e) = ep.writer.write(
                             topics::RIG_EPISODE.name,
                             &ev,
-                            clock.now().0,
-                            sent_ns,
+                            clock.now(),
+                            Nanos(sent_ns),
                             Reliability::Reliable,
                         ) {
                             tracing::warn!("/rig/episode: {e}");
@@ -479,7 +488,7 @@ fn drain_topics(
                 }
                 let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
                 let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
-                if let Err(e) = ep.writer.write_cdr(&r.spec.topic, &ty, &cdr, log, publish, reliability) {
+                if let Err(e) = ep.writer.write_cdr(&r.spec.topic, &ty, &cdr, Nanos(log), Nanos(publish), reliability) {
                     return Some(e);
                 }
             }
@@ -506,7 +515,7 @@ fn end(ep: Episode, outcome: Outcome, root: &std::path::Path, why: &str) -> serd
         Ok(summary) => {
             // Two episodes may start in the same second (DROID's directory names are to the
             // second): the later one gets a suffix rather than failing to move.
-            let dest = unused(episode_dir(root, outcome, start_ns));
+            let dest = unused(episode_dir(root, outcome, Nanos(start_ns)));
             let moved =
                 dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(&staging, &dest));
             match moved {
