@@ -177,3 +177,38 @@ fn architecture_md_lists_every_crate_as_it_is() {
     }
     assert!(bad.is_empty(), "{bad:#?}");
 }
+
+#[test]
+fn the_readme_wrapper_builds_packages_and_programs_that_exist() {
+    // scripts/labrig (the README's `./scripts/labrig demo`) builds `-p <package> --bin <program>`
+    // pairs: each package must exist and own that program (a crate rename once broke it).
+    let script = std::fs::read_to_string(labrig_tests::repo_root().join("scripts/labrig")).unwrap();
+    let line = script.lines().find(|l| l.trim_start().starts_with("cargo build")).expect("a cargo build line");
+    let words: Vec<&str> = line.split_whitespace().collect();
+    let out = cargo().args(["metadata", "--offline", "--format-version", "1", "--no-deps"]).output().unwrap();
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let bins: BTreeMap<String, BTreeSet<String>> = v["packages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            let targets = p["targets"].as_array().unwrap();
+            let b = targets
+                .iter()
+                .filter(|t| t["kind"].as_array().unwrap().iter().any(|k| k == "bin"))
+                .map(|t| t["name"].as_str().unwrap().to_owned())
+                .collect();
+            (p["name"].as_str().unwrap().to_owned(), b)
+        })
+        .collect();
+    let mut pairs = 0;
+    for w in words.windows(4) {
+        if w[0] == "-p" && w[2] == "--bin" {
+            pairs += 1;
+            let owned = bins.get(w[1]).unwrap_or_else(|| panic!("scripts/labrig builds -p {}: no such package", w[1]));
+            assert!(owned.contains(w[3]), "scripts/labrig builds --bin {} from {}, which has {owned:?}", w[3], w[1]);
+        }
+    }
+    // Every program the launcher and the CLI run is built.
+    assert!(pairs >= 8, "{pairs} -p/--bin pairs in: {line}");
+}
