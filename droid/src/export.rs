@@ -9,6 +9,7 @@ use crate::droid::{self, Camera, Episode, HAND_CAMERA};
 use crate::h5doc;
 use crate::meta;
 use crate::video::Mp4Writer;
+use crate::{DroidError, bad, io};
 use labrig_arm::ik::{pose_from_xyz_euler, xyz_euler};
 use labrig_episode::inspect::read_episode;
 use labrig_episode::metadata::{Outcome, episode_dir};
@@ -89,33 +90,33 @@ impl CameraOut {
 }
 
 /// Exports the episode at `source` (its directory or MCAP file) under `out_root`.
-pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> anyhow::Result<Exported> {
+pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> Result<Exported, DroidError> {
     let started = Instant::now();
-    let data = read_episode(source).map_err(|e| anyhow::anyhow!(e))?;
+    let data = read_episode(source)?;
     let file = data.file.clone();
-    anyhow::ensure!(
-        data.complete,
-        "{}: the episode was not finished (its recorder stopped early): run `labrig recover` on it first",
-        file.display()
-    );
-    let mut metadata = data.metadata.ok_or_else(|| {
-        anyhow::anyhow!("{}: no droid_episode metadata record: not an episode recorded by labrig", file.display())
-    })?;
+    if !data.complete {
+        return Err(bad(
+            &file,
+            "the episode was not finished (its recorder stopped early): run `labrig recover` on it first",
+        ));
+    }
+    let mut metadata = data
+        .metadata
+        .ok_or_else(|| bad(&file, "no droid_episode metadata record: not an episode recorded by labrig"))?;
     let steps = data.steps;
-    anyhow::ensure!(!steps.is_empty(), "{}: no /rig/step records: nothing to export", file.display());
+    if steps.is_empty() {
+        return Err(bad(&file, "no /rig/step records: nothing to export"));
+    }
     for (i, s) in steps.iter().enumerate() {
-        anyhow::ensure!(
-            s.step_index == i as u64,
-            "{}: step {i} is missing (the steps go {} -> {})",
-            file.display(),
-            i.saturating_sub(1),
-            s.step_index
-        );
+        if s.step_index != i as u64 {
+            let reason = format!("step {i} is missing (the steps go {} -> {})", i.saturating_sub(1), s.step_index);
+            return Err(bad(&file, reason));
+        }
     }
     metadata.trajectory_length = steps.len() as u64;
 
     // Second pass: intrinsics, the hand camera's offset, and the frames into the MP4s.
-    let buf = std::fs::read(&file).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    let buf = std::fs::read(&file).map_err(io(&file))?;
     let mut intrinsics: BTreeMap<String, [f64; 9]> = BTreeMap::new();
     // An imported episode carries the hand camera's offset in its metadata; a recorded one
     // has it on /tf.
@@ -134,8 +135,9 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
     let partial = dir.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
     let mp4_dir = partial.join("recordings").join("MP4");
-    std::fs::create_dir_all(&mp4_dir).map_err(|e| anyhow::anyhow!("{}: {e}", mp4_dir.display()))?;
-    let result = (|| -> anyhow::Result<Exported> {
+    std::fs::create_dir_all(&mp4_dir).map_err(io(&mp4_dir))?;
+    let mcap_err = |source| DroidError::Mcap { path: file.clone(), source };
+    let result = (|| -> Result<Exported, DroidError> {
         let mut outs: Vec<CameraOut> = Vec::new();
         for (cam, r) in cameras.iter().zip(&refs) {
             outs.push(CameraOut {
@@ -147,8 +149,8 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
             });
         }
         let index: BTreeMap<String, usize> = cameras.iter().enumerate().map(|(i, c)| (c.id.clone(), i)).collect();
-        for m in mcap::MessageStream::new(&buf)? {
-            let m = m.map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+        for m in mcap::MessageStream::new(&buf).map_err(mcap_err)? {
+            let m = m.map_err(mcap_err)?;
             let topic = m.channel.topic.as_str();
             let Some(rest) = topic.strip_prefix(topics::CAMERAS_PREFIX) else {
                 if topic == topics::TF.name
@@ -164,7 +166,7 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
             match what {
                 "image/compressed" => {
                     let img = labrig_msgs::decode::<CompressedImage>(&m.data)
-                        .map_err(|e| anyhow::anyhow!("{}: {topic}: {e}", file.display()))?;
+                        .map_err(|e| bad(&file, format!("{topic}: {e}")))?;
                     outs[c].frame(Nanos::from(img.header.stamp).0, &img.data)?;
                 }
                 "camera_info" if !intrinsics.contains_key(id) => {
@@ -178,12 +180,9 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
         let mut mp4_frames = Vec::new();
         let mut frames_filled = 0;
         for (cam, mut out) in cameras.iter().zip(outs) {
-            anyhow::ensure!(
-                out.last.is_some(),
-                "{}: camera {} has no recorded frames: no video to export",
-                file.display(),
-                cam.id
-            );
+            if out.last.is_none() {
+                return Err(bad(&file, format!("camera {} has no recorded frames: no video to export", cam.id)));
+            }
             // Steps after the last recorded frame.
             while out.next < out.refs.len() {
                 let last = out.last.clone().expect("checked");
@@ -224,8 +223,8 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
             action_source: ep.steps[0].action_source,
         });
         let json_path = partial.join(meta::file_name(&ep.metadata.uuid));
-        std::fs::write(&json_path, serde_json::to_string_pretty(&json)? + "\n")
-            .map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))?;
+        let text = serde_json::to_string_pretty(&json).map_err(|e| bad(&json_path, e.to_string()))?;
+        std::fs::write(&json_path, text + "\n").map_err(io(&json_path))?;
         Ok(Exported {
             source: file.clone(),
             dir: dir.clone(),
@@ -240,7 +239,7 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> a
     })();
     match result {
         Ok(mut e) => {
-            std::fs::rename(&partial, &dir).map_err(|err| anyhow::anyhow!("{}: {err}", dir.display()))?;
+            std::fs::rename(&partial, &dir).map_err(io(&dir))?;
             e.seconds = started.elapsed().as_secs_f64();
             Ok(e)
         }

@@ -11,6 +11,7 @@ use crate::droid::{self, Camera};
 use crate::h5doc;
 use crate::meta;
 use crate::video::Mp4Reader;
+use crate::{DroidError, bad, io};
 use labrig_episode::bag::Reliability;
 use labrig_episode::episode::EpisodeWriter;
 use labrig_episode::metadata::{Outcome, episode_dir};
@@ -53,9 +54,9 @@ pub fn find_droid_episodes(root: &Path) -> Vec<PathBuf> {
     crate::dirs_holding(root, "trajectory.h5")
 }
 
-fn metadata_json(dir: &Path) -> anyhow::Result<PathBuf> {
+fn metadata_json(dir: &Path) -> Result<PathBuf, DroidError> {
     let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?
+        .map_err(io(dir))?
         .flatten()
         .map(|e| e.path())
         .filter(|p| {
@@ -64,14 +65,14 @@ fn metadata_json(dir: &Path) -> anyhow::Result<PathBuf> {
         .collect();
     found.sort();
     match found.len() {
-        0 => anyhow::bail!("{}: no metadata_<uuid>.json: not a DROID episode directory", dir.display()),
+        0 => Err(bad(dir, "no metadata_<uuid>.json: not a DROID episode directory")),
         1 => Ok(found.remove(0)),
-        _ => anyhow::bail!("{}: {} metadata_*.json files: which episode is this?", dir.display(), found.len()),
+        n => Err(bad(dir, format!("{n} metadata_*.json files: which episode is this?"))),
     }
 }
 
 /// Imports the DROID episode in `source` under `out_root`.
-pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> anyhow::Result<Imported> {
+pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> Result<Imported, DroidError> {
     let started = Instant::now();
     // trajectory.h5 itself names its episode directory.
     let source = match source.parent() {
@@ -79,16 +80,17 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
         _ => source,
     };
     let h5_path = source.join("trajectory.h5");
-    anyhow::ensure!(h5_path.is_file(), "{}: no trajectory.h5: not a DROID episode directory", source.display());
+    if !h5_path.is_file() {
+        return Err(bad(source, "no trajectory.h5: not a DROID episode directory"));
+    }
     let json_path = metadata_json(source)?;
-    let text = std::fs::read_to_string(&json_path).map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))?;
+    let text = std::fs::read_to_string(&json_path).map_err(io(&json_path))?;
     let value: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| anyhow::anyhow!("{}: not JSON: {e}", json_path.display()))?;
-    let parsed = meta::parse(&value).map_err(|e| anyhow::anyhow!("{}: {e}", json_path.display()))?;
+        serde_json::from_str(&text).map_err(|e| bad(&json_path, format!("not JSON: {e}")))?;
+    let parsed = meta::parse(&value).map_err(|e| bad(&json_path, e.to_string()))?;
     let doc = h5doc::read(&h5_path)?;
     let mut meta = parsed.meta;
-    let traj = droid::from_droid(&doc, &meta.uuid, &parsed.serial_to_id)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", h5_path.display()))?;
+    let traj = droid::from_droid(&doc, &meta.uuid, &parsed.serial_to_id).map_err(|e| bad(&h5_path, e.to_string()))?;
     let mut steps = traj.steps;
     for s in &mut steps {
         s.action_source = parsed.action_source;
@@ -130,7 +132,7 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> a
         write_episode(&partial, meta.clone(), &steps, &traj.cameras, traj.hand_offset, source, opts, &mut warnings);
     match result {
         Ok(frames) => {
-            std::fs::rename(&partial, &dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+            std::fs::rename(&partial, &dir).map_err(io(&dir))?;
             Ok(Imported {
                 source: source.to_owned(),
                 dir,
@@ -159,7 +161,7 @@ fn write_episode(
     source: &Path,
     opts: &ImportOptions,
     warnings: &mut Vec<String>,
-) -> anyhow::Result<u64> {
+) -> Result<u64, DroidError> {
     if let Some(off) = hand_offset {
         // Where the recorder keeps extrinsics; an export reads the hand camera's from here.
         meta.extrinsics.insert(format!("{}_gripper_offset", droid::HAND_CAMERA), off);
@@ -233,7 +235,7 @@ fn write_episode(
                 continue;
             }
             let jpeg = labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, opts.jpeg_quality)
-                .map_err(|e| anyhow::anyhow!("camera {}: {e}", cam.id))?;
+                .map_err(|e| bad(source, format!("camera {}: {e}", cam.id)))?;
             let img = CompressedImage {
                 header: Header { stamp: Nanos(fr.capture_ns).into(), frame_id: format!("{}_optical", cam.id) },
                 format: "jpeg".into(),

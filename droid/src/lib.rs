@@ -39,11 +39,55 @@ pub fn dirs_holding(root: &Path, marker: &str) -> Vec<PathBuf> {
     found
 }
 
+/// Why an export or import failed; every variant names the file or directory.
+#[derive(Debug, thiserror::Error)]
+pub enum DroidError {
+    #[error(transparent)]
+    Read(#[from] labrig_episode::ReadError),
+    #[error(transparent)]
+    Write(#[from] labrig_episode::EpisodeError),
+    #[error(transparent)]
+    Video(#[from] video::VideoError),
+    #[error(transparent)]
+    H5(#[from] h5doc::H5Error),
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: {source}", path.display())]
+    Mcap {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+    /// The input is not what DROID's or labrig's format says; `reason` names what is wrong.
+    #[error("{}: {reason}", path.display())]
+    Bad { path: PathBuf, reason: String },
+    #[error("{} holds this episode already: pass --overwrite to replace it", dir.display())]
+    Exists { dir: PathBuf },
+}
+
+/// `map_err` for an I/O error on `path`.
+pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DroidError + '_ {
+    move |source| DroidError::Io { path: path.to_owned(), source }
+}
+
+/// A [`DroidError::Bad`] for `path`.
+pub(crate) fn bad(path: &Path, reason: impl Into<String>) -> DroidError {
+    DroidError::Bad { path: path.to_owned(), reason: reason.into() }
+}
+
 /// Where an episode goes: DROID's directory `base` (named to the second), or `base_2`,
 /// `base_3` ... when another episode started in the same second (as the recorder does).
 /// The directory already holding this same episode (`is_same`) is an error unless
 /// `overwrite`, then it is removed and reused.
-pub(crate) fn destination(base: &Path, is_same: impl Fn(&Path) -> bool, overwrite: bool) -> anyhow::Result<PathBuf> {
+pub(crate) fn destination(
+    base: &Path,
+    is_same: impl Fn(&Path) -> bool,
+    overwrite: bool,
+) -> Result<PathBuf, DroidError> {
     let name = base.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     for k in 1.. {
         let dir = if k == 1 { base.to_owned() } else { base.with_file_name(format!("{name}_{k}")) };
@@ -51,8 +95,10 @@ pub(crate) fn destination(base: &Path, is_same: impl Fn(&Path) -> bool, overwrit
             return Ok(dir);
         }
         if is_same(&dir) {
-            anyhow::ensure!(overwrite, "{} holds this episode already: pass --overwrite to replace it", dir.display());
-            std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+            if !overwrite {
+                return Err(DroidError::Exists { dir });
+            }
+            std::fs::remove_dir_all(&dir).map_err(io(&dir))?;
             return Ok(dir);
         }
     }

@@ -97,7 +97,7 @@ fn run_all<T: serde::Serialize>(
     items: &[PathBuf],
     what: &str,
     json: bool,
-    one: impl Fn(&Path) -> anyhow::Result<T>,
+    one: impl Fn(&Path) -> Result<T, labrig_droid::DroidError>,
     line: impl Fn(&T) -> String,
     steps_of: impl Fn(&T) -> usize,
 ) -> ExitCode {

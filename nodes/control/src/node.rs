@@ -78,7 +78,7 @@ pub struct ControlConfig {
     pub ros: RosConfig,
     pub source: SourceKind,
     pub clock: ClockKind,
-    /// Control period (ms); DROID: 50 (20 Hz).
+    /// Control period (s); DROID: 0.05 (20 Hz).
     pub period_s: f64,
     /// Start episodes without an operator (the scripted expert).
     pub auto_start: bool,
@@ -92,12 +92,12 @@ pub struct ControlConfig {
     /// The cameras whose frames each step references.
     pub cameras: Vec<String>,
     pub frames_namespace: Option<String>,
-    /// A camera frame older than this at a tick is stale (ms).
+    /// A camera frame older than this at a tick is stale (s).
     pub stale_frame_s: f64,
-    /// A source action older than this at a tick is refused (ms; realtime only, lockstep
+    /// A source action older than this at a tick is refused (s; realtime only, lockstep
     /// waits for the tick's own action).
     pub max_action_age_s: f64,
-    /// Teleop: an action that arrived longer ago than this is not followed (ms). The headset
+    /// Teleop: an action that arrived longer ago than this is not followed (s). The headset
     /// sends ~72 readings/s, so 35 ms is ~2 missed ones; with a 50 ms tick a vanished
     /// controller holds the arm within 35 + 50 ms.
     pub teleop_max_age_s: f64,

@@ -50,6 +50,7 @@ impl GripperTools {
     pub async fn run(self, shutdown: Shutdown) -> anyhow::Result<std::process::ExitCode> {
         match self {
             GripperTools::Emulate { object_at } => {
+                shutdown.trigger_on_signals()?;
                 let emu = Emulated2F85::new(EmulatorConfig::default());
                 emu.place_object(object_at);
                 let pty = emu.serve_on_pty()?;

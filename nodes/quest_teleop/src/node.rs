@@ -36,7 +36,7 @@ pub struct TeleopConfig {
     pub ros: RosConfig,
     pub input: InputConfig,
     pub policy: PolicyConfig,
-    /// No reading for this long disables motion (ms).
+    /// No reading for this long disables motion (s).
     pub stale_s: f64,
     /// No reading for this long: the controller is gone (s; DROID: 5).
     pub controller_timeout_s: f64,
@@ -50,7 +50,7 @@ pub struct TeleopConfig {
     pub gripper_delta: f64,
     /// The arm's state the mapping closes its loop on.
     pub state_topic: String,
-    /// An arm state older than this is not closed on: motion disabled (ms).
+    /// An arm state older than this is not closed on: motion disabled (s).
     pub max_state_age_s: f64,
 }
 
@@ -317,7 +317,7 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<Teleop
                         stale_announced = true;
                         stats.stale_holds += 1;
                         policy.release();
-                        tracing::warn!("no controller reading for {} ms: motion disabled", cfg.stale_s * 1e3);
+                        tracing::warn!("no controller reading for {:.0} ms: motion disabled", cfg.stale_s * 1e3);
                     }
                     // Disabled at once when it turned stale, then every 100 ms.
                     if just_now || disabled_published_at.elapsed() >= Duration::from_millis(100) {

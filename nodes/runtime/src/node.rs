@@ -66,8 +66,8 @@ pub struct CommonFlags {
     pub config: Option<PathBuf>,
     /// Override any config key by its dotted path, e.g. `--set safety.max_step_m=0.02`
     /// (the value is TOML: numbers, true/false, "text", [arrays]; a bare word is text).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
+    #[arg(long = "set", value_name = "KEY=VALUE", value_parser = key_value)]
+    pub set: Vec<(String, String)>,
     /// DDS domain id (ROS_DOMAIN_ID is read as in every ROS 2 tool).
     #[arg(long, env = "ROS_DOMAIN_ID")]
     pub domain_id: Option<u16>,
@@ -77,6 +77,14 @@ pub struct CommonFlags {
     /// Also write the run's stats (JSON) to this file on exit.
     #[arg(long)]
     pub stats_out: Option<PathBuf>,
+}
+
+/// `--set`'s `KEY=VALUE` (a malformed one is a bad command line: exit 2).
+fn key_value(arg: &str) -> Result<(String, String), String> {
+    match arg.split_once('=') {
+        Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_owned(), v.trim().to_owned())),
+        _ => Err(format!("`{arg}`: expected KEY=VALUE")),
+    }
 }
 
 #[derive(Debug, Args)]
@@ -96,23 +104,15 @@ enum Parsed<F: Args, T> {
     Tool(T),
 }
 
-/// Why a node did not start.
-#[derive(Debug, thiserror::Error)]
-pub enum StartError {
-    #[error(transparent)]
-    Config(#[from] ConfigError),
-    #[error("--set {0}: expected KEY=VALUE")]
-    Set(String),
-}
-
 /// `main` of a node program with no tools: `fn main() -> ExitCode { node_main::<MyNode>() }`.
 pub fn node_main<N: Node>() -> ExitCode {
     node_main_with::<N, NoTools, _>(|tool, _, _| match tool {})
 }
 
 /// `main` of a node program that also carries tools (`<program> <tool> ...`: the node's
-/// benchmark, an emulator, ...), with the same logging and signal handling as the node. A tool
-/// runs outside the runtime (it may start its own, or `block_on` the one it is given).
+/// benchmark, an emulator, ...), with the same logging as the node. A tool runs outside the
+/// runtime (it may start its own, or `block_on` the one it is given); SIGINT/SIGTERM keep their
+/// default action for it (it ends) unless it calls `Shutdown::trigger_on_signals` itself.
 pub fn node_main_with<N, T, H>(tool: H) -> ExitCode
 where
     N: Node,
@@ -133,12 +133,14 @@ where
         }
     };
     let shutdown = Shutdown::new();
-    let result = match rt.block_on(async { shutdown.trigger_on_signals() }) {
-        Err(e) => Err(e.into()),
-        Ok(()) => match parsed {
-            Parsed::Tool(t) => tool(t, &rt, shutdown),
-            Parsed::Run(run) => rt.block_on(run_node::<N>(*run, shutdown)).map(|()| ExitCode::SUCCESS),
-        },
+    let result = match parsed {
+        Parsed::Tool(t) => tool(t, &rt, shutdown),
+        Parsed::Run(run) => rt
+            .block_on(async {
+                shutdown.trigger_on_signals()?;
+                run_node::<N>(*run, shutdown).await
+            })
+            .map(|()| ExitCode::SUCCESS),
     };
     match result {
         Ok(code) => code,
@@ -168,23 +170,27 @@ fn parse<N: Node, T: Subcommand>(
 }
 
 /// Steps 1-4 of the module's list: the config a node runs with.
-pub fn load<N: Node>(common: &CommonFlags, flags: N::Flags) -> Result<N::Config, StartError> {
+pub fn load<N: Node>(common: &CommonFlags, flags: N::Flags) -> Result<N::Config, ConfigError> {
     let origin = common.config.clone().unwrap_or_else(|| PathBuf::from("<command line>"));
-    let mut table: toml::Table = match &common.config {
+    let text = match &common.config {
         Some(path) => {
-            let text =
-                std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_owned(), source })?;
-            crate::config::parse_config(&text, path)?
+            std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_owned(), source })?
         }
-        None => toml::Table::new(),
+        None => String::new(),
     };
-    for set in &common.set {
-        let (key, value) = set.split_once('=').ok_or_else(|| StartError::Set(set.clone()))?;
-        set_key(&mut table, key.trim(), value.trim());
-    }
-    let mut config: N::Config = table
-        .try_into()
-        .map_err(|e: toml::de::Error| ConfigError::Parse { path: origin.clone(), message: e.to_string() })?;
+    let mut config: N::Config = if common.set.is_empty() {
+        // Straight from the text: errors keep their line and column.
+        crate::config::parse_config(&text, &origin)?
+    } else {
+        let mut table: toml::Table = crate::config::parse_config(&text, &origin)?;
+        for (key, value) in &common.set {
+            set_key(&mut table, key, value);
+        }
+        table.try_into().map_err(|e: toml::de::Error| ConfigError::Parse {
+            path: origin.clone(),
+            message: format!("{} (with --set)", e.to_string().trim_end()),
+        })?
+    };
     N::apply(flags, &mut config, common.config.as_deref());
     if let Some(d) = common.domain_id {
         N::ros(&mut config).domain_id = d;
@@ -219,12 +225,12 @@ async fn run_node<N: Node>(args: RunArgs<N::Flags>, shutdown: Shutdown) -> anyho
     let config = load::<N>(&common, flags)?;
     tracing::debug!(node = N::NAME, "starting");
     let stats = N::run(config, shutdown).await?;
-    let text = serde_json::to_string(&stats)?;
     if common.json {
-        println!("{text}");
+        println!("{}", serde_json::to_string(&stats)?);
     }
     if let Some(p) = &common.stats_out {
-        std::fs::write(p, &text).map_err(|e| anyhow::anyhow!("writing {}: {e}", p.display()))?;
+        std::fs::write(p, serde_json::to_string_pretty(&stats)?)
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", p.display()))?;
     }
     Ok(())
 }
@@ -320,7 +326,7 @@ mod tests {
         let e = config(&["run", "--set", "inner.gian=2"]).unwrap_err();
         assert!(e.contains("unknown field `gian`"), "{e}");
         let e = config(&["run", "--set", "ticks"]).unwrap_err();
-        assert!(e.contains("--set ticks: expected KEY=VALUE"), "{e}");
+        assert!(e.contains("`ticks`: expected KEY=VALUE"), "{e}");
         let e = config(&["run", "--ticks", "0"]).unwrap_err();
         assert_eq!(e, "invalid config <command line>: ticks must be > 0");
         let e = config(&["run", "--domain-id", "300"]).unwrap_err();
