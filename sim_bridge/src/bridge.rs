@@ -33,7 +33,7 @@
 //! the physics step at that deadline on (mid-tick). A refused command is reported in `/arm/state` (`fault`, mode FAULT,
 //! `prev_command_successful = false`) and never reaches the physics.
 
-use labrig_arm::safety::{ArmView, SafetyFilter, Watchdog};
+use crate::hardware::{CommandState, SimHardware};
 use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::builtin_interfaces::Time;
@@ -49,7 +49,7 @@ use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
 use labrig_runtime::{RosConfig, Shutdown};
 use labrig_sim::expert::euler_xyz;
 use labrig_sim::scene::SceneValues;
-use labrig_sim::{ArmTarget, Meshes, Sim};
+use labrig_sim::{Meshes, Sim};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -283,20 +283,6 @@ struct Publishers {
     camera_info: Vec<RosPublisher<CameraInfo>>,
 }
 
-/// What the bridge last heard and did.
-#[derive(Debug, Default)]
-struct CommandState {
-    arm: Option<ArmTarget>,
-    gripper: f64,
-    fault: String,
-    last_ok: bool,
-    refused: u64,
-    clipped: u64,
-    commands: u64,
-    /// The watchdog tripped: the arm holds until a fresh command.
-    holding: bool,
-}
-
 fn header(t: Nanos, frame: &str) -> Header {
     Header { stamp: Time::from(t), frame_id: frame.to_owned() }
 }
@@ -376,7 +362,6 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     // stamped about when they were made, as a real rig's are.
     let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
     let safety = labrig_sim::safety_filter(period, None)?;
-    let mut watchdog = Watchdog::new(safety.config().watchdog_timeout());
 
     let cfg = a.ros.clone();
     let hw = a.hardware_prefix.trim_end_matches('/');
@@ -427,11 +412,11 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         "sim bridge up"
     );
 
+    let mut rig = SimHardware::new(sim, safety, arm_sets_gripper);
     let fovys = |sim: &Sim| -> Vec<f64> {
         cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect()
     };
-    let mut fovy = fovys(&sim);
-    let mut state = CommandState { gripper: 0.0, last_ok: true, ..Default::default() };
+    let mut fovy = fovys(rig.sim());
     let mut rgb: Vec<Vec<u8>> = cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect();
     let mut ticks = 0u64;
     let started = Instant::now();
@@ -440,17 +425,17 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     let mut late_ticks = 0u64;
     let mut last_tick = Instant::now();
     if a.wall_clock_origin {
-        sim.resume_clock(Nanos(wall_line(period)));
+        rig.sim_mut().resume_clock(Nanos(wall_line(period)));
     }
-    let sim_start = sim.time();
-    report_publish(publish_state(&sim, &pubs, &state));
+    let sim_start = rig.sim().time();
+    report_publish(publish_state(rig.sim(), &pubs, rig.state()));
     if let Some(e) = &mut expert {
-        e.publish(&sim);
+        e.publish(rig.sim());
     }
     while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
         // A new scene (`/sim/reset`, JSON {"seed": N}): the rig rebuilt with that seed at the
         // reset pose, its clock going on from here; the scene and camera poses re-published.
-        while let Some(r) = take(&reset_sub, &mut state) {
+        while let Some(r) = take(&reset_sub, &mut rig) {
             match serde_json::from_str::<ResetRequest>(&r.msg.data) {
                 Ok(req) => {
                     let mut next = Sim::new(&assets, &spec, req.seed, period)?;
@@ -460,27 +445,18 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     // On the wall clock's time line the rebuild's time is lost, as a real rig's.
                     // The new scene starts a period on: its first state is a tick of its own.
                     let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
-                    next.resume_clock(Nanos((sim.time().0 + period.0).max(now)));
-                    sim = next;
-                    fovy = fovys(&sim);
-                    state = CommandState {
-                        gripper: 0.0,
-                        last_ok: true,
-                        commands: state.commands,
-                        refused: state.refused,
-                        clipped: state.clipped,
-                        ..Default::default()
-                    };
-                    watchdog = Watchdog::new(safety.config().watchdog_timeout());
-                    publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
+                    next.resume_clock(Nanos((rig.sim().time().0 + period.0).max(now)));
+                    rig.replace_scene(next);
+                    fovy = fovys(rig.sim());
+                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec)?;
                     if let Some(e) = &mut expert {
-                        e.expert = labrig_sim::expert::Expert::new(&sim);
+                        e.expert = labrig_sim::expert::Expert::new(rig.sim());
                     }
-                    tracing::info!(seed = req.seed, time_s = sim.time().as_secs_f64(), "new scene");
+                    tracing::info!(seed = req.seed, time_s = rig.sim().time().as_secs_f64(), "new scene");
                     // The new scene's first state comes with its own frames: the episode's
                     // first step must not see the last scene's images.
                     send_frames(
-                        &mut sim,
+                        rig.sim_mut(),
                         &cameras,
                         &mut rgb,
                         &mut frame_pubs,
@@ -488,55 +464,47 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                         &fovy,
                         (a.width, a.height),
                     )?;
-                    report_publish(publish_state(&sim, &pubs, &state));
+                    report_publish(publish_state(rig.sim(), &pubs, rig.state()));
                     if let Some(e) = &mut expert {
-                        e.publish(&sim);
+                        e.publish(rig.sim());
                     }
                 }
                 Err(e) => {
-                    state.refused += 1;
-                    state.fault = format!("refused /sim/reset {:?}: {e} (expected {{\"seed\": N}})", r.msg.data);
-                    tracing::warn!("{}", state.fault);
+                    rig.refuse(format!("refused /sim/reset {:?}: {e} (expected {{\"seed\": N}})", r.msg.data));
                 }
             }
         }
         // Gripper commands first, so an arm command of the same tick can override them.
-        while let Some(g) = take(&gripper_sub, &mut state) {
-            let p = g.msg.position;
-            if p.is_finite() && (0.0..=1.0).contains(&p) {
-                state.gripper = p;
-            } else {
-                state.refused += 1;
-                state.fault = format!("refused gripper command: position {p} is outside 0..1");
-                tracing::warn!("{}", state.fault);
-            }
+        while let Some(g) = take(&gripper_sub, &mut rig) {
+            rig.gripper_command(g.msg.position);
         }
         let step_now = match a.mode {
-            Mode::Lockstep => match take(&arm_sub, &mut state) {
+            Mode::Lockstep => match take(&arm_sub, &mut rig) {
                 Some(cmd) => {
-                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, sim.time().0, arm_sets_gripper);
+                    let now = rig.sim().time();
+                    rig.arm_command(&cmd.msg, now);
                     true
                 }
                 None => false,
             },
             Mode::Realtime => {
-                while let Some(cmd) = take(&arm_sub, &mut state) {
+                while let Some(cmd) = take(&arm_sub, &mut rig) {
                     // Arrival on the sim's time line: the last tick's time + wall time since it.
                     let since_tick = (last_tick.elapsed().as_nanos() as i64).min(period.0 - 1);
-                    let at = sim.time().0 + since_tick;
-                    accept(&cmd.msg, &sim, &safety, &mut state, &mut watchdog, at, arm_sets_gripper);
+                    let at = Nanos(rig.sim().time().0 + since_tick);
+                    rig.arm_command(&cmd.msg, at);
                 }
                 if a.wall_clock_origin {
                     // On the wall clock's line a step ending at sim time T starts when the
                     // wall clock reaches T: its state goes out stamped T, a compute time later.
                     let now = labrig_runtime::Clock::Wall.now().0;
-                    let end = sim.time().0 + period.0;
+                    let end = rig.sim().time().0 + period.0;
                     next_deadline = Instant::now() + Duration::from_nanos((end - now).max(0) as u64);
                     if now >= end {
                         if now > end + period.0 {
                             // Late by more than a period: the lost time is skipped.
                             late_ticks += 1;
-                            sim.resume_clock(Nanos(now - period.0));
+                            rig.sim_mut().resume_clock(Nanos(now - period.0));
                         }
                         true
                     } else {
@@ -560,7 +528,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         if !step_now {
             // Lockstep and idle: repeat the current state now and then, for late joiners.
             if a.mode == Mode::Lockstep && idle_publish.elapsed() > Duration::from_millis(200) {
-                report_publish(publish_state(&sim, &pubs, &state));
+                report_publish(publish_state(rig.sim(), &pubs, rig.state()));
                 if let Some(e) = &expert {
                     e.republish();
                 }
@@ -576,56 +544,27 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
             }
             continue;
         }
-        let target =
-            ArmTarget { joints: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints), gripper: state.gripper };
-        // Commands stopped: the watchdog's deadline falls in this tick, so the arm is held
-        // where it is (it decelerates on the servos) from the physics step at the deadline on,
-        // not at the next tick.
-        let t0 = sim.time().0;
-        let stop_at = watchdog.deadline().map(|d| d.0).filter(|&d| d < t0 + period.0).map(|d| {
-            let substep = sim.substep().0.max(1);
-            ((d - t0).max(0) + substep - 1) / substep
-        });
-        let stepped = match stop_at {
-            Some(after) => sim.step_then_hold(&target, after as u32).map(|held| {
-                let silence = watchdog.check(Nanos(t0 + after * sim.substep().0)).unwrap_or(Nanos::ZERO).0;
-                state.arm = Some(ArmTarget { joints: held, gripper: state.gripper });
-                state.holding = true;
-                state.fault = format!(
-                    "watchdog: no arm command for {:.1} ms; holding at the measured joints",
-                    silence as f64 / 1e6
-                );
-                tracing::warn!("{}", state.fault);
-            }),
-            None => sim.step(&target),
-        };
-        if let Err(e) = stepped {
-            // Checked on accept; a failure here is a bug, reported, never silently stepped.
-            state.fault = e.to_string();
-            state.last_ok = false;
-            tracing::error!("{e}");
-            sim.step(&ArmTarget { joints: sim.joint_targets(), gripper: state.gripper.clamp(0.0, 1.0) })?;
-        }
+        rig.step()?;
         ticks += 1;
         last_tick = Instant::now();
-        send_frames(&mut sim, &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
-        report_publish(publish_state(&sim, &pubs, &state));
+        send_frames(rig.sim_mut(), &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
+        report_publish(publish_state(rig.sim(), &pubs, rig.state()));
         if let Some(e) = &mut expert {
-            e.publish(&sim);
+            e.publish(rig.sim());
         }
         idle_publish = Instant::now();
     }
     let wall = started.elapsed().as_secs_f64();
-    let sim_s = (sim.time().0 - sim_start.0) as f64 / 1e9;
+    let sim_s = (rig.sim().time().0 - sim_start.0) as f64 / 1e9;
     tracing::info!(
         ticks,
         sim_seconds = sim_s,
         wall_seconds = wall,
         realtime_factor = sim_s / wall.max(1e-9),
         late_ticks,
-        commands = state.commands,
-        refused = state.refused,
-        clipped = state.clipped,
+        commands = rig.state().commands,
+        refused = rig.state().refused,
+        clipped = rig.state().clipped,
         "sim bridge stopped"
     );
     Ok(())
@@ -709,18 +648,13 @@ fn publish_scene(
 /// The next message of `sub`; a malformed one is refused, named in the state, and skipped.
 fn take<T: labrig_msgs::RosMessage>(
     sub: &RosSubscription<T>,
-    state: &mut CommandState,
+    rig: &mut SimHardware,
 ) -> Option<labrig_runtime::ros::Received<T>> {
     // Bounded: a reader that kept failing would otherwise hold the tick.
     for _ in 0..100 {
         match sub.try_take() {
             Ok(m) => return m,
-            Err(e) => {
-                state.refused += 1;
-                state.last_ok = false;
-                state.fault = format!("refused a message on {}: {e}", sub.topic());
-                tracing::warn!("{}", state.fault);
-            }
+            Err(e) => rig.refuse(format!("refused a message on {}: {e}", sub.topic())),
         }
     }
     None
@@ -730,58 +664,6 @@ fn take<T: labrig_msgs::RosMessage>(
 fn report_publish(r: anyhow::Result<()>) {
     if let Err(e) = r {
         tracing::warn!("publishing the rig's state: {e}");
-    }
-}
-
-fn accept(
-    cmd: &ArmCommand,
-    sim: &Sim,
-    safety: &SafetyFilter,
-    state: &mut CommandState,
-    watchdog: &mut Watchdog,
-    arrival_ns: i64,
-    arm_sets_gripper: bool,
-) {
-    state.commands += 1;
-    let view = ArmView {
-        measured: sim.joint_positions(),
-        commanded: state.arm.map_or_else(|| sim.joint_targets(), |t| t.joints),
-    };
-    let checked = if arm_sets_gripper {
-        safety.filter(cmd, &view, sim.time()).map_err(|e| e.to_string()).and_then(|ok| {
-            let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
-            sim.check(&t).map(|()| (t, ok.clipped)).map_err(|e| e.to_string())
-        })
-    } else {
-        // Behind a prefix the bridge is the hardware: the franka node in front of it ran the
-        // safety layer; like the FR3, the sim only checks its own limits.
-        match cmd.mode() {
-            Ok(labrig_msgs::labrig_msgs::ArmCommandMode::JointPosition) => {
-                let t = ArmTarget { joints: cmd.joint_position, gripper: state.gripper };
-                sim.check(&t).map(|()| (t, Vec::new())).map_err(|e| e.to_string())
-            }
-            _ => Err(format!("behind --hardware-prefix the sim takes joint position targets only (mode {})", cmd.mode)),
-        }
-    };
-    match checked {
-        Ok((t, clipped)) => {
-            if !clipped.is_empty() {
-                state.clipped += 1;
-                tracing::debug!(seq = cmd.seq, ?clipped, "arm command clipped");
-            }
-            state.arm = Some(t);
-            state.gripper = t.gripper;
-            state.last_ok = true;
-            state.holding = false;
-            state.fault.clear();
-            watchdog.feed(Nanos(arrival_ns));
-        }
-        Err(reason) => {
-            state.refused += 1;
-            state.last_ok = false;
-            state.fault = format!("refused arm command seq {}: {reason}", cmd.seq);
-            tracing::warn!("{}", state.fault);
-        }
     }
 }
 

@@ -3,6 +3,8 @@
 //!
 //! - [`bridge`]: the bridge process (`labrig sim run`), lockstep or realtime, standing in for
 //!   the franka, gripper and camera nodes; optionally the scripted expert as an action source.
+//! - [`hardware`]: the simulated hardware as a state machine (commands through the safety
+//!   layer, the watchdog, one period per step), unit-tested without ROS.
 //! - [`bench`]: `labrig sim bench` (physics steps per second, render time per frame).
 //!
 //! The physics, scenes, rendering, experts and replay are labrig-sim, a library with no
@@ -10,3 +12,4 @@
 
 pub mod bench;
 pub mod bridge;
+pub mod hardware;
