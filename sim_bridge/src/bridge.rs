@@ -45,6 +45,7 @@ use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
 use labrig_msgs::topics;
 use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode, FramePublisher};
+use labrig_runtime::node::{is_false, negated};
 use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
 use labrig_runtime::{RosConfig, Shutdown};
 use labrig_sim::expert::euler_xyz;
@@ -60,7 +61,7 @@ pub const JOINT_NAMES: [&str; 8] =
 /// Robot base frame id.
 pub const BASE_FRAME: &str = "base";
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// One control period per arm command received: deterministic, independent of machine speed.
@@ -158,50 +159,65 @@ impl BridgeConfig {
 #[derive(Debug)]
 pub struct BridgeNode;
 
-/// `labrig-sim run`'s own flags.
-#[derive(Debug, clap::Args)]
+/// `labrig-sim run`'s own flags; each sets the config key named with it.
+#[derive(Debug, clap::Args, serde::Serialize)]
 pub struct BridgeFlags {
     /// Scene spec (TOML file) or a built-in scene: pick_place (default), drawer_open, drawer_close.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub scene: Option<PathBuf>,
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub seed: Option<u64>,
     #[arg(long, value_enum)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub mode: Option<Mode>,
     /// Control period (s).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub period_s: Option<f64>,
     /// Camera image size.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub width: Option<usize>,
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub height: Option<usize>,
     /// visual or collision.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub meshes: Option<Meshes>,
     /// Run without cameras (physics and state only): cameras = false.
     #[arg(long)]
+    #[serde(rename = "cameras", skip_serializing_if = "is_false", serialize_with = "negated")]
     pub no_cameras: bool,
     /// Publish the scripted expert's action and progress (config `expert`).
     #[arg(long)]
+    #[serde(skip_serializing_if = "is_false")]
     pub expert: bool,
     /// Sim time on the wall clock's time line (config `wall_clock_origin`).
     #[arg(long)]
+    #[serde(skip_serializing_if = "is_false")]
     pub wall_clock_origin: bool,
     /// In realtime, the bridge's SCHED_FIFO priority (config `realtime_priority`).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub realtime_priority: Option<u8>,
     /// Stop after this many ticks (default: run until Ctrl-C).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub max_ticks: Option<u64>,
     /// Let DDS use every network interface instead of 127.0.0.1 only (ros.loopback_only = false).
     #[arg(long)]
+    #[serde(rename = "ros.loopback_only", skip_serializing_if = "is_false", serialize_with = "negated")]
     pub allow_network: bool,
     /// Where setup extracted the MuJoCo models.
     #[arg(long, env = "LABRIG_SIM_ASSETS")]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub assets: Option<PathBuf>,
     /// Serve the arm and gripper topics under this prefix (config `hardware_prefix`).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub hardware_prefix: Option<String>,
 }
 
@@ -215,54 +231,6 @@ impl labrig_runtime::Node for BridgeNode {
 
     fn ros(config: &mut BridgeConfig) -> &mut RosConfig {
         &mut config.ros
-    }
-
-    fn apply(f: BridgeFlags, c: &mut BridgeConfig, _file: Option<&std::path::Path>) {
-        if f.scene.is_some() {
-            c.scene = f.scene;
-        }
-        if let Some(v) = f.seed {
-            c.seed = v;
-        }
-        if let Some(v) = f.mode {
-            c.mode = v;
-        }
-        if let Some(v) = f.period_s {
-            c.period_s = v;
-        }
-        if let Some(v) = f.width {
-            c.width = v;
-        }
-        if let Some(v) = f.height {
-            c.height = v;
-        }
-        if let Some(v) = f.meshes {
-            c.meshes = v;
-        }
-        if f.no_cameras {
-            c.cameras = false;
-        }
-        if f.expert {
-            c.expert = true;
-        }
-        if f.wall_clock_origin {
-            c.wall_clock_origin = true;
-        }
-        if f.realtime_priority.is_some() {
-            c.realtime_priority = f.realtime_priority;
-        }
-        if f.max_ticks.is_some() {
-            c.max_ticks = f.max_ticks;
-        }
-        if f.allow_network {
-            c.ros.loopback_only = false;
-        }
-        if f.assets.is_some() {
-            c.assets = f.assets;
-        }
-        if let Some(v) = f.hardware_prefix {
-            c.hardware_prefix = v;
-        }
     }
 
     fn validate(config: &BridgeConfig) -> Result<(), Invalid> {

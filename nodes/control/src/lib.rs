@@ -19,6 +19,7 @@ pub mod source;
 pub mod step;
 
 use labrig_msgs::Invalid;
+use labrig_runtime::node::{is_false, negated};
 use labrig_runtime::{RosConfig, Shutdown};
 use node::{ClockKind, ControlConfig, SourceKind, Summary};
 use std::path::Path;
@@ -27,29 +28,36 @@ use std::path::Path;
 #[derive(Debug)]
 pub struct ControlNode;
 
-/// `labrig-control run`'s own flags; each overrides the config key of its name.
-#[derive(Debug, clap::Args)]
+/// `labrig-control run`'s own flags; each sets the config key of its name.
+#[derive(Debug, clap::Args, serde::Serialize)]
 pub struct ControlFlags {
     /// The action source (hold and teleop also turn auto_start off).
     #[arg(long, value_enum)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     source: Option<SourceKind>,
     /// The loop's clock: `sim` (the bridge's time; lockstep-safe) or `wall` (the real rig).
     #[arg(long, value_enum)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     clock: Option<ClockKind>,
     /// Episodes to run, then exit (0: until stopped).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     episodes: Option<u64>,
     /// The first scene seed (`/sim/reset`); the next episodes take the following seeds.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     first_seed: Option<u64>,
     /// Do not ask the sim for a new scene per episode (reseed = false).
     #[arg(long)]
+    #[serde(rename = "reseed", skip_serializing_if = "is_false", serialize_with = "negated")]
     no_reseed: bool,
     /// Episodes only from /rig/request (auto_start = false).
     #[arg(long)]
+    #[serde(rename = "auto_start", skip_serializing_if = "is_false", serialize_with = "negated")]
     manual: bool,
     /// Step budget per episode.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     max_steps: Option<u64>,
 }
 
@@ -65,29 +73,9 @@ impl labrig_runtime::Node for ControlNode {
         &mut config.ros
     }
 
-    fn apply(f: ControlFlags, cfg: &mut ControlConfig, _file: Option<&Path>) {
-        if let Some(s) = f.source {
-            cfg.source = s;
-            if s == SourceKind::Hold || s == SourceKind::Teleop {
-                cfg.auto_start = false;
-            }
-        }
-        if let Some(c) = f.clock {
-            cfg.clock = c;
-        }
-        if let Some(n) = f.episodes {
-            cfg.episodes = n;
-        }
-        if let Some(s) = f.first_seed {
-            cfg.first_seed = s;
-        }
-        if let Some(m) = f.max_steps {
-            cfg.max_steps = m;
-        }
-        if f.no_reseed {
-            cfg.reseed = false;
-        }
-        if f.manual {
+    fn apply(f: &ControlFlags, cfg: &mut ControlConfig, _file: Option<&Path>) {
+        // No source to follow: episodes come from the operator.
+        if matches!(f.source, Some(SourceKind::Hold | SourceKind::Teleop)) {
             cfg.auto_start = false;
         }
     }

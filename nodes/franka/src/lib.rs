@@ -14,28 +14,32 @@ pub mod node;
 pub mod sim;
 
 use labrig_msgs::Invalid;
+use labrig_runtime::node::{is_false, negated};
 use labrig_runtime::{RosConfig, Shutdown};
 use node::{BackendKind, FrankaNodeConfig};
-use std::path::Path;
 
 /// The FR3 arm node: `labrig-franka run` (`labrig_runtime::node_main`).
 #[derive(Debug)]
 pub struct FrankaNode;
 
-/// `labrig-franka run`'s own flags.
-#[derive(Debug, clap::Args)]
+/// `labrig-franka run`'s own flags; each sets the config key of its name.
+#[derive(Debug, clap::Args, serde::Serialize)]
 pub struct FrankaFlags {
     /// fci: a real FR3 or franka-sim; sim: the sim bridge run with `--hardware-prefix /sim`.
     #[arg(long, value_enum)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     backend: Option<BackendKind>,
     /// The FR3's FCI address (franka-sim: 127.0.0.1).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     robot_ip: Option<String>,
     /// Run without a realtime kernel (franka-sim, a development machine): fci.realtime = false.
     #[arg(long)]
+    #[serde(rename = "fci.realtime", skip_serializing_if = "is_false", serialize_with = "negated")]
     no_realtime: bool,
     /// Keep trying to reach the FCI this long at start (a booting robot or simulator).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     connect_timeout_s: Option<f64>,
 }
 
@@ -48,21 +52,6 @@ impl labrig_runtime::Node for FrankaNode {
 
     fn ros(config: &mut FrankaNodeConfig) -> &mut RosConfig {
         &mut config.ros
-    }
-
-    fn apply(f: FrankaFlags, cfg: &mut FrankaNodeConfig, _file: Option<&Path>) {
-        if let Some(b) = f.backend {
-            cfg.backend = b;
-        }
-        if let Some(ip) = f.robot_ip {
-            cfg.robot_ip = ip;
-        }
-        if f.no_realtime {
-            cfg.fci.realtime = false;
-        }
-        if let Some(t) = f.connect_timeout_s {
-            cfg.connect_timeout_s = t;
-        }
     }
 
     fn validate(config: &FrankaNodeConfig) -> Result<(), Invalid> {

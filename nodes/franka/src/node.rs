@@ -39,7 +39,7 @@ pub const JOINT_NAMES: [&str; 7] =
 const BASE_FRAME: &str = "base";
 
 /// Which arm the node drives.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum BackendKind {
     /// A real FR3 (or franka-sim) through franka-rs over the FCI.

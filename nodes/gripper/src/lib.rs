@@ -18,7 +18,6 @@ pub use emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};
 use labrig_msgs::Invalid;
 use labrig_runtime::{RosConfig, Shutdown};
 use node::{Backend, GripperNodeConfig};
-use std::path::Path;
 
 /// The gripper node: `labrig-gripper run` (`labrig_runtime::node_main_with`, with the
 /// [`GripperTools`]).
@@ -26,12 +25,14 @@ use std::path::Path;
 pub struct GripperNode;
 
 /// `labrig-gripper run`'s own flags.
-#[derive(Debug, clap::Args)]
+#[derive(Debug, clap::Args, serde::Serialize)]
 pub struct GripperFlags {
     #[arg(long, value_enum)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     backend: Option<Backend>,
     /// Serial device of the 2F-85.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     port: Option<String>,
 }
 
@@ -71,15 +72,6 @@ impl labrig_runtime::Node for GripperNode {
 
     fn ros(config: &mut GripperNodeConfig) -> &mut RosConfig {
         &mut config.ros
-    }
-
-    fn apply(f: GripperFlags, cfg: &mut GripperNodeConfig, _file: Option<&Path>) {
-        if let Some(b) = f.backend {
-            cfg.backend = b;
-        }
-        if let Some(p) = f.port {
-            cfg.port = p;
-        }
     }
 
     fn validate(config: &GripperNodeConfig) -> Result<(), Invalid> {

@@ -21,7 +21,7 @@ use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use std::time::Duration;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Backend {
     /// A Robotiq 2F-85 on `port`.

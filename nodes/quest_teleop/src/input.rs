@@ -21,7 +21,7 @@ use tokio::sync::mpsc::UnboundedSender;
 /// The Quest app (FACTS.md).
 pub const APP_ACTIVITY: &str = "com.rail.oculus.teleop/com.rail.oculus.teleop.MainActivity";
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum InputKind {
     Adb,

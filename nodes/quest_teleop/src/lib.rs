@@ -16,6 +16,7 @@ pub mod policy;
 
 use input::InputKind;
 use labrig_msgs::Invalid;
+use labrig_runtime::node::is_false;
 use labrig_runtime::{RosConfig, Shutdown};
 use node::{TeleopConfig, TeleopStats};
 use std::path::{Path, PathBuf};
@@ -24,29 +25,36 @@ use std::path::{Path, PathBuf};
 #[derive(Debug)]
 pub struct TeleopNode;
 
-/// `labrig-teleop run`'s own flags.
-#[derive(Debug, clap::Args)]
+/// `labrig-teleop run`'s own flags; each sets the config key named with it.
+#[derive(Debug, clap::Args, serde::Serialize)]
 pub struct TeleopFlags {
     /// Where lines come from: the headset over adb, a recorded logcat file, or the keyboard.
     #[arg(long, value_enum)]
+    #[serde(rename = "input.kind", skip_serializing_if = "Option::is_none")]
     input: Option<InputKind>,
     /// Playback: the recorded logcat file (implies --input playback).
     #[arg(long)]
+    #[serde(rename = "input.file", skip_serializing_if = "Option::is_none")]
     file: Option<PathBuf>,
     /// Playback time scale.
     #[arg(long)]
+    #[serde(rename = "input.speed", skip_serializing_if = "Option::is_none")]
     speed: Option<f64>,
     /// Playback: start again at the end.
     #[arg(long)]
+    #[serde(rename = "input.repeat", skip_serializing_if = "is_false")]
     repeat: bool,
     /// adb: the headset's serial or ip:port.
     #[arg(long)]
+    #[serde(rename = "input.device", skip_serializing_if = "Option::is_none")]
     device: Option<String>,
     /// The controller that drives the arm: right or left.
     #[arg(long)]
+    #[serde(rename = "policy.hand", skip_serializing_if = "Option::is_none")]
     hand: Option<String>,
     /// Exit a second after a playback ends.
     #[arg(long)]
+    #[serde(rename = "input.exit_at_end", skip_serializing_if = "is_false")]
     exit_at_end: bool,
 }
 
@@ -62,34 +70,16 @@ impl labrig_runtime::Node for TeleopNode {
         &mut config.ros
     }
 
-    fn apply(f: TeleopFlags, cfg: &mut TeleopConfig, file: Option<&Path>) {
-        // A trace named in a config file is relative to that file.
-        if let (Some(trace), Some(dir)) = (cfg.input.file.as_mut(), file.and_then(Path::parent))
+    fn apply(f: &TeleopFlags, cfg: &mut TeleopConfig, file: Option<&Path>) {
+        if f.file.is_some() {
+            // A trace named on the command line is played (and is relative to the working
+            // directory, as given).
+            cfg.input.kind = InputKind::Playback;
+        } else if let (Some(trace), Some(dir)) = (cfg.input.file.as_mut(), file.and_then(Path::parent))
             && trace.is_relative()
         {
+            // A trace named in a config file is relative to that file.
             *trace = dir.join(&*trace);
-        }
-        if let Some(k) = f.input {
-            cfg.input.kind = k;
-        }
-        if let Some(trace) = f.file {
-            cfg.input.kind = InputKind::Playback;
-            cfg.input.file = Some(trace);
-        }
-        if f.repeat {
-            cfg.input.repeat = true;
-        }
-        if f.exit_at_end {
-            cfg.input.exit_at_end = true;
-        }
-        if let Some(s) = f.speed {
-            cfg.input.speed = s;
-        }
-        if let Some(d) = f.device {
-            cfg.input.device = d;
-        }
-        if let Some(h) = f.hand {
-            cfg.policy.hand = h;
         }
     }
 

@@ -8,17 +8,18 @@ pub mod node;
 use labrig_msgs::Invalid;
 use labrig_runtime::{RosConfig, Shutdown};
 use node::RecorderConfig;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// The recorder node: `labrig-recorder run` (`labrig_runtime::node_main`).
 #[derive(Debug)]
 pub struct RecorderNode;
 
 /// `labrig-recorder run`'s own flags.
-#[derive(Debug, clap::Args)]
+#[derive(Debug, clap::Args, serde::Serialize)]
 pub struct RecorderFlags {
     /// Where episodes go (`root`).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     root: Option<PathBuf>,
 }
 
@@ -31,12 +32,6 @@ impl labrig_runtime::Node for RecorderNode {
 
     fn ros(config: &mut RecorderConfig) -> &mut RosConfig {
         &mut config.ros
-    }
-
-    fn apply(f: RecorderFlags, cfg: &mut RecorderConfig, _file: Option<&Path>) {
-        if let Some(r) = f.root {
-            cfg.root = r;
-        }
     }
 
     fn validate(config: &RecorderConfig) -> Result<(), Invalid> {

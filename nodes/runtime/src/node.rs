@@ -39,17 +39,24 @@ pub trait Node {
     /// The typed config: `#[serde(deny_unknown_fields, default)]` on the struct, so a file
     /// (or no file: an empty table) sets what it names and the rest keeps the node's defaults.
     type Config: DeserializeOwned;
-    /// The node's own command-line flags, each overriding config keys (`clap::Args`).
-    type Flags: Args;
+    /// The node's own command-line flags, declared once: `clap::Args` for the command line and
+    /// `Serialize` with each field named by the config key it sets (`#[serde(rename =
+    /// "fci.realtime")]` for a nested one). The skeleton writes the flags given into the config
+    /// as `--set` would; unset ones (`None`, `false`) are skipped ([`is_false`]); a flag that
+    /// turns a key off serializes through [`negated`].
+    type Flags: Args + Serialize;
     /// What the run reports when it stops (`()` for none).
     type Stats: Serialize;
 
     /// Where the config keeps its DDS settings (`--domain-id` writes there).
     fn ros(config: &mut Self::Config) -> &mut RosConfig;
 
-    /// Applies the node's flags to the config. `file` is the config file, if one was given
-    /// (paths inside it are relative to it).
-    fn apply(flags: Self::Flags, config: &mut Self::Config, file: Option<&Path>);
+    /// What a flag implies beyond its own key (e.g. a node's `--source hold` also turns
+    /// `auto_start` off), after the flags are in the config. `file` is the config file, if one
+    /// was given (paths inside it are relative to it). Nothing by default.
+    fn apply(flags: &Self::Flags, config: &mut Self::Config, file: Option<&Path>) {
+        let _ = (flags, config, file);
+    }
 
     /// Checks what serde cannot, naming the key.
     fn validate(config: &Self::Config) -> Result<(), Invalid>;
@@ -178,26 +185,39 @@ pub fn load<N: Node>(common: &CommonFlags, flags: N::Flags) -> Result<N::Config,
         }
         None => String::new(),
     };
-    let mut config: N::Config = if common.set.is_empty() {
-        // Straight from the text: errors keep their line and column.
-        crate::config::parse_config(&text, &origin)?
-    } else {
-        let mut table: toml::Table = crate::config::parse_config(&text, &origin)?;
-        for (key, value) in &common.set {
-            set_key(&mut table, key, value);
-        }
-        table.try_into().map_err(|e: toml::de::Error| ConfigError::Parse {
-            path: origin.clone(),
-            message: format!("{} (with --set)", e.to_string().trim_end()),
-        })?
-    };
-    N::apply(flags, &mut config, common.config.as_deref());
+    // The file alone first: its errors keep their line and column.
+    let _: N::Config = crate::config::parse_config(&text, &origin)?;
+    let mut table: toml::Table = crate::config::parse_config(&text, &origin)?;
+    for (key, value) in &common.set {
+        set_key(&mut table, key, value);
+    }
+    let given = toml::Table::try_from(&flags)
+        .map_err(|e| ConfigError::Parse { path: origin.clone(), message: format!("the flags: {e}") })?;
+    for (key, value) in given {
+        set_value(&mut table, &key, value);
+    }
+    let mut config: N::Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Parse {
+        path: origin.clone(),
+        message: format!("{} (with the command line's keys)", e.to_string().trim_end()),
+    })?;
+    N::apply(&flags, &mut config, common.config.as_deref());
     if let Some(d) = common.domain_id {
         N::ros(&mut config).domain_id = d;
     }
     N::ros(&mut config).validate(&origin)?;
     N::validate(&config).map_err(|rule| ConfigError::Rule { path: origin, rule })?;
     Ok(config)
+}
+
+/// For a flag's `skip_serializing_if`: an unset switch sets nothing.
+pub fn is_false(b: &bool) -> bool {
+    !*b
+}
+
+/// For a flag's `serialize_with`: a switch that turns its key off (`--no-reseed` -> `reseed =
+/// false`); with `skip_serializing_if = "is_false"` it writes only when given.
+pub fn negated<S: serde::Serializer>(b: &bool, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_bool(!*b)
 }
 
 /// `key` (dotted) = `value` (TOML, or a bare word as text) in `table`, making tables on the way.
@@ -207,6 +227,11 @@ fn set_key(table: &mut toml::Table, key: &str, value: &str) {
         .ok()
         .and_then(|mut t| t.remove("v"))
         .unwrap_or_else(|| toml::Value::String(value.to_owned()));
+    set_value(table, key, parsed);
+}
+
+/// `key` (dotted) = `value` in `table`, making tables on the way.
+fn set_value(table: &mut toml::Table, key: &str, parsed: toml::Value) {
     let mut parts: Vec<&str> = key.split('.').collect();
     let last = parts.pop().unwrap_or(key);
     let mut at = table;
@@ -260,11 +285,20 @@ mod tests {
         }
     }
 
-    #[derive(Debug, Args)]
+    #[derive(Debug, Args, Serialize)]
     struct Flags {
         /// Ticks to run.
         #[arg(long)]
+        #[serde(skip_serializing_if = "Option::is_none")]
         ticks: Option<u32>,
+        /// inner.gain = 0.
+        #[arg(long)]
+        #[serde(rename = "inner.gain", skip_serializing_if = "is_false", serialize_with = "zero")]
+        no_gain: bool,
+    }
+
+    fn zero<S: serde::Serializer>(_: &bool, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_f64(0.0)
     }
 
     struct Counter;
@@ -277,11 +311,6 @@ mod tests {
         type Stats = u32;
         fn ros(config: &mut Cfg) -> &mut RosConfig {
             &mut config.ros
-        }
-        fn apply(flags: Flags, config: &mut Cfg, _: Option<&Path>) {
-            if let Some(t) = flags.ticks {
-                config.ticks = t;
-            }
         }
         fn validate(config: &Cfg) -> Result<(), Invalid> {
             if config.ticks == 0 { Err(Invalid::new("ticks", "ticks must be > 0")) } else { Ok(()) }
@@ -314,6 +343,8 @@ mod tests {
         assert_eq!((c.ticks, c.inner.gain), (7, 2.0));
         let c = config(&["run", "--config", p, "--set", "ticks=7", "--ticks", "9", "--domain-id", "12"]).unwrap();
         assert_eq!((c.ticks, c.ros.domain_id), (9, 12));
+        let c = config(&["run", "--config", p, "--no-gain"]).unwrap();
+        assert_eq!((c.ticks, c.inner.gain), (5, 0.0), "a nested key from a flag, the file's others kept");
     }
 
     #[test]
