@@ -110,6 +110,9 @@ impl Tick {
 pub struct RigLoop {
     cfg: ControlConfig,
     period: Nanos,
+    /// `stale_frame_s` and `max_action_age_s` as the ticks use them.
+    stale_frame: Nanos,
+    max_action_age: Nanos,
     kin: Fr3Kinematics,
     filter: SafetyFilter,
     book: FrameBook,
@@ -143,6 +146,8 @@ impl RigLoop {
         let camera_names: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
         RigLoop {
             period: Nanos::from_secs_rounded(cfg.period_s),
+            stale_frame: Nanos::from_secs_rounded(cfg.stale_frame_s),
+            max_action_age: Nanos::from_secs_rounded(cfg.max_action_age_s),
             book: FrameBook::new(&camera_names),
             next_seed: cfg.first_seed,
             cfg,
@@ -319,11 +324,11 @@ impl RigLoop {
         }
         if event.is_none() && state == State::Idle && self.cfg.auto_start && self.between == Between::Ready {
             // Not before the source has an action for now (after a scene rebuild it may lag).
-            let age_ns = Nanos::from_secs_rounded(self.cfg.max_action_age_s).0;
+            let age_ns = self.max_action_age.0;
             let source_ready = self.cfg.clock == ClockKind::Sim
                 || source.as_mut().is_none_or(|s| s.action(Nanos(tick_ns), Nanos(age_ns)).is_ok());
             // Nor while a camera that has been sending lags (after a scene rebuild, say).
-            let lagging = self.book.at(Nanos(tick_ns), Nanos::from_secs_rounded(self.cfg.stale_frame_s)).stale;
+            let lagging = self.book.at(Nanos(tick_ns), self.stale_frame).stale;
             if !lagging.is_empty() && self.summary.ticks.is_multiple_of(40) {
                 let seen = self.book.at(Nanos(i64::MAX), Nanos(i64::MAX)).refs;
                 let ages: Vec<f64> = seen.iter().map(|r| (tick_ns - r.capture_ns) as f64 / 1e6).collect();
@@ -463,7 +468,7 @@ impl RigLoop {
             ArmView { measured: robot.joint_positions, commanded: self.commanded.unwrap_or(robot.joint_positions) };
         let (proposal, source_kind) = match self.episodes.state() {
             State::Recording => match source {
-                Some(s) => match s.action(Nanos(tick_ns), Nanos::from_secs_rounded(self.cfg.max_action_age_s)) {
+                Some(s) => match s.action(Nanos(tick_ns), self.max_action_age) {
                     Ok(p) => (Some(p), s.kind()),
                     Err(e) => {
                         tracing::warn!("{e}: holding");
@@ -535,7 +540,7 @@ impl RigLoop {
         self.commanded = Some(safe.joints);
         self.gripper_target = safe.gripper;
         if self.episodes.recording() {
-            let frames = self.book.at(Nanos(tick_ns), Nanos::from_secs_rounded(self.cfg.stale_frame_s));
+            let frames = self.book.at(Nanos(tick_ns), self.stale_frame);
             if !frames.missing.is_empty() || !frames.stale.is_empty() {
                 tracing::debug!(missing = ?frames.missing, stale = ?frames.stale, "cameras");
             }

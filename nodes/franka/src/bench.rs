@@ -48,15 +48,6 @@ fn cache() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/labrig"))
 }
 
-fn summary(mut ms: Vec<f64>) -> serde_json::Value {
-    if ms.is_empty() {
-        return json!(null);
-    }
-    ms.sort_by(f64::total_cmp);
-    let p = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
-    json!({ "p50_ms": p(0.5), "p99_ms": p(0.99), "max_ms": p(1.0), "n": ms.len() })
-}
-
 fn now() -> Nanos {
     Nanos(std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos() as i64)
 }
@@ -154,8 +145,8 @@ pub fn run(a: FrankaArgs) -> anyhow::Result<ExitCode> {
     let report = json!({
         "commands": a.commands,
         "echoed": round_trip.len(),
-        "node_command_to_backend": summary(internal),
-        "round_trip_publish_to_echo": summary(round_trip),
+        "node_command_to_backend": labrig_runtime::bench::summary(internal, "ms"),
+        "round_trip_publish_to_echo": labrig_runtime::bench::summary(round_trip, "ms"),
     });
     if a.json {
         println!("{report}");

@@ -26,12 +26,6 @@ pub struct IkArgs {
     json: bool,
 }
 
-fn summary(mut us: Vec<f64>) -> serde_json::Value {
-    us.sort_by(f64::total_cmp);
-    let p = |q: f64| us[((us.len() - 1) as f64 * q).round() as usize];
-    json!({ "p50_us": p(0.5), "p99_us": p(0.99), "max_us": p(1.0), "n": us.len() })
-}
-
 pub fn run(a: IkArgs) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(a.ticks >= 10, "--ticks must be at least 10");
     let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(a.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
@@ -86,12 +80,12 @@ pub fn run(a: IkArgs) -> anyhow::Result<ExitCode> {
     }
     let report = json!({
         "ticks": a.ticks,
-        "fk_and_jacobian": summary(fk_us),
-        "ik_solve": summary(ik_us),
+        "fk_and_jacobian": labrig_runtime::bench::summary(fk_us, "us"),
+        "ik_solve": labrig_runtime::bench::summary(ik_us, "us"),
         "ik_mean_iterations": iterations as f64 / a.ticks as f64,
         "ik_worst_residual_m": worst_residual,
-        "safety_filter_cartesian_position": summary(filter_us),
-        "safety_filter_cartesian_velocity": summary(vel_us),
+        "safety_filter_cartesian_position": labrig_runtime::bench::summary(filter_us, "us"),
+        "safety_filter_cartesian_velocity": labrig_runtime::bench::summary(vel_us, "us"),
         "tick_budget_us": 50_000,
     });
     if a.json {

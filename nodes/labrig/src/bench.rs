@@ -119,7 +119,7 @@ pub fn shm_publisher(args: ShmPublisherArgs) -> anyhow::Result<ExitCode> {
     let period = Duration::from_secs_f64(1.0 / args.rate);
     let frames = (args.seconds * args.rate).round() as u64;
     let start = Instant::now();
-    let cpu0 = labrig_runtime::cpu::process_cpu_seconds();
+    let cpu0 = labrig_runtime::bench::process_cpu_seconds();
     let clock = Clock::Wall;
     for i in 0..frames {
         let due = start + period * i as u32;
@@ -132,7 +132,7 @@ pub fn shm_publisher(args: ShmPublisherArgs) -> anyhow::Result<ExitCode> {
     }
     let report = PublisherReport {
         published: frames,
-        cpu_s: labrig_runtime::cpu::process_cpu_seconds() - cpu0,
+        cpu_s: labrig_runtime::bench::process_cpu_seconds() - cpu0,
         wall_s: start.elapsed().as_secs_f64(),
     };
     println!("{}", serde_json::to_string(&report)?);
@@ -170,7 +170,7 @@ pub fn run_shm(args: &ShmArgs) -> anyhow::Result<ShmReport> {
         children.push(child);
     }
     let clock = Clock::Wall;
-    let cpu0 = labrig_runtime::cpu::process_cpu_seconds();
+    let cpu0 = labrig_runtime::bench::process_cpu_seconds();
     let mut latencies: Vec<Vec<f64>> = vec![Vec::new(); args.streams];
     let mut gaps = vec![0u64; args.streams];
     let mut last_seq: Vec<Option<u64>> = vec![None; args.streams];
@@ -212,7 +212,7 @@ pub fn run_shm(args: &ShmArgs) -> anyhow::Result<ShmReport> {
         std::thread::sleep(Duration::from_micros(args.poll_us));
     }
     bar.finish_and_clear();
-    let sub_cpu = labrig_runtime::cpu::process_cpu_seconds() - cpu0;
+    let sub_cpu = labrig_runtime::bench::process_cpu_seconds() - cpu0;
     let wall = started.elapsed().as_secs_f64();
     let mut streams = Vec::new();
     let mut all = Vec::new();

@@ -115,7 +115,7 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
             bar.set_position(started.elapsed().as_secs().min(seconds as u64));
             let pids = rig_pids(a.domain_id);
             for (name, pid) in &pids {
-                if let Some(c) = labrig_runtime::cpu::cpu_seconds_of(&pid.to_string()) {
+                if let Some(c) = labrig_runtime::bench::cpu_seconds_of(&pid.to_string()) {
                     let e = cpu.entry(name.clone()).or_insert([(c, Instant::now()); 2]);
                     e[1] = (c, Instant::now());
                 }

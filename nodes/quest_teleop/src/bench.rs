@@ -30,15 +30,6 @@ pub struct TeleopArgs {
     json: bool,
 }
 
-fn summary(mut v: Vec<f64>) -> serde_json::Value {
-    if v.is_empty() {
-        return json!(null);
-    }
-    v.sort_by(f64::total_cmp);
-    let p = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
-    json!({ "p50_us": p(0.5), "p99_us": p(0.99), "max_us": p(1.0), "n": v.len() })
-}
-
 pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
     let trace =
         a.trace.unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/square.logcat"));
@@ -85,7 +76,7 @@ pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
             "p50_us": node["latency_us_p50"], "p99_us": node["latency_us_p99"],
             "max_us": node["latency_us_max"], "n": node["latency_n"],
         },
-        "reading_to_action_received": summary(received),
+        "reading_to_action_received": labrig_runtime::bench::summary(received, "us"),
     });
     if a.json {
         println!("{report}");

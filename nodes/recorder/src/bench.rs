@@ -59,7 +59,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
     let n = a.size as usize;
     let mut rgb = vec![0u8; n * n * 3];
     let (mut jpeg_us, mut jpeg_bytes) = (Vec::new(), 0u64);
-    let cpu0 = labrig_runtime::cpu::process_cpu_seconds();
+    let cpu0 = labrig_runtime::bench::process_cpu_seconds();
     let wall = Instant::now();
     let mut next = Instant::now();
     let mut closed = 0;
@@ -112,7 +112,7 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
     w.metadata_mut().success = Some(true);
     let summary = w.finish()?;
     let wall_s = wall.elapsed().as_secs_f64();
-    let cpu_s = labrig_runtime::cpu::process_cpu_seconds() - cpu0;
+    let cpu_s = labrig_runtime::bench::process_cpu_seconds() - cpu0;
     jpeg_us.sort_by(f64::total_cmp);
     let p = |q: f64| jpeg_us[((jpeg_us.len() - 1) as f64 * q).round() as usize];
     let mb = summary.bytes as f64 / 1e6;

@@ -7,15 +7,15 @@
 //! - [`ros`]: ROS 2 through ros2-client with explicit QoS, DDS on loopback unless configured
 //!   otherwise, typed publishers/subscriptions/services over labrig-msgs' codec.
 //! - [`frames`]: iceoryx2 zero-copy camera frame channels with a [`frames::FrameHeader`].
-//! - [`cpu`]: a process's CPU seconds from /proc (the benchmarks).
+//! - [`bench`]: what the benchmarks share (CPU seconds from /proc, percentile summaries).
 //! - [`logging`]: tracing setup with the project's level policy.
 //!
 //! Depends on labrig-msgs, ros2-client/rustdds, iceoryx2, tokio. Must never depend on tch,
 //! mujoco or opencv (checked by `tests/tests/layering.rs`).
 
+pub mod bench;
 pub mod clock;
 pub mod config;
-pub mod cpu;
 pub mod frames;
 pub mod lifecycle;
 pub mod logging;
