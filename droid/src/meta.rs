@@ -103,6 +103,7 @@ pub fn to_json(i: &JsonInput<'_>) -> Value {
             "start_ns": m.start_ns,
             "action_source": source_name(i.action_source),
             "sim_scene": m.sim_scene,
+            "recovered": m.recovered,
         }),
     );
     v
@@ -204,6 +205,7 @@ pub fn parse(v: &Value) -> Result<Parsed, Invalid> {
         start_ns: start_ns.unwrap_or(0),
         trajectory_length: v.get("trajectory_length").and_then(Value::as_u64).unwrap_or(0),
         sim_scene: labrig.and_then(|l| l.get("sim_scene")).and_then(Value::as_str).map(str::to_owned),
+        recovered: labrig.and_then(|l| l.get("recovered")).and_then(Value::as_str).map(str::to_owned),
     };
     let action_source =
         labrig.and_then(|l| l.get("action_source")).and_then(Value::as_str).map_or(Step::SOURCE_TELEOP, source_of);

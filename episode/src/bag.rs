@@ -34,11 +34,22 @@ pub struct TopicInfo {
     pub count: u64,
 }
 
-/// What rosbag2 records about a finished bag.
+/// One storage file of a bag.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BagFile {
+    /// Relative to the bag directory.
+    pub path: String,
+    pub start_ns: i64,
+    pub end_ns: i64,
+    pub message_count: u64,
+}
+
+/// What rosbag2 records about a finished bag: one file, or an episode recorded in parts
+/// (`episode_0.mcap`, `episode_1.mcap`, ... after a recorder restart), merged by [`BagInfo::merged`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct BagInfo {
-    /// The MCAP's file name, relative to the bag directory.
-    pub file_name: String,
+    /// The storage files, in order (one per recorded part).
+    pub files: Vec<BagFile>,
     pub start_ns: i64,
     pub end_ns: i64,
     pub topics: Vec<TopicInfo>,
@@ -47,6 +58,42 @@ pub struct BagInfo {
 }
 
 impl BagInfo {
+    /// A bag of one file, `file_name`, covering the whole bag.
+    pub fn single(
+        file_name: &str,
+        start_ns: i64,
+        end_ns: i64,
+        topics: Vec<TopicInfo>,
+        custom: Vec<(String, String)>,
+    ) -> BagInfo {
+        let message_count = topics.iter().map(|t| t.count).sum();
+        let files = vec![BagFile { path: file_name.to_owned(), start_ns, end_ns, message_count }];
+        BagInfo { files, start_ns, end_ns, topics, custom }
+    }
+
+    /// The parts of one bag as one description: files in order, topic counts summed, the
+    /// time span of all of them; `custom` from the last part that has any.
+    pub fn merged(parts: &[BagInfo]) -> BagInfo {
+        let mut topics: Vec<TopicInfo> = Vec::new();
+        for t in parts.iter().flat_map(|p| &p.topics) {
+            match topics.iter_mut().find(|m| m.name == t.name) {
+                Some(m) => m.count += t.count,
+                None => topics.push(t.clone()),
+            }
+        }
+        topics.sort_by(|a, b| a.name.cmp(&b.name));
+        let spans = parts.iter().filter(|p| p.message_count() > 0);
+        let start_ns = spans.clone().map(|p| p.start_ns).min().or(parts.first().map(|p| p.start_ns)).unwrap_or(0);
+        let end_ns = spans.map(|p| p.end_ns).max().unwrap_or(start_ns);
+        BagInfo {
+            files: parts.iter().flat_map(|p| p.files.iter().cloned()).collect(),
+            start_ns,
+            end_ns,
+            topics,
+            custom: parts.iter().rev().find(|p| !p.custom.is_empty()).map(|p| p.custom.clone()).unwrap_or_default(),
+        }
+    }
+
     pub fn message_count(&self) -> u64 {
         self.topics.iter().map(|t| t.count).sum()
     }
@@ -89,13 +136,20 @@ impl BagInfo {
                 line(&block);
             }
         }
-        line(&format!(
-            "compression_format: \"\"\ncompression_mode: \"\"\nrelative_file_paths:\n  - {f}\nfiles:\n  - path: {f}\n    starting_time:\n      nanoseconds_since_epoch: {}\n    duration:\n      nanoseconds: {}\n    message_count: {}",
-            self.start_ns,
-            self.duration_ns(),
-            self.message_count(),
-            f = self.file_name
-        ));
+        line("compression_format: \"\"\ncompression_mode: \"\"\nrelative_file_paths:");
+        for f in &self.files {
+            line(&format!("  - {}", f.path));
+        }
+        line("files:");
+        for f in &self.files {
+            line(&format!(
+                "  - path: {}\n    starting_time:\n      nanoseconds_since_epoch: {}\n    duration:\n      nanoseconds: {}\n    message_count: {}",
+                f.path,
+                f.start_ns,
+                (f.end_ns - f.start_ns).max(0),
+                f.message_count
+            ));
+        }
         if self.custom.is_empty() {
             line("custom_data: ~");
         } else {
@@ -128,18 +182,18 @@ mod tests {
     #[test]
     fn metadata_yaml_has_no_nulls_and_repeats_the_channel_qos() {
         let qos = qos_yaml(Reliability::BestEffort);
-        let info = BagInfo {
-            file_name: "episode_0.mcap".into(),
-            start_ns: 10,
-            end_ns: 30,
-            topics: vec![TopicInfo {
+        let info = BagInfo::single(
+            "episode_0.mcap",
+            10,
+            30,
+            vec![TopicInfo {
                 name: "/a".into(),
                 type_name: "std_msgs/msg/String".into(),
                 qos_yaml: qos.clone(),
                 count: 3,
             }],
-            custom: vec![("uuid".into(), "LAB+op+2026".into())],
-        };
+            vec![("uuid".into(), "LAB+op+2026".into())],
+        );
         let y = info.metadata_yaml();
         assert!(y.starts_with("rosbag2_bagfile_information:\n  version: 9\n"), "{y}");
         assert!(y.contains("  message_count: 3\n") && y.contains("nanoseconds: 20\n"), "{y}");
@@ -150,5 +204,27 @@ mod tests {
         let empty = BagInfo { topics: vec![], custom: vec![], ..info };
         assert!(empty.metadata_yaml().contains("topics_with_message_count: []"));
         assert!(empty.metadata_yaml().contains("custom_data: ~"));
+    }
+
+    #[test]
+    fn parts_merge_into_one_bag_listing_every_file() {
+        let topic = |name: &str, count| TopicInfo {
+            name: name.into(),
+            type_name: "std_msgs/msg/String".into(),
+            qos_yaml: qos_yaml(Reliability::Reliable),
+            count,
+        };
+        let a = BagInfo::single("episode_0.mcap", 100, 200, vec![topic("/a", 3), topic("/b", 1)], vec![]);
+        let b = BagInfo::single("episode_1.mcap", 500, 900, vec![topic("/a", 5)], vec![("uuid".into(), "x".into())]);
+        let m = BagInfo::merged(&[a, b]);
+        assert_eq!((m.start_ns, m.end_ns, m.message_count()), (100, 900, 9));
+        assert_eq!(m.topics.iter().map(|t| (t.name.as_str(), t.count)).collect::<Vec<_>>(), [("/a", 8), ("/b", 1)]);
+        let y = m.metadata_yaml();
+        assert!(y.contains("relative_file_paths:\n    - episode_0.mcap\n    - episode_1.mcap\n"), "{y}");
+        assert!(
+            y.contains("  - path: episode_1.mcap\n      starting_time:\n        nanoseconds_since_epoch: 500\n"),
+            "{y}"
+        );
+        assert!(y.contains("custom_data:\n    uuid: \"x\"\n"), "{y}");
     }
 }

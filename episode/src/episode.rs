@@ -14,8 +14,29 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-/// The episode file's name inside its directory.
+/// The episode file's name inside its directory (its first part).
 pub const EPISODE_FILE: &str = "episode_0.mcap";
+
+/// Part `k` of an episode: `episode_<k>.mcap`. A recorder that restarts mid-episode writes
+/// the rest of it as the next part in the same directory (rosbag2's split-file layout), so
+/// the directory stays one episode to every reader.
+pub fn part_file(k: u32) -> String {
+    format!("episode_{k}.mcap")
+}
+
+/// The parts of the episode in `dir`, in order (`episode_0.mcap`, `episode_1.mcap`, ...).
+pub fn part_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+    let mut parts: Vec<(u32, PathBuf)> = std::fs::read_dir(dir)?
+        .filter_map(|e| {
+            let e = e.ok()?;
+            let name = e.file_name();
+            let k = name.to_str()?.strip_prefix("episode_")?.strip_suffix(".mcap")?.parse().ok()?;
+            Some((k, e.path()))
+        })
+        .collect();
+    parts.sort();
+    Ok(parts.into_iter().map(|(_, p)| p).collect())
+}
 /// Metadata record names.
 pub const DROID_RECORD: &str = "droid_episode";
 /// Chunks close after this much log time.
@@ -102,6 +123,9 @@ pub struct EpisodeWriter {
     chunk_start_ns: Option<i64>,
     closed_chunks: u64,
     meta: EpisodeMetadata,
+    /// Earlier parts of the episode (a recorder restarted mid-episode): listed with this one
+    /// in `metadata.yaml`.
+    earlier: Vec<BagInfo>,
 }
 
 impl std::fmt::Debug for EpisodeWriter {
@@ -114,9 +138,20 @@ impl EpisodeWriter {
     /// Creates `dir` (and its parents) and starts `dir/episode_0.mcap` with DROID's metadata
     /// as its first record, so even a file cut short says what it is.
     pub fn create(dir: &Path, meta: EpisodeMetadata) -> Result<EpisodeWriter, EpisodeError> {
+        EpisodeWriter::create_part(dir, meta, Vec::new())
+    }
+
+    /// Starts the next part of an episode whose earlier parts (`earlier`, in order) are in
+    /// `dir` already: `episode_<earlier.len()>.mcap`, the same metadata record first, and on
+    /// finish a `metadata.yaml` listing every part.
+    pub fn create_part(
+        dir: &Path,
+        meta: EpisodeMetadata,
+        earlier: Vec<BagInfo>,
+    ) -> Result<EpisodeWriter, EpisodeError> {
         let io = |what, source| EpisodeError::Io { path: dir.to_owned(), what, source };
         std::fs::create_dir_all(dir).map_err(|e| io("creating the episode directory", e))?;
-        let path = dir.join(EPISODE_FILE);
+        let path = dir.join(part_file(earlier.len() as u32));
         let file = File::create(&path).map_err(|e| io("creating the episode file", e))?;
         let sync = file.try_clone().map_err(|e| io("opening the episode file twice", e))?;
         let opts = WriteOptions::new()
@@ -142,6 +177,7 @@ impl EpisodeWriter {
             chunk_start_ns: None,
             closed_chunks: 0,
             meta,
+            earlier,
         };
         w.sync()?;
         Ok(w)
@@ -314,11 +350,12 @@ impl EpisodeWriter {
             .write_metadata(&Metadata { name: "rosbag2".into(), metadata: info.record() })
             .map_err(self.mcap_err())?;
         self.writer.finish().map_err(self.mcap_err())?;
-        let EpisodeWriter { writer, sync, path, dir, .. } = self;
+        let EpisodeWriter { writer, sync, path, dir, mut earlier, .. } = self;
         let io = |what, source| EpisodeError::Io { path: path.clone(), what, source };
         writer.into_inner().flush().map_err(|e| io("writing the episode file", e))?;
         sync.sync_all().map_err(|e| io("syncing the episode file", e))?;
-        write_metadata_yaml(&dir, &info)?;
+        earlier.push(info.clone());
+        write_metadata_yaml(&dir, &BagInfo::merged(&earlier))?;
         let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
         Ok(EpisodeSummary { path, messages: info.message_count(), bytes, start_ns: info.start_ns, end_ns: info.end_ns })
     }
@@ -326,13 +363,15 @@ impl EpisodeWriter {
     fn bag_info(&self) -> BagInfo {
         let mut topics: Vec<TopicInfo> = self.channels.values().map(|c| c.topic.clone()).collect();
         topics.sort_by(|a, b| a.name.cmp(&b.name));
-        BagInfo {
-            file_name: EPISODE_FILE.into(),
-            start_ns: self.start_ns.unwrap_or(self.meta.start_ns),
-            end_ns: self.end_ns.max(self.start_ns.unwrap_or(self.meta.start_ns)),
+        let start_ns = self.start_ns.unwrap_or(self.meta.start_ns);
+        let file = self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        BagInfo::single(
+            &file,
+            start_ns,
+            self.end_ns.max(start_ns),
             topics,
-            custom: vec![("uuid".into(), self.meta.uuid.clone())],
-        }
+            vec![("uuid".into(), self.meta.uuid.clone())],
+        )
     }
 }
 

@@ -46,6 +46,8 @@ pub struct TopicStats {
     pub malformed: u64,
     /// Messages whose log time is earlier than the previous one's on the topic.
     pub out_of_order: u64,
+    /// The newest publish time on the topic (ns).
+    pub last_publish_ns: i64,
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -82,6 +84,9 @@ pub struct Inspection {
     pub metadata: Option<EpisodeMetadata>,
     /// What is wrong, for the operator; empty for a good episode.
     pub flags: Vec<String>,
+    /// The episode's files (more than one after a recorder restart) and the gaps between them.
+    pub parts: Vec<Part>,
+    pub gaps: Vec<Gap>,
 }
 
 struct Decodes<'a>(&'a [u8]);
@@ -101,6 +106,8 @@ struct Topic {
     last_log: Option<u64>,
     first: u64,
     last: u64,
+    /// The newest publish time (what a recorder rejoining the episode continues after).
+    last_publish: u64,
     stamps: Vec<i64>,
 }
 
@@ -126,8 +133,8 @@ pub enum ReadError {
 
 /// Reads `path` (an episode file or its directory).
 pub fn inspect(path: &Path) -> Result<Inspection, ReadError> {
-    let Scan { file, complete, damage, topics, steps, droid } = scan(path)?;
-    Ok(summarise(file, complete, damage, topics, steps, droid))
+    let scan = scan(path)?;
+    Ok(summarise(scan))
 }
 
 /// What replay and export need of an episode: its steps in order and its metadata.
@@ -139,18 +146,24 @@ pub struct EpisodeData {
     pub metadata: Option<EpisodeMetadata>,
     /// `/rig/step` records by step index.
     pub steps: Vec<Step>,
+    /// Files the episode was recorded in (more than one after a recorder restart).
+    pub parts: usize,
+    /// What was lost between the parts.
+    pub gaps: Vec<Gap>,
 }
 
 /// Reads an episode's steps and metadata (`path`: the episode file or its directory).
 pub fn read_episode(path: &Path) -> Result<EpisodeData, ReadError> {
-    let Scan { file, complete, mut steps, droid, .. } = scan(path)?;
+    let Scan { file, complete, mut steps, droid, parts, .. } = scan(path)?;
     steps.sort_by_key(|s| s.step_index);
+    steps.dedup_by_key(|s| s.step_index);
+    let gaps = gaps(&parts);
     let metadata = droid
         .as_ref()
         .map(EpisodeMetadata::from_record)
         .transpose()
         .map_err(|source| ReadError::Metadata { file: file.clone(), source })?;
-    Ok(EpisodeData { file, complete, metadata, steps })
+    Ok(EpisodeData { file, complete, metadata, steps, parts: parts.len(), gaps })
 }
 
 struct Scan {
@@ -160,29 +173,121 @@ struct Scan {
     topics: BTreeMap<String, Topic>,
     steps: Vec<Step>,
     droid: Option<BTreeMap<String, String>>,
+    parts: Vec<Part>,
 }
 
-/// One pass over every record of the file (chunks included), up to the first damage.
+/// One file of an episode (an episode recorded across a recorder restart has several).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Part {
+    pub file: PathBuf,
+    pub complete: bool,
+    pub damage: Option<String>,
+    pub messages: u64,
+    /// Log time of its first and last message (0 when it has none).
+    pub start_ns: i64,
+    pub end_ns: i64,
+    /// Step indices of its first and last `/rig/step`.
+    pub first_step: Option<u64>,
+    pub last_step: Option<u64>,
+}
+
+/// The time between two parts of an episode, and the steps it lost.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Gap {
+    /// The gap is between part `after` and part `after + 1`.
+    pub after: usize,
+    pub seconds: f64,
+    /// Step indices missing between the parts' last and first steps.
+    pub steps_missing: u64,
+}
+
+fn gaps(parts: &[Part]) -> Vec<Gap> {
+    parts
+        .windows(2)
+        .enumerate()
+        .map(|(k, w)| {
+            let seconds = if w[0].messages > 0 && w[1].messages > 0 {
+                (w[1].start_ns - w[0].end_ns).max(0) as f64 / 1e9
+            } else {
+                0.0
+            };
+            let steps_missing = match (w[0].last_step, w[1].first_step) {
+                (Some(a), Some(b)) => b.saturating_sub(a + 1),
+                _ => 0,
+            };
+            Gap { after: k, seconds, steps_missing }
+        })
+        .collect()
+}
+
+/// The files of the episode at `path`: its parts in order for a directory, else the file.
+fn files_of(path: &Path) -> Result<Vec<PathBuf>, ReadError> {
+    if !path.is_dir() {
+        return Ok(vec![path.to_owned()]);
+    }
+    let first = path.join(crate::episode::EPISODE_FILE);
+    match crate::episode::part_files(path) {
+        Ok(files) if !files.is_empty() => Ok(files),
+        Ok(_) => Err(ReadError::Io {
+            file: first,
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no episode file in the directory"),
+        }),
+        Err(source) => Err(ReadError::Io { file: path.to_owned(), source }),
+    }
+}
+
+/// One pass over every record of the episode's files (chunks included), each up to its
+/// first damage.
 fn scan(path: &Path) -> Result<Scan, ReadError> {
-    let file = if path.is_dir() { path.join(crate::episode::EPISODE_FILE) } else { path.to_owned() };
-    let buf = match std::fs::read(&file) {
+    let files = files_of(path)?;
+    let mut topics: BTreeMap<String, Topic> = BTreeMap::new();
+    let mut steps: Vec<Step> = Vec::new();
+    let mut droid = None;
+    let mut parts = Vec::new();
+    for file in &files {
+        let steps_before = steps.len();
+        let mut part = scan_file(file, &mut topics, &mut steps, &mut droid)?;
+        let indices = steps[steps_before..].iter().map(|s| s.step_index);
+        part.first_step = indices.clone().min();
+        part.last_step = indices.max();
+        parts.push(part);
+    }
+    Ok(Scan {
+        file: files[0].clone(),
+        complete: parts.iter().all(|p| p.complete),
+        damage: parts.iter().find_map(|p| p.damage.clone()),
+        topics,
+        steps,
+        droid,
+        parts,
+    })
+}
+
+fn scan_file(
+    file: &Path,
+    topics: &mut BTreeMap<String, Topic>,
+    steps: &mut Vec<Step>,
+    droid: &mut Option<BTreeMap<String, String>>,
+) -> Result<Part, ReadError> {
+    let buf = match std::fs::read(file) {
         Ok(buf) => buf,
-        Err(source) => return Err(ReadError::Io { file, source }),
+        Err(source) => return Err(ReadError::Io { file: file.to_owned(), source }),
     };
     if !buf.starts_with(mcap::MAGIC) {
-        return Err(ReadError::NotMcap { file, reason: "it does not start with MCAP's magic bytes".into() });
+        return Err(ReadError::NotMcap {
+            file: file.to_owned(),
+            reason: "it does not start with MCAP's magic bytes".into(),
+        });
     }
     let complete = mcap::Summary::read(&buf).ok().flatten().is_some();
     let reader = match LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into()) {
         Ok(r) => r,
-        Err(e) => return Err(ReadError::NotMcap { file, reason: e.to_string() }),
+        Err(e) => return Err(ReadError::NotMcap { file: file.to_owned(), reason: e.to_string() }),
     };
     let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut channels: HashMap<u16, (String, String)> = HashMap::new();
-    let mut topics: BTreeMap<String, Topic> = BTreeMap::new();
-    let mut steps: Vec<Step> = Vec::new();
-    let mut droid = None;
     let mut damage = None;
+    let (mut messages, mut start_ns, mut end_ns) = (0u64, i64::MAX, 0i64);
     let mut on_record = |rec: Record<'_>| match rec {
         Record::Schema { header, .. } => {
             schemas.insert(header.id, header.name);
@@ -191,9 +296,12 @@ fn scan(path: &Path) -> Result<Scan, ReadError> {
             let ty = schemas.get(&c.schema_id).cloned().unwrap_or_default();
             channels.insert(c.id, (c.topic, ty));
         }
-        Record::Metadata(m) if m.name == crate::episode::DROID_RECORD => droid = Some(m.metadata),
+        Record::Metadata(m) if m.name == crate::episode::DROID_RECORD => *droid = Some(m.metadata),
         Record::Message { header, data } => {
             let Some((topic, ty)) = channels.get(&header.channel_id) else { return };
+            messages += 1;
+            start_ns = start_ns.min(header.log_time as i64);
+            end_ns = end_ns.max(header.log_time as i64);
             let t = topics.entry(topic.clone()).or_default();
             t.type_name.clone_from(ty);
             t.count += 1;
@@ -201,6 +309,7 @@ fn scan(path: &Path) -> Result<Scan, ReadError> {
                 t.first = header.log_time;
             }
             t.last = t.last.max(header.log_time);
+            t.last_publish = t.last_publish.max(header.publish_time);
             if t.last_log.is_some_and(|l| header.log_time < l) {
                 t.out_of_order += 1;
             }
@@ -254,17 +363,15 @@ fn scan(path: &Path) -> Result<Scan, ReadError> {
             break;
         }
     }
-    Ok(Scan { file, complete, damage, topics, steps, droid })
+    if messages == 0 {
+        start_ns = 0;
+    }
+    Ok(Part { file: file.to_owned(), complete, damage, messages, start_ns, end_ns, first_step: None, last_step: None })
 }
 
-fn summarise(
-    path: PathBuf,
-    complete: bool,
-    damage: Option<String>,
-    topics: BTreeMap<String, Topic>,
-    mut steps: Vec<Step>,
-    droid: Option<BTreeMap<String, String>>,
-) -> Inspection {
+fn summarise(scan: Scan) -> Inspection {
+    let Scan { file: path, complete, damage, topics, mut steps, droid, parts } = scan;
+    let gaps = gaps(&parts);
     let start = topics.values().map(|t| t.first).min().unwrap_or(0) as i64;
     let end = topics.values().map(|t| t.last).max().unwrap_or(0) as i64;
     let duration_s = (end - start).max(0) as f64 / 1e9;
@@ -280,6 +387,7 @@ fn summarise(
                 rate_hz: if span > 0.0 { (t.count - 1) as f64 / span } else { 0.0 },
                 malformed: t.malformed,
                 out_of_order: t.out_of_order,
+                last_publish_ns: t.last_publish as i64,
             }
         })
         .collect();
@@ -292,6 +400,16 @@ fn summarise(
         }
     }
     steps.sort_by_key(|s| s.step_index);
+    steps.dedup_by_key(|s| s.step_index);
+    for g in &gaps {
+        flags.push(format!(
+            "recorded in parts: {:.2} s between part {} and part {} (a recorder restart), {} steps missing",
+            g.seconds,
+            g.after,
+            g.after + 1,
+            g.steps_missing
+        ));
+    }
     let step_time = |s: &Step| {
         if s.timing.step_start != 0 { s.timing.step_start } else { labrig_msgs::Nanos::from(s.header.stamp).0 }
     };
@@ -345,10 +463,11 @@ fn summarise(
     if missed_ticks > 0 {
         flags.push(format!("{missed_ticks} missed control ticks"));
     }
-    if !complete {
+    for p in parts.iter().filter(|p| !p.complete) {
         flags.push(format!(
-            "unfinished file (recorder stopped before finish): run `labrig recover` on its directory{}",
-            damage.as_ref().map_or(String::new(), |d| format!(" ({d})"))
+            "unfinished file {} (recorder stopped before finish): run `labrig recover` on its directory{}",
+            p.file.display(),
+            p.damage.as_ref().map_or(String::new(), |d| format!(" ({d})"))
         ));
     }
     let metadata = droid.as_ref().and_then(|m| EpisodeMetadata::from_record(m).ok());
@@ -372,6 +491,8 @@ fn summarise(
         cameras,
         metadata,
         flags,
+        parts,
+        gaps,
     }
 }
 
@@ -428,6 +549,12 @@ impl Inspection {
         s.push_str(&pct("control period", &self.control_period_ms));
         s.push_str(&pct("control jitter", &self.control_jitter_ms));
         let _ = writeln!(s, "  missed ticks: {}", self.missed_ticks);
+        if self.parts.len() > 1 {
+            let _ = writeln!(s, "  recorded in {} parts", self.parts.len());
+        }
+        if let Some(r) = self.metadata.as_ref().and_then(|m| m.recovered.as_ref()) {
+            let _ = writeln!(s, "  recovered: {r}");
+        }
         if self.flags.is_empty() {
             s.push_str("  OK\n");
         }

@@ -19,5 +19,5 @@ pub mod metadata;
 pub mod recover;
 
 pub use episode::{EpisodeError, EpisodeSummary, EpisodeWriter};
-pub use inspect::{EpisodeData, Inspection, ReadError, inspect, read_episode};
+pub use inspect::{EpisodeData, Gap, Inspection, Part, ReadError, inspect, read_episode};
 pub use metadata::{EpisodeMetadata, MetadataError, Outcome, RigIdentity, episode_dir};

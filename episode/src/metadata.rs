@@ -74,6 +74,9 @@ pub struct EpisodeMetadata {
     pub trajectory_length: u64,
     /// Simulated episodes: the scene spec and its sampled values (JSON).
     pub sim_scene: Option<String>,
+    /// Set when a recorder died while recording it: what was recovered and how it was judged
+    /// (e.g. "recorder restarted: 2 parts, the loop's verdict" or "unjudged").
+    pub recovered: Option<String>,
 }
 
 impl EpisodeMetadata {
@@ -93,6 +96,7 @@ impl EpisodeMetadata {
             start_ns,
             trajectory_length: 0,
             sim_scene: None,
+            recovered: None,
         }
     }
 
@@ -117,6 +121,9 @@ impl EpisodeMetadata {
         m.insert("extrinsics".into(), serde_json::to_string(&self.extrinsics).unwrap_or_default());
         if let Some(scene) = &self.sim_scene {
             m.insert("sim_scene".into(), scene.clone());
+        }
+        if let Some(r) = &self.recovered {
+            m.insert("recovered".into(), r.clone());
         }
         m
     }
@@ -145,6 +152,7 @@ impl EpisodeMetadata {
             start_ns: num("start_ns")?,
             trajectory_length: num("trajectory_length")? as u64,
             sim_scene: m.get("sim_scene").cloned(),
+            recovered: m.get("recovered").cloned(),
         })
     }
 }
@@ -208,6 +216,7 @@ mod tests {
         m.success = Some(true);
         m.trajectory_length = 123;
         m.sim_scene = Some("{\"seed\":3}".into());
+        m.recovered = Some("recorder restarted: 2 parts".into());
         let back = EpisodeMetadata::from_record(&m.to_record()).unwrap();
         assert_eq!(back, m);
         assert_eq!(m.to_record()["current_task"], "put the cube in the bin");

@@ -1,8 +1,9 @@
 //! Recovering an episode whose recorder died (SIGKILL, power loss): its MCAP has no summary or
 //! footer and ends in a chunk that never closed. Every chunk that closed (at most one second
 //! of log time each) was fsynced whole; [`recover`] copies every complete chunk, metadata
-//! record and attachment into a new, valid file and rebuilds the rosbag2 record and
-//! `metadata.yaml` from what it copied. A chunk is copied only if every record in it parses.
+//! record and attachment into a new, valid file and rebuilds the rosbag2 record from what it
+//! copied. A chunk is copied only if every record in it parses. [`recover_in_place`] does it
+//! for every unfinished part of an episode directory and rewrites its `metadata.yaml`.
 
 use crate::bag::{BagInfo, TopicInfo};
 use crate::episode::{EpisodeError, write_metadata_yaml};
@@ -26,10 +27,11 @@ pub struct RecoverReport {
     pub end_ns: i64,
     /// Why reading stopped: "complete file" or the damage found.
     pub stopped: String,
+    /// The recovered file as rosbag2 describes it.
+    pub info: BagInfo,
 }
 
-/// Copies what is complete in `input` into `output` (a new file) and writes `metadata.yaml`
-/// beside `output`.
+/// Copies what is complete in `input` into `output` (a new file).
 pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeError> {
     let io = |path: &Path, what, source| EpisodeError::Io { path: path.to_owned(), what, source };
     let buf = std::fs::read(input).map_err(|e| io(input, "reading the episode", e))?;
@@ -45,6 +47,7 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeErro
         start_ns: i64::MAX,
         end_ns: 0,
         stopped: "complete file".into(),
+        info: BagInfo::single("", 0, 0, Vec::new(), Vec::new()),
     };
     let mut copy = |rec: Record<'_>, out: &mut Option<Writer<BufWriter<File>>>| -> Result<(), EpisodeError> {
         if let Record::Header(h) = &rec {
@@ -147,30 +150,103 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeErro
     }
     let mut topics: Vec<TopicInfo> = topics.into_values().collect();
     topics.sort_by(|a, b| a.name.cmp(&b.name));
-    let info = BagInfo {
-        file_name: output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
-        start_ns: report.start_ns,
-        end_ns: report.end_ns,
+    let file_name = output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let info = BagInfo::single(
+        &file_name,
+        report.start_ns,
+        report.end_ns,
         topics,
-        custom: vec![("recovered".into(), report.stopped.clone())],
-    };
+        vec![("recovered".into(), report.stopped.clone())],
+    );
     w.write_metadata(&mcap::records::Metadata { name: "rosbag2".into(), metadata: info.record() }).map_err(mcap_err)?;
     w.finish().map_err(mcap_err)?;
     let file = w.into_inner().into_inner().map_err(|e| io(output, "writing the recovered file", e.into_error()))?;
     file.sync_all().map_err(|e| io(output, "syncing the recovered file", e))?;
-    let dir = output.parent().unwrap_or(Path::new("."));
-    write_metadata_yaml(dir, &info)?;
+    report.info = info;
     Ok(report)
 }
 
-/// `labrig recover <episode_dir>`: recovers `episode_0.mcap` in place. The damaged file is
-/// kept as `episode_0.mcap.damaged`; the directory's metadata.yaml describes the recovered one.
-pub fn recover_in_place(dir: &Path) -> Result<RecoverReport, EpisodeError> {
-    let file = dir.join(crate::episode::EPISODE_FILE);
-    let damaged = dir.join(format!("{}.damaged", crate::episode::EPISODE_FILE));
-    let io = |what, source| EpisodeError::Io { path: file.clone(), what, source };
-    if !damaged.exists() {
-        std::fs::rename(&file, &damaged).map_err(|e| io("keeping the damaged file", e))?;
+/// One part of a recovered episode directory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PartRecovery {
+    pub file: std::path::PathBuf,
+    /// `None`: the part was finished already and is left as it is.
+    pub report: Option<RecoverReport>,
+}
+
+/// What [`recover_in_place`] did to an episode directory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirRecovery {
+    pub parts: Vec<PartRecovery>,
+    /// The whole episode as `metadata.yaml` now describes it.
+    pub info: BagInfo,
+}
+
+impl DirRecovery {
+    /// Messages in the episode after recovery.
+    pub fn messages(&self) -> u64 {
+        self.info.message_count()
     }
-    recover(&damaged, &file)
+}
+
+/// The rosbag2 description of a finished part, from its MCAP summary.
+pub fn bag_info_of(file: &Path) -> Result<BagInfo, EpisodeError> {
+    let io = |what, source| EpisodeError::Io { path: file.to_owned(), what, source };
+    let buf = std::fs::read(file).map_err(|e| io("reading the episode", e))?;
+    let invalid =
+        |why: &str| io("reading the summary", std::io::Error::new(std::io::ErrorKind::InvalidData, why.to_owned()));
+    let summary = mcap::Summary::read(&buf)
+        .map_err(|source| EpisodeError::Mcap { path: file.to_owned(), source })?
+        .ok_or_else(|| invalid("the file has no summary (unfinished)"))?;
+    let stats = summary.stats.as_ref().ok_or_else(|| invalid("the summary has no statistics"))?;
+    let mut topics: Vec<TopicInfo> = summary
+        .channels
+        .iter()
+        .map(|(id, c)| TopicInfo {
+            name: c.topic.clone(),
+            type_name: c.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default(),
+            qos_yaml: c.metadata.get("offered_qos_profiles").cloned().unwrap_or_default(),
+            count: stats.channel_message_counts.get(id).copied().unwrap_or(0),
+        })
+        .collect();
+    topics.sort_by(|a, b| a.name.cmp(&b.name));
+    let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    Ok(BagInfo::single(&name, stats.message_start_time as i64, stats.message_end_time as i64, topics, Vec::new()))
+}
+
+/// `labrig recover <episode_dir>` and a restarted recorder: every unfinished part of the
+/// episode in `dir` (`episode_<k>.mcap`) recovered in place, the damaged file kept beside it
+/// as `episode_<k>.mcap.damaged`; finished parts are left as they are; `metadata.yaml` then
+/// describes all of them.
+pub fn recover_in_place(dir: &Path) -> Result<DirRecovery, EpisodeError> {
+    let io = |what, source| EpisodeError::Io { path: dir.to_owned(), what, source };
+    let files = crate::episode::part_files(dir).map_err(|e| io("listing the episode's parts", e))?;
+    if files.is_empty() {
+        let none = std::io::Error::new(std::io::ErrorKind::NotFound, "no episode_<k>.mcap in it");
+        return Err(io("recovering", none));
+    }
+    let mut parts = Vec::new();
+    let mut infos = Vec::new();
+    for file in files {
+        if let Ok(info) = bag_info_of(&file) {
+            infos.push(info);
+            parts.push(PartRecovery { file, report: None });
+            continue;
+        }
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let damaged = file.with_file_name(format!("{name}.damaged"));
+        if !damaged.exists() {
+            std::fs::rename(&file, &damaged).map_err(|e| EpisodeError::Io {
+                path: file.clone(),
+                what: "keeping the damaged file",
+                source: e,
+            })?;
+        }
+        let report = recover(&damaged, &file)?;
+        infos.push(report.info.clone());
+        parts.push(PartRecovery { file, report: Some(report) });
+    }
+    let info = BagInfo::merged(&infos);
+    write_metadata_yaml(dir, &info)?;
+    Ok(DirRecovery { parts, info })
 }

@@ -1,11 +1,14 @@
 #!/usr/bin/env python3
-"""Reads a labrig episode (a rosbag2 directory: one .mcap + metadata.yaml) with the reference
-readers and prints one JSON object for the Rust test to check:
+"""Reads a labrig episode (a rosbag2 directory: episode_0.mcap, and episode_1.mcap ... when a
+recorder restart split it into parts, + metadata.yaml) with the reference readers and prints
+one JSON object for the Rust test to check:
 
 - mcap + mcap-ros2-support: every message decoded through the schema embedded in the file
   (counts per topic, decode failures, metadata records, attachments, a few decoded values);
-- rosbags 0.11.9: AnyReader on the directory (uses metadata.yaml) and on the bare .mcap,
-  every message deserialized (counts per topic).
+- rosbags 0.11.9: AnyReader on the directory (uses metadata.yaml) and on the bare .mcap
+  files, every message deserialized (counts per topic).
+
+Parts are read in order and summed (metadata records and samples: the last part's win).
 
 Usage: read_episode.py <episode_dir>
 """
@@ -42,9 +45,22 @@ def with_mcap(path: Path) -> dict:
     return out
 
 
-def with_rosbags(path: Path) -> dict:
+def with_mcap_parts(paths: list) -> dict:
+    out = {"counts": Counter(), "failures": [], "metadata": {}, "attachments": [], "profile": None, "samples": {}}
+    for path in paths:
+        part = with_mcap(path)
+        out["counts"].update(part["counts"])
+        out["failures"] += part["failures"]
+        out["metadata"].update(part["metadata"])
+        out["attachments"] += part["attachments"]
+        out["profile"] = part["profile"]
+        out["samples"].update(part["samples"])
+    return out
+
+
+def with_rosbags(paths: list) -> dict:
     counts = Counter()
-    with AnyReader([path]) as reader:
+    with AnyReader(paths) as reader:
         for conn, _ts, raw in reader.messages():
             reader.deserialize(raw, conn.msgtype)
             counts[conn.topic] += 1
@@ -53,13 +69,14 @@ def with_rosbags(path: Path) -> dict:
 
 def main() -> None:
     ep = Path(sys.argv[1])
-    files = sorted(ep.glob("*.mcap"))
-    if len(files) != 1:
-        raise SystemExit(f"{ep}: expected one .mcap, found {files}")
+    files = sorted(ep.glob("episode_*.mcap"), key=lambda f: int(f.stem.split("_")[1]))
+    if not files:
+        raise SystemExit(f"{ep}: no episode_<k>.mcap in it")
     result = {
-        "mcap": with_mcap(files[0]),
-        "rosbags_dir": with_rosbags(ep),
-        "rosbags_file": with_rosbags(files[0]),
+        "parts": len(files),
+        "mcap": with_mcap_parts(files),
+        "rosbags_dir": with_rosbags([ep]),
+        "rosbags_file": with_rosbags(files),
     }
     print(json.dumps(result, default=dict))
 

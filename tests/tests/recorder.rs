@@ -151,7 +151,7 @@ fn a_killed_recorder_loses_at_most_the_last_second() {
     let out = Command::new(labrig_tests::labrig_bin()).args(["recover", "--json"]).arg(&dir).output().unwrap();
     assert!(out.status.success(), "labrig recover: {}", String::from_utf8_lossy(&out.stderr));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert!(r["stopped"].as_str().unwrap().starts_with("stopped at"), "the file was damaged: {r}");
+    assert!(r["parts"][0]["stopped"].as_str().unwrap().starts_with("stopped at"), "the file was damaged: {r}");
     assert!(dir.join("episode_0.mcap.damaged").exists());
     let v = labrig_tests::read_episode_with_python(&dir);
     let steps = v["mcap"]["counts"]["/rig/step"].as_u64().unwrap();
@@ -358,4 +358,63 @@ fn the_recorder_node_records_the_sim_rig() {
     let ext = extrinsics.as_object().unwrap();
     assert_eq!(ext.keys().collect::<Vec<_>>(), ["ext1", "ext2", "rs1", "rs2"], "{extrinsics}");
     assert!(droid["sim_scene"].as_str().unwrap().contains("\"seed\""));
+}
+
+/// An episode recorded in two parts (a recorder killed mid-episode and restarted): the first
+/// part recovered in place, the second written beside it. `inspect`, `read_episode` and the
+/// reference readers (mcap-ros2-support, rosbags on the directory's metadata.yaml) read both
+/// as one episode; the gap between them is counted and named.
+#[test]
+fn an_episode_in_two_parts_reads_as_one_with_its_gap_named() {
+    let root = tempfile::tempdir().unwrap();
+    let meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "two parts", Nanos(T0));
+    let dir = root.path().join(".recording/ep");
+    let step = |k: i64| Step {
+        header: header(T0 + k * TICK, "base"),
+        episode_id: meta.uuid.clone(),
+        step_index: k as u64,
+        ..Default::default()
+    };
+    // Part 0: steps 0..60 (three seconds, so chunks close), then "killed" (never finished).
+    let mut w = EpisodeWriter::create(&dir, meta.clone()).unwrap();
+    for k in 0..60 {
+        let t = T0 + k * TICK;
+        w.write("/rig/step", &step(k), Nanos(t + 1_000), Nanos(t), Reliability::Reliable).unwrap();
+    }
+    let closed = w.closed_chunks();
+    assert!(closed >= 2, "{closed} chunks closed");
+    std::mem::forget(w); // SIGKILL: no summary, no footer, the open chunk never written
+    let (code, v) = inspect(&dir);
+    assert_eq!((code, &v["complete"]), (Some(3), &Value::Bool(false)), "{v}");
+    let recovered = labrig_episode::recover::recover_in_place(&dir).unwrap();
+    let kept = recovered.messages();
+    assert!((40..60).contains(&kept), "part 0 keeps its closed chunks: {kept} steps");
+    // Part 1: from step 70 on (steps kept..70 lost in the gap).
+    let mut w = EpisodeWriter::create_part(&dir, meta.clone(), vec![recovered.info.clone()]).unwrap();
+    for k in 70..100 {
+        let t = T0 + k * TICK;
+        w.write("/rig/step", &step(k), Nanos(t + 1_000), Nanos(t), Reliability::Reliable).unwrap();
+    }
+    w.metadata_mut().success = Some(true);
+    w.finish().unwrap();
+    assert!(dir.join("episode_1.mcap").exists() && dir.join("episode_0.mcap.damaged").exists());
+    let (code, v) = inspect(&dir);
+    assert_eq!(v["complete"], true, "{v}");
+    assert_eq!(v["steps"], kept + 30, "{v}");
+    assert_eq!(v["parts"].as_array().unwrap().len(), 2, "{v}");
+    assert_eq!(v["gaps"][0]["steps_missing"], 70 - kept, "{v}");
+    let gap_s = v["gaps"][0]["seconds"].as_f64().unwrap();
+    assert!((gap_s - (70 - kept + 1) as f64 * 0.05).abs() < 1e-6, "gap {gap_s} s: {v}");
+    assert!(v["flags"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().contains("recorded in parts")), "{v}");
+    assert_eq!(code, Some(3), "a gap is flagged: {v}");
+    assert_eq!(v["metadata"]["success"], true, "the last part's record wins: {v}");
+    let data = labrig_episode::read_episode(&dir).unwrap();
+    assert_eq!((data.parts, data.steps.len() as u64), (2, kept + 30));
+    assert!(data.steps.windows(2).all(|w| w[0].step_index < w[1].step_index));
+    let v = labrig_tests::read_episode_with_python(&dir);
+    let expected = serde_json::json!({ "/rig/step": kept + 30 });
+    assert_eq!(v["parts"], 2, "{v}");
+    assert_eq!(v["mcap"]["counts"], expected, "mcap + mcap-ros2-support over both parts: {v}");
+    assert_eq!(v["rosbags_dir"], expected, "rosbags on the directory (metadata.yaml lists both): {v}");
+    assert_eq!(v["rosbags_file"], expected, "rosbags on the two files: {v}");
 }
