@@ -202,6 +202,10 @@ impl EpisodeWriter {
         self.channels.values().map(|c| c.topic.count).sum()
     }
 
+    pub fn metadata(&self) -> &EpisodeMetadata {
+        &self.meta
+    }
+
     pub fn metadata_mut(&mut self) -> &mut EpisodeMetadata {
         &mut self.meta
     }

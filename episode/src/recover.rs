@@ -7,6 +7,7 @@
 
 use crate::bag::{BagInfo, TopicInfo};
 use crate::episode::{EpisodeError, write_metadata_yaml};
+use crate::metadata::EpisodeMetadata;
 use mcap::read::{ChunkReader, LinearReader, Options};
 use mcap::records::Record;
 use mcap::{Attachment, Compression, WriteOptions, Writer};
@@ -33,12 +34,22 @@ pub struct RecoverReport {
 
 /// Copies what is complete in `input` into `output` (a new file).
 pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeError> {
+    recover_with(input, output, None)
+}
+
+/// Changes to the episode's DROID metadata, written as the recovered file's final record
+/// (the verdict that came after the recorder died, what was recovered).
+pub type Amend<'a> = &'a dyn Fn(&mut EpisodeMetadata);
+
+/// [`recover`], ending the file with the last DROID record found, changed by `amend`.
+pub fn recover_with(input: &Path, output: &Path, amend: Option<Amend<'_>>) -> Result<RecoverReport, EpisodeError> {
     let io = |path: &Path, what, source| EpisodeError::Io { path: path.to_owned(), what, source };
     let buf = std::fs::read(input).map_err(|e| io(input, "reading the episode", e))?;
     let mcap_err = |source| EpisodeError::Mcap { path: output.to_owned(), source };
     let mut out: Option<Writer<BufWriter<File>>> = None;
     let mut schemas: BTreeMap<u16, String> = BTreeMap::new();
     let mut topics: BTreeMap<u16, TopicInfo> = BTreeMap::new();
+    let mut droid: Option<BTreeMap<String, String>> = None;
     let mut report = RecoverReport {
         messages: 0,
         chunks: 0,
@@ -88,6 +99,9 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeErro
             }
             // The rosbag2 record is rebuilt from what was copied.
             Record::Metadata(m) if m.name != "rosbag2" => {
+                if m.name == crate::episode::DROID_RECORD {
+                    droid = Some(m.metadata.clone());
+                }
                 w.write_metadata(&m).map_err(mcap_err)?;
                 report.metadata += 1;
             }
@@ -148,6 +162,17 @@ pub fn recover(input: &Path, output: &Path) -> Result<RecoverReport, EpisodeErro
     if report.messages == 0 {
         report.start_ns = 0;
     }
+    if let (Some(amend), Some(record)) = (amend, &droid)
+        && let Ok(mut meta) = EpisodeMetadata::from_record(record)
+    {
+        amend(&mut meta);
+        w.write_metadata(&mcap::records::Metadata {
+            name: crate::episode::DROID_RECORD.into(),
+            metadata: meta.to_record(),
+        })
+        .map_err(mcap_err)?;
+        report.metadata += 1;
+    }
     let mut topics: Vec<TopicInfo> = topics.into_values().collect();
     topics.sort_by(|a, b| a.name.cmp(&b.name));
     let file_name = output.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
@@ -172,6 +197,8 @@ pub struct PartRecovery {
     pub file: std::path::PathBuf,
     /// `None`: the part was finished already and is left as it is.
     pub report: Option<RecoverReport>,
+    /// The part as rosbag2 describes it.
+    pub info: BagInfo,
 }
 
 /// What [`recover_in_place`] did to an episode directory.
@@ -219,6 +246,12 @@ pub fn bag_info_of(file: &Path) -> Result<BagInfo, EpisodeError> {
 /// as `episode_<k>.mcap.damaged`; finished parts are left as they are; `metadata.yaml` then
 /// describes all of them.
 pub fn recover_in_place(dir: &Path) -> Result<DirRecovery, EpisodeError> {
+    recover_in_place_with(dir, None)
+}
+
+/// [`recover_in_place`], the last part ending with the episode's DROID record changed by
+/// `amend` (a finished last part is rewritten through a temporary file for it).
+pub fn recover_in_place_with(dir: &Path, amend: Option<Amend<'_>>) -> Result<DirRecovery, EpisodeError> {
     let io = |what, source| EpisodeError::Io { path: dir.to_owned(), what, source };
     let files = crate::episode::part_files(dir).map_err(|e| io("listing the episode's parts", e))?;
     if files.is_empty() {
@@ -226,26 +259,32 @@ pub fn recover_in_place(dir: &Path) -> Result<DirRecovery, EpisodeError> {
         return Err(io("recovering", none));
     }
     let mut parts = Vec::new();
-    let mut infos = Vec::new();
-    for file in files {
+    let last = files.len() - 1;
+    for (k, file) in files.into_iter().enumerate() {
+        let amend = if k == last { amend } else { None };
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let file_err = |what, source| EpisodeError::Io { path: file.clone(), what, source };
         if let Ok(info) = bag_info_of(&file) {
-            infos.push(info);
-            parts.push(PartRecovery { file, report: None });
+            if amend.is_none() {
+                parts.push(PartRecovery { file, report: None, info });
+                continue;
+            }
+            let tmp = file.with_file_name(format!(".{name}.amended"));
+            let report = recover_with(&file, &tmp, amend)?;
+            std::fs::rename(&tmp, &file).map_err(|e| file_err("replacing the finished part", e))?;
+            let mut info = report.info.clone();
+            info.files[0].path = name;
+            parts.push(PartRecovery { file, info, report: Some(report) });
             continue;
         }
-        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let damaged = file.with_file_name(format!("{name}.damaged"));
         if !damaged.exists() {
-            std::fs::rename(&file, &damaged).map_err(|e| EpisodeError::Io {
-                path: file.clone(),
-                what: "keeping the damaged file",
-                source: e,
-            })?;
+            std::fs::rename(&file, &damaged).map_err(|e| file_err("keeping the damaged file", e))?;
         }
-        let report = recover(&damaged, &file)?;
-        infos.push(report.info.clone());
-        parts.push(PartRecovery { file, report: Some(report) });
+        let report = recover_with(&damaged, &file, amend)?;
+        parts.push(PartRecovery { file, info: report.info.clone(), report: Some(report) });
     }
+    let infos: Vec<BagInfo> = parts.iter().map(|p| p.info.clone()).collect();
     let info = BagInfo::merged(&infos);
     write_metadata_yaml(dir, &info)?;
     Ok(DirRecovery { parts, info })

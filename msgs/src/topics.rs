@@ -84,10 +84,12 @@ pub const GRIPPER_STATE: Topic<GripperState> = Topic::new("/gripper/state", Reli
 pub const GRIPPER_ACTIVATE: Service<Trigger> = Service::new("/gripper/activate");
 
 // --- the rig loop and the recorder ---
-/// One Step record per control tick.
-pub const RIG_STEP: Topic<Step> = Topic::new("/rig/step", Reliable);
+/// One Step record per control tick. Latched: the loop keeps the last ten seconds, so a
+/// restarted recorder gets the steps it missed (volatile subscribers match it too).
+pub const RIG_STEP: Topic<Step> = Topic::new("/rig/step", Latched);
 /// Episode events as the loop decided them (start, success, failure, discard, reset).
-pub const RIG_EPISODE: Topic<EpisodeEvent> = Topic::new("/rig/episode", Reliable);
+/// Latched: a restarted recorder learns what happened while it was down.
+pub const RIG_EPISODE: Topic<EpisodeEvent> = Topic::new("/rig/episode", Latched);
 /// Operator requests to the loop (`labrig episode ...`, the Quest's A/B buttons).
 pub const RIG_REQUEST: Topic<EpisodeEvent> = Topic::new("/rig/request", Reliable);
 /// The loop's status (JSON), latched.

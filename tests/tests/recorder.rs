@@ -285,8 +285,8 @@ fn the_recorder_node_records_the_sim_rig() {
     let dir = labrig_tests::rt().block_on(async move {
         let cfg = labrig_runtime::RosConfig { domain_id: domain, ..Default::default() };
         let mut ros = Ros::new(&cfg, "recorder_test").unwrap();
-        let events = ros.publisher::<EpisodeEvent>("/rig/episode", qos::reliable(10)).unwrap();
-        let steps = ros.publisher::<Step>("/rig/step", qos::reliable(100)).unwrap();
+        let events = ros.publisher_on(&labrig_msgs::topics::RIG_EPISODE, 10).unwrap();
+        let steps = ros.publisher_on(&labrig_msgs::topics::RIG_STEP, 100).unwrap();
         let status = ros.subscription::<StringMsg>("/recorder/status", qos::latched(1)).unwrap();
         assert!(ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(60)).await, "no recorder");
         assert!(ros.wait_for_subscribers("/rig/step", 1, Duration::from_secs(60)).await);

@@ -228,6 +228,8 @@ pub struct Summary {
     pub steps_stale_frames: u64,
     /// Camera skew per recorded step (us): p50, p99, max.
     pub skew_us: [f64; 3],
+    /// Episode starts held back because the recorder took no episode (a full disk).
+    pub starts_refused: u64,
     pub seconds: f64,
 }
 
@@ -252,7 +254,8 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let pubs = Pubs {
         arm: ros.publisher_on(&topics::ARM_COMMAND, 10)?,
         gripper: ros.publisher_on(&topics::GRIPPER_COMMAND, 10)?,
-        step: ros.publisher_on(&topics::RIG_STEP, 100)?,
+        // Ten seconds of steps and the last 100 events kept for a recorder that restarts.
+        step: ros.publisher_on(&topics::RIG_STEP, 200)?,
         episode: ros.publisher_on(&topics::RIG_EPISODE, 100)?,
         reset: ros.publisher_on(&topics::SIM_RESET, 10)?,
         status: ros.publisher_on(&topics::CONTROL_STATUS, 1)?,
@@ -261,6 +264,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let gripper_state: RosSubscription<GripperState> = ros.subscription_on(&topics::GRIPPER_STATE, 10)?;
     let scene_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_SCENE, 1)?;
     let requests: RosSubscription<EpisodeEvent> = ros.subscription_on(&topics::RIG_REQUEST, 10)?;
+    let recorder_status: RosSubscription<StringMsg> = ros.subscription_on(&topics::RECORDER_STATUS, 1)?;
     let mut source: Option<Box<dyn ActionSource>> = match cfg.source {
         SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(&mut ros)?)),
         SourceKind::Hold => None,
@@ -390,6 +394,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             None
         }) {
             rig.push_request(&r.msg);
+        }
+        while let Some(r) = recorder_status.try_take()? {
+            rig.push_recorder_status(&r.msg.data);
         }
         if let Some(s) = source.as_mut() {
             s.poll()?;

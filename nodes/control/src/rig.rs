@@ -138,6 +138,10 @@ pub struct RigLoop {
     /// An operator's event and its note (a Start's task instruction).
     pending_request: Option<(EpisodeEventKind, String)>,
     tick: Option<Tick>,
+    /// The recorder said it takes no episode (a full disk): why. Starts wait while it does.
+    recorder_refusal: Option<String>,
+    /// The recorder refused this episode after it started: it ends.
+    refused_episode: Option<String>,
 }
 
 impl RigLoop {
@@ -173,7 +177,40 @@ impl RigLoop {
             started: Instant::now(),
             pending_request: None,
             tick: None,
+            recorder_refusal: None,
+            refused_episode: None,
         }
+    }
+
+    /// The recorder's status (`/recorder/status`, JSON): while it says `accepting: false` (a
+    /// full disk) no episode starts and the rig stays Idle; an episode it refused ends.
+    pub fn push_recorder_status(&mut self, json: &str) {
+        let Ok(v) = serde_json::from_str::<serde_json::Value>(json) else {
+            tracing::warn!("/recorder/status is not JSON");
+            return;
+        };
+        let refusal = (v["accepting"] == serde_json::Value::Bool(false)).then(|| {
+            format!(
+                "the recorder takes no episode: {:.1} MB free, {:.1} MB needed",
+                v["free_bytes"].as_f64().unwrap_or(0.0) / 1e6,
+                v["needed_bytes"].as_f64().unwrap_or(0.0) / 1e6
+            )
+        });
+        if refusal.is_some() != self.recorder_refusal.is_some() {
+            match &refusal {
+                Some(why) => tracing::error!("{why}: the rig stays Idle until there is space"),
+                None => tracing::info!("the recorder takes episodes again"),
+            }
+        }
+        self.recorder_refusal = refusal;
+        if v["state"] == "refused" && v["episode"].as_str() == Some(self.episode_id.as_str()) {
+            self.refused_episode = Some(self.episode_id.clone());
+        }
+    }
+
+    /// Why episodes cannot start now, if they cannot.
+    pub fn recorder_refusal(&self) -> Option<&str> {
+        self.recorder_refusal.as_deref()
     }
 
     pub fn period(&self) -> Nanos {
@@ -322,7 +359,17 @@ impl RigLoop {
                 return Err(LoopError::SceneTimeout { seed });
             }
         }
-        if event.is_none() && state == State::Idle && self.cfg.auto_start && self.between == Between::Ready {
+        if event == Some(EpisodeEventKind::Start) && state == State::Idle && self.recorder_refusal.is_some() {
+            tracing::warn!("episode start refused: {}", self.recorder_refusal.as_deref().unwrap_or_default());
+            self.summary.starts_refused += 1;
+            event = None;
+        }
+        if self.recorder_refusal.is_none()
+            && event.is_none()
+            && state == State::Idle
+            && self.cfg.auto_start
+            && self.between == Between::Ready
+        {
             // Not before the source has an action for now (after a scene rebuild it may lag).
             let age_ns = self.max_action_age.0;
             let source_ready = self.cfg.clock == ClockKind::Sim
@@ -349,6 +396,11 @@ impl RigLoop {
             } else {
                 event = Some(EpisodeEventKind::Start);
             }
+        }
+        if event.is_none() && self.episodes.recording() && self.refused_episode.as_deref() == Some(&self.episode_id) {
+            tracing::error!(episode = %self.episode_id, "the recorder refused the episode: it stops");
+            self.refused_episode = None;
+            event = Some(EpisodeEventKind::Stop);
         }
         if event.is_none() && self.episodes.recording() {
             let verdict = source.as_ref().map_or(Verdict::Running, |s| s.verdict(Nanos(tick_ns)));
@@ -563,6 +615,7 @@ impl RigLoop {
         if self.summary.ticks.is_multiple_of(20) {
             let status = json!({
                 "state": format!("{:?}", self.episodes.state()),
+                "recorder_refusal": self.recorder_refusal,
                 "episode": self.episode_id,
                 "steps": self.episodes.steps,
                 "episodes": self.summary.episodes.len(),
@@ -843,6 +896,33 @@ mod tests {
         assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
         assert_eq!(out.events[1].note, "the control loop stopped");
         assert_eq!(summary.ticks, 1);
+    }
+
+    #[test]
+    fn a_recorder_without_space_holds_the_rig_idle_and_ends_an_episode_it_refused() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        let full = r#"{"state":"idle","accepting":false,"free_bytes":3000000,"needed_bytes":100000000}"#;
+        rig.push_recorder_status(full);
+        assert_eq!(rig.recorder_refusal(), Some("the recorder takes no episode: 3.0 MB free, 100.0 MB needed"));
+        request(&mut rig, EpisodeEventKind::Start, "");
+        tick(&mut rig, 0, &mut src, &mut out);
+        assert!(out.events.is_empty() && out.steps.is_empty(), "no episode starts: {:?}", out.kinds());
+        assert_eq!((rig.state(), rig.summary().starts_refused), (State::Idle, 1));
+        // Space again: the next Start goes ahead.
+        rig.push_recorder_status(
+            r#"{"state":"idle","accepting":true,"free_bytes":900000000,"needed_bytes":100000000}"#,
+        );
+        assert_eq!(rig.recorder_refusal(), None);
+        request(&mut rig, EpisodeEventKind::Start, "");
+        src.actions.extend([go(joints_at(0.01)), go(joints_at(0.02))]);
+        tick(&mut rig, 1, &mut src, &mut out);
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start]);
+        // The recorder refused that episode (it raced the status): the loop stops it.
+        let id = out.events[0].episode_id.clone();
+        rig.push_recorder_status(&format!(r#"{{"state":"refused","episode":"{id}","accepting":false}}"#));
+        tick(&mut rig, 2, &mut src, &mut out);
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
+        assert_eq!(rig.summary().episodes[0].outcome, "failure");
     }
 
     #[test]

@@ -6,28 +6,46 @@
 //! `<root>/{success|failure}/<date>/<time>/` when it ends (`Success`, or `Failure`/`Stop`);
 //! `Discard` deletes it. An ended episode stays open 300 ms for what was sent before its end
 //! event but is still in flight on other topics (the last step, the last frames), taking
-//! nothing sent after it. A recorder killed mid-episode leaves its directory in `.recording/`
-//! for `labrig recover`. A write error (a full disk) ends the episode with the error reported
-//! on `/recorder/status` and in the log; the node goes on and takes the next `Start`.
-//! `/recorder/status` (std_msgs/String, JSON) says what it is doing once a second and after
-//! every episode.
+//! nothing sent after it.
+//!
+//! A recorder that dies loses no episode. `/rig/episode` and `/rig/step` are latched (the loop
+//! keeps the last 100 events and 200 steps, ten seconds), so a restarted recorder learns what
+//! happened while it was down and gets the steps it missed. On start it waits for that history
+//! (`rejoin_wait_s`), then: an episode still in progress whose staging directory a dead
+//! recorder left is recovered (every closed chunk) and continued as its next part
+//! (`episode_1.mcap`, same id; the steps after the recovered part come from the loop's
+//! history, so none are lost); an episode in progress with no staging directory is joined
+//! late; a staging directory whose episode ended meanwhile is recovered and filed with the
+//! loop's verdict; one nobody speaks for is recovered and filed under `failure/`, unjudged
+//! (`success` unknown, `recovered` saying so). `labrig recover` stays for files copied off a
+//! dead machine.
+//!
+//! Space: an episode is refused when the free space under `root` is below a margin (a few
+//! episodes of the running average size, at least `min_free_mb`); `/recorder/status` then says
+//! `accepting: false` with the free space and the estimate, and the loop holds the rig in Idle.
+//! A write error (a full disk) ends the episode with the error reported; what was written is
+//! moved where the operator looks (unfinished: `labrig recover` it once there is space).
+//!
+//! `/recorder/status` (std_msgs/String, JSON, latched) says what it is doing once a second and
+//! after every episode.
 
-use labrig_episode::bag::Reliability;
+use labrig_episode::bag::{BagInfo, Reliability};
 use labrig_episode::episode::{EpisodeError, EpisodeWriter, RawType};
 use labrig_episode::metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::{EpisodeEventKind, RIG_CAMERAS};
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
 use labrig_msgs::topics;
 use labrig_msgs::{Nanos, RosMessage, TypeVisitor, dds_type_name, visit_type};
 use labrig_runtime::frames::{FrameEncoding, FrameNode, FrameSubscriber};
-use labrig_runtime::ros::{RawSubscription, Ros, qos};
+use labrig_runtime::ros::{RawSubscription, Ros, RosPublisher, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use serde_json::json;
-use std::path::PathBuf;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 /// One recorded topic.
@@ -40,9 +58,14 @@ pub struct TopicSpec {
     pub type_name: String,
     #[serde(default = "yes")]
     pub reliable: bool,
-    /// Transient-local (latched) topics like /tf_static and /sim/scene.
+    /// Transient-local (latched) context topics like /tf_static and /sim/scene: their last
+    /// message goes into every episode at its start.
     #[serde(default)]
     pub latched: bool,
+    /// Transient-local streams (`/rig/step`): read as a late joiner, so a restarted recorder
+    /// gets the history the publisher keeps.
+    #[serde(default)]
+    pub durable: bool,
 }
 
 fn yes() -> bool {
@@ -50,14 +73,14 @@ fn yes() -> bool {
 }
 
 fn spec(topic: &str, type_name: &str, latched: bool) -> TopicSpec {
-    TopicSpec { topic: topic.into(), type_name: type_name.into(), reliable: true, latched }
+    TopicSpec { topic: topic.into(), type_name: type_name.into(), reliable: true, latched, durable: false }
 }
 
 /// The rig's topics recorded by default.
 pub fn default_topics() -> Vec<TopicSpec> {
     let mut t = vec![
-        spec(topics::RIG_STEP.name, "labrig_msgs/msg/Step", false),
-        spec(topics::RIG_EPISODE.name, "labrig_msgs/msg/EpisodeEvent", false),
+        TopicSpec { durable: true, ..spec(topics::RIG_STEP.name, "labrig_msgs/msg/Step", false) },
+        TopicSpec { durable: true, ..spec(topics::RIG_EPISODE.name, "labrig_msgs/msg/EpisodeEvent", false) },
         spec(topics::ARM_STATE.name, "labrig_msgs/msg/RobotState", false),
         spec(topics::ARM_COMMAND.name, "labrig_msgs/msg/ArmCommand", false),
         spec(topics::GRIPPER_STATE.name, "labrig_msgs/msg/GripperState", false),
@@ -87,6 +110,13 @@ pub struct RecorderConfig {
     /// The shared-memory namespace of the frames (tests, several rigs on one machine).
     pub frames_namespace: Option<String>,
     pub rig: RigIdentity,
+    /// On start, how long to wait for the loop's latched episode history (what happened while
+    /// the recorder was down) before deciding on the episodes a dead recorder left.
+    pub rejoin_wait_s: f64,
+    /// An episode is refused below this much free space under `root` (MB)...
+    pub min_free_mb: f64,
+    /// ...or below this many episodes of the running average size, if that is more.
+    pub free_margin_episodes: f64,
 }
 
 impl Default for RecorderConfig {
@@ -99,7 +129,37 @@ impl Default for RecorderConfig {
             jpeg_quality: 90,
             frames_namespace: labrig_runtime::frames::default_namespace(),
             rig: RigIdentity::default(),
+            rejoin_wait_s: 3.0,
+            min_free_mb: 100.0,
+            free_margin_episodes: 3.0,
         }
+    }
+}
+
+impl RecorderConfig {
+    /// Checks what serde cannot, naming the key.
+    pub fn validate(&self) -> Result<(), Invalid> {
+        if !(1..=100).contains(&self.jpeg_quality) {
+            return Err(Invalid::new("jpeg_quality", "recorder config: `jpeg_quality` must be 1..=100"));
+        }
+        for (k, t) in self.topics.iter().enumerate() {
+            if visit_type(&t.type_name, SchemaOf).is_none() {
+                return Err(Invalid::new(
+                    format!("topics[{k}].type"),
+                    format!("recorder config: topic {}: unknown type {}", t.topic, t.type_name),
+                ));
+            }
+        }
+        for (key, v) in [
+            ("rejoin_wait_s", self.rejoin_wait_s),
+            ("min_free_mb", self.min_free_mb),
+            ("free_margin_episodes", self.free_margin_episodes),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(Invalid::new(key, format!("recorder config: `{key}` must be a number >= 0, got {v}")));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -118,6 +178,7 @@ struct Recorded {
 }
 
 struct Episode {
+    uuid: String,
     writer: EpisodeWriter,
     staging: PathBuf,
     started: Instant,
@@ -126,6 +187,20 @@ struct Episode {
     opened_ns: i64,
     /// The end event came: finishing once the grace period is over.
     closing: Option<Closing>,
+    /// Steps in the parts a dead recorder wrote (this is a continuation when non-zero parts).
+    prior_steps: u64,
+    prior_parts: usize,
+    /// Per topic, the newest publish time in the earlier parts: what is not newer is in them.
+    resume_after: BTreeMap<String, i64>,
+}
+
+impl Episode {
+    /// Whether a message published at `publish_ns` on `topic` belongs in this part.
+    fn takes(&self, topic: &str, publish_ns: i64) -> bool {
+        publish_ns >= self.opened_ns
+            && self.closing.is_none_or(|c| publish_ns <= c.sent_before_ns)
+            && self.resume_after.get(topic).is_none_or(|&t| publish_ns > t)
+    }
 }
 
 /// How long an ended episode still takes messages sent before its end event.
@@ -134,6 +209,648 @@ const CLOSE_GRACE: Duration = Duration::from_millis(300);
 /// A frame kept from before a Start is the first step's when captured at most this long
 /// before the Start's stamp (the loop's stale-frame limit is 100 ms).
 const PREROLL_NS: i64 = 200_000_000;
+
+#[derive(Debug, Clone, Copy)]
+struct Closing {
+    outcome: Outcome,
+    /// The end event's send time (wall, ns): later messages are not the episode's.
+    sent_before_ns: i64,
+    until: Instant,
+}
+
+/// Latched context an episode's metadata is filled from.
+#[derive(Default)]
+struct Context {
+    tf_static: Option<TFMessage>,
+    scene_json: Option<String>,
+    /// The last message of each latched topic (published once, before any episode): written
+    /// into every episode at its start, so each file holds its own /tf_static and scene.
+    latched: BTreeMap<String, (Vec<u8>, i64)>,
+}
+
+/// A received episode event with its send time (wall, ns).
+#[derive(Debug, Clone)]
+struct Event {
+    ev: EpisodeEvent,
+    sent_ns: i64,
+}
+
+/// What the loop said about an episode a dead recorder left.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Verdict {
+    Ended(Outcome),
+    Discarded,
+    Unjudged,
+}
+
+/// The recorder's state between iterations of its loop.
+struct Recorder {
+    cfg: RecorderConfig,
+    topics: Vec<Recorded>,
+    cameras: Vec<(String, FrameSubscriber)>,
+    status: RosPublisher<StringMsg>,
+    context: Context,
+    episode: Option<Episode>,
+    /// Each camera's newest frame while no episode is open.
+    held: BTreeMap<String, labrig_runtime::frames::Frame>,
+    last: serde_json::Value,
+    errors: u64,
+    /// Sizes of the episodes recorded by this process (bytes), for the free-space margin.
+    sizes: Vec<u64>,
+    /// The last free-space reading: (free bytes, needed bytes).
+    space: Option<(u64, u64)>,
+}
+
+pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+    cfg.validate()?;
+    let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
+    let mut recorded = Vec::new();
+    for t in &cfg.topics {
+        let schema = visit_type(&t.type_name, SchemaOf)
+            .ok_or_else(|| anyhow::anyhow!("recorder config: topic {}: unknown type {}", t.topic, t.type_name))?;
+        let q = if t.latched {
+            qos::latched(10)
+        } else if t.durable {
+            qos::latched(1000)
+        } else {
+            qos::reliable(1000)
+        };
+        let sub = ros.raw_subscription(&t.topic, &dds_type_name(&t.type_name), q)?;
+        recorded.push(Recorded { spec: t.clone(), schema, sub });
+    }
+    let events = ros.subscription_on(&topics::RIG_EPISODE, 1000)?;
+    let status = ros.publisher_on(&topics::RECORDER_STATUS, 1)?;
+    let frames = match &cfg.frames_namespace {
+        Some(ns) => FrameNode::new_in(ns)?,
+        None => FrameNode::new()?,
+    };
+    let cameras: Vec<(String, FrameSubscriber)> =
+        cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
+    std::fs::create_dir_all(cfg.root.join(".recording"))
+        .map_err(|e| anyhow::anyhow!("creating {}: {e}", cfg.root.join(".recording").display()))?;
+    let orphans = orphans(&cfg.root);
+    tracing::info!(root = %cfg.root.display(), topics = recorded.len(), cameras = cameras.len(), orphans = orphans.len(), "recorder up");
+    let mut rec = Recorder {
+        cfg,
+        topics: recorded,
+        cameras,
+        status,
+        context: Context::default(),
+        episode: None,
+        held: BTreeMap::new(),
+        last: json!({ "state": "idle" }),
+        errors: 0,
+        sizes: Vec::new(),
+        space: None,
+    };
+    rec.check_space();
+    rec.publish_status();
+    let take_events = |out: &mut Vec<Event>| {
+        while let Some(r) = events.try_take().unwrap_or_else(|e| {
+            tracing::warn!("/rig/episode: {e}");
+            None
+        }) {
+            let sent_ns = r.source_time.unwrap_or(r.receive_time).0;
+            out.push(Event { ev: r.msg, sent_ns });
+        }
+    };
+    // Rejoin: the loop's latched history says what happened while no recorder ran. Wait for
+    // it (the publisher matched, then a moment for its history), without taking any other
+    // topic, so the steps kept for a continuation stay queued.
+    let began = Instant::now();
+    let wait = Duration::from_secs_f64(rec.cfg.rejoin_wait_s);
+    let mut matched_at: Option<Instant> = None;
+    let mut history = Vec::new();
+    while !shutdown.is_triggered() && began.elapsed() < wait {
+        take_events(&mut history);
+        if matched_at.is_none() && ros.publisher_count(topics::RIG_EPISODE.name) > 0 {
+            matched_at = Some(Instant::now());
+        }
+        if matched_at.is_some_and(|t| t.elapsed() > Duration::from_millis(500)) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    take_events(&mut history);
+    rec.rejoin(&history, orphans);
+    let mut status_at = Instant::now();
+    let mut pending = Vec::new();
+    while !shutdown.is_triggered() {
+        // Events, each after the messages that arrived before it: an episode's last steps
+        // are in it when it ends, and a Start sees the scene published just before it.
+        pending.clear();
+        take_events(&mut pending);
+        for e in &pending {
+            rec.on_event(e);
+        }
+        rec.record();
+        if rec.episode.as_ref().and_then(|e| e.closing).is_some_and(|c| Instant::now() >= c.until) {
+            rec.finish_closing();
+        }
+        // Once a second, recording or not (the launcher watches it as the node's heartbeat).
+        if status_at.elapsed() > Duration::from_secs(1) {
+            status_at = Instant::now();
+            rec.check_space();
+            if let Some(ep) = &rec.episode {
+                rec.last = json!({
+                    "state": "recording", "staging": ep.staging, "episode": ep.uuid, "messages": ep.writer.messages(),
+                    "frames": ep.frames, "seconds": ep.started.elapsed().as_secs_f64(), "errors": rec.errors,
+                    "part": ep.prior_parts,
+                });
+            }
+            rec.publish_status();
+        }
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    if let Some(ep) = rec.episode.take() {
+        if ep.closing.is_some() {
+            rec.episode = Some(ep);
+            rec.finish_closing();
+        } else {
+            rec.end(ep, Outcome::Failure, "the recorder stopped mid-episode");
+        }
+    }
+    Ok(())
+}
+
+/// Staging directories in `<root>/.recording/` (a dead recorder's episodes).
+fn orphans(root: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(root.join(".recording")) else { return Vec::new() };
+    let mut dirs: Vec<PathBuf> = entries.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect();
+    dirs.sort();
+    dirs
+}
+
+impl Recorder {
+    fn publish_status(&self) {
+        let mut v = self.last.clone();
+        if let Some(obj) = v.as_object_mut() {
+            let (free, needed) = self.space.unwrap_or((0, 0));
+            obj.insert("accepting".into(), json!(self.space.is_none_or(|(f, n)| f >= n)));
+            obj.insert("free_bytes".into(), json!(free));
+            obj.insert("needed_bytes".into(), json!(needed));
+            obj.insert("episode_bytes_avg".into(), json!(self.average_size()));
+        }
+        if let Err(e) = self.status.publish(StringMsg { data: v.to_string() }) {
+            tracing::warn!("/recorder/status: {e}");
+        }
+    }
+
+    fn average_size(&self) -> u64 {
+        if self.sizes.is_empty() { 0 } else { self.sizes.iter().sum::<u64>() / self.sizes.len() as u64 }
+    }
+
+    /// The free space under `root` and the margin an episode needs.
+    fn check_space(&mut self) {
+        let needed = ((self.cfg.min_free_mb * 1e6) as u64)
+            .max((self.cfg.free_margin_episodes * self.average_size() as f64) as u64);
+        match free_bytes(&self.cfg.root) {
+            Ok(free) => self.space = Some((free, needed)),
+            Err(e) => {
+                tracing::warn!("free space of {}: {e}", self.cfg.root.display());
+                self.space = None;
+            }
+        }
+    }
+
+    /// What the loop's history says about the episodes a dead recorder left (`orphans`), and
+    /// the episode in progress, if any.
+    fn rejoin(&mut self, history: &[Event], orphans: Vec<PathBuf>) {
+        let mut orphans: BTreeMap<String, PathBuf> =
+            orphans.into_iter().filter_map(|p| Some((p.file_name()?.to_string_lossy().into_owned(), p))).collect();
+        if !history.is_empty() || !orphans.is_empty() {
+            tracing::info!(events = history.len(), orphans = orphans.len(), "rejoining");
+        }
+        // The episode in progress: the newest Start with no end after it.
+        let ended = |k: usize| {
+            history[k + 1..]
+                .iter()
+                .any(|e| e.ev.episode_id == history[k].ev.episode_id && e.ev.kind() != Ok(EpisodeEventKind::Start))
+        };
+        let starts: Vec<usize> =
+            (0..history.len()).filter(|&k| history[k].ev.kind() == Ok(EpisodeEventKind::Start)).collect();
+        let current = starts.last().copied().filter(|&k| !ended(k));
+        for (k, e) in history.iter().enumerate() {
+            let id = sanitize(&e.ev.episode_id);
+            match e.ev.kind() {
+                Ok(EpisodeEventKind::Start) if Some(k) == current => {
+                    // Continued (its staging is there) or joined late.
+                    orphans.remove(&id);
+                    self.on_event(e);
+                }
+                Ok(EpisodeEventKind::Start) if current.is_none() && orphans.contains_key(&id) && ended(k) => {
+                    // Ended while the recorder was down, nothing after it: continued for the
+                    // steps the loop kept, then closed by its end event below.
+                    orphans.remove(&id);
+                    self.on_event(e);
+                }
+                Ok(
+                    EpisodeEventKind::Success
+                    | EpisodeEventKind::Failure
+                    | EpisodeEventKind::Stop
+                    | EpisodeEventKind::Discard,
+                ) if self.episode.as_ref().is_some_and(|ep| ep.uuid == e.ev.episode_id) => {
+                    self.on_event(e);
+                }
+                Ok(kind @ (EpisodeEventKind::Success | EpisodeEventKind::Failure | EpisodeEventKind::Stop)) => {
+                    if let Some(dir) = orphans.remove(&id) {
+                        let outcome =
+                            if kind == EpisodeEventKind::Success { Outcome::Success } else { Outcome::Failure };
+                        self.file_orphan(&dir, Verdict::Ended(outcome));
+                    }
+                }
+                Ok(EpisodeEventKind::Discard) => {
+                    if let Some(dir) = orphans.remove(&id) {
+                        self.file_orphan(&dir, Verdict::Discarded);
+                    }
+                }
+                _ => {}
+            }
+        }
+        for dir in orphans.into_values() {
+            self.file_orphan(&dir, Verdict::Unjudged);
+        }
+    }
+
+    /// A dead recorder's episode, recovered and filed with the loop's verdict.
+    fn file_orphan(&mut self, dir: &Path, verdict: Verdict) {
+        if verdict == Verdict::Discarded {
+            tracing::info!(dir = %dir.display(), "a dead recorder's episode was discarded by the loop: deleted");
+            if let Err(e) = std::fs::remove_dir_all(dir) {
+                tracing::error!("deleting {}: {e}", dir.display());
+            }
+            return;
+        }
+        let (success, note) = match verdict {
+            Verdict::Ended(o) => {
+                (Some(o == Outcome::Success), "the recorder died during the episode; the loop's verdict")
+            }
+            _ => (None, "the recorder died during the episode; unjudged: no verdict came"),
+        };
+        if labrig_episode::episode::part_files(dir).map_or(true, |p| p.is_empty()) {
+            // Killed before the file existed: nothing was recorded.
+            tracing::warn!(dir = %dir.display(), "a dead recorder's staging directory holds no episode: removed");
+            let _ = std::fs::remove_dir_all(dir);
+            return;
+        }
+        let amend = |m: &mut EpisodeMetadata| {
+            m.success = success;
+            m.recovered = Some(note.to_owned());
+        };
+        let recovered = labrig_episode::recover::recover_in_place_with(dir, Some(&amend));
+        let (start_ns, steps) = match &recovered {
+            Ok(r) => {
+                let steps = r.info.topics.iter().find(|t| t.name == topics::RIG_STEP.name).map_or(0, |t| t.count);
+                let start = labrig_episode::read_episode(dir).ok().and_then(|d| d.metadata).map(|m| m.start_ns);
+                (start.unwrap_or(r.info.start_ns), steps)
+            }
+            Err(e) => {
+                self.errors += 1;
+                tracing::error!(dir = %dir.display(), "recovering a dead recorder's episode: {e}; filed unfinished");
+                (
+                    std::fs::metadata(dir)
+                        .ok()
+                        .and_then(|m| m.modified().ok())
+                        .map_or(0, |t| t.duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as i64)),
+                    0,
+                )
+            }
+        };
+        let outcome = match verdict {
+            Verdict::Ended(o) => o,
+            _ => Outcome::Failure,
+        };
+        let dest = unused(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
+        let moved = dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(dir, &dest));
+        self.last = match moved {
+            Ok(()) => {
+                tracing::info!(dir = %dest.display(), steps, ?verdict, "a dead recorder's episode recovered");
+                json!({ "state": "recovered", "dir": dest, "steps": steps, "outcome": outcome.dir(),
+                        "judged": success.is_some(), "note": note })
+            }
+            Err(e) => {
+                tracing::error!("moving {} to {}: {e}", dir.display(), dest.display());
+                json!({ "state": "error", "error": format!("moving a recovered episode: {e}"), "staging": dir })
+            }
+        };
+        self.publish_status();
+    }
+
+    fn on_event(&mut self, e: &Event) {
+        let ev = &e.ev;
+        let sent_ns = e.sent_ns;
+        let kind = ev.kind();
+        // A Start for the episode being recorded (its history arriving late): nothing to do.
+        if kind == Ok(EpisodeEventKind::Start)
+            && !ev.episode_id.is_empty()
+            && self.episode.as_ref().is_some_and(|ep| ep.uuid == ev.episode_id)
+        {
+            return;
+        }
+        // An episode still closing ends before the next one starts.
+        if kind == Ok(EpisodeEventKind::Start) && self.episode.as_ref().is_some_and(|e| e.closing.is_some()) {
+            let _ = drain_topics(&self.topics, &mut self.context, self.episode.as_mut(), false);
+            self.finish_closing();
+        }
+        // Before a Start only the latched topics (the scene, the camera poses published
+        // just before it); the rest is taken after, each message by its send time.
+        let latched_only = kind == Ok(EpisodeEventKind::Start);
+        if let Some(err) = drain_topics(&self.topics, &mut self.context, self.episode.as_mut(), latched_only) {
+            tracing::error!("recording: {err}");
+        }
+        match kind {
+            Ok(EpisodeEventKind::Start) => {
+                if let Some(ep) = self.episode.take() {
+                    self.end(ep, Outcome::Failure, "a new episode started before this one ended");
+                }
+                self.check_space();
+                if let Some((free, needed)) = self.space.filter(|(f, n)| f < n) {
+                    self.errors += 1;
+                    let error = format!(
+                        "episode {} refused: {:.1} MB free under {}, {:.1} MB needed (min_free_mb / free_margin_episodes)",
+                        ev.episode_id,
+                        free as f64 / 1e6,
+                        self.cfg.root.display(),
+                        needed as f64 / 1e6
+                    );
+                    tracing::error!("{error}");
+                    self.last =
+                        json!({ "state": "refused", "episode": ev.episode_id, "error": error, "disk_full": true });
+                    self.publish_status();
+                    return;
+                }
+                match self.open(ev, sent_ns) {
+                    Ok(ep) => {
+                        tracing::info!(dir = %ep.staging.display(), part = ep.prior_parts, "recording");
+                        self.last = json!({ "state": "recording", "staging": ep.staging, "episode": ep.uuid, "part": ep.prior_parts });
+                        self.episode = Some(ep);
+                    }
+                    Err(err) => {
+                        self.errors += 1;
+                        tracing::error!("cannot start the episode: {err}");
+                        self.last = json!({ "state": "error", "episode": ev.episode_id, "error": err.to_string(), "disk_full": err.is_disk_full() });
+                    }
+                }
+                self.publish_status();
+            }
+            Ok(kind @ (EpisodeEventKind::Success | EpisodeEventKind::Failure | EpisodeEventKind::Stop)) => {
+                // Messages sent before the event still in flight on other topics (the
+                // last step, the last frames) belong to the episode: it stays open for
+                // CLOSE_GRACE, taking only what was sent before the event.
+                if let Some(ep) = self.episode.as_mut().filter(|ep| ep.closing.is_none()) {
+                    let outcome = if kind == EpisodeEventKind::Success { Outcome::Success } else { Outcome::Failure };
+                    ep.writer.metadata_mut().success = Some(outcome == Outcome::Success);
+                    if let Err(err) = ep.writer.write(
+                        topics::RIG_EPISODE.name,
+                        ev,
+                        Clock::Wall.now(),
+                        Nanos(sent_ns),
+                        Reliability::Reliable,
+                    ) {
+                        tracing::warn!("/rig/episode: {err}");
+                    }
+                    ep.closing =
+                        Some(Closing { outcome, sent_before_ns: sent_ns, until: Instant::now() + CLOSE_GRACE });
+                }
+            }
+            Ok(EpisodeEventKind::Discard) => {
+                if let Some(ep) = self.episode.take() {
+                    let staging = ep.staging.clone();
+                    let _ = ep.writer.finish();
+                    let _ = std::fs::remove_dir_all(&staging);
+                    self.last = json!({ "state": "discarded", "staging": staging });
+                    self.publish_status();
+                }
+            }
+            Ok(EpisodeEventKind::Reset) => {}
+            Err(err) => tracing::warn!("/rig/episode: {err}"),
+        }
+    }
+
+    /// Opens the episode a Start announces: a new one, or the next part of one a dead
+    /// recorder left in its staging directory.
+    fn open(&mut self, ev: &EpisodeEvent, sent_ns: i64) -> Result<Episode, EpisodeError> {
+        let start_ns = Clock::Wall.now().0;
+        let scene_id = self
+            .context
+            .scene_json
+            .as_deref()
+            .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
+            .and_then(|v| v["spec_name"].as_str().map(str::to_owned))
+            .unwrap_or_default();
+        let mut meta = EpisodeMetadata::new(&self.cfg.rig, &scene_id, &ev.note, Nanos(start_ns));
+        if !ev.episode_id.is_empty() {
+            meta.uuid.clone_from(&ev.episode_id);
+        }
+        meta.sim_scene.clone_from(&self.context.scene_json);
+        if let Some(tf) = &self.context.tf_static {
+            meta.extrinsics = extrinsics(tf);
+        }
+        let staging = self.cfg.root.join(".recording").join(sanitize(&meta.uuid));
+        let parts = labrig_episode::episode::part_files(&staging).unwrap_or_default();
+        if !parts.is_empty() {
+            return self.continue_episode(staging, meta, sent_ns);
+        }
+        let mut writer = EpisodeWriter::create(&staging, meta)?;
+        for r in self.topics.iter().filter(|r| r.spec.latched) {
+            let Some((cdr, publish)) = self.context.latched.get(&r.spec.topic) else { continue };
+            let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
+            if let Err(e) =
+                writer.write_cdr(&r.spec.topic, &ty, cdr, Nanos(start_ns), Nanos(*publish), Reliability::Reliable)
+            {
+                tracing::warn!("{}: {e}", r.spec.topic);
+            }
+        }
+        if let Err(e) =
+            writer.write(topics::RIG_EPISODE.name, ev, Nanos(start_ns), Nanos(sent_ns), Reliability::Reliable)
+        {
+            tracing::warn!("/rig/episode: {e}");
+        }
+        let mut ep = Episode {
+            uuid: writer.metadata().uuid.clone(),
+            writer,
+            staging,
+            started: Instant::now(),
+            frames: 0,
+            opened_ns: sent_ns,
+            closing: None,
+            prior_steps: 0,
+            prior_parts: 0,
+            resume_after: BTreeMap::new(),
+        };
+        // The first step's frames were published before the Start (the loop announces an
+        // episode on its first tick): the frames kept while idle go in when they belong to
+        // that tick.
+        let first_tick = Nanos::from(ev.header.stamp).0;
+        for (camera, frame) in std::mem::take(&mut self.held) {
+            if frame.header().capture_ns >= first_tick - PREROLL_NS
+                && let Err(e) = write_frame(&mut ep, &camera, &frame, self.cfg.jpeg_quality, start_ns)
+            {
+                tracing::warn!("camera {camera}: {e}");
+            }
+        }
+        Ok(ep)
+    }
+
+    /// The next part of an episode a dead recorder was writing: its parts recovered (every
+    /// closed chunk), then `episode_<k>.mcap` taking only what is newer than they hold.
+    fn continue_episode(
+        &mut self,
+        staging: PathBuf,
+        meta: EpisodeMetadata,
+        sent_ns: i64,
+    ) -> Result<Episode, EpisodeError> {
+        let recovered = labrig_episode::recover::recover_in_place(&staging)?;
+        let infos: Vec<BagInfo> = recovered.parts.iter().map(|p| p.info.clone()).collect();
+        let earlier = labrig_episode::inspect(&staging).ok();
+        let resume_after: BTreeMap<String, i64> =
+            earlier.iter().flat_map(|i| &i.topics).map(|t| (t.topic.clone(), t.last_publish_ns)).collect();
+        let prior_steps = earlier.as_ref().map_or(0, |i| i.steps);
+        // The episode's own metadata (start time, scene, extrinsics) from its first part.
+        let mut meta = earlier.and_then(|i| i.metadata).unwrap_or(meta);
+        meta.recovered =
+            Some(format!("the recorder restarted during the episode: recorded in {} parts", infos.len() + 1));
+        tracing::warn!(
+            dir = %staging.display(), parts = infos.len(), steps = prior_steps,
+            "a dead recorder's episode is still in progress: recovered, recording its next part"
+        );
+        let writer = EpisodeWriter::create_part(&staging, meta.clone(), infos.clone())?;
+        self.held.clear();
+        Ok(Episode {
+            uuid: meta.uuid,
+            writer,
+            staging,
+            started: Instant::now(),
+            frames: 0,
+            opened_ns: sent_ns,
+            closing: None,
+            prior_steps,
+            prior_parts: infos.len(),
+            resume_after,
+        })
+    }
+
+    /// Topics and camera frames into the open episode.
+    fn record(&mut self) {
+        let mut failed: Option<EpisodeError> =
+            drain_topics(&self.topics, &mut self.context, self.episode.as_mut(), false);
+        for (camera, sub) in &self.cameras {
+            loop {
+                let frame = match sub.receive() {
+                    Ok(Some(f)) => f,
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::warn!("camera {camera}: {e}");
+                        break;
+                    }
+                };
+                let Some(ep) = &mut self.episode else {
+                    // Idle: the newest frame is kept, for a Start whose first step uses it.
+                    self.held.insert(camera.clone(), frame);
+                    continue;
+                };
+                // Frames are stamped on the rig's clock (the sim's, in a simulation): ended by
+                // their publish time, continued after the last one an earlier part holds.
+                let h = frame.header();
+                let in_earlier = ep.resume_after.get(&topics::camera_image(camera)).is_some_and(|&t| h.capture_ns <= t);
+                if in_earlier || ep.closing.is_some_and(|c| h.publish_ns > c.sent_before_ns) {
+                    continue;
+                }
+                if let Err(e) = write_frame(ep, camera, &frame, self.cfg.jpeg_quality, Clock::Wall.now().0) {
+                    failed = Some(e);
+                    break;
+                }
+            }
+        }
+        if let Some(e) = failed {
+            self.errors += 1;
+            tracing::error!("recording stopped: {e}");
+            if let Some(ep) = self.episode.take() {
+                self.abandon(ep, &e);
+            }
+        }
+    }
+
+    /// A write error (a full disk): what was written is moved where the operator looks,
+    /// unfinished (every closed chunk is readable; `labrig recover` makes it whole).
+    fn abandon(&mut self, ep: Episode, err: &EpisodeError) {
+        let Episode { staging, writer, .. } = ep;
+        let start_ns = writer.metadata().start_ns;
+        drop(writer);
+        let dest = unused(episode_dir(&self.cfg.root, Outcome::Failure, Nanos(start_ns)));
+        let moved =
+            dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(&staging, &dest));
+        let kept = match moved {
+            Ok(()) => dest,
+            Err(e) => {
+                tracing::error!("moving {} to {}: {e}", staging.display(), dest.display());
+                staging
+            }
+        };
+        tracing::error!(dir = %kept.display(), "the episode is kept unfinished: `labrig recover` it once there is space");
+        self.last =
+            json!({ "state": "error", "error": err.to_string(), "disk_full": err.is_disk_full(), "kept": kept });
+        self.check_space();
+        self.publish_status();
+    }
+
+    fn finish_closing(&mut self) {
+        if let Some(ep) = self.episode.take() {
+            let outcome = ep.closing.map_or(Outcome::Failure, |c| c.outcome);
+            self.end(ep, outcome, "");
+        }
+    }
+
+    /// Finishes an episode and moves it into DROID's layout.
+    fn end(&mut self, ep: Episode, outcome: Outcome, why: &str) {
+        let Episode { mut writer, staging, prior_steps, .. } = ep;
+        let start_ns = writer.metadata_mut().start_ns;
+        writer.metadata_mut().trajectory_length = prior_steps + writer.count(topics::RIG_STEP.name);
+        self.last = match writer.finish() {
+            Ok(summary) => {
+                self.sizes.push(dir_bytes(&staging));
+                // Two episodes may start in the same second (DROID's directory names are to the
+                // second): the later one gets a suffix rather than failing to move.
+                let dest = unused(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
+                let moved = dest
+                    .parent()
+                    .map(std::fs::create_dir_all)
+                    .transpose()
+                    .and_then(|_| std::fs::rename(&staging, &dest));
+                match moved {
+                    Ok(()) => {
+                        tracing::info!(dir = %dest.display(), messages = summary.messages, "episode recorded {}", why);
+                        json!({ "state": "recorded", "outcome": outcome.dir(), "dir": dest, "messages": summary.messages, "bytes": summary.bytes, "note": why })
+                    }
+                    Err(e) => {
+                        tracing::error!("moving {} to {}: {e}", staging.display(), dest.display());
+                        json!({ "state": "error", "error": format!("moving the episode: {e}"), "staging": staging })
+                    }
+                }
+            }
+            Err(e) => {
+                self.errors += 1;
+                tracing::error!("finishing the episode: {e}");
+                json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full(), "staging": staging })
+            }
+        };
+        self.check_space();
+        self.publish_status();
+    }
+}
+
+/// Bytes of the files in `dir` (not recursive).
+fn dir_bytes(dir: &Path) -> u64 {
+    std::fs::read_dir(dir)
+        .map(|d| d.filter_map(|e| e.ok()?.metadata().ok()).filter(|m| m.is_file()).map(|m| m.len()).sum())
+        .unwrap_or(0)
+}
+
+/// Bytes free for an unprivileged writer on the filesystem holding `path`.
+pub fn free_bytes(path: &Path) -> std::io::Result<u64> {
+    let stat = nix::sys::statvfs::statvfs(path).map_err(std::io::Error::from)?;
+    Ok(stat.blocks_available() as u64 * stat.fragment_size() as u64)
+}
 
 /// One camera frame into the episode, as JPEG (rgb8 frames only).
 fn write_frame(
@@ -164,287 +881,6 @@ fn write_frame(
     ep.writer.write(&topic, &img, Nanos(log_ns), Nanos(h.capture_ns), Reliability::BestEffort)?;
     ep.frames += 1;
     Ok(())
-}
-
-#[derive(Debug, Clone, Copy)]
-struct Closing {
-    outcome: Outcome,
-    /// The end event's send time (wall, ns): later messages are not the episode's.
-    sent_before_ns: i64,
-    until: Instant,
-}
-
-fn finish_closing(ep: Episode, root: &std::path::Path) -> serde_json::Value {
-    let outcome = ep.closing.map_or(Outcome::Failure, |c| c.outcome);
-    end(ep, outcome, root, "")
-}
-
-/// Runs the node until `shutdown`.
-impl RecorderConfig {
-    /// Checks what serde cannot, naming the key.
-    pub fn validate(&self) -> Result<(), Invalid> {
-        if !(1..=100).contains(&self.jpeg_quality) {
-            return Err(Invalid::new("jpeg_quality", "recorder config: `jpeg_quality` must be 1..=100"));
-        }
-        for (k, t) in self.topics.iter().enumerate() {
-            if visit_type(&t.type_name, SchemaOf).is_none() {
-                return Err(Invalid::new(
-                    format!("topics[{k}].type"),
-                    format!("recorder config: topic {}: unknown type {}", t.topic, t.type_name),
-                ));
-            }
-        }
-        Ok(())
-    }
-}
-
-pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
-    cfg.validate()?;
-    let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
-    let mut topics = Vec::new();
-    for t in &cfg.topics {
-        let schema = visit_type(&t.type_name, SchemaOf)
-            .ok_or_else(|| anyhow::anyhow!("recorder config: topic {}: unknown type {}", t.topic, t.type_name))?;
-        let q = if t.latched { qos::latched(10) } else { qos::reliable(1000) };
-        let sub = ros.raw_subscription(&t.topic, &dds_type_name(&t.type_name), q)?;
-        topics.push(Recorded { spec: t.clone(), schema, sub });
-    }
-    let events = ros.subscription_on(&topics::RIG_EPISODE, 100)?;
-    let status = ros.publisher_on(&topics::RECORDER_STATUS, 1)?;
-    let frames = match &cfg.frames_namespace {
-        Some(ns) => FrameNode::new_in(ns)?,
-        None => FrameNode::new()?,
-    };
-    let cameras: Vec<(String, FrameSubscriber)> =
-        cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
-    let mut context = Context::default();
-    let clock = Clock::Wall;
-    let mut episode: Option<Episode> = None;
-    // Each camera's newest frame while no episode is open.
-    let mut held: std::collections::BTreeMap<String, labrig_runtime::frames::Frame> = Default::default();
-    let mut last = json!({ "state": "idle" });
-    let mut status_at = Instant::now();
-    let mut errors = 0u64;
-    tracing::info!(root = %cfg.root.display(), topics = topics.len(), cameras = cameras.len(), "recorder up");
-    let publish_status = |v: &serde_json::Value| {
-        if let Err(e) = status.publish(StringMsg { data: v.to_string() }) {
-            tracing::warn!("/recorder/status: {e}");
-        }
-    };
-    publish_status(&last);
-    while !shutdown.is_triggered() {
-        // Events, each after the messages that arrived before it: an episode's last steps
-        // are in it when it ends, and a Start sees the scene published just before it.
-        let mut pending = Vec::new();
-        while let Some(ev) = events.try_take().unwrap_or_else(|e| {
-            tracing::warn!("/rig/episode: {e}");
-            None
-        }) {
-            pending.push(ev);
-        }
-        for received in pending {
-            let ev = received.msg;
-            let sent_ns = received.source_time.unwrap_or(received.receive_time).0;
-            // An episode still closing ends before the next one starts.
-            if ev.kind() == Ok(EpisodeEventKind::Start) && episode.as_ref().is_some_and(|e| e.closing.is_some()) {
-                let _ = drain_topics(&topics, &mut context, episode.as_mut(), false);
-                if let Some(ep) = episode.take() {
-                    last = finish_closing(ep, &cfg.root);
-                    publish_status(&last);
-                }
-            }
-            // Before a Start only the latched topics (the scene, the camera poses published
-            // just before it); the rest is taken after, each message by its send time.
-            let latched_only = ev.kind() == Ok(EpisodeEventKind::Start);
-            if let Some(e) = drain_topics(&topics, &mut context, episode.as_mut(), latched_only) {
-                tracing::error!("recording: {e}");
-            }
-            match ev.kind() {
-                Ok(EpisodeEventKind::Start) => {
-                    if let Some(ep) = episode.take() {
-                        let ended = end(ep, Outcome::Failure, &cfg.root, "a new episode started before this one ended");
-                        publish_status(&ended);
-                    }
-                    let start_ns = clock.now().0;
-                    let scene_id = context
-                        .scene_json
-                        .as_deref()
-                        .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
-                        .and_then(|v| v["spec_name"].as_str().map(str::to_owned))
-                        .unwrap_or_default();
-                    let mut meta = EpisodeMetadata::new(&cfg.rig, &scene_id, &ev.note, Nanos(start_ns));
-                    if !ev.episode_id.is_empty() {
-                        meta.uuid.clone_from(&ev.episode_id);
-                    }
-                    meta.sim_scene.clone_from(&context.scene_json);
-                    if let Some(tf) = &context.tf_static {
-                        meta.extrinsics = extrinsics(tf);
-                    }
-                    let staging = unused(cfg.root.join(".recording").join(sanitize(&meta.uuid)));
-                    match EpisodeWriter::create(&staging, meta) {
-                        Ok(mut writer) => {
-                            for r in topics.iter().filter(|r| r.spec.latched) {
-                                let Some((cdr, publish)) = context.latched.get(&r.spec.topic) else { continue };
-                                let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
-                                if let Err(e) = writer.write_cdr(
-                                    &r.spec.topic,
-                                    &ty,
-                                    cdr,
-                                    Nanos(start_ns),
-                                    Nanos(*publish),
-                                    Reliability::Reliable,
-                                ) {
-                                    tracing::warn!("{}: {e}", r.spec.topic);
-                                }
-                            }
-                            if let Err(e) = writer.write(
-                                topics::RIG_EPISODE.name,
-                                &ev,
-                                Nanos(start_ns),
-                                Nanos(sent_ns),
-                                Reliability::Reliable,
-                            ) {
-                                tracing::warn!("/rig/episode: {e}");
-                            }
-                            tracing::info!(dir = %staging.display(), "recording");
-                            last = json!({ "state": "recording", "staging": staging });
-                            let mut ep = Episode {
-                                writer,
-                                staging,
-                                started: Instant::now(),
-                                frames: 0,
-                                opened_ns: sent_ns,
-                                closing: None,
-                            };
-                            // The first step's frames were published before the Start (the
-                            // loop announces an episode on its first tick): the frames kept
-                            // while idle go in when they belong to that tick.
-                            let first_tick = Nanos::from(ev.header.stamp).0;
-                            for (camera, frame) in std::mem::take(&mut held) {
-                                if frame.header().capture_ns >= first_tick - PREROLL_NS
-                                    && let Err(e) = write_frame(&mut ep, &camera, &frame, cfg.jpeg_quality, start_ns)
-                                {
-                                    tracing::warn!("camera {camera}: {e}");
-                                }
-                            }
-                            episode = Some(ep);
-                        }
-                        Err(e) => {
-                            errors += 1;
-                            tracing::error!("cannot start the episode: {e}");
-                            last = json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full() });
-                        }
-                    }
-                    publish_status(&last);
-                }
-                Ok(kind @ (EpisodeEventKind::Success | EpisodeEventKind::Failure | EpisodeEventKind::Stop)) => {
-                    // Messages sent before the event still in flight on other topics (the
-                    // last step, the last frames) belong to the episode: it stays open for
-                    // CLOSE_GRACE, taking only what was sent before the event.
-                    if let Some(ep) = episode.as_mut() {
-                        let outcome =
-                            if kind == EpisodeEventKind::Success { Outcome::Success } else { Outcome::Failure };
-                        ep.writer.metadata_mut().success = Some(outcome == Outcome::Success);
-                        if let Err(e) = ep.writer.write(
-                            topics::RIG_EPISODE.name,
-                            &ev,
-                            clock.now(),
-                            Nanos(sent_ns),
-                            Reliability::Reliable,
-                        ) {
-                            tracing::warn!("/rig/episode: {e}");
-                        }
-                        ep.closing =
-                            Some(Closing { outcome, sent_before_ns: sent_ns, until: Instant::now() + CLOSE_GRACE });
-                    }
-                }
-                Ok(EpisodeEventKind::Discard) => {
-                    if let Some(ep) = episode.take() {
-                        let staging = ep.staging.clone();
-                        let _ = ep.writer.finish();
-                        let _ = std::fs::remove_dir_all(&staging);
-                        last = json!({ "state": "discarded", "staging": staging });
-                        publish_status(&last);
-                    }
-                }
-                Ok(EpisodeEventKind::Reset) => {}
-                Err(e) => tracing::warn!("/rig/episode: {e}"),
-            }
-        }
-        // Topics.
-        let mut failed: Option<EpisodeError> = drain_topics(&topics, &mut context, episode.as_mut(), false);
-        // Camera frames (JPEG).
-        for (camera, sub) in &cameras {
-            loop {
-                let frame = match sub.receive() {
-                    Ok(Some(f)) => f,
-                    Ok(None) => break,
-                    Err(e) => {
-                        tracing::warn!("camera {camera}: {e}");
-                        break;
-                    }
-                };
-                let Some(ep) = &mut episode else {
-                    // Idle: the newest frame is kept, for a Start whose first step uses it.
-                    held.insert(camera.clone(), frame);
-                    continue;
-                };
-                if ep.closing.is_some_and(|c| frame.header().publish_ns > c.sent_before_ns) {
-                    continue;
-                }
-                if let Err(e) = write_frame(ep, camera, &frame, cfg.jpeg_quality, clock.now().0) {
-                    failed = Some(e);
-                    break;
-                }
-            }
-        }
-        if let Some(e) = failed {
-            errors += 1;
-            tracing::error!("recording stopped: {e}");
-            if let Some(ep) = episode.take() {
-                let staging = ep.staging.clone();
-                drop(ep);
-                last = json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full(), "staging": staging });
-                publish_status(&last);
-            }
-        }
-        if episode.as_ref().and_then(|e| e.closing).is_some_and(|c| Instant::now() >= c.until)
-            && let Some(ep) = episode.take()
-        {
-            last = finish_closing(ep, &cfg.root);
-            publish_status(&last);
-        }
-        // Once a second, recording or not (the launcher watches it as the node's heartbeat).
-        if status_at.elapsed() > Duration::from_secs(1) {
-            status_at = Instant::now();
-            if let Some(ep) = &episode {
-                last = json!({
-                    "state": "recording", "staging": ep.staging, "messages": ep.writer.messages(),
-                    "frames": ep.frames, "seconds": ep.started.elapsed().as_secs_f64(), "errors": errors,
-                });
-            }
-            publish_status(&last);
-        }
-        tokio::time::sleep(Duration::from_millis(2)).await;
-    }
-    if let Some(ep) = episode.take() {
-        if ep.closing.is_some() {
-            finish_closing(ep, &cfg.root);
-        } else {
-            end(ep, Outcome::Failure, &cfg.root, "the recorder stopped mid-episode");
-        }
-    }
-    Ok(())
-}
-
-/// Latched context an episode's metadata is filled from.
-#[derive(Default)]
-struct Context {
-    tf_static: Option<TFMessage>,
-    scene_json: Option<String>,
-    /// The last message of each latched topic (published once, before any episode): written
-    /// into every episode at its start, so each file holds its own /tf_static and scene.
-    latched: std::collections::BTreeMap<String, (Vec<u8>, i64)>,
 }
 
 /// Takes every topic's waiting messages: latched context updated, messages written into the
@@ -482,8 +918,9 @@ fn drain_topics(
             if let Some(ep) = episode.as_mut() {
                 let log = sample.receive_time.0;
                 let publish = sample.source_time.map_or(log, |t| t.0);
-                // Sent before the episode's Start or after its end: not the episode's.
-                if publish < ep.opened_ns || ep.closing.is_some_and(|c| publish > c.sent_before_ns) {
+                // Sent before the episode's Start or after its end, or in an earlier part: not
+                // this part's.
+                if !ep.takes(&r.spec.topic, publish) {
                     continue;
                 }
                 let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
@@ -506,39 +943,9 @@ fn unused(path: PathBuf) -> PathBuf {
     (2..).map(|k| path.with_file_name(format!("{name}_{k}"))).find(|p| !p.exists()).expect("unbounded")
 }
 
-/// Finishes an episode and moves it into DROID's layout; returns the status to publish.
-fn end(ep: Episode, outcome: Outcome, root: &std::path::Path, why: &str) -> serde_json::Value {
-    let Episode { mut writer, staging, .. } = ep;
-    let start_ns = writer.metadata_mut().start_ns;
-    writer.metadata_mut().trajectory_length = writer.count(topics::RIG_STEP.name);
-    match writer.finish() {
-        Ok(summary) => {
-            // Two episodes may start in the same second (DROID's directory names are to the
-            // second): the later one gets a suffix rather than failing to move.
-            let dest = unused(episode_dir(root, outcome, Nanos(start_ns)));
-            let moved =
-                dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(&staging, &dest));
-            match moved {
-                Ok(()) => {
-                    tracing::info!(dir = %dest.display(), messages = summary.messages, "episode recorded {}", why);
-                    json!({ "state": "recorded", "outcome": outcome.dir(), "dir": dest, "messages": summary.messages, "bytes": summary.bytes, "note": why })
-                }
-                Err(e) => {
-                    tracing::error!("moving {} to {}: {e}", staging.display(), dest.display());
-                    json!({ "state": "error", "error": format!("moving the episode: {e}"), "staging": staging })
-                }
-            }
-        }
-        Err(e) => {
-            tracing::error!("finishing the episode: {e}");
-            json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full(), "staging": staging })
-        }
-    }
-}
-
 /// Camera extrinsics from /tf_static: every `<camera>_optical` child of the base frame as
 /// DROID's [x, y, z, rx, ry, rz] (extrinsic XYZ euler).
-fn extrinsics(tf: &TFMessage) -> std::collections::BTreeMap<String, [f64; 6]> {
+fn extrinsics(tf: &TFMessage) -> BTreeMap<String, [f64; 6]> {
     tf.transforms
         .iter()
         .filter_map(|t| {
