@@ -249,6 +249,8 @@ async fn run_node<N: Node>(args: RunArgs<N::Flags>, shutdown: Shutdown) -> anyho
     let RunArgs { common, flags } = args;
     let config = load::<N>(&common, flags)?;
     tracing::debug!(node = N::NAME, "starting");
+    // A node whose DDS threads die exits (status 1) for the launcher to restart it.
+    crate::ros::exit_on_dds_death(true);
     let stats = N::run(config, shutdown).await?;
     if common.json {
         println!("{}", serde_json::to_string(&stats)?);

@@ -19,6 +19,9 @@ use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, Represen
 use serde::{Deserialize, Serialize};
 use std::marker::PhantomData;
 use std::net::Ipv4Addr;
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 /// Errors from the ROS 2 layer. Each names the topic or service involved.
@@ -115,6 +118,102 @@ pub struct Ros {
     participant: DomainParticipant,
     subscriber: rustdds::Subscriber,
     spinner: Option<tokio::task::JoinHandle<()>>,
+    watch: DdsWatch,
+}
+
+/// RustDDS announces itself (SPDP) on 127.0.0.1 to participant ids 0..11 only: two
+/// participants of one domain that both have an id of 12 or more never discover each other.
+/// A participant past the limit is refused (measured by `tests/tests/domains.rs`).
+pub const MAX_PARTICIPANTS_PER_DOMAIN: u16 = 12;
+
+/// Whether a process exits (status 1, the reason on stderr) when its DDS threads die: set by
+/// the node skeleton for `run`, so the launcher restarts a node whose transport is gone
+/// instead of it running on deaf and mute.
+static EXIT_ON_DDS_DEATH: AtomicBool = AtomicBool::new(false);
+
+/// Nodes call this once (`labrig_runtime::node_main` does, for `run`).
+pub fn exit_on_dds_death(on: bool) {
+    EXIT_ON_DDS_DEATH.store(on, Ordering::SeqCst);
+}
+
+/// The thread ids of this process's RustDDS threads (`/proc/self/task/<tid>/comm` starts
+/// with "RustDDS": its discovery thread and each participant's event loop).
+fn dds_threads() -> std::collections::BTreeSet<u32> {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return Default::default() };
+    tasks
+        .filter_map(|t| {
+            let t = t.ok()?;
+            let tid: u32 = t.file_name().to_str()?.parse().ok()?;
+            let comm = std::fs::read_to_string(t.path().join("comm")).ok()?;
+            comm.starts_with("RustDDS").then_some(tid)
+        })
+        .collect()
+}
+
+/// Watches a participant's RustDDS threads. They exit for good when `epoll_wait` is
+/// interrupted (EINTR: the process was stopped and continued — Ctrl-Z, a debugger — or a
+/// signal landed on them), and DDS is then dead while the node runs on.
+struct DdsWatch {
+    stop: Arc<AtomicBool>,
+    dead: Arc<AtomicBool>,
+}
+
+impl DdsWatch {
+    fn start(threads: std::collections::BTreeSet<u32>, domain_id: u16) -> DdsWatch {
+        let stop = Arc::new(AtomicBool::new(false));
+        let dead = Arc::new(AtomicBool::new(false));
+        let (s, d) = (stop.clone(), dead.clone());
+        let spawned = std::thread::Builder::new().name("labrig-dds-watch".into()).spawn(move || {
+            while !s.load(Ordering::SeqCst) {
+                std::thread::sleep(Duration::from_millis(100));
+                let gone: Vec<u32> =
+                    threads.iter().copied().filter(|t| !Path::new(&format!("/proc/self/task/{t}")).exists()).collect();
+                if gone.is_empty() || s.load(Ordering::SeqCst) {
+                    continue;
+                }
+                d.store(true, Ordering::SeqCst);
+                let why = format!(
+                    "DDS stopped (domain {domain_id}): {} of RustDDS's {} threads exited (an interrupted epoll_wait: the \
+                     process was stopped and continued, e.g. Ctrl-Z or a debugger)",
+                    gone.len(),
+                    threads.len()
+                );
+                tracing::error!("{why}");
+                if EXIT_ON_DDS_DEATH.load(Ordering::SeqCst) {
+                    eprintln!("error: {why}; exiting so the launcher can restart the node");
+                    std::process::exit(1);
+                }
+                break;
+            }
+        });
+        if let Err(e) = spawned {
+            tracing::warn!("cannot watch the DDS threads: {e}");
+        }
+        DdsWatch { stop, dead }
+    }
+}
+
+/// Builds the participant with SIGINT and SIGTERM blocked, so the RustDDS threads it starts
+/// inherit the mask and those signals (the node's shutdown) land on other threads instead of
+/// interrupting RustDDS's event loops. Returns the participant and its RustDDS threads.
+fn build_participant(
+    builder: DomainParticipantBuilder,
+    domain_id: u16,
+) -> Result<(DomainParticipant, std::collections::BTreeSet<u32>), RosError> {
+    use nix::sys::signal::{SigSet, SigmaskHow, Signal, pthread_sigmask};
+    let before = dds_threads();
+    let mut block = SigSet::empty();
+    block.add(Signal::SIGINT);
+    block.add(Signal::SIGTERM);
+    let mut old = SigSet::empty();
+    let masked = pthread_sigmask(SigmaskHow::SIG_BLOCK, Some(&block), Some(&mut old)).is_ok();
+    let built = builder.build();
+    if masked {
+        let _ = pthread_sigmask(SigmaskHow::SIG_SETMASK, Some(&old), None);
+    }
+    let participant = built.map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
+    let threads = dds_threads().difference(&before).copied().collect();
+    Ok((participant, threads))
 }
 
 impl std::fmt::Debug for Ros {
@@ -134,7 +233,20 @@ impl Ros {
         } else {
             tracing::warn!("ros.loopback_only = false: DDS discovery will use every network interface");
         }
-        let participant = builder.build().map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
+        let (participant, threads) = build_participant(builder, domain_id)?;
+        let id = participant.participant_id();
+        if id >= MAX_PARTICIPANTS_PER_DOMAIN {
+            return Err(RosError::Participant {
+                domain_id,
+                message: format!(
+                    "this would be DDS participant {id} on this machine, and RustDDS discovers only {MAX_PARTICIPANTS_PER_DOMAIN} \
+                     per domain on loopback (ids 0..{}): stop another node or tool on domain {domain_id}, or use another \
+                     domain (--domain-id)",
+                    MAX_PARTICIPANTS_PER_DOMAIN - 1
+                ),
+            });
+        }
+        let watch = DdsWatch::start(threads, domain_id);
         let context = Context::from_domain_participant(participant.clone())
             .map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
         let node_name = NodeName::new(&cfg.namespace, name)
@@ -151,7 +263,17 @@ impl Ros {
         let subscriber = participant
             .create_subscriber(&QosPolicies::qos_none())
             .map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
-        Ok(Ros { context, node, participant, subscriber, spinner: Some(spinner) })
+        Ok(Ros { context, node, participant, subscriber, spinner: Some(spinner), watch })
+    }
+
+    /// False once this participant's RustDDS threads have died (see [`exit_on_dds_death`]).
+    pub fn dds_alive(&self) -> bool {
+        !self.watch.dead.load(Ordering::SeqCst)
+    }
+
+    /// This participant's id on the machine (0..[`MAX_PARTICIPANTS_PER_DOMAIN`]).
+    pub fn participant_id(&self) -> u16 {
+        self.participant.participant_id()
     }
 
     pub fn domain_id(&self) -> u16 {
@@ -349,6 +471,8 @@ impl Ros {
 
 impl Drop for Ros {
     fn drop(&mut self) {
+        // Before the participant goes (its threads end with it).
+        self.watch.stop.store(true, Ordering::SeqCst);
         if let Some(s) = self.spinner.take() {
             s.abort();
         }
