@@ -1,6 +1,6 @@
 //! One episode, one MCAP file in the rosbag2 layout: profile `ros2`, `ros2msg` schemas, `cdr`
-//! messages, channels with their QoS, zstd chunks of about one second each (flushed and
-//! fsynced as they close, so a killed recorder loses at most the open second), DROID's
+//! messages, channels with their QoS, zstd chunks of a quarter second each (flushed and
+//! fsynced as they close, so a killed recorder loses at most the open quarter second), DROID's
 //! metadata as the first record, and on [`EpisodeWriter::finish`] the `rosbag2` record and a
 //! `metadata.yaml` beside the file.
 
@@ -40,7 +40,7 @@ pub fn part_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
 /// Metadata record names.
 pub const DROID_RECORD: &str = "droid_episode";
 /// Chunks close after this much log time.
-pub const CHUNK_NS: i64 = 1_000_000_000;
+pub const CHUNK_NS: i64 = 250_000_000;
 
 #[derive(Debug, thiserror::Error)]
 pub enum EpisodeError {

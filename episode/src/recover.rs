@@ -1,5 +1,5 @@
 //! Recovering an episode whose recorder died (SIGKILL, power loss): its MCAP has no summary or
-//! footer and ends in a chunk that never closed. Every chunk that closed (at most one second
+//! footer and ends in a chunk that never closed. Every chunk that closed (at most a quarter second
 //! of log time each) was fsynced whole; [`recover`] copies every complete chunk, metadata
 //! record and attachment into a new, valid file and rebuilds the rosbag2 record from what it
 //! copied. A chunk is copied only if every record in it parses. [`recover_in_place`] does it

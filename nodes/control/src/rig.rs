@@ -203,7 +203,8 @@ impl RigLoop {
             }
         }
         self.recorder_refusal = refusal;
-        if v["state"] == "refused" && v["episode"].as_str() == Some(self.episode_id.as_str()) {
+        let lost = v["state"] == "refused" || (v["state"] == "error" && v["disk_full"] == true);
+        if lost && v["episode"].as_str() == Some(self.episode_id.as_str()) {
             self.refused_episode = Some(self.episode_id.clone());
         }
     }

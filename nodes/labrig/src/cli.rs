@@ -194,6 +194,9 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Faults injected into the simulated rig (recorder killed, disk full, DDS stopped): data
+    /// lost, time to detect, time to recover.
+    Faults(crate::bench_faults::FaultArgs),
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -211,6 +214,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Franka { args }) => node("labrig-franka", &tool("bench", args)),
         Command::Bench(BenchCommand::Record { args }) => node("labrig-recorder", &tool("bench", args)),
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
+        Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),

@@ -81,6 +81,10 @@ pub struct NodeSpec {
     /// with status 0 the rig stops, successfully.
     #[serde(default)]
     pub completes: bool,
+    /// Environment variables for the node's process (e.g. `LABRIG_FRAMES_NAMESPACE` for two
+    /// rigs on one machine).
+    #[serde(default)]
+    pub env: BTreeMap<String, String>,
 }
 
 fn three() -> u32 {
@@ -206,7 +210,7 @@ fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Resul
     if out == Output::Quiet && std::env::var_os("RUST_LOG").is_none() {
         cmd.env("RUST_LOG", "warn,rustdds=off,ros2_client=error,mujoco=warn");
     }
-    cmd.args(&spec.args);
+    cmd.args(&spec.args).envs(&spec.env);
     if let Some(c) = &spec.config {
         cmd.arg("--config").arg(dir.join(c));
     }
@@ -268,6 +272,19 @@ pub async fn supervise(
 ) -> anyhow::Result<ExitCode> {
     let shutdown = Shutdown::new();
     shutdown.trigger_on_signals()?;
+    supervise_until(cfg, order, dir, domain, seconds, out, shutdown).await
+}
+
+/// [`supervise`], also stopping (as on Ctrl-C) when `shutdown` is triggered by the caller.
+pub async fn supervise_until(
+    cfg: LaunchConfig,
+    order: Vec<usize>,
+    dir: PathBuf,
+    domain: u16,
+    seconds: Option<f64>,
+    out: Output,
+    shutdown: Shutdown,
+) -> anyhow::Result<ExitCode> {
     let ros_cfg = RosConfig { domain_id: domain, ..RosConfig::default() };
     let mut ros = Ros::new(&ros_cfg, "labrig_launch")?;
     let mut running: Vec<Running> = cfg

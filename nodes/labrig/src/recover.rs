@@ -1,6 +1,6 @@
 //! `labrig recover <episode_dir>`: an episode whose recorder was killed (or lost power) made
 //! whole, for files copied off a dead machine (a running recorder recovers its own on restart):
-//! every chunk that closed (each at most one second) of each unfinished part is copied into a
+//! every chunk that closed (each at most a quarter second) of each unfinished part is copied into a
 //! valid `episode_<k>.mcap`, the damaged file kept beside it as `episode_<k>.mcap.damaged`, and
 //! metadata.yaml rewritten for every part.
 

@@ -203,6 +203,9 @@ impl Episode {
     }
 }
 
+/// No episode starts with less free space than this, whatever the configured margin.
+const HARD_FLOOR_BYTES: u64 = 1_000_000;
+
 /// How long an ended episode still takes messages sent before its end event.
 const CLOSE_GRACE: Duration = Duration::from_millis(300);
 
@@ -259,10 +262,24 @@ struct Recorder {
     sizes: Vec<u64>,
     /// The last free-space reading: (free bytes, needed bytes).
     space: Option<(u64, u64)>,
+    /// Frames taken (encoded) while waiting for the loop's history on start: an episode it
+    /// continues gets them.
+    buffered: std::collections::VecDeque<Encoded>,
 }
+
+/// Frames kept per camera while a restarted recorder waits to rejoin (three seconds).
+const REJOIN_FRAMES_PER_CAMERA: usize = 60;
 
 pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     cfg.validate()?;
+    // Frames first: a restarted recorder takes them again as soon as it can (shared memory
+    // keeps none for a subscriber that is not there).
+    let frames = match &cfg.frames_namespace {
+        Some(ns) => FrameNode::new_in(ns)?,
+        None => FrameNode::new()?,
+    };
+    let cameras: Vec<(String, FrameSubscriber)> =
+        cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
     let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
     let mut recorded = Vec::new();
     for t in &cfg.topics {
@@ -280,12 +297,6 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     }
     let events = ros.subscription_on(&topics::RIG_EPISODE, 1000)?;
     let status = ros.publisher_on(&topics::RECORDER_STATUS, 1)?;
-    let frames = match &cfg.frames_namespace {
-        Some(ns) => FrameNode::new_in(ns)?,
-        None => FrameNode::new()?,
-    };
-    let cameras: Vec<(String, FrameSubscriber)> =
-        cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
     std::fs::create_dir_all(cfg.root.join(".recording"))
         .map_err(|e| anyhow::anyhow!("creating {}: {e}", cfg.root.join(".recording").display()))?;
     let orphans = orphans(&cfg.root);
@@ -302,6 +313,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
         errors: 0,
         sizes: Vec::new(),
         space: None,
+        buffered: Default::default(),
     };
     rec.check_space();
     rec.publish_status();
@@ -323,6 +335,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     let mut history = Vec::new();
     while !shutdown.is_triggered() && began.elapsed() < wait {
         take_events(&mut history);
+        rec.buffer_frames();
         if matched_at.is_none() && ros.publisher_count(topics::RIG_EPISODE.name) > 0 {
             matched_at = Some(Instant::now());
         }
@@ -332,8 +345,11 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     take_events(&mut history);
+    rec.buffer_frames();
     rec.rejoin(&history, orphans);
+    rec.write_buffered();
     let mut status_at = Instant::now();
+    let mut space_at = Instant::now();
     let mut pending = Vec::new();
     while !shutdown.is_triggered() {
         // Events, each after the messages that arrived before it: an episode's last steps
@@ -344,6 +360,12 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
             rec.on_event(e);
         }
         rec.record();
+        // The disk filling while recording (another writer, a margin set to 0): the episode
+        // ends, finished and filed, before a write fails on it.
+        if rec.episode.is_some() && space_at.elapsed() > Duration::from_millis(100) {
+            space_at = Instant::now();
+            rec.end_if_disk_full();
+        }
         if rec.episode.as_ref().and_then(|e| e.closing).is_some_and(|c| Instant::now() >= c.until) {
             rec.finish_closing();
         }
@@ -402,14 +424,56 @@ impl Recorder {
 
     /// The free space under `root` and the margin an episode needs.
     fn check_space(&mut self) {
+        // Below a megabyte nothing useful fits, whatever the margin says (a disk that filled
+        // up mid-episode stays refused until space is made).
         let needed = ((self.cfg.min_free_mb * 1e6) as u64)
-            .max((self.cfg.free_margin_episodes * self.average_size() as f64) as u64);
+            .max((self.cfg.free_margin_episodes * self.average_size() as f64) as u64)
+            .max(HARD_FLOOR_BYTES);
         match free_bytes(&self.cfg.root) {
             Ok(free) => self.space = Some((free, needed)),
             Err(e) => {
                 tracing::warn!("free space of {}: {e}", self.cfg.root.display());
                 self.space = None;
             }
+        }
+    }
+
+    /// Frames while no decision on the episodes is made yet (the rejoin wait): encoded and kept,
+    /// the oldest dropped past [`REJOIN_FRAMES_PER_CAMERA`] per camera.
+    fn buffer_frames(&mut self) {
+        for (camera, sub) in &self.cameras {
+            while let Ok(Some(frame)) = sub.receive() {
+                if let Some(e) = encode_frame(camera, &frame, self.cfg.jpeg_quality) {
+                    self.buffered.push_back(e);
+                }
+            }
+        }
+        let limit = REJOIN_FRAMES_PER_CAMERA * self.cameras.len().max(1);
+        while self.buffered.len() > limit {
+            self.buffered.pop_front();
+        }
+    }
+
+    /// The frames kept during the rejoin wait into the episode it opened, if any.
+    fn write_buffered(&mut self) {
+        let buffered = std::mem::take(&mut self.buffered);
+        let Some(ep) = self.episode.as_mut() else { return };
+        let now = Clock::Wall.now().0;
+        let mut written = 0;
+        for e in &buffered {
+            let topic = topics::camera_image(&e.camera);
+            let in_earlier = ep.resume_after.get(&topic).is_some_and(|&t| e.capture_ns <= t);
+            if in_earlier || ep.closing.is_some_and(|c| e.publish_ns > c.sent_before_ns) {
+                continue;
+            }
+            if let Err(err) = write_image(ep, e, now) {
+                tracing::error!("writing the frames kept while rejoining: {err}");
+                break;
+            }
+            written += 1;
+        }
+        if written > 0 {
+            tracing::info!(frames = written, "frames kept while rejoining written");
         }
     }
 
@@ -774,7 +838,7 @@ impl Recorder {
     /// A write error (a full disk): what was written is moved where the operator looks,
     /// unfinished (every closed chunk is readable; `labrig recover` makes it whole).
     fn abandon(&mut self, ep: Episode, err: &EpisodeError) {
-        let Episode { staging, writer, .. } = ep;
+        let Episode { staging, writer, uuid, .. } = ep;
         let start_ns = writer.metadata().start_ns;
         drop(writer);
         let dest = unused(episode_dir(&self.cfg.root, Outcome::Failure, Nanos(start_ns)));
@@ -788,10 +852,34 @@ impl Recorder {
             }
         };
         tracing::error!(dir = %kept.display(), "the episode is kept unfinished: `labrig recover` it once there is space");
-        self.last =
-            json!({ "state": "error", "error": err.to_string(), "disk_full": err.is_disk_full(), "kept": kept });
+        self.last = json!({ "state": "error", "episode": uuid, "error": err.to_string(), "disk_full": err.is_disk_full(), "kept": kept });
         self.check_space();
         self.publish_status();
+    }
+
+    /// Ends the open episode (a failure, finished and filed) when the free space is below
+    /// half of [`HARD_FLOOR_BYTES`]: what is left still holds its summary.
+    fn end_if_disk_full(&mut self) {
+        let Ok(free) = free_bytes(&self.cfg.root) else { return };
+        if free >= HARD_FLOOR_BYTES / 2 {
+            return;
+        }
+        let Some(ep) = self.episode.take() else { return };
+        let uuid = ep.uuid.clone();
+        let why = format!(
+            "the disk is full ({} KB free under {}): the episode ended early",
+            free / 1000,
+            self.cfg.root.display()
+        );
+        tracing::error!(episode = %uuid, "{why}");
+        self.errors += 1;
+        self.end(ep, Outcome::Failure, &why);
+        // The loop stops the episode on this (the recorder no longer records it).
+        if self.last["state"] == "recorded" {
+            self.last =
+                json!({ "state": "error", "episode": uuid, "error": why, "disk_full": true, "dir": self.last["dir"] });
+            self.publish_status();
+        }
     }
 
     fn finish_closing(&mut self) {
@@ -852,7 +940,45 @@ pub fn free_bytes(path: &Path) -> std::io::Result<u64> {
     Ok(stat.blocks_available() as u64 * stat.fragment_size() as u64)
 }
 
-/// One camera frame into the episode, as JPEG (rgb8 frames only).
+/// One camera frame as JPEG (rgb8 frames only; anything else is logged and skipped).
+fn encode_frame(camera: &str, frame: &labrig_runtime::frames::Frame, quality: u8) -> Option<Encoded> {
+    let h = *frame.header();
+    if h.encoding() != Some(FrameEncoding::Rgb8) {
+        tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
+        return None;
+    }
+    let data = match labrig_episode::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality) {
+        Ok(d) => d,
+        Err(e) => {
+            tracing::warn!("camera {camera}: {e}");
+            return None;
+        }
+    };
+    let image = CompressedImage {
+        header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{camera}_optical") },
+        format: "jpeg".into(),
+        data,
+    };
+    Some(Encoded { camera: camera.to_owned(), image, capture_ns: h.capture_ns, publish_ns: h.publish_ns })
+}
+
+/// A camera frame encoded, with its times.
+struct Encoded {
+    camera: String,
+    image: CompressedImage,
+    capture_ns: i64,
+    publish_ns: i64,
+}
+
+/// One encoded frame into the episode.
+fn write_image(ep: &mut Episode, e: &Encoded, log_ns: i64) -> Result<(), EpisodeError> {
+    let topic = topics::camera_image(&e.camera);
+    ep.writer.write(&topic, &e.image, Nanos(log_ns), Nanos(e.capture_ns), Reliability::BestEffort)?;
+    ep.frames += 1;
+    Ok(())
+}
+
+/// One camera frame into the episode, as JPEG.
 fn write_frame(
     ep: &mut Episode,
     camera: &str,
@@ -860,27 +986,10 @@ fn write_frame(
     quality: u8,
     log_ns: i64,
 ) -> Result<(), EpisodeError> {
-    let h = *frame.header();
-    if h.encoding() != Some(FrameEncoding::Rgb8) {
-        tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
-        return Ok(());
+    match encode_frame(camera, frame, quality) {
+        Some(e) => write_image(ep, &e, log_ns),
+        None => Ok(()),
     }
-    let data = match labrig_episode::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality) {
-        Ok(d) => d,
-        Err(e) => {
-            tracing::warn!("camera {camera}: {e}");
-            return Ok(());
-        }
-    };
-    let img = CompressedImage {
-        header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{camera}_optical") },
-        format: "jpeg".into(),
-        data,
-    };
-    let topic = topics::camera_image(camera);
-    ep.writer.write(&topic, &img, Nanos(log_ns), Nanos(h.capture_ns), Reliability::BestEffort)?;
-    ep.frames += 1;
-    Ok(())
 }
 
 /// Takes every topic's waiting messages: latched context updated, messages written into the

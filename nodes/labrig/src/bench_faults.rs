@@ -1,0 +1,481 @@
+//! `labrig bench faults`: faults injected into the simulated DROID rig (`labrig demo`'s rig in
+//! real time: the MuJoCo bridge, the recorder, the control loop with the scripted expert,
+//! under the launcher), and what each costs: data lost, time to detect, time to recover.
+//!
+//! - `recorder-kill`: SIGKILL of the recorder at the start, in the middle (3 s in) and at the
+//!   end (on the end event) of an episode; the launcher restarts it. Steps lost are counted
+//!   against every `/rig/step` the loop published (seen by this process); camera seconds lost
+//!   from the frames the episode holds per camera.
+//! - `disk-full`: the episodes go to a small tmpfs (needs root to mount it); the recorder
+//!   refuses the episode that would not fit, the loop holds the rig Idle. `disk-full-nomargin`
+//!   turns the margin off, so the disk fills mid-episode.
+//! - `dds-stop`: the recorder stopped (SIGSTOP) 0.3 s and continued mid-episode: its DDS
+//!   threads die, it exits, the launcher restarts it, the episode continues in a new part.
+//!
+//! Each run prints a table (or JSON); the figures depend on the machine (a shared 2-core
+//! machine is noisy): read times as what one run measured.
+
+use crate::launch::{LaunchConfig, OnFailure, Output};
+use anyhow::{Context, bail};
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use labrig_msgs::labrig_msgs::EpisodeEventKind;
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
+use labrig_runtime::{RosConfig, Shutdown};
+use serde::Serialize;
+use serde_json::{Value, json};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitCode};
+use std::time::{Duration, Instant};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Fault {
+    RecorderKill,
+    DiskFull,
+    DiskFullNomargin,
+    DdsStop,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KillPoint {
+    /// On the episode's Start event.
+    Start,
+    /// Three seconds (60 steps) into the episode.
+    Mid,
+    /// On the episode's end event (the recorder is closing it).
+    End,
+}
+
+#[derive(Debug, Args)]
+pub struct FaultArgs {
+    /// The faults to inject (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "recorder-kill,disk-full,disk-full-nomargin,dds-stop")]
+    pub faults: Vec<Fault>,
+    /// Where `recorder-kill` lands in the episode (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "start,mid,end")]
+    pub kill_at: Vec<KillPoint>,
+    /// Size of the tmpfs `disk-full` records into (MB).
+    #[arg(long, default_value_t = 24)]
+    pub disk_mb: u64,
+    /// The DDS domain of the rig (each run uses its own, counting up from here).
+    #[arg(long, default_value_t = 70)]
+    pub domain_id: u16,
+    /// Where each run's episodes go (kept for inspection); default: a temporary directory.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Print the report as JSON (one object, last line).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One fault's figures.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaultReport {
+    pub fault: String,
+    /// What the rig did.
+    pub outcome: String,
+    /// Steps the loop published in the hit episode that no episode file holds.
+    pub steps_lost: u64,
+    /// Steps of that episode recorded / published.
+    pub steps_recorded: u64,
+    pub steps_published: u64,
+    /// Seconds of camera frames missing from the hit episode (the worst camera).
+    pub camera_s_lost: f64,
+    /// Files the hit episode is in (more than one: continued after a restart).
+    pub parts: usize,
+    /// Fault to the node's own detection or the launcher's restart (ms).
+    pub detect_ms: Option<f64>,
+    /// Fault to the recorder recording again (ms).
+    pub recover_ms: Option<f64>,
+    /// Every episode filed is complete (no unfinished file) and nothing is left in `.recording/`.
+    pub all_filed: bool,
+    pub episodes: usize,
+    /// Anything the run said that the table cannot (the refusal, the error).
+    pub note: String,
+}
+
+pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
+    let keep = a.out.clone();
+    let tmp = tempfile::tempdir()?;
+    let base = keep.clone().unwrap_or_else(|| tmp.path().to_owned());
+    std::fs::create_dir_all(&base).with_context(|| format!("creating {}", base.display()))?;
+    let base = std::fs::canonicalize(&base)?;
+    let mut plan: Vec<(Fault, Option<KillPoint>)> = Vec::new();
+    for &f in &a.faults {
+        if f == Fault::RecorderKill {
+            plan.extend(a.kill_at.iter().map(|&p| (f, Some(p))));
+        } else {
+            plan.push((f, None));
+        }
+    }
+    let bar = ProgressBar::new(plan.len() as u64);
+    bar.set_style(ProgressStyle::with_template("{spinner} faults {bar:20} {pos}/{len}  {msg}  [{elapsed}]")?);
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    bar.enable_steady_tick(Duration::from_millis(200));
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let mut reports = Vec::new();
+    for (k, (fault, point)) in plan.iter().enumerate() {
+        let name = match point {
+            Some(p) => format!("{}-{}", name_of(*fault), name_of(*p)),
+            None => name_of(*fault),
+        };
+        bar.set_message(name.clone());
+        let dir = base.join(&name);
+        std::fs::create_dir_all(&dir)?;
+        let domain = a.domain_id + k as u16;
+        let report = rt.block_on(run_one(*fault, *point, &dir, domain, a.disk_mb, &name));
+        let report = match report {
+            Ok(r) => r,
+            Err(e) => FaultReport { outcome: format!("ERROR: {e:#}"), ..empty(&name) },
+        };
+        bar.inc(1);
+        if !a.json {
+            bar.println(row(&report));
+        }
+        reports.push(report);
+    }
+    bar.finish_and_clear();
+    if a.json {
+        println!("{}", json!({ "faults": reports, "out": keep }));
+    } else {
+        println!("{}", header());
+        for r in &reports {
+            println!("{}", row(r));
+        }
+        for r in reports.iter().filter(|r| !r.note.is_empty()) {
+            println!("  {}: {}", r.fault, r.note);
+        }
+    }
+    let failed = reports.iter().any(|r| r.outcome.starts_with("ERROR"));
+    Ok(if failed { ExitCode::from(1) } else { ExitCode::SUCCESS })
+}
+
+fn name_of<T: ValueEnum>(v: T) -> String {
+    v.to_possible_value().map(|p| p.get_name().to_owned()).unwrap_or_default()
+}
+
+fn empty(name: &str) -> FaultReport {
+    FaultReport {
+        fault: name.to_owned(),
+        outcome: String::new(),
+        steps_lost: 0,
+        steps_recorded: 0,
+        steps_published: 0,
+        camera_s_lost: 0.0,
+        parts: 0,
+        detect_ms: None,
+        recover_ms: None,
+        all_filed: false,
+        episodes: 0,
+        note: String::new(),
+    }
+}
+
+fn header() -> String {
+    format!(
+        "{:<22} {:>6} {:>9} {:>9} {:>6} {:>10} {:>11} {:>6} {:>5}  outcome",
+        "fault", "lost", "recorded", "published", "cam s", "detect ms", "recover ms", "parts", "filed"
+    )
+}
+
+fn row(r: &FaultReport) -> String {
+    let ms = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.0}"));
+    format!(
+        "{:<22} {:>6} {:>9} {:>9} {:>6.2} {:>10} {:>11} {:>6} {:>5}  {}",
+        r.fault,
+        r.steps_lost,
+        r.steps_recorded,
+        r.steps_published,
+        r.camera_s_lost,
+        ms(r.detect_ms),
+        ms(r.recover_ms),
+        r.parts,
+        if r.all_filed { "yes" } else { "NO" },
+        r.outcome
+    )
+}
+
+static NEXT_RIG: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+/// The demo's rig in real time, recording into `root`, `episodes` episodes.
+fn rig(root: &Path, episodes: u64, recorder_sets: &[&str]) -> anyhow::Result<(LaunchConfig, Vec<usize>)> {
+    let (mut cfg, order) = LaunchConfig::parse(crate::demo::SIM_DEMO, Path::new("launch_configs/sim_demo.toml"))?;
+    let set = crate::demo::set_arg;
+    let sim = cfg.node_mut("sim").context("no `sim` node")?;
+    set(&mut sim.args, "--mode", "realtime");
+    sim.args.push("--wall-clock-origin".into());
+    let rec = cfg.node_mut("recorder").context("no `recorder` node")?;
+    set(&mut rec.args, "--root", &root.display().to_string());
+    for s in recorder_sets {
+        rec.args.extend(["--set".into(), (*s).into()]);
+    }
+    rec.on_failure = Some(OnFailure::Restart);
+    rec.max_restarts = 5;
+    let ctl = cfg.node_mut("control").context("no `control` node")?;
+    set(&mut ctl.args, "--episodes", &episodes.to_string());
+    set(&mut ctl.args, "--clock", "wall");
+    // The camera frames of this rig alone (other rigs may run on the machine).
+    let ns = format!("faults_{}_{}", std::process::id(), NEXT_RIG.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
+    for n in &mut cfg.nodes {
+        n.env.insert(labrig_runtime::frames::NAMESPACE_ENV.into(), ns.clone());
+    }
+    Ok((cfg, order))
+}
+
+/// What the watcher saw of the rig.
+#[derive(Debug, Default)]
+struct Seen {
+    /// Episode ids in the order they started.
+    episodes: Vec<String>,
+    /// Step indices the loop published, per episode.
+    steps: BTreeMap<String, BTreeSet<u64>>,
+    /// Recorder status messages with when they came.
+    status: Vec<(Instant, Value)>,
+    /// The control loop's last status.
+    control: Value,
+}
+
+async fn run_one(
+    fault: Fault,
+    point: Option<KillPoint>,
+    dir: &Path,
+    domain: u16,
+    disk_mb: u64,
+    name: &str,
+) -> anyhow::Result<FaultReport> {
+    let root = dir.join("episodes");
+    let _mount = if matches!(fault, Fault::DiskFull | Fault::DiskFullNomargin) {
+        Some(Tmpfs::mount(&root, disk_mb)?)
+    } else {
+        None
+    };
+    let (episodes, sets): (u64, Vec<&str>) = match fault {
+        Fault::RecorderKill | Fault::DdsStop => (2, vec![]),
+        Fault::DiskFull => (50, vec!["min_free_mb=1", "free_margin_episodes=2"]),
+        Fault::DiskFullNomargin => (50, vec!["min_free_mb=0", "free_margin_episodes=0"]),
+    };
+    let (cfg, order) = rig(&root, episodes, &sets)?;
+    let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "labrig_bench_faults")?;
+    let events = ros.subscription_on(&topics::RIG_EPISODE, 1000)?;
+    let steps = ros.subscription_on(&topics::RIG_STEP, 1000)?;
+    let rec_status = ros.subscription_on(&topics::RECORDER_STATUS, 100)?;
+    let ctl_status = ros.subscription_on(&topics::CONTROL_STATUS, 10)?;
+    let stop = Shutdown::new();
+    let rig = {
+        let stop = stop.clone();
+        tokio::spawn(crate::launch::supervise_until(
+            cfg,
+            order,
+            PathBuf::from("launch_configs"),
+            domain,
+            Some(240.0),
+            Output::Quiet,
+            stop,
+        ))
+    };
+    let recorder = format!("labrig-recorder run --root {}", root.display());
+    let mut seen = Seen::default();
+    let mut hit_at: Option<Instant> = None;
+    let mut refused_at: Option<Instant> = None;
+    let mut idle_at: Option<Instant> = None;
+    let started = Instant::now();
+    while !rig.is_finished() {
+        while let Some(e) = events.try_take()? {
+            let id = e.msg.episode_id.clone();
+            let kind = e.msg.kind();
+            if kind == Ok(EpisodeEventKind::Start) && !seen.episodes.contains(&id) {
+                seen.episodes.push(id.clone());
+            }
+            let first = seen.episodes.first() == Some(&id);
+            if hit_at.is_none() && first && fault == Fault::RecorderKill {
+                let now = match (point, kind) {
+                    (Some(KillPoint::Start), Ok(EpisodeEventKind::Start)) => true,
+                    (Some(KillPoint::End), Ok(EpisodeEventKind::Success | EpisodeEventKind::Failure)) => true,
+                    _ => false,
+                };
+                if now {
+                    signal("-KILL", &recorder)?;
+                    hit_at = Some(Instant::now());
+                }
+            }
+        }
+        while let Some(s) = steps.try_take()? {
+            seen.steps.entry(s.msg.episode_id.clone()).or_default().insert(s.msg.step_index);
+        }
+        let first_steps = seen.episodes.first().and_then(|id| seen.steps.get(id)).map_or(0, |s| s.len());
+        if hit_at.is_none() && first_steps >= 60 {
+            match (fault, point) {
+                (Fault::RecorderKill, Some(KillPoint::Mid)) => {
+                    signal("-KILL", &recorder)?;
+                    hit_at = Some(Instant::now());
+                }
+                (Fault::DdsStop, _) => {
+                    signal("-STOP", &recorder)?;
+                    tokio::time::sleep(Duration::from_millis(300)).await;
+                    signal("-CONT", &recorder)?;
+                    hit_at = Some(Instant::now());
+                }
+                _ => {}
+            }
+        }
+        while let Some(s) = rec_status.try_take()? {
+            let v: Value = serde_json::from_str(&s.msg.data).unwrap_or_default();
+            if refused_at.is_none() && v["accepting"] == false && v["state"] != "recording" {
+                refused_at = Some(Instant::now());
+            }
+            seen.status.push((Instant::now(), v));
+        }
+        while let Some(s) = ctl_status.try_take()? {
+            seen.control = serde_json::from_str(&s.msg.data).unwrap_or_default();
+            if refused_at.is_some() && idle_at.is_none() && !seen.control["recorder_refusal"].is_null() {
+                idle_at = Some(Instant::now());
+            }
+        }
+        // A full disk holds the rig Idle: seen for 3 s, the run is over.
+        if idle_at.is_some_and(|t| t.elapsed() > Duration::from_secs(3)) {
+            stop.trigger();
+        }
+        if started.elapsed() > Duration::from_secs(300) {
+            stop.trigger();
+            bail!("{name}: the rig did not finish in 300 s");
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let code = rig.await.context("the launcher task")??;
+    let filed = filed_episodes(&root);
+    let staging_left = std::fs::read_dir(root.join(".recording")).map_or(0, |d| d.count());
+    let mut r = empty(name);
+    r.episodes = filed.len();
+    r.all_filed = staging_left == 0 && filed.iter().all(|(_, i)| i.parts.iter().all(|p| p.complete));
+    // The hit episode: the first one (kills, a stop) or the one the disk filled on.
+    let hit = match fault {
+        Fault::DiskFull | Fault::DiskFullNomargin => seen.episodes.last().cloned(),
+        _ => seen.episodes.first().cloned(),
+    };
+    let after_hit = |t: &Instant| hit_at.is_some_and(|h| *t > h);
+    r.recover_ms = hit_at.and_then(|h| {
+        seen.status
+            .iter()
+            .find(|(t, v)| after_hit(t) && v["state"] != "idle")
+            .map(|(t, _)| t.duration_since(h).as_secs_f64() * 1e3)
+    });
+    // The launcher restarts within its 100 ms poll; the new recorder's first status is the
+    // earliest sign the fault was handled.
+    r.detect_ms = hit_at.and_then(|h| {
+        seen.status.iter().find(|(t, _)| after_hit(t)).map(|(t, _)| t.duration_since(h).as_secs_f64() * 1e3)
+    });
+    if let Some(id) = &hit {
+        let published = seen.steps.get(id).cloned().unwrap_or_default();
+        r.steps_published = published.len() as u64;
+        if let Some((dir, i)) = filed.iter().find(|(_, i)| i.metadata.as_ref().is_some_and(|m| &m.uuid == id)) {
+            let data = labrig_episode::read_episode(dir);
+            let recorded: BTreeSet<u64> =
+                data.map(|d| d.steps.iter().map(|s| s.step_index).collect()).unwrap_or_default();
+            r.steps_recorded = recorded.len() as u64;
+            r.steps_lost = published.difference(&recorded).count() as u64;
+            r.parts = i.parts.len();
+            let frames = i.cameras.iter().map(|c| c.frames).min().unwrap_or(0);
+            r.camera_s_lost = (r.steps_recorded.saturating_sub(frames)) as f64 * 0.05;
+        } else {
+            r.steps_lost = r.steps_published;
+        }
+    }
+    let last_error = seen.status.iter().rev().find_map(|(_, v)| v["error"].as_str().map(str::to_owned));
+    r.outcome = match fault {
+        Fault::RecorderKill | Fault::DdsStop => {
+            format!("recorder restarted; the episode filed in {} part(s), {} steps lost", r.parts, r.steps_lost)
+        }
+        Fault::DiskFull | Fault::DiskFullNomargin => format!(
+            "{} episodes filed; then {}; the loop {}",
+            r.episodes,
+            if refused_at.is_some() { "the recorder refused the next" } else { "NO refusal" },
+            if idle_at.is_some() { "held the rig Idle" } else { "did NOT hold the rig" }
+        ),
+    };
+    if let (Some(r0), Some(i0)) = (refused_at, idle_at) {
+        r.detect_ms = Some(i0.duration_since(r0).as_secs_f64() * 1e3);
+    }
+    r.note = last_error.unwrap_or_default();
+    if code != ExitCode::SUCCESS && !matches!(fault, Fault::DiskFull | Fault::DiskFullNomargin) {
+        r.note = format!("the rig stopped with an error; {}", r.note);
+    }
+    Ok(r)
+}
+
+/// Sends `sig` to the processes whose command line contains `pattern`.
+fn signal(sig: &str, pattern: &str) -> anyhow::Result<()> {
+    let ok = Command::new("pkill").args([sig, "-f", pattern]).status()?.success();
+    anyhow::ensure!(ok, "no process matches {pattern:?}");
+    Ok(())
+}
+
+/// Every episode directory under `root`'s success/ and failure/, inspected.
+fn filed_episodes(root: &Path) -> Vec<(PathBuf, labrig_episode::Inspection)> {
+    let mut out = Vec::new();
+    for outcome in ["success", "failure"] {
+        let Ok(days) = std::fs::read_dir(root.join(outcome)) else { continue };
+        for day in days.filter_map(|d| d.ok()) {
+            let Ok(eps) = std::fs::read_dir(day.path()) else { continue };
+            for ep in eps.filter_map(|e| e.ok()) {
+                if let Ok(i) = labrig_episode::inspect(&ep.path()) {
+                    out.push((ep.path(), i));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// A tmpfs of `mb` MB mounted at `path` while it lives.
+struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    fn mount(path: &Path, mb: u64) -> anyhow::Result<Tmpfs> {
+        std::fs::create_dir_all(path)?;
+        let out = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={mb}m"), "labrig-faults"])
+            .arg(path)
+            .output()
+            .context("running mount")?;
+        if !out.status.success() {
+            bail!(
+                "disk-full needs a small filesystem: mounting a {mb} MB tmpfs at {} failed (root is needed): {}",
+                path.display(),
+                String::from_utf8_lossy(&out.stderr).trim()
+            );
+        }
+        Ok(Tmpfs(path.to_owned()))
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        // The episodes are copied out first, so a kept --out still shows them.
+        let keep = self.0.with_file_name("episodes_kept");
+        let _ = Command::new("cp").arg("-a").arg(&self.0).arg(&keep).status();
+        let _ = Command::new("umount").arg(&self.0).status();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_rig_restarts_the_recorder_and_records_where_asked() {
+        let (cfg, _) = rig(Path::new("/data/eps"), 2, &["min_free_mb=1"]).unwrap();
+        let rec = cfg.nodes.iter().find(|n| n.name == "recorder").unwrap();
+        assert_eq!(rec.on_failure, Some(OnFailure::Restart));
+        assert!(rec.args.windows(2).any(|w| w == ["--root", "/data/eps"]), "{:?}", rec.args);
+        assert!(rec.args.windows(2).any(|w| w == ["--set", "min_free_mb=1"]), "{:?}", rec.args);
+        let ctl = cfg.nodes.iter().find(|n| n.name == "control").unwrap();
+        assert!(ctl.args.windows(2).any(|w| w == ["--clock", "wall"]), "{:?}", ctl.args);
+        assert!(ctl.args.windows(2).any(|w| w == ["--episodes", "2"]), "{:?}", ctl.args);
+    }
+}
