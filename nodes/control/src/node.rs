@@ -230,6 +230,8 @@ pub struct Summary {
     pub skew_us: [f64; 3],
     /// Episode starts held back because the recorder took no episode (a full disk).
     pub starts_refused: u64,
+    /// Episodes stopped because the arm node reported a fault.
+    pub arm_faults: u64,
     pub seconds: f64,
 }
 

@@ -142,6 +142,8 @@ pub struct RigLoop {
     recorder_refusal: Option<String>,
     /// The recorder refused this episode after it started: it ends.
     refused_episode: Option<String>,
+    /// Why the loop itself ends the episode (the end event's note).
+    end_note: String,
 }
 
 impl RigLoop {
@@ -179,6 +181,7 @@ impl RigLoop {
             tick: None,
             recorder_refusal: None,
             refused_episode: None,
+            end_note: String::new(),
         }
     }
 
@@ -398,9 +401,18 @@ impl RigLoop {
                 event = Some(EpisodeEventKind::Start);
             }
         }
+        if event.is_none() && self.episodes.recording() && self.robot.mode == RobotState::MODE_FAULT {
+            // The arm node reports a fault (a reflex, the arm or the sim bridge gone): the arm
+            // node holds; the episode ends here, named.
+            tracing::error!(episode = %self.episode_id, fault = %self.robot.fault, "the arm faulted: the episode stops");
+            self.summary.arm_faults += 1;
+            event = Some(EpisodeEventKind::Stop);
+            self.end_note = format!("the arm faulted: {}", self.robot.fault);
+        }
         if event.is_none() && self.episodes.recording() && self.refused_episode.as_deref() == Some(&self.episode_id) {
             tracing::error!(episode = %self.episode_id, "the recorder refused the episode: it stops");
             self.refused_episode = None;
+            self.end_note = "the recorder could not record it (a full disk)".into();
             event = Some(EpisodeEventKind::Stop);
         }
         if event.is_none() && self.episodes.recording() {
@@ -480,7 +492,8 @@ impl RigLoop {
                 self.episode_instruction = instruction.to_owned();
             }
             Ok(Effect::EndRecording(ending)) => {
-                self.publish_event(out, kind, "", tick_ns);
+                let note = std::mem::take(&mut self.end_note);
+                self.publish_event(out, kind, &note, tick_ns);
                 let outcome = match ending {
                     Ending::Success => "success",
                     Ending::Failure => "failure",
@@ -923,6 +936,23 @@ mod tests {
         rig.push_recorder_status(&format!(r#"{{"state":"refused","episode":"{id}","accepting":false}}"#));
         tick(&mut rig, 2, &mut src, &mut out);
         assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
+        assert_eq!(rig.summary().episodes[0].outcome, "failure");
+    }
+
+    #[test]
+    fn an_arm_fault_stops_the_episode_with_the_fault_named() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        request(&mut rig, EpisodeEventKind::Start, "");
+        src.actions.extend([go(joints_at(0.01)), go(joints_at(0.02))]);
+        tick(&mut rig, 0, &mut src, &mut out);
+        rig.begin_tick(Nanos(PERIOD), Instant::now());
+        let fault = "the sim bridge is gone: no /sim/arm/state for 1.0 s; call /arm/recover";
+        rig.set_robot(RobotState { mode: RobotState::MODE_FAULT, fault: fault.into(), ..state(joints_at(0.01)) });
+        rig.decide(Some(&mut src), &mut out).unwrap();
+        rig.act(Some(&mut src), &mut out).unwrap();
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
+        assert_eq!(out.events[1].note, format!("the arm faulted: {fault}"));
+        assert_eq!((out.steps.len(), rig.summary().arm_faults), (1, 1), "no step after the fault");
         assert_eq!(rig.summary().episodes[0].outcome, "failure");
     }
 

@@ -76,15 +76,31 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         }
     }
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    let recorded = rt.block_on(collect(&args, cfg, order))?;
+    // What was saved is reported before any error that came after it (a full disk, a node
+    // that died): the error is the run's last word, not its only one.
+    let (recorded, failure) = rt.block_on(collect(&args, cfg, order));
     drop(rt);
 
     let mut reports = Vec::new();
-    let mut ok = recorded.len() as u64 == args.episodes;
+    let mut problems: Vec<String> = failure.iter().map(|e| format!("{e:#}")).collect();
+    let mut ok = recorded.len() as u64 == args.episodes && failure.is_none();
     for (k, dir) in recorded.iter().enumerate() {
-        let inspection = labrig_episode::inspect::inspect(dir).map_err(anyhow::Error::msg)?;
+        let inspection = match labrig_episode::inspect::inspect(dir) {
+            Ok(i) => i,
+            Err(e) => {
+                problems.push(format!("episode {k}: {e}"));
+                ok = false;
+                continue;
+            }
+        };
         let sheet = out.join(format!("episode_{k}_cameras.png"));
-        contact_sheet(&inspection.path, &sheet).with_context(|| format!("contact sheet of {}", dir.display()))?;
+        let sheet = match contact_sheet(&inspection.path, &sheet) {
+            Ok(()) => Some(sheet),
+            Err(e) => {
+                problems.push(format!("contact sheet of episode {k} ({}): {e:#}", dir.display()));
+                None
+            }
+        };
         ok &= inspection.flags.is_empty();
         reports.push((dir.clone(), inspection, sheet));
     }
@@ -95,7 +111,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
             reports.iter().map(|(dir, i, sheet)| json!({ "dir": dir, "contact_sheet": sheet, "inspect": i })).collect();
         println!(
             "{}",
-            json!({ "episodes": episodes, "recorded": reports.len(), "successes": successes, "root": root, "ok": ok })
+            json!({ "episodes": episodes, "recorded": reports.len(), "successes": successes, "root": root, "ok": ok,
+                    "errors": problems })
         );
     } else {
         println!(
@@ -108,13 +125,18 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         for (k, (dir, i, sheet)) in reports.iter().enumerate() {
             println!();
             print!("{}", summary_text(k, dir, i));
-            println!("  cameras (first, middle, last frame): {}", sheet.display());
+            if let Some(sheet) = sheet {
+                println!("  cameras (first, middle, last frame): {}", sheet.display());
+            }
         }
         println!();
         println!("Inspect one again: labrig inspect <dir>; replay it: labrig replay <dir> --sim [--plot replay.png];");
         println!(
             "read them with any MCAP or rosbag2 reader; as DROID raw data: labrig export droid <episodes dir> <out dir>."
         );
+        for p in &problems {
+            eprintln!("error: {p}");
+        }
     }
     Ok(if ok { ExitCode::SUCCESS } else { ExitCode::from(1) })
 }
@@ -158,8 +180,19 @@ fn summary_text(k: usize, dir: &Path, i: &labrig_episode::inspect::Inspection) -
 }
 
 /// Runs the rig until the control loop has its episodes; returns the episode directories
-/// the recorder reported, in order.
-async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> anyhow::Result<Vec<PathBuf>> {
+/// the recorder reported, in order, and what stopped the run early, if anything.
+async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> (Vec<PathBuf>, Option<anyhow::Error>) {
+    let mut recorded = Vec::new();
+    let failure = run_rig(args, cfg, order, &mut recorded).await.err();
+    (recorded, failure)
+}
+
+async fn run_rig(
+    args: &DemoArgs,
+    cfg: LaunchConfig,
+    order: Vec<usize>,
+    recorded: &mut Vec<PathBuf>,
+) -> anyhow::Result<()> {
     let ros_cfg = RosConfig { domain_id: args.domain_id, ..RosConfig::default() };
     ros_cfg.validate(Path::new("<command line>"))?;
     let mut ros = Ros::new(&ros_cfg, "labrig_demo")?;
@@ -174,17 +207,19 @@ async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> anyho
     bar.enable_steady_tick(Duration::from_millis(200));
     bar.set_message("starting the simulated rig");
     let watch = Shutdown::new();
+    let stop = Shutdown::new();
+    stop.trigger_on_signals()?;
     let rig = {
-        let watch = watch.clone();
+        let (watch, stop) = (watch.clone(), stop.clone());
         let domain = args.domain_id;
         tokio::spawn(async move {
-            let r = crate::launch::supervise(cfg, order, PathBuf::from("launch_configs"), domain, None, Output::Quiet)
-                .await;
+            let dir = PathBuf::from("launch_configs");
+            let r = crate::launch::supervise_until(cfg, order, dir, domain, None, Output::Quiet, stop).await;
             watch.trigger();
             r
         })
     };
-    let mut recorded = Vec::new();
+    let mut refusal: Option<String> = None;
     let mut step_count = 0u64;
     let mut episode = 0u64;
     loop {
@@ -221,6 +256,18 @@ async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> anyho
             } else if v["state"] == "error" {
                 bar.println(format!("recorder: {}", v["error"]));
             }
+            // No space for another episode: the loop holds the rig Idle; the demo stops.
+            if v["accepting"] == false && refusal.is_none() && v["state"] != "recording" {
+                let why = format!(
+                    "the recorder takes no more episodes: {:.1} MB free under {}, {:.1} MB needed",
+                    v["free_bytes"].as_f64().unwrap_or(0.0) / 1e6,
+                    args.out.display(),
+                    v["needed_bytes"].as_f64().unwrap_or(0.0) / 1e6
+                );
+                bar.println(format!("{why}: stopping the rig"));
+                refusal = Some(why);
+                stop.trigger();
+            }
         }
         if watch.is_triggered() {
             break;
@@ -229,10 +276,13 @@ async fn collect(args: &DemoArgs, cfg: LaunchConfig, order: Vec<usize>) -> anyho
     }
     bar.finish_and_clear();
     let code = rig.await.context("the launcher task")??;
+    if let Some(why) = refusal {
+        bail!("{why}");
+    }
     if code != ExitCode::SUCCESS {
         bail!("the simulated rig stopped with an error (see above)");
     }
-    Ok(recorded)
+    Ok(())
 }
 
 /// One PNG: a row per moment (first, middle, last recorded frame), a column per camera.
