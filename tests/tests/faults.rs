@@ -163,3 +163,21 @@ fn a_recorder_stopped_and_continued_mid_episode_is_restarted_and_loses_no_step()
     assert_eq!((r["steps_lost"].as_u64(), r["parts"].as_u64()), (Some(0), Some(2)), "{r}");
     assert_eq!(r["all_filed"], true, "{r}");
 }
+
+/// The sim bridge killed mid-episode on the DROID rig's layout (franka and gripper nodes in
+/// front of it): the franka node holds and reports the lost connection on /arm/state, the loop
+/// stops the episode naming why, and the recorder files every step recorded before.
+#[test]
+fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
+    let v = bench_faults(&["--faults", "bridge-kill", "--domain-id", "228"]);
+    let r = &v["faults"][0];
+    let outcome = r["outcome"].as_str().unwrap();
+    assert!(
+        outcome.contains("the franka node held and reported") && outcome.contains("the loop stopped the episode"),
+        "{r}"
+    );
+    assert!(r["steps_published"].as_u64().unwrap() >= 60, "{r}");
+    assert_eq!(r["steps_lost"], 0, "{r}");
+    assert_eq!(r["all_filed"], true, "{r}");
+    assert!(r["detect_ms"].is_number() && r["recover_ms"].is_number(), "{r}");
+}

@@ -103,6 +103,10 @@ pub struct ControlConfig {
     pub teleop_max_age_s: f64,
     /// How long a lockstep tick waits for the source's action before holding (s).
     pub source_timeout_s: f64,
+    /// On the sim's clock, no new tick for this long (s, wall time: the sim or the arm node is
+    /// gone, its clock stopped): the open episode stops, naming it, and the node exits with
+    /// an error.
+    pub tick_timeout_s: f64,
     /// The arm counts as home when every joint is this close to DROID's reset pose (rad).
     pub home_tolerance_rad: f64,
     /// Giving up on reaching home after this long (s of the loop's clock): the node stops.
@@ -136,6 +140,7 @@ impl Default for ControlConfig {
             max_action_age_s: 0.15,
             teleop_max_age_s: 0.035,
             source_timeout_s: 5.0,
+            tick_timeout_s: 2.0,
             home_tolerance_rad: 0.02,
             reset_timeout_s: 20.0,
             realtime_priority: 20,
@@ -166,6 +171,7 @@ impl ControlConfig {
             ("stale_frame_s", self.stale_frame_s),
             ("max_action_age_s", self.max_action_age_s),
             ("source_timeout_s", self.source_timeout_s),
+            ("tick_timeout_s", self.tick_timeout_s),
             ("home_tolerance_rad", self.home_tolerance_rad),
             ("reset_timeout_s", self.reset_timeout_s),
         ] {
@@ -321,10 +327,22 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
     'ticks: while !shutdown.is_triggered() {
         // 1. Wait for the tick.
+        let waiting_since = Instant::now();
         let tick_ns = match cfg.clock {
             ClockKind::Sim => loop {
                 if shutdown.is_triggered() {
                     break 'ticks;
+                }
+                if waiting_since.elapsed().as_secs_f64() > cfg.tick_timeout_s {
+                    let why = format!(
+                        "no new /arm/state tick for {:.1} s: the sim's clock stopped (the sim bridge or the arm node is gone)",
+                        cfg.tick_timeout_s
+                    );
+                    tracing::error!("{why}");
+                    rig.finish_because(&mut out, &why);
+                    // The Stop reaches the recorder before the participant goes.
+                    tokio::time::sleep(Duration::from_millis(1000)).await;
+                    anyhow::bail!("{why}");
                 }
                 let mut newest = None;
                 while let Some(s) = arm_state.try_take()? {

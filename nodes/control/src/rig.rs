@@ -144,7 +144,13 @@ pub struct RigLoop {
     refused_episode: Option<String>,
     /// Why the loop itself ends the episode (the end event's note).
     end_note: String,
+    /// Consecutive ticks the arm node has reported a fault.
+    fault_ticks: u32,
 }
+
+/// An arm fault reported this many ticks in a row (a quarter second) stops the episode; a
+/// single refused command does not.
+pub const ARM_FAULT_TICKS: u32 = 5;
 
 impl RigLoop {
     /// A loop starting from the arm's first state.
@@ -182,6 +188,7 @@ impl RigLoop {
             recorder_refusal: None,
             refused_episode: None,
             end_note: String::new(),
+            fault_ticks: 0,
         }
     }
 
@@ -401,9 +408,10 @@ impl RigLoop {
                 event = Some(EpisodeEventKind::Start);
             }
         }
-        if event.is_none() && self.episodes.recording() && self.robot.mode == RobotState::MODE_FAULT {
-            // The arm node reports a fault (a reflex, the arm or the sim bridge gone): the arm
-            // node holds; the episode ends here, named.
+        self.fault_ticks = if self.robot.mode == RobotState::MODE_FAULT { self.fault_ticks + 1 } else { 0 };
+        if event.is_none() && self.episodes.recording() && self.fault_ticks >= ARM_FAULT_TICKS {
+            // The arm node reports a fault that lasts (a reflex, the arm or the sim bridge gone;
+            // not one refused command): the arm node holds; the episode ends here, named.
             tracing::error!(episode = %self.episode_id, fault = %self.robot.fault, "the arm faulted: the episode stops");
             self.summary.arm_faults += 1;
             event = Some(EpisodeEventKind::Stop);
@@ -645,11 +653,16 @@ impl RigLoop {
 
     /// The loop stops: an episode still open ends as a failure (so the recorder closes it);
     /// the run's summary.
-    pub fn finish(mut self, out: &mut dyn RigOutputs) -> Summary {
+    pub fn finish(self, out: &mut dyn RigOutputs) -> Summary {
+        self.finish_because(out, "the control loop stopped")
+    }
+
+    /// [`RigLoop::finish`], the open episode's Stop saying `why`.
+    pub fn finish_because(mut self, out: &mut dyn RigOutputs, why: &str) -> Summary {
         if self.episodes.recording() {
             let t = self.last_tick_ns.unwrap_or(0);
             let _ = self.episodes.on(EpisodeEventKind::Stop);
-            self.publish_event(out, EpisodeEventKind::Stop, "the control loop stopped", t);
+            self.publish_event(out, EpisodeEventKind::Stop, why, t);
         }
         self.summary.jitter_us = percentiles_us(&mut self.jitter_ns);
         self.summary.skew_us = percentiles_us(&mut self.skew_ns);
@@ -945,14 +958,25 @@ mod tests {
         request(&mut rig, EpisodeEventKind::Start, "");
         src.actions.extend([go(joints_at(0.01)), go(joints_at(0.02))]);
         tick(&mut rig, 0, &mut src, &mut out);
-        rig.begin_tick(Nanos(PERIOD), Instant::now());
         let fault = "the sim bridge is gone: no /sim/arm/state for 1.0 s; call /arm/recover";
-        rig.set_robot(RobotState { mode: RobotState::MODE_FAULT, fault: fault.into(), ..state(joints_at(0.01)) });
+        let faulted = RobotState { mode: RobotState::MODE_FAULT, fault: fault.into(), ..state(joints_at(0.01)) };
+        // One refused command (a fault for one tick) is not a fault that stops the episode.
+        rig.begin_tick(Nanos(PERIOD), Instant::now());
+        rig.set_robot(faulted.clone());
         rig.decide(Some(&mut src), &mut out).unwrap();
         rig.act(Some(&mut src), &mut out).unwrap();
+        assert_eq!(out.kinds(), [EpisodeEventKind::Start]);
+        // A fault that lasts does.
+        for k in 2..=i64::from(ARM_FAULT_TICKS) {
+            rig.begin_tick(Nanos(k * PERIOD), Instant::now());
+            rig.set_robot(faulted.clone());
+            rig.decide(Some(&mut src), &mut out).unwrap();
+            rig.act(Some(&mut src), &mut out).unwrap();
+        }
         assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
         assert_eq!(out.events[1].note, format!("the arm faulted: {fault}"));
-        assert_eq!((out.steps.len(), rig.summary().arm_faults), (1, 1), "no step after the fault");
+        assert_eq!(rig.summary().arm_faults, 1);
+        assert_eq!(out.steps.len() as u32, ARM_FAULT_TICKS, "steps until the fault lasted, none after");
         assert_eq!(rig.summary().episodes[0].outcome, "failure");
     }
 

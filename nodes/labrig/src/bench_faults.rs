@@ -11,6 +11,10 @@
 //!   turns the margin off, so the disk fills mid-episode.
 //! - `dds-stop`: the recorder stopped (SIGSTOP) 0.3 s and continued mid-episode: its DDS
 //!   threads die, it exits, the launcher restarts it, the episode continues in a new part.
+//! - `bridge-kill`: the sim bridge SIGKILLed 3 s into an episode on the DROID rig's layout
+//!   (franka and gripper nodes in front of the bridge, as on the real rig): the franka node
+//!   holds and reports the fault on /arm/state, the loop stops the episode naming the fault,
+//!   the recorder files what was recorded.
 //!
 //! Each run prints a table (or JSON); the figures depend on the machine (a shared 2-core
 //! machine is noisy): read times as what one run measured.
@@ -37,6 +41,7 @@ pub enum Fault {
     DiskFull,
     DiskFullNomargin,
     DdsStop,
+    BridgeKill,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
@@ -53,7 +58,11 @@ pub enum KillPoint {
 #[derive(Debug, Args)]
 pub struct FaultArgs {
     /// The faults to inject (comma-separated).
-    #[arg(long, value_delimiter = ',', default_value = "recorder-kill,disk-full,disk-full-nomargin,dds-stop")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "recorder-kill,disk-full,disk-full-nomargin,dds-stop,bridge-kill"
+    )]
     pub faults: Vec<Fault>,
     /// Where `recorder-kill` lands in the episode (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "start,mid,end")]
@@ -228,6 +237,56 @@ fn rig(root: &Path, episodes: u64, recorder_sets: &[&str]) -> anyhow::Result<(La
     Ok((cfg, order))
 }
 
+/// The DROID rig's layout in the sim (sim_droid.toml): the bridge as hardware under /sim
+/// (restarted once if it dies), the franka and gripper nodes in front of it, the recorder, the
+/// loop on the wall clock with the bridge's scripted expert, one episode.
+fn droid_rig(root: &Path) -> anyhow::Result<(LaunchConfig, Vec<usize>)> {
+    let text = format!(
+        r#"[rig]
+name = "faults_bridge"
+on_failure = "stop"
+[[node]]
+name = "sim"
+program = "labrig-sim"
+args = ["run", "--mode", "realtime", "--hardware-prefix", "/sim", "--expert", "--wall-clock-origin"]
+health = "/joint_states"
+on_failure = "restart"
+max_restarts = 1
+[[node]]
+name = "franka"
+program = "labrig-franka"
+args = ["run", "--backend", "sim"]
+after = ["sim"]
+health = "/arm/state"
+[[node]]
+name = "gripper"
+program = "labrig-gripper"
+args = ["run", "--backend", "sim"]
+after = ["sim"]
+health = "/gripper/state"
+[[node]]
+name = "recorder"
+program = "labrig-recorder"
+args = ["run", "--root", "{}"]
+after = ["franka", "gripper"]
+health = "/recorder/status"
+[[node]]
+name = "control"
+program = "labrig-control"
+args = ["run", "--source", "scripted", "--clock", "sim", "--episodes", "1"]
+after = ["franka", "gripper", "recorder"]
+health = "/control/status"
+"#,
+        root.display()
+    );
+    let (mut cfg, order) = LaunchConfig::parse(&text, Path::new("<bench faults>"))?;
+    let ns = format!("faults_{}_{}", std::process::id(), NEXT_RIG.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
+    for n in &mut cfg.nodes {
+        n.env.insert(labrig_runtime::frames::NAMESPACE_ENV.into(), ns.clone());
+    }
+    Ok((cfg, order))
+}
+
 /// What the watcher saw of the rig.
 #[derive(Debug, Default)]
 struct Seen {
@@ -256,16 +315,19 @@ async fn run_one(
         None
     };
     let (episodes, sets): (u64, Vec<&str>) = match fault {
-        Fault::RecorderKill | Fault::DdsStop => (2, vec![]),
+        Fault::RecorderKill | Fault::DdsStop | Fault::BridgeKill => (2, vec![]),
         Fault::DiskFull => (50, vec!["min_free_mb=1", "free_margin_episodes=2"]),
         Fault::DiskFullNomargin => (50, vec!["min_free_mb=0", "free_margin_episodes=0"]),
     };
-    let (cfg, order) = rig(&root, episodes, &sets)?;
+    let (cfg, order) = if fault == Fault::BridgeKill { droid_rig(&root)? } else { rig(&root, episodes, &sets)? };
     let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "labrig_bench_faults")?;
     let events = ros.subscription_on(&topics::RIG_EPISODE, 1000)?;
     let steps = ros.subscription_on(&topics::RIG_STEP, 1000)?;
     let rec_status = ros.subscription_on(&topics::RECORDER_STATUS, 100)?;
     let ctl_status = ros.subscription_on(&topics::CONTROL_STATUS, 10)?;
+    let arm_state = ros.subscription_on(&topics::ARM_STATE, 100)?;
+    let mut arm_fault: Option<(Instant, String)> = None;
+    let mut stopped: Option<(Instant, String)> = None;
     let stop = Shutdown::new();
     let rig = {
         let stop = stop.clone();
@@ -280,6 +342,9 @@ async fn run_one(
         ))
     };
     let recorder = format!("labrig-recorder run --root {}", root.display());
+    let bridge = format!(
+        "labrig-sim run --mode realtime --hardware-prefix /sim --expert --wall-clock-origin --domain-id {domain}"
+    );
     let mut seen = Seen::default();
     let mut hit_at: Option<Instant> = None;
     let mut refused_at: Option<Instant> = None;
@@ -291,6 +356,9 @@ async fn run_one(
             let kind = e.msg.kind();
             if kind == Ok(EpisodeEventKind::Start) && !seen.episodes.contains(&id) {
                 seen.episodes.push(id.clone());
+            }
+            if hit_at.is_some() && stopped.is_none() && kind == Ok(EpisodeEventKind::Stop) {
+                stopped = Some((Instant::now(), e.msg.note.clone()));
             }
             let first = seen.episodes.first() == Some(&id);
             if hit_at.is_none() && first && fault == Fault::RecorderKill {
@@ -315,6 +383,10 @@ async fn run_one(
                     signal("-KILL", &recorder)?;
                     hit_at = Some(Instant::now());
                 }
+                (Fault::BridgeKill, _) => {
+                    signal("-KILL", &bridge)?;
+                    hit_at = Some(Instant::now());
+                }
                 (Fault::DdsStop, _) => {
                     signal("-STOP", &recorder)?;
                     tokio::time::sleep(Duration::from_millis(300)).await;
@@ -330,6 +402,19 @@ async fn run_one(
                 refused_at = Some(Instant::now());
             }
             seen.status.push((Instant::now(), v));
+        }
+        while let Some(s) = arm_state.try_take()? {
+            if hit_at.is_some() && arm_fault.is_none() && s.msg.mode == labrig_msgs::labrig_msgs::RobotState::MODE_FAULT
+            {
+                arm_fault = Some((Instant::now(), s.msg.fault.clone()));
+            }
+        }
+        // The bridge's episode is filed: the run is over.
+        if fault == Fault::BridgeKill
+            && hit_at.is_some()
+            && seen.status.iter().any(|(t, v)| after(t, hit_at) && v["state"] == "recorded")
+        {
+            stop.trigger();
         }
         while let Some(s) = ctl_status.try_take()? {
             seen.control = serde_json::from_str(&s.msg.data).unwrap_or_default();
@@ -358,7 +443,7 @@ async fn run_one(
         Fault::DiskFull | Fault::DiskFullNomargin => seen.episodes.last().cloned(),
         _ => seen.episodes.first().cloned(),
     };
-    let after_hit = |t: &Instant| hit_at.is_some_and(|h| *t > h);
+    let after_hit = |t: &Instant| after(t, hit_at);
     r.recover_ms = hit_at.and_then(|h| {
         seen.status
             .iter()
@@ -391,6 +476,13 @@ async fn run_one(
         Fault::RecorderKill | Fault::DdsStop => {
             format!("recorder restarted; the episode filed in {} part(s), {} steps lost", r.parts, r.steps_lost)
         }
+        Fault::BridgeKill => match (&arm_fault, &stopped) {
+            (Some(_), Some((_, note))) => {
+                format!("the franka node held and reported; the loop stopped the episode ({note})")
+            }
+            (Some((_, f)), None) => format!("the franka node reported ({f}); the loop did NOT stop the episode"),
+            (None, _) => "the franka node did NOT report a fault".into(),
+        },
         Fault::DiskFull | Fault::DiskFullNomargin => format!(
             "{} episodes filed; then {}; the loop {}",
             r.episodes,
@@ -398,14 +490,23 @@ async fn run_one(
             if idle_at.is_some() { "held the rig Idle" } else { "did NOT hold the rig" }
         ),
     };
+    if fault == Fault::BridgeKill {
+        // Detected: the franka node's fault; recovered: the episode stopped and filed.
+        r.detect_ms = hit_at.zip(arm_fault.as_ref()).map(|(h, (t, _))| t.duration_since(h).as_secs_f64() * 1e3);
+        r.recover_ms = hit_at.zip(stopped.as_ref()).map(|(h, (t, _))| t.duration_since(h).as_secs_f64() * 1e3);
+    }
     if let (Some(r0), Some(i0)) = (refused_at, idle_at) {
         r.detect_ms = Some(i0.duration_since(r0).as_secs_f64() * 1e3);
     }
     r.note = last_error.unwrap_or_default();
-    if code != ExitCode::SUCCESS && !matches!(fault, Fault::DiskFull | Fault::DiskFullNomargin) {
+    if code != ExitCode::SUCCESS && !matches!(fault, Fault::DiskFull | Fault::DiskFullNomargin | Fault::BridgeKill) {
         r.note = format!("the rig stopped with an error; {}", r.note);
     }
     Ok(r)
+}
+
+fn after(t: &Instant, hit: Option<Instant>) -> bool {
+    hit.is_some_and(|h| *t > h)
 }
 
 /// Sends `sig` to the processes whose command line contains `pattern`.
