@@ -515,8 +515,10 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         rig.step()?;
         ticks += 1;
         last_tick = Instant::now();
-        send_frames(rig.sim_mut(), &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
+        // The state and /clock first, the moment the step is done (the loop's tick follows
+        // them); the frames of the same instant after, a render later.
         report_publish(publish_state(rig.sim(), &pubs, rig.state()));
+        send_frames(rig.sim_mut(), &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
         if let Some(e) = &mut expert {
             e.publish(rig.sim());
         }

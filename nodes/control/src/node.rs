@@ -238,6 +238,14 @@ pub struct Summary {
     pub starts_refused: u64,
     /// Episodes stopped because the arm node reported a fault.
     pub arm_faults: u64,
+    /// On the sim's clock, ticks started by the sim's `/clock` (the rest by the arm's state).
+    pub clock_ticks: u64,
+    /// How late ticks began after their boundary (us): p50, p99, max. On the wall clock, from
+    /// the scheduled instant; on the sim's clock, from the sim's `/clock` message of the
+    /// boundary (sent the moment its step is done). The same figure in both clock modes;
+    /// `jitter_us` is the spread of tick-to-tick wall intervals, which on the sim's clock also
+    /// holds the sim's own step-to-step variation.
+    pub tick_lateness_us: [f64; 3],
     pub seconds: f64,
 }
 
@@ -269,6 +277,13 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         status: ros.publisher_on(&topics::CONTROL_STATUS, 1)?,
     };
     let arm_state: RosSubscription<RobotState> = ros.subscription_on(&topics::ARM_STATE, 10)?;
+    // On the sim's clock the tick follows the sim's own time (`/clock`, published on each of
+    // its steps), not the arm node's state rate (50 Hz in front of the bridge: ticks would
+    // land up to 20 ms late).
+    let sim_clock = match cfg.clock {
+        ClockKind::Sim => Some(ros.subscription_on(&topics::CLOCK, 10)?),
+        ClockKind::Wall => None,
+    };
     let gripper_state: RosSubscription<GripperState> = ros.subscription_on(&topics::GRIPPER_STATE, 10)?;
     let scene_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_SCENE, 1)?;
     let requests: RosSubscription<EpisodeEvent> = ros.subscription_on(&topics::RIG_REQUEST, 10)?;
@@ -325,6 +340,11 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut out = RosOutputs(pubs);
     let period = rig.period();
     let mut next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
+    // Sim clock: whether the sim publishes /clock (then it sets the ticks).
+    let (mut clock_seen, mut clock_ticks) = (false, 0u64);
+    // How late each tick began after its boundary (wall clock: the scheduled instant; sim
+    // clock: the sim's /clock message for it), ns.
+    let mut lateness_ns: Vec<i64> = Vec::new();
     'ticks: while !shutdown.is_triggered() {
         // 1. Wait for the tick.
         let waiting_since = Instant::now();
@@ -351,11 +371,42 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 if let Some(s) = newest {
                     let t = Nanos::from(s.header.stamp).0;
                     rig.set_robot(s);
-                    if rig.is_new_tick(Nanos(t)) {
+                    // Without /clock (a sim that does not publish it) the states set the ticks.
+                    if !clock_seen && rig.is_new_tick(Nanos(t)) {
                         break t;
                     }
                 }
-                tokio::time::sleep(Duration::from_micros(200)).await;
+                let mut clock_ns = None;
+                let mut clock_sent = 0;
+                while let Some(c) = sim_clock.as_ref().map(|c| c.try_take()).transpose()?.flatten() {
+                    clock_ns = Some(Nanos::from(c.msg.clock).0);
+                    clock_sent = c.source_time.unwrap_or(c.receive_time).0;
+                    clock_seen = true;
+                }
+                if let Some(t) = clock_ns.filter(|&t| rig.is_new_tick(Nanos(t))) {
+                    // The sim reached the boundary. Its state of that instant: from the bridge
+                    // itself it went out just before the clock (lockstep pairs them); an arm
+                    // node in front of it relays at its own rate, up to a period later: waited
+                    // for briefly, else the newest is used (its stamp is in the step).
+                    let deadline = Instant::now() + STATE_AFTER_CLOCK;
+                    let mut stamp = i64::MIN;
+                    loop {
+                        while let Some(s) = arm_state.try_take()? {
+                            stamp = Nanos::from(s.msg.header.stamp).0;
+                            rig.set_robot(s.msg);
+                        }
+                        if stamp >= t || Instant::now() >= deadline {
+                            break;
+                        }
+                        tokio::time::sleep(Duration::from_micros(100)).await;
+                    }
+                    clock_ticks += 1;
+                    // Late by: the wall time from the sim's /clock going out to this tick.
+                    lateness_ns.push((labrig_runtime::Clock::Wall.now().0 - clock_sent).max(0));
+                    break t;
+                }
+                // The loop's own thread polls (tokio's timers wake 1-5 ms late on a busy machine).
+                std::thread::sleep(Duration::from_micros(200));
             },
             ClockKind::Wall => {
                 // The loop's own thread sleeps to the tick (a high-resolution timer; at
@@ -366,6 +417,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                     break 'ticks;
                 }
                 let now = Instant::now();
+                lateness_ns.push(now.saturating_duration_since(next_wall).as_nanos() as i64);
                 // Behind by more than a period: skip the lost ticks, count them.
                 let behind = now.saturating_duration_since(next_wall).as_nanos() as i64 / period.0;
                 rig.count_missed(behind as u64);
@@ -448,11 +500,17 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         // 5. The action, the commands, the record.
         rig.act(source.as_deref_mut(), &mut out)?;
     }
-    let summary = rig.finish(&mut out);
+    let mut summary = rig.finish(&mut out);
+    summary.clock_ticks = clock_ticks;
+    summary.tick_lateness_us = percentiles_us(&mut lateness_ns);
     // The last events reach their readers (the recorder) before the participant goes.
     tokio::time::sleep(Duration::from_millis(1000)).await;
     Ok(summary)
 }
+
+/// On the sim's clock, how long a tick started by `/clock` waits for the arm's state of its
+/// instant before it uses the newest one.
+const STATE_AFTER_CLOCK: Duration = Duration::from_millis(1);
 
 /// The loop's outputs on ROS 2.
 struct RosOutputs(Pubs);
