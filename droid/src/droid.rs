@@ -288,6 +288,27 @@ fn intrinsics(doc: &H5Doc, key: &str, n: usize) -> Result<Option<[f64; 9]>, Inva
     }
 }
 
+/// A timestamp column (DROID's int64 ms since the epoch) in ns. A time before the epoch or
+/// past i64 nanoseconds (year 2262) is refused naming the key and the step: a garbled value
+/// would overflow the conversion, the camera skew and the episode's log times.
+fn times_ns(doc: &H5Doc, key: &str, n: usize) -> Result<Option<Vec<i64>>, Invalid> {
+    let Some(ms) = ints(doc, key, n)? else { return Ok(None) };
+    let max = i64::MAX / NS_PER_MS;
+    ms.iter()
+        .enumerate()
+        .map(|(i, &t)| {
+            if !(0..=max).contains(&t) {
+                return Err(Invalid::new(
+                    key,
+                    format!("trajectory.h5 `{key}` step {i}: {t} ms is not a time (0..={max})"),
+                ));
+            }
+            Ok(t * NS_PER_MS)
+        })
+        .collect::<Result<Vec<i64>, Invalid>>()
+        .map(Some)
+}
+
 fn scalars(doc: &H5Doc, key: &str, n: usize) -> Result<Vec<f64>, Invalid> {
     Ok(rows::<1>(doc, key, n)?.into_iter().map(|[x]| x).collect())
 }
@@ -336,16 +357,17 @@ pub fn from_droid(
     let ok = bools(doc, &format!("{o}/prev_command_successful"), n)?.unwrap_or_else(|| vec![true; n]);
 
     let t = "observation/timestamp";
+    // ns from here on.
     let mut control: Vec<Vec<i64>> = Vec::new();
     for key in CONTROL_KEYS {
-        control.push(ints(doc, &format!("{t}/control/{key}"), n)?.unwrap_or_else(|| vec![0; n]));
+        control.push(times_ns(doc, &format!("{t}/control/{key}"), n)?.unwrap_or_else(|| vec![0; n]));
     }
     let secs = ints(doc, &format!("{t}/robot_state/robot_timestamp_seconds"), n)?;
     let nanos = ints(doc, &format!("{t}/robot_state/robot_timestamp_nanos"), n)?;
     let stamp = |i: usize| -> Time {
         match (&secs, &nanos) {
             (Some(s), Some(ns)) => Time { sec: s[i] as i32, nanosec: ns[i] as u32 },
-            _ => Time::from(labrig_msgs::Nanos(control[0][i] * NS_PER_MS)),
+            _ => Time::from(labrig_msgs::Nanos(control[0][i])),
         }
     };
 
@@ -370,8 +392,8 @@ pub fn from_droid(
         } else if let Some(e) = opt_rows::<6>(doc, &ext, n)? {
             extrinsics.insert(id.clone(), e[0]);
         }
-        let capture = ints(doc, &format!("{t}/cameras/{serial}_estimated_capture"), n)?;
-        let received = ints(doc, &format!("{t}/cameras/{serial}_frame_received"), n)?;
+        let capture = times_ns(doc, &format!("{t}/cameras/{serial}_estimated_capture"), n)?;
+        let received = times_ns(doc, &format!("{t}/cameras/{serial}_frame_received"), n)?;
         let capture = capture.or_else(|| received.clone()).unwrap_or_else(|| control[0].clone());
         let received = received.unwrap_or_else(|| capture.clone());
         frames.push((capture, received));
@@ -411,8 +433,8 @@ pub fn from_droid(
                     CameraFrameRef {
                         camera_id: cam.id.clone(),
                         sequence: sequence[c],
-                        capture_ns: cap[i] * NS_PER_MS,
-                        arrival_ns: rec[i] * NS_PER_MS,
+                        capture_ns: cap[i],
+                        arrival_ns: rec[i],
                         ..CameraFrameRef::default()
                     }
                 })
@@ -442,11 +464,11 @@ pub fn from_droid(
                 camera_skew_ns: if cams.is_empty() { 0 } else { hi - lo },
                 cameras: cams,
                 timing: ControlTiming {
-                    step_start: control[0][i] * NS_PER_MS,
-                    policy_start: control[1][i] * NS_PER_MS,
-                    sleep_start: control[2][i] * NS_PER_MS,
-                    control_start: control[3][i] * NS_PER_MS,
-                    step_end: control[4][i] * NS_PER_MS,
+                    step_start: control[0][i],
+                    policy_start: control[1][i],
+                    sleep_start: control[2][i],
+                    control_start: control[3][i],
+                    step_end: control[4][i],
                     ..ControlTiming::default()
                 },
                 action: ActionDict {

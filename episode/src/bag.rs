@@ -66,7 +66,7 @@ impl BagInfo {
         topics: Vec<TopicInfo>,
         custom: Vec<(String, String)>,
     ) -> BagInfo {
-        let message_count = topics.iter().map(|t| t.count).sum();
+        let message_count = topics.iter().fold(0u64, |n, t| n.saturating_add(t.count));
         let files = vec![BagFile { path: file_name.to_owned(), start_ns, end_ns, message_count }];
         BagInfo { files, start_ns, end_ns, topics, custom }
     }
@@ -77,7 +77,7 @@ impl BagInfo {
         let mut topics: Vec<TopicInfo> = Vec::new();
         for t in parts.iter().flat_map(|p| &p.topics) {
             match topics.iter_mut().find(|m| m.name == t.name) {
-                Some(m) => m.count += t.count,
+                Some(m) => m.count = m.count.saturating_add(t.count),
                 None => topics.push(t.clone()),
             }
         }
@@ -95,11 +95,11 @@ impl BagInfo {
     }
 
     pub fn message_count(&self) -> u64 {
-        self.topics.iter().map(|t| t.count).sum()
+        self.topics.iter().fold(0u64, |n, t| n.saturating_add(t.count))
     }
 
     fn duration_ns(&self) -> i64 {
-        (self.end_ns - self.start_ns).max(0)
+        self.end_ns.saturating_sub(self.start_ns).max(0)
     }
 
     /// The bag description without the `rosbag2_bagfile_information:` wrapper, indented by

@@ -8,7 +8,7 @@ use labrig_msgs::labrig_msgs::Step;
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::topics;
 use labrig_msgs::{TypeVisitor, visit_type};
-use mcap::read::{ChunkReader, LinearReader, Options};
+use mcap::read::{LinearReader, Options};
 use mcap::records::Record;
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
@@ -207,12 +207,12 @@ fn gaps(parts: &[Part]) -> Vec<Gap> {
         .enumerate()
         .map(|(k, w)| {
             let seconds = if w[0].messages > 0 && w[1].messages > 0 {
-                (w[1].start_ns - w[0].end_ns).max(0) as f64 / 1e9
+                w[1].start_ns.saturating_sub(w[0].end_ns).max(0) as f64 / 1e9
             } else {
                 0.0
             };
             let steps_missing = match (w[0].last_step, w[1].first_step) {
-                (Some(a), Some(b)) => b.saturating_sub(a + 1),
+                (Some(a), Some(b)) => b.saturating_sub(a.saturating_add(1)),
                 _ => 0,
             };
             Gap { after: k, seconds, steps_missing }
@@ -300,8 +300,8 @@ fn scan_file(
         Record::Message { header, data } => {
             let Some((topic, ty)) = channels.get(&header.channel_id) else { return };
             messages += 1;
-            start_ns = start_ns.min(header.log_time as i64);
-            end_ns = end_ns.max(header.log_time as i64);
+            start_ns = start_ns.min(crate::log_ns(header.log_time));
+            end_ns = end_ns.max(crate::log_ns(header.log_time));
             let t = topics.entry(topic.clone()).or_default();
             t.type_name.clone_from(ty);
             t.count += 1;
@@ -339,18 +339,8 @@ fn scan_file(
     };
     for rec in reader {
         match rec {
-            Ok(Record::Chunk { header, data }) => match ChunkReader::new(header, &data) {
-                Ok(inner) => {
-                    for r in inner {
-                        match r {
-                            Ok(r) => on_record(r),
-                            Err(e) => {
-                                damage = Some(format!("a damaged chunk: {e}"));
-                                break;
-                            }
-                        }
-                    }
-                }
+            Ok(Record::Chunk { header, data }) => match crate::chunk::chunk_records(&header, &data) {
+                Ok(inner) => inner.into_iter().for_each(&mut on_record),
                 Err(e) => damage = Some(format!("a damaged chunk: {e}")),
             },
             Ok(r) => on_record(r),
@@ -372,9 +362,9 @@ fn scan_file(
 fn summarise(scan: Scan) -> Inspection {
     let Scan { file: path, complete, damage, topics, mut steps, droid, parts } = scan;
     let gaps = gaps(&parts);
-    let start = topics.values().map(|t| t.first).min().unwrap_or(0) as i64;
-    let end = topics.values().map(|t| t.last).max().unwrap_or(0) as i64;
-    let duration_s = (end - start).max(0) as f64 / 1e9;
+    let start = crate::log_ns(topics.values().map(|t| t.first).min().unwrap_or(0));
+    let end = crate::log_ns(topics.values().map(|t| t.last).max().unwrap_or(0));
+    let duration_s = end.saturating_sub(start).max(0) as f64 / 1e9;
     let mut flags = Vec::new();
     let topic_stats: Vec<TopicStats> = topics
         .iter()
@@ -387,7 +377,7 @@ fn summarise(scan: Scan) -> Inspection {
                 rate_hz: if span > 0.0 { (t.count - 1) as f64 / span } else { 0.0 },
                 malformed: t.malformed,
                 out_of_order: t.out_of_order,
-                last_publish_ns: t.last_publish as i64,
+                last_publish_ns: crate::log_ns(t.last_publish),
             }
         })
         .collect();
@@ -419,10 +409,11 @@ fn summarise(scan: Scan) -> Inspection {
         .map(|s| {
             let (lo, hi) =
                 s.cameras.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
-            (hi - lo) as f64 / 1e6
+            hi.saturating_sub(lo) as f64 / 1e6
         })
         .collect();
-    let periods: Vec<f64> = steps.windows(2).map(|w| (step_time(&w[1]) - step_time(&w[0])) as f64 / 1e6).collect();
+    let periods: Vec<f64> =
+        steps.windows(2).map(|w| step_time(&w[1]).saturating_sub(step_time(&w[0])) as f64 / 1e6).collect();
     let nominal = CONTROL_PERIOD_NS as f64 / 1e6;
     let missed_ticks = periods.iter().filter(|&&p| p > 1.5 * nominal).count() as u64;
     let jitter: Vec<f64> = periods.iter().map(|p| (p - nominal).abs()).collect();
@@ -444,7 +435,9 @@ fn summarise(scan: Scan) -> Inspection {
         let late = steps
             .iter()
             .filter(|s| {
-                s.cameras.iter().any(|c| c.camera_id == camera && step_time(s) - c.capture_ns > CONTROL_PERIOD_NS)
+                s.cameras
+                    .iter()
+                    .any(|c| c.camera_id == camera && step_time(s).saturating_sub(c.capture_ns) > CONTROL_PERIOD_NS)
             })
             .count() as u64;
         cameras.push(CameraStats { camera, frames: t.count, dropped, late });

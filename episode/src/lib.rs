@@ -12,11 +12,18 @@
 //! dataset tools read thousands of episodes with it.
 
 pub mod bag;
+mod chunk;
 pub mod episode;
 pub mod inspect;
 pub mod jpeg;
 pub mod metadata;
 pub mod recover;
+
+/// An MCAP log time (any u64) as the i64 nanoseconds the episode's times are: past i64::MAX
+/// (year 2262) it saturates instead of turning negative.
+pub(crate) fn log_ns(t: u64) -> i64 {
+    i64::try_from(t).unwrap_or(i64::MAX)
+}
 
 pub use episode::{EpisodeError, EpisodeSummary, EpisodeWriter};
 pub use inspect::{EpisodeData, Gap, Inspection, Part, ReadError, inspect, read_episode};

@@ -8,7 +8,7 @@
 use crate::bag::{BagInfo, TopicInfo};
 use crate::episode::{EpisodeError, write_metadata_yaml};
 use crate::metadata::EpisodeMetadata;
-use mcap::read::{ChunkReader, LinearReader, Options};
+use mcap::read::{LinearReader, Options};
 use mcap::records::Record;
 use mcap::{Attachment, Compression, WriteOptions, Writer};
 use std::collections::BTreeMap;
@@ -94,8 +94,8 @@ pub fn recover_with(input: &Path, output: &Path, amend: Option<Amend<'_>>) -> Re
                     t.count += 1;
                 }
                 report.messages += 1;
-                report.start_ns = report.start_ns.min(header.log_time as i64);
-                report.end_ns = report.end_ns.max(header.log_time as i64);
+                report.start_ns = report.start_ns.min(crate::log_ns(header.log_time));
+                report.end_ns = report.end_ns.max(crate::log_ns(header.log_time));
             }
             // The rosbag2 record is rebuilt from what was copied.
             Record::Metadata(m) if m.name != "rosbag2" => {
@@ -132,7 +132,7 @@ pub fn recover_with(input: &Path, output: &Path, amend: Option<Amend<'_>>) -> Re
             }
         };
         if let Record::Chunk { header, data } = rec {
-            let inner: Result<Vec<Record<'_>>, _> = ChunkReader::new(header, &data).and_then(|r| r.collect());
+            let inner = crate::chunk::chunk_records(&header, &data);
             match inner {
                 Ok(records) => {
                     for r in records {
@@ -222,6 +222,10 @@ pub fn bag_info_of(file: &Path) -> Result<BagInfo, EpisodeError> {
     let buf = std::fs::read(file).map_err(|e| io("reading the episode", e))?;
     let invalid =
         |why: &str| io("reading the summary", std::io::Error::new(std::io::ErrorKind::InvalidData, why.to_owned()));
+    // A summary is read from the footer backwards: a file whose start is damaged has one too.
+    if !buf.starts_with(mcap::MAGIC) {
+        return Err(invalid("it does not start with MCAP's magic bytes"));
+    }
     let summary = mcap::Summary::read(&buf)
         .map_err(|source| EpisodeError::Mcap { path: file.to_owned(), source })?
         .ok_or_else(|| invalid("the file has no summary (unfinished)"))?;
@@ -238,7 +242,13 @@ pub fn bag_info_of(file: &Path) -> Result<BagInfo, EpisodeError> {
         .collect();
     topics.sort_by(|a, b| a.name.cmp(&b.name));
     let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    Ok(BagInfo::single(&name, stats.message_start_time as i64, stats.message_end_time as i64, topics, Vec::new()))
+    Ok(BagInfo::single(
+        &name,
+        crate::log_ns(stats.message_start_time),
+        crate::log_ns(stats.message_end_time),
+        topics,
+        Vec::new(),
+    ))
 }
 
 /// `labrig recover <episode_dir>` and a restarted recorder: every unfinished part of the

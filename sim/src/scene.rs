@@ -462,8 +462,12 @@ impl SceneSpec {
         Ok(())
     }
 
-    /// Draws the scene for `seed`. Deterministic: same spec and seed, same values.
+    /// Draws the scene for `seed`. Deterministic: same spec and seed, same values. The spec is
+    /// checked first: one that did not come through [`SceneSpec::parse`] (a recording's, read
+    /// back from JSON) is refused naming its field instead of panicking on a missing camera or
+    /// an empty range.
     pub fn sample(&self, seed: u64) -> Result<SceneValues, SceneError> {
+        self.validate(&format!("`{}`", self.name))?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut uniform = |r: Range| if r[0] == r[1] { r[0] } else { rng.random_range(r[0]..=r[1]) };
         let mut cameras = BTreeMap::new();

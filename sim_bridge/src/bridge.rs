@@ -147,7 +147,7 @@ impl BridgeConfig {
         if !(hw.is_empty() || (hw.starts_with('/') && hw[1..].split('/').all(|p| !p.is_empty()))) {
             return Err(Invalid::new(
                 "hardware_prefix",
-                format!("--hardware-prefix {:?} must look like /sim", self.hardware_prefix),
+                format!("`hardware_prefix` (--hardware-prefix) {:?} must look like /sim", self.hardware_prefix),
             ));
         }
         Ok(())

@@ -203,6 +203,13 @@ impl ControlConfig {
                 format!("teleop_max_age_s: {} must be positive", self.teleop_max_age_s),
             ));
         }
+        // Both become a Duration (and a deadline after now) when the node starts: 1e300 passed
+        // the checks above and panicked there.
+        for (name, v) in [("source_timeout_s", self.source_timeout_s), ("teleop_max_age_s", self.teleop_max_age_s)] {
+            if v > 86_400.0 {
+                return Err(Invalid::new(name, format!("{name} = {v} must be at most 86400 (a day)")));
+            }
+        }
         self.safety.validate()
     }
 }

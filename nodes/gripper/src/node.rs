@@ -88,8 +88,12 @@ impl GripperNodeConfig {
         if !(self.request_timeout_s.is_finite() && (0.001..=5.0).contains(&self.request_timeout_s)) {
             return bad("request_timeout_s", format!("is {}, must be 0.001..=5", self.request_timeout_s));
         }
-        if !(self.activation_timeout_s.is_finite() && self.activation_timeout_s > 0.0) {
-            return bad("activation_timeout_s", format!("is {}, must be > 0", self.activation_timeout_s));
+        // A Duration and a deadline after now (1e300 panicked at start): an hour at most.
+        if !(self.activation_timeout_s.is_finite()
+            && self.activation_timeout_s > 0.0
+            && self.activation_timeout_s <= 3600.0)
+        {
+            return bad("activation_timeout_s", format!("is {}, must be in (0, 3600]", self.activation_timeout_s));
         }
         if self.backend == Backend::Robotiq && self.port.is_empty() {
             return bad("port", "is empty: name the 2F-85's serial device".into());

@@ -362,11 +362,11 @@ async fn run_one(
             }
             let first = seen.episodes.first() == Some(&id);
             if hit_at.is_none() && first && fault == Fault::RecorderKill {
-                let now = match (point, kind) {
-                    (Some(KillPoint::Start), Ok(EpisodeEventKind::Start)) => true,
-                    (Some(KillPoint::End), Ok(EpisodeEventKind::Success | EpisodeEventKind::Failure)) => true,
-                    _ => false,
-                };
+                let now = matches!(
+                    (point, kind),
+                    (Some(KillPoint::Start), Ok(EpisodeEventKind::Start))
+                        | (Some(KillPoint::End), Ok(EpisodeEventKind::Success | EpisodeEventKind::Failure))
+                );
                 if now {
                     signal("-KILL", &recorder)?;
                     hit_at = Some(Instant::now());

@@ -9,6 +9,7 @@
 //! that dies or stops the rig (as the config says), and on Ctrl-C (or `--seconds`) stops
 //! everything in reverse order: SIGTERM, then SIGKILL after 10 s.
 
+use anyhow::Context;
 use clap::Args;
 use labrig_msgs::dds_type_name;
 use labrig_runtime::ros::{Ros, qos};
@@ -103,7 +104,9 @@ impl LaunchConfig {
     /// Loads and validates `path`; returns the config and the start order.
     pub fn load(path: &Path) -> anyhow::Result<(LaunchConfig, Vec<usize>)> {
         let cfg: LaunchConfig = labrig_runtime::load_config(path)?;
-        let order = cfg.validate(path.parent().unwrap_or(Path::new(".")))?;
+        let order = cfg
+            .validate(path.parent().unwrap_or(Path::new(".")))
+            .with_context(|| format!("invalid launch config {}", path.display()))?;
         Ok((cfg, order))
     }
 
@@ -111,7 +114,9 @@ impl LaunchConfig {
     /// looked up beside it).
     pub fn parse(text: &str, origin: &Path) -> anyhow::Result<(LaunchConfig, Vec<usize>)> {
         let cfg: LaunchConfig = labrig_runtime::config::parse_config(text, origin)?;
-        let order = cfg.validate(origin.parent().unwrap_or(Path::new(".")))?;
+        let order = cfg
+            .validate(origin.parent().unwrap_or(Path::new(".")))
+            .with_context(|| format!("invalid launch config {}", origin.display()))?;
         Ok((cfg, order))
     }
 

@@ -94,10 +94,18 @@ impl InputConfig {
                 return Err(Invalid::new(format!("input.{k}"), format!("input.{k}: {v} must be positive")));
             }
         }
-        if !(self.reconnect_s.is_finite() && self.reconnect_s >= 0.0) {
+        // The input threads sleep 1 / keyboard_hz and reconnect_s: a time a Duration (and an
+        // Instant after it) can hold, else the thread panics at start.
+        if !(1.0..=1000.0).contains(&self.keyboard_hz) {
+            return Err(Invalid::new(
+                "input.keyboard_hz",
+                format!("input.keyboard_hz: {} must be 1..=1000", self.keyboard_hz),
+            ));
+        }
+        if !(self.reconnect_s.is_finite() && (0.0..=3600.0).contains(&self.reconnect_s)) {
             return Err(Invalid::new(
                 "input.reconnect_s",
-                format!("input.reconnect_s: {} must be >= 0", self.reconnect_s),
+                format!("input.reconnect_s: {} must be 0..=3600", self.reconnect_s),
             ));
         }
         Ok(())

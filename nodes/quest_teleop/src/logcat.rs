@@ -92,7 +92,8 @@ pub fn line_time_ns(line: &str) -> Option<i64> {
     let (hms, frac) = clock.split_once('.')?;
     let mut parts = hms.split(':').map(|p| p.parse::<i64>().ok());
     let (h, m, s) = (parts.next()??, parts.next()??, parts.next()??);
-    if parts.next().is_some() || h > 23 || m > 59 || s > 60 {
+    // Signed fields parse too ("-5"): bound both ends, else i64::MIN hours overflow below.
+    if parts.next().is_some() || !(0..=23).contains(&h) || !(0..=59).contains(&m) || !(0..=60).contains(&s) {
         return None;
     }
     // Day of the year through a 31-day month grid: monotonic within a year, which is all

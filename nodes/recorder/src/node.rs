@@ -159,6 +159,14 @@ impl RecorderConfig {
                 return Err(Invalid::new(key, format!("recorder config: `{key}` must be a number >= 0, got {v}")));
             }
         }
+        // Waited for as a Duration when the recorder starts (1e300 panicked there).
+        if self.rejoin_wait_s > 3600.0 {
+            let v = self.rejoin_wait_s;
+            return Err(Invalid::new(
+                "rejoin_wait_s",
+                format!("recorder config: `rejoin_wait_s` must be at most 3600, got {v}"),
+            ));
+        }
         Ok(())
     }
 }
