@@ -109,6 +109,9 @@ pub const CLOCK: Topic<Clock> = Topic::new("/clock", Reliable);
 pub const SIM_SCENE: Topic<StringMsg> = Topic::new("/sim/scene", Latched);
 /// `{"seed": N}`: rebuild the scene.
 pub const SIM_RESET: Topic<StringMsg> = Topic::new("/sim/reset", Reliable);
+/// Faults the sim injects on request (JSON, e.g. `{"stall_camera": {"camera": "wrist",
+/// "seconds": 1.0}}`): `labrig bench faults` and the fault suite.
+pub const SIM_FAULT: Topic<StringMsg> = Topic::new("/sim/fault", Reliable);
 /// The scripted expert's action for the current state.
 pub const SIM_EXPERT_ACTION: Topic<ArmCommand> = Topic::new("/sim/expert/action", Reliable);
 /// The scripted expert's progress (JSON: phase, done, success).

@@ -293,6 +293,17 @@ pub fn camera_info(t: Nanos, camera: &str, width: usize, height: usize, fovy_deg
 /// Renders every camera at the sim's time, then sends the frames and their camera_info back
 /// to back: a reader never sees one tick's frames from some cameras and the last tick's from
 /// others for longer than the sends take.
+/// `/sim/fault` (std_msgs/String, JSON): a fault the sim injects on request.
+#[derive(Debug, serde::Deserialize)]
+enum FaultRequest {
+    /// `{"stall_camera": {"camera": "wrist", "seconds": 1.0}}`: the camera sends no frame for
+    /// that long (rendered, not published), as a stalled USB stream does.
+    #[serde(rename = "stall_camera")]
+    StallCamera { camera: String, seconds: f64 },
+}
+
+/// Renders every camera, then sends each frame and camera_info (stalled cameras: none).
+#[allow(clippy::too_many_arguments)] // the bridge loop's camera state, borrowed piecewise
 fn send_frames(
     sim: &mut Sim,
     cameras: &[&'static str],
@@ -301,12 +312,18 @@ fn send_frames(
     info: &[RosPublisher<CameraInfo>],
     fovy: &[f64],
     (width, height): (usize, usize),
+    stalled_until: &[Instant],
 ) -> anyhow::Result<()> {
     let t = sim.time();
     for (camera, buf) in cameras.iter().zip(rgb.iter_mut()) {
         sim.render_into(camera, buf)?;
     }
+    let now = Instant::now();
     for (i, camera) in cameras.iter().enumerate() {
+        // A camera stalled on purpose (`/sim/fault`) sends nothing until its time is up.
+        if stalled_until.get(i).is_some_and(|&u| now < u) {
+            continue;
+        }
         frame_pubs[i].publish(&rgb[i], t, t)?;
         info[i].publish(camera_info(t, camera, width, height, fovy[i]))?;
     }
@@ -361,6 +378,8 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         None
     };
     let reset_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_RESET, 10)?;
+    // Fault injection for tests and `labrig bench faults`: a camera that stops sending.
+    let fault_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_FAULT, 10)?;
     let arm_sub: RosSubscription<ArmCommand> = ros.subscription_at(hw, &topics::ARM_COMMAND, 100)?;
     let gripper_sub: RosSubscription<GripperCommand> = ros.subscription_at(hw, &topics::GRIPPER_COMMAND, 100)?;
     let frames = FrameNode::new()?;
@@ -386,6 +405,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     };
     let mut fovy = fovys(rig.sim());
     let mut rgb: Vec<Vec<u8>> = cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect();
+    let mut stalled_until: Vec<Instant> = cameras.iter().map(|_| Instant::now()).collect();
     let mut ticks = 0u64;
     let started = Instant::now();
     let mut next_deadline = Instant::now();
@@ -431,6 +451,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                         &pubs.camera_info,
                         &fovy,
                         (a.width, a.height),
+                        &stalled_until,
                     )?;
                     report_publish(publish_state(rig.sim(), &pubs, rig.state()));
                     if let Some(e) = &mut expert {
@@ -518,7 +539,34 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         // The state and /clock first, the moment the step is done (the loop's tick follows
         // them); the frames of the same instant after, a render later.
         report_publish(publish_state(rig.sim(), &pubs, rig.state()));
-        send_frames(rig.sim_mut(), &cameras, &mut rgb, &mut frame_pubs, &pubs.camera_info, &fovy, (a.width, a.height))?;
+        while let Some(f) = take(&fault_sub, &mut rig) {
+            match serde_json::from_str::<FaultRequest>(&f.msg.data) {
+                Ok(FaultRequest::StallCamera { camera, seconds }) if seconds.is_finite() && (0.0..=60.0).contains(&seconds) => {
+                    match cameras.iter().position(|c| *c == camera) {
+                        Some(i) => {
+                            tracing::warn!(camera, seconds, "fault injected: the camera stalls");
+                            stalled_until[i] = Instant::now() + Duration::from_secs_f64(seconds);
+                        }
+                        None => rig.refuse(format!("refused /sim/fault: no camera {camera:?}")),
+                    }
+                }
+                Ok(other) => rig.refuse(format!("refused /sim/fault {other:?}: seconds must be 0..=60")),
+                Err(e) => rig.refuse(format!(
+                    "refused /sim/fault {:?}: {e} (expected {{\"stall_camera\": {{\"camera\": \"wrist\", \"seconds\": 1.0}}}})",
+                    f.msg.data
+                )),
+            }
+        }
+        send_frames(
+            rig.sim_mut(),
+            &cameras,
+            &mut rgb,
+            &mut frame_pubs,
+            &pubs.camera_info,
+            &fovy,
+            (a.width, a.height),
+            &stalled_until,
+        )?;
         if let Some(e) = &mut expert {
             e.publish(rig.sim());
         }

@@ -181,3 +181,19 @@ fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
     assert_eq!(r["all_filed"], true, "{r}");
     assert!(r["detect_ms"].is_number() && r["recover_ms"].is_number(), "{r}");
 }
+
+/// The wrist camera stalls for two seconds mid-episode (`/sim/fault`): the episode is
+/// recorded whole, and its steps say which camera was missing — each step of those seconds
+/// carries the wrist's last frame again (with its old capture time), no other camera's.
+#[test]
+fn a_stalled_camera_is_named_by_the_steps_that_missed_it() {
+    let v = bench_faults(&["--faults", "camera-stall", "--stall-s", "2", "--domain-id", "231"]);
+    let r = &v["faults"][0];
+    assert_eq!(r["steps_lost"], 0, "{r}");
+    let stalled = r["stalled_steps"].as_u64().unwrap();
+    let others = r["other_late_steps"].as_u64().unwrap();
+    // Two seconds at 20 Hz are 40 steps. A sim slowed by a busy machine repeats every
+    // camera's frames for a while too: the stalled one stands out by the stall.
+    assert!((25..=120).contains(&stalled), "{r}");
+    assert!(others + 15 <= stalled, "only the stalled camera repeats its frames throughout: {r}");
+}

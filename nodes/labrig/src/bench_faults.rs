@@ -15,6 +15,10 @@
 //!   (franka and gripper nodes in front of the bridge, as on the real rig): the franka node
 //!   holds and reports the fault on /arm/state, the loop stops the episode naming the fault,
 //!   the recorder files what was recorded.
+//! - `camera-stall`: the wrist camera stops sending for 1 s (`--stall-s`) mid-episode (`/sim/fault`): every
+//!   step of that second records the wrist's last frame with its old capture time, so the
+//!   episode says which camera was missing, and when (`labrig inspect`: late and dropped
+//!   frames per camera).
 //!
 //! Each run prints a table (or JSON); the figures depend on the machine (a shared 2-core
 //! machine is noisy): read times as what one run measured.
@@ -42,6 +46,7 @@ pub enum Fault {
     DiskFullNomargin,
     DdsStop,
     BridgeKill,
+    CameraStall,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
@@ -61,12 +66,15 @@ pub struct FaultArgs {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "recorder-kill,disk-full,disk-full-nomargin,dds-stop,bridge-kill"
+        default_value = "recorder-kill,disk-full,disk-full-nomargin,dds-stop,bridge-kill,camera-stall"
     )]
     pub faults: Vec<Fault>,
     /// Where `recorder-kill` lands in the episode (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "start,mid,end")]
     pub kill_at: Vec<KillPoint>,
+    /// How long `camera-stall` stalls the wrist camera (s).
+    #[arg(long, default_value_t = 1.0)]
+    pub stall_s: f64,
     /// Size of the tmpfs `disk-full` records into (MB).
     #[arg(long, default_value_t = 24)]
     pub disk_mb: u64,
@@ -105,9 +113,18 @@ pub struct FaultReport {
     pub episodes: usize,
     /// Anything the run said that the table cannot (the refusal, the error).
     pub note: String,
+    /// `camera-stall`: steps that repeat the stalled camera's last frame, and the most steps
+    /// repeating any other camera's.
+    pub stalled_steps: Option<u64>,
+    pub other_late_steps: Option<u64>,
 }
 
 pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!(
+        a.stall_s.is_finite() && (0.0..=60.0).contains(&a.stall_s),
+        "--stall-s must be 0..=60 s, got {}",
+        a.stall_s
+    );
     let keep = a.out.clone();
     let tmp = tempfile::tempdir()?;
     let base = keep.clone().unwrap_or_else(|| tmp.path().to_owned());
@@ -138,7 +155,7 @@ pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
         let dir = base.join(&name);
         std::fs::create_dir_all(&dir)?;
         let domain = a.domain_id + k as u16;
-        let report = rt.block_on(run_one(*fault, *point, &dir, domain, a.disk_mb, &name));
+        let report = rt.block_on(run_one(*fault, *point, &dir, domain, a.disk_mb, a.stall_s, &name));
         let report = match report {
             Ok(r) => r,
             Err(e) => FaultReport { outcome: format!("ERROR: {e:#}"), ..empty(&name) },
@@ -183,6 +200,8 @@ fn empty(name: &str) -> FaultReport {
         all_filed: false,
         episodes: 0,
         note: String::new(),
+        stalled_steps: None,
+        other_late_steps: None,
     }
 }
 
@@ -209,6 +228,9 @@ fn row(r: &FaultReport) -> String {
         r.outcome
     )
 }
+
+/// The camera `camera-stall` stalls.
+const STALLED_CAMERA: &str = "wrist";
 
 static NEXT_RIG: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
 
@@ -306,6 +328,7 @@ async fn run_one(
     dir: &Path,
     domain: u16,
     disk_mb: u64,
+    stall_s: f64,
     name: &str,
 ) -> anyhow::Result<FaultReport> {
     let root = dir.join("episodes");
@@ -315,7 +338,7 @@ async fn run_one(
         None
     };
     let (episodes, sets): (u64, Vec<&str>) = match fault {
-        Fault::RecorderKill | Fault::DdsStop | Fault::BridgeKill => (2, vec![]),
+        Fault::RecorderKill | Fault::DdsStop | Fault::BridgeKill | Fault::CameraStall => (2, vec![]),
         Fault::DiskFull => (50, vec!["min_free_mb=1", "free_margin_episodes=2"]),
         Fault::DiskFullNomargin => (50, vec!["min_free_mb=0", "free_margin_episodes=0"]),
     };
@@ -326,6 +349,7 @@ async fn run_one(
     let rec_status = ros.subscription_on(&topics::RECORDER_STATUS, 100)?;
     let ctl_status = ros.subscription_on(&topics::CONTROL_STATUS, 10)?;
     let arm_state = ros.subscription_on(&topics::ARM_STATE, 100)?;
+    let sim_fault = ros.publisher_on(&topics::SIM_FAULT, 10)?;
     let mut arm_fault: Option<(Instant, String)> = None;
     let mut stopped: Option<(Instant, String)> = None;
     let stop = Shutdown::new();
@@ -381,6 +405,11 @@ async fn run_one(
             match (fault, point) {
                 (Fault::RecorderKill, Some(KillPoint::Mid)) => {
                     signal("-KILL", &recorder)?;
+                    hit_at = Some(Instant::now());
+                }
+                (Fault::CameraStall, _) => {
+                    let stall = json!({ "stall_camera": { "camera": STALLED_CAMERA, "seconds": stall_s } });
+                    sim_fault.publish(labrig_msgs::std_msgs::StringMsg { data: stall.to_string() })?;
                     hit_at = Some(Instant::now());
                 }
                 (Fault::BridgeKill, _) => {
@@ -476,6 +505,37 @@ async fn run_one(
         Fault::RecorderKill | Fault::DdsStop => {
             format!("recorder restarted; the episode filed in {} part(s), {} steps lost", r.parts, r.steps_lost)
         }
+        Fault::CameraStall => {
+            let hit_dir = hit
+                .as_ref()
+                .and_then(|id| filed.iter().find(|(_, i)| i.metadata.as_ref().is_some_and(|m| &m.uuid == id)));
+            match hit_dir {
+                Some((dir, i)) => {
+                    // Per step, each camera's frame reference: a step that repeats the last
+                    // step's frame of a camera (same sequence) had nothing newer from it.
+                    let steps = labrig_episode::read_episode(dir).map(|d| d.steps).unwrap_or_default();
+                    let mut repeated: BTreeMap<String, u64> = BTreeMap::new();
+                    for w in steps.windows(2) {
+                        for c in &w[1].cameras {
+                            let before = w[0].cameras.iter().find(|p| p.camera_id == c.camera_id);
+                            if before.is_some_and(|p| p.sequence == c.sequence) {
+                                *repeated.entry(c.camera_id.clone()).or_default() += 1;
+                            }
+                        }
+                    }
+                    let stalled = repeated.get(STALLED_CAMERA).copied().unwrap_or(0);
+                    let others =
+                        repeated.iter().filter(|(c, _)| *c != STALLED_CAMERA).map(|(_, n)| *n).max().unwrap_or(0);
+                    let dropped = i.cameras.iter().find(|c| c.camera == STALLED_CAMERA).map_or(0, |c| c.dropped);
+                    r.stalled_steps = Some(stalled);
+                    r.other_late_steps = Some(others);
+                    format!(
+                        "{stalled} steps carry the {STALLED_CAMERA} camera's last frame again (its capture time, so its age, in the step; inspect: {dropped} {STALLED_CAMERA} frames dropped); the other cameras at most {others}"
+                    )
+                }
+                None => "the episode was not filed".into(),
+            }
+        }
         Fault::BridgeKill => match (&arm_fault, &stopped) {
             (Some(_), Some((_, note))) => {
                 format!("the franka node held and reported; the loop stopped the episode ({note})")
@@ -490,6 +550,9 @@ async fn run_one(
             if idle_at.is_some() { "held the rig Idle" } else { "did NOT hold the rig" }
         ),
     };
+    if fault == Fault::CameraStall {
+        (r.detect_ms, r.recover_ms) = (None, None);
+    }
     if fault == Fault::BridgeKill {
         // Detected: the franka node's fault; recovered: the episode stopped and filed.
         r.detect_ms = hit_at.zip(arm_fault.as_ref()).map(|(h, (t, _))| t.duration_since(h).as_secs_f64() * 1e3);
