@@ -72,6 +72,9 @@ pub struct FaultArgs {
     /// Where `recorder-kill` lands in the episode (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "start,mid,end")]
     pub kill_at: Vec<KillPoint>,
+    /// Runs of each fault (kill point), for a distribution rather than one figure.
+    #[arg(long, default_value_t = 1)]
+    pub repeat: u32,
     /// How long `camera-stall` stalls the wrist camera (s).
     #[arg(long, default_value_t = 1.0)]
     pub stall_s: f64,
@@ -130,12 +133,15 @@ pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
     let base = keep.clone().unwrap_or_else(|| tmp.path().to_owned());
     std::fs::create_dir_all(&base).with_context(|| format!("creating {}", base.display()))?;
     let base = std::fs::canonicalize(&base)?;
+    anyhow::ensure!((1..=20).contains(&a.repeat), "--repeat must be 1..=20");
     let mut plan: Vec<(Fault, Option<KillPoint>)> = Vec::new();
-    for &f in &a.faults {
-        if f == Fault::RecorderKill {
-            plan.extend(a.kill_at.iter().map(|&p| (f, Some(p))));
-        } else {
-            plan.push((f, None));
+    for _ in 0..a.repeat {
+        for &f in &a.faults {
+            if f == Fault::RecorderKill {
+                plan.extend(a.kill_at.iter().map(|&p| (f, Some(p))));
+            } else {
+                plan.push((f, None));
+            }
         }
     }
     let bar = ProgressBar::new(plan.len() as u64);
@@ -152,7 +158,7 @@ pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
             None => name_of(*fault),
         };
         bar.set_message(name.clone());
-        let dir = base.join(&name);
+        let dir = base.join(format!("{k:02}-{name}"));
         std::fs::create_dir_all(&dir)?;
         let domain = a.domain_id + k as u16;
         let report = rt.block_on(run_one(*fault, *point, &dir, domain, a.disk_mb, a.stall_s, &name));

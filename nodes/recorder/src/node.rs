@@ -200,6 +200,9 @@ struct Episode {
     prior_parts: usize,
     /// Per topic, the newest publish time in the earlier parts: what is not newer is in them.
     resume_after: BTreeMap<String, i64>,
+    /// The Start's stamp (the loop's first tick, on the rig's clock): frames captured more than
+    /// [`PREROLL_NS`] before it are not the episode's.
+    first_tick_ns: i64,
 }
 
 impl Episode {
@@ -471,7 +474,8 @@ impl Recorder {
         for e in &buffered {
             let topic = topics::camera_image(&e.camera);
             let in_earlier = ep.resume_after.get(&topic).is_some_and(|&t| e.capture_ns <= t);
-            if in_earlier || ep.closing.is_some_and(|c| e.publish_ns > c.sent_before_ns) {
+            let before_start = e.capture_ns < ep.first_tick_ns - PREROLL_NS;
+            if in_earlier || before_start || ep.closing.is_some_and(|c| e.publish_ns > c.sent_before_ns) {
                 continue;
             }
             if let Err(err) = write_image(ep, e, now) {
@@ -721,7 +725,7 @@ impl Recorder {
         let staging = self.cfg.root.join(".recording").join(sanitize(&meta.uuid));
         let parts = labrig_episode::episode::part_files(&staging).unwrap_or_default();
         if !parts.is_empty() {
-            return self.continue_episode(staging, meta, sent_ns);
+            return self.continue_episode(staging, meta, sent_ns, Nanos::from(ev.header.stamp).0);
         }
         let mut writer = EpisodeWriter::create(&staging, meta)?;
         for r in self.topics.iter().filter(|r| r.spec.latched) {
@@ -749,6 +753,7 @@ impl Recorder {
             prior_steps: 0,
             prior_parts: 0,
             resume_after: BTreeMap::new(),
+            first_tick_ns: Nanos::from(ev.header.stamp).0,
         };
         // The first step's frames were published before the Start (the loop announces an
         // episode on its first tick): the frames kept while idle go in when they belong to
@@ -771,6 +776,7 @@ impl Recorder {
         staging: PathBuf,
         meta: EpisodeMetadata,
         sent_ns: i64,
+        first_tick_ns: i64,
     ) -> Result<Episode, EpisodeError> {
         let recovered = labrig_episode::recover::recover_in_place(&staging)?;
         let infos: Vec<BagInfo> = recovered.parts.iter().map(|p| p.info.clone()).collect();
@@ -799,6 +805,7 @@ impl Recorder {
             prior_steps,
             prior_parts: infos.len(),
             resume_after,
+            first_tick_ns,
         })
     }
 
