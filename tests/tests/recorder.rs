@@ -418,3 +418,57 @@ fn an_episode_in_two_parts_reads_as_one_with_its_gap_named() {
     assert_eq!(v["rosbags_dir"], expected, "rosbags on the directory (metadata.yaml lists both): {v}");
     assert_eq!(v["rosbags_file"], expected, "rosbags on the two files: {v}");
 }
+
+/// A staging directory a dead recorder left, whose episode nobody speaks for (no loop on the
+/// domain): the next recorder recovers it (every closed chunk) and files it where the
+/// operator looks — `failure/`, complete, `success` unknown and `recovered` saying why —
+/// leaving nothing in `.recording/`.
+#[test]
+fn a_dead_recorders_episode_is_recovered_and_filed_unjudged_on_restart() {
+    let root = tempfile::tempdir().unwrap();
+    let meta = EpisodeMetadata::new(&RigIdentity::default(), "pick_place_cube", "left behind", Nanos(T0));
+    let staging = root.path().join(".recording").join("LABRIG+operator+left");
+    let mut w = EpisodeWriter::create(&staging, meta.clone()).unwrap();
+    for k in 0..40i64 {
+        let t = T0 + k * TICK;
+        let step = Step { header: header(t, "base"), step_index: k as u64, ..Default::default() };
+        w.write("/rig/step", &step, Nanos(t + 1_000), Nanos(t), Reliability::Reliable).unwrap();
+    }
+    std::mem::forget(w); // killed: no summary, the open chunk lost
+    let domain = labrig_tests::domain_for("recorder_orphan_unjudged");
+    let mut rec = Command::new(labrig_tests::workspace_bin("labrig-recorder", "labrig-recorder"));
+    rec.args(["run", "--domain-id", &domain.to_string(), "--set", "rejoin_wait_s=1", "--root"])
+        .arg(root.path())
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("orphan_{}", std::process::id()));
+    let _rec = labrig_tests::Proc::spawn("labrig-recorder run", rec);
+    let failure = root.path().join("failure");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    let dir = loop {
+        let filed = std::fs::read_dir(&failure)
+            .ok()
+            .and_then(|mut days| days.next())
+            .and_then(|d| std::fs::read_dir(d.unwrap().path()).ok()?.next())
+            .map(|e| e.unwrap().path());
+        if let Some(d) = filed {
+            break d;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "never filed: {:?}",
+            std::fs::read_dir(root.path().join(".recording"))
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    assert!(!staging.exists(), "moved out of .recording");
+    let (_, v) = inspect(&dir);
+    assert_eq!(v["complete"], true, "{v}");
+    let flags = v["flags"].as_array().unwrap();
+    assert!(flags.iter().all(|f| f.as_str().unwrap().starts_with("no camera frames")), "recovered and whole: {v}");
+    let steps = v["steps"].as_u64().unwrap();
+    assert!((30..40).contains(&steps), "the closed chunks' steps: {steps}");
+    assert_eq!(v["metadata"]["success"], Value::Null, "unjudged: {v}");
+    assert!(v["metadata"]["recovered"].as_str().unwrap().contains("unjudged"), "{v}");
+    assert_eq!(v["metadata"]["uuid"], meta.uuid.as_str());
+    let py = labrig_tests::read_episode_with_python(&dir);
+    assert_eq!(py["rosbags_dir"]["/rig/step"], steps, "{py}");
+}
