@@ -170,6 +170,52 @@ fi
 mkdir -p "$REPO_DIR/.labrig"
 ln -sfn "$MJ_DIR" "$REPO_DIR/.labrig/mujoco"
 
+# For the policies (policies/, issue 17): libtorch for tch 0.26.0 (PyTorch 2.13.0), assembled
+# from PyPI wheels (tch's own download host is unreachable here): the torch wheel's headers and
+# CPU libraries, and the two CUDA runtime libraries libtorch_cpu links against, in the wheels'
+# layout (torch/ beside nvidia/, which libtorch_cpu's $ORIGIN rpath expects). ~490 MB.
+TORCH_DIR="$LABRIG_CACHE/libtorch"
+TORCH_STAMP="$TORCH_DIR/.labrig-stamp"
+TORCH_WANT="torch==2.13.0 nvidia-cuda-runtime==13.0.96 nvidia-cuda-cupti==13.0.85"
+if [ ! -f "$TORCH_STAMP" ] || [ "$(cat "$TORCH_STAMP")" != "$TORCH_WANT" ]; then
+    log "assembling libtorch (PyTorch 2.13.0, CPU) from PyPI wheels into $TORCH_DIR"
+    rm -rf "$TORCH_DIR"
+    mkdir -p "$TORCH_DIR/wheels"
+    # shellcheck disable=SC2086
+    "$VENV/bin/python" -m pip download -q --disable-pip-version-check --no-deps \
+        --only-binary=:all: --python-version 3.11 --platform manylinux_2_28_x86_64 \
+        --platform manylinux_2_25_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+        -d "$TORCH_DIR/wheels" $TORCH_WANT
+    "$VENV/bin/python" - "$TORCH_DIR" <<'PY'
+import pathlib, re, sys, zipfile
+root = pathlib.Path(sys.argv[1])
+keep = [
+    r"torch/include/.*[^/]",
+    r"torch/lib/(libtorch_cpu|libc10|libtorch)\.so",
+    r"torch/lib/libgomp[^/]*\.so[.0-9]*",
+    r"nvidia/cu13/lib/lib(cudart|cupti)\.so\.13",
+]
+for wheel in (root / "wheels").glob("*.whl"):
+    with zipfile.ZipFile(wheel) as z:
+        for info in z.infolist():
+            if any(re.fullmatch(k, info.filename) for k in keep):
+                out = root / info.filename
+                out.parent.mkdir(parents=True, exist_ok=True)
+                out.write_bytes(z.read(info))
+(root / "torch/build-version").write_text("2.13.0+cu130")
+for lib in ["libtorch_cpu.so", "libc10.so", "libtorch.so"]:
+    assert (root / "torch/lib" / lib).is_file(), f"{lib} missing from the torch wheel"
+PY
+    # libtorch_cpu asks for libgomp by its soname.
+    for g in "$TORCH_DIR"/torch/lib/libgomp*.so*; do
+        [ -e "$TORCH_DIR/torch/lib/libgomp.so.1" ] || ln -sf "$(basename "$g")" "$TORCH_DIR/torch/lib/libgomp.so.1"
+    done
+    rm -rf "$TORCH_DIR/wheels"
+    printf '%s' "$TORCH_WANT" > "$TORCH_STAMP"
+fi
+# torch-sys finds it through .cargo/config.toml (LIBTORCH), which points at this link.
+ln -sfn "$TORCH_DIR" "$REPO_DIR/.labrig/libtorch"
+
 # ---------------------------------------------------------------- tool venvs
 # A venv of its own per Python tool, its wheels kept in a wheelhouse (re-creating it needs no
 # network), re-made when the requirements or the Python change:
@@ -228,6 +274,7 @@ export LABRIG_ROS_PYTHON=\"$VENV/bin/python\"
 export FASTDDS_DEFAULT_PROFILES_FILE=\"$XML\"
 export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 export LABRIG_MUJOCO_DIR=\"$MJ_DIR\"
+export LABRIG_LIBTORCH=\"$TORCH_DIR/torch\"
 export LABRIG_FRANKA_SIM_PYTHON=\"$FS_VENV/bin/python\"
 export FR3_MJCF=\"$FS_MJCF\"
 export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"

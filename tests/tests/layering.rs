@@ -97,6 +97,7 @@ fn the_check_sees_real_dependencies() {
     assert!(deps("labrig-runtime").iter().any(|d| d == "rustdds"));
     assert!(deps("labrig-sim").iter().any(|d| matches(d, MUJOCO)));
     assert!(deps("labrig-droid").iter().any(|d| d == "hdf5-metno-sys"), "the guard sees hdf5");
+    assert!(deps("labrig-policies").iter().any(|d| d == "torch-sys"), "the guard sees libtorch");
 }
 
 #[test]
