@@ -8,15 +8,18 @@
 //!   inference (epsilon prediction, clipped samples, eta 0, "leading" timesteps);
 //! - [`normalize`]: min-max normalisation of actions and low-dimensional observations to
 //!   [-1, 1] from the training data's statistics;
-//! - [`spatial_softmax`]: the image encoder's keypoint head (robomimic's SpatialSoftmax).
+//! - [`spatial_softmax`]: the image encoder's keypoint head (robomimic's SpatialSoftmax);
+//! - [`encoder`]: one camera's encoder, the GroupNorm ResNet-18 trunk + keypoints + Linear,
+//!   with LeRobot's parameter names.
 //!
-//! To come: the GroupNorm ResNet-18 encoder, the conditional 1-D U-Net, checkpoints
+//! To come: the conditional 1-D U-Net, checkpoints
 //! (safetensors), the trainer with the co-training sampler (`labrig train`) and the LeRobot
 //! fixture comparison.
 //!
 //! The only crate that links libtorch besides the policy server (checked by
 //! `tests/tests/layering.rs`).
 
+pub mod encoder;
 pub mod normalize;
 pub mod schedule;
 pub mod spatial_softmax;
