@@ -10,9 +10,11 @@
 //!   [-1, 1] from the training data's statistics;
 //! - [`spatial_softmax`]: the image encoder's keypoint head (robomimic's SpatialSoftmax);
 //! - [`encoder`]: one camera's encoder, the GroupNorm ResNet-18 trunk + keypoints + Linear,
-//!   with LeRobot's parameter names.
+//!   with LeRobot's parameter names;
+//! - [`unet`]: the noise network, a 1-D U-Net over the action chunk with FiLM conditioning on
+//!   the diffusion step and the observation features, with LeRobot's parameter names.
 //!
-//! To come: the conditional 1-D U-Net, checkpoints
+//! To come: the policy putting them together, checkpoints
 //! (safetensors), the trainer with the co-training sampler (`labrig train`) and the LeRobot
 //! fixture comparison.
 //!
@@ -23,3 +25,4 @@ pub mod encoder;
 pub mod normalize;
 pub mod schedule;
 pub mod spatial_softmax;
+pub mod unet;
