@@ -14,7 +14,10 @@
 //! - [`unet`]: the noise network, a 1-D U-Net over the action chunk with FiLM conditioning on
 //!   the diffusion step and the observation features, with LeRobot's parameter names.
 //!
-//! To come: the policy putting them together, checkpoints
+//! - [`policy`]: the policy assembled (observation -> conditioning, training's loss, DDIM
+//!   sampling of a chunk), with the paper's and a small preset.
+//!
+//! To come: checkpoints
 //! (safetensors), the trainer with the co-training sampler (`labrig train`) and the LeRobot
 //! fixture comparison.
 //!
@@ -23,6 +26,7 @@
 
 pub mod encoder;
 pub mod normalize;
+pub mod policy;
 pub mod schedule;
 pub mod spatial_softmax;
 pub mod unet;

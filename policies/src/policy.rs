@@ -1,0 +1,304 @@
+//! The Diffusion Policy assembled (LeRobot's `DiffusionModel`): one [`RgbEncoder`] per camera,
+//! the observation of `To` steps as global conditioning, the [`ConditionalUnet1d`] noise
+//! network, training's noise-prediction loss and inference's DDIM sampling of a `Tp`-step chunk
+//! of which `Ta` steps are executed.
+//!
+//! Tensors use LeRobot's layouts: images (B, To, 3, H, W) in [0, 1] per camera, the low-dim
+//! state (B, To, state_dim) and actions (B, Tp, action_dim) already normalised (see
+//! [`crate::normalize`]).
+
+use crate::encoder::RgbEncoder;
+use crate::schedule::{Ddim, NoiseSchedule, ScheduleError};
+use crate::unet::{ConditionalUnet1d, UnetConfig};
+use tch::nn::{self, Module};
+use tch::{Kind, Tensor};
+
+/// Every number of the model (the presets are [`DiffusionConfig::paper_dp`] and
+/// [`DiffusionConfig::small`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiffusionConfig {
+    /// Cameras whose images are observed, one encoder each (the paper: the two shoulder ones).
+    pub cameras: Vec<String>,
+    /// Images are resized to this square before cropping.
+    pub image_size: i64,
+    /// The crop taken from it: random in training, centred at inference.
+    pub crop_size: i64,
+    pub keypoints: i64,
+    pub state_dim: i64,
+    pub action_dim: i64,
+    /// To, Tp, Ta.
+    pub n_obs_steps: i64,
+    pub horizon: i64,
+    pub n_action_steps: i64,
+    pub down_dims: Vec<i64>,
+    pub kernel_size: i64,
+    pub n_groups: i64,
+    pub step_embed_dim: i64,
+    pub film_scale: bool,
+    pub train_steps: usize,
+    pub inference_steps: usize,
+    /// Predicted clean samples clipped to [-clip, clip].
+    pub clip: Option<f64>,
+}
+
+impl DiffusionConfig {
+    /// The paper's model: two shoulder cameras at 128x128 with a 90% crop, end-effector pose
+    /// (3 + quaternion 4) as state, 7-d actions, To 2, Tp 16, Ta 8, U-Net 256/512/1024, kernel
+    /// 5, 8 groups, step embedding 256, FiLM, 100 training steps, DDIM 16.
+    pub fn paper_dp() -> DiffusionConfig {
+        DiffusionConfig {
+            cameras: vec!["ext1".into(), "ext2".into()],
+            image_size: 128,
+            crop_size: 115,
+            keypoints: 32,
+            state_dim: 7,
+            action_dim: 7,
+            n_obs_steps: 2,
+            horizon: 16,
+            n_action_steps: 8,
+            down_dims: vec![256, 512, 1024],
+            kernel_size: 5,
+            n_groups: 8,
+            step_embed_dim: 256,
+            film_scale: true,
+            train_steps: 100,
+            inference_steps: 16,
+            clip: Some(1.0),
+        }
+    }
+
+    /// For this 2-core CPU: one camera at 64x64, a U-Net of 64/128/256, step embedding 64.
+    pub fn small() -> DiffusionConfig {
+        DiffusionConfig {
+            cameras: vec!["ext1".into()],
+            image_size: 64,
+            crop_size: 58,
+            down_dims: vec![64, 128, 256],
+            step_embed_dim: 64,
+            ..DiffusionConfig::paper_dp()
+        }
+    }
+
+    /// Width of the global conditioning: To x (state + 2 x keypoints per camera).
+    pub fn global_cond_dim(&self) -> i64 {
+        self.n_obs_steps * (self.state_dim + 2 * self.keypoints * self.cameras.len() as i64)
+    }
+
+    fn unet(&self) -> UnetConfig {
+        UnetConfig {
+            action_dim: self.action_dim,
+            global_cond_dim: self.global_cond_dim(),
+            down_dims: self.down_dims.clone(),
+            kernel_size: self.kernel_size,
+            n_groups: self.n_groups,
+            step_embed_dim: self.step_embed_dim,
+            film_scale: self.film_scale,
+        }
+    }
+}
+
+/// What a policy's input must look like, when it does not.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PolicyError {
+    #[error("{what}: expected shape {want:?}, got {got:?}")]
+    Shape { what: String, want: Vec<i64>, got: Vec<i64> },
+    #[error("{given} camera image tensors for {wanted} cameras")]
+    Cameras { given: usize, wanted: usize },
+    #[error(transparent)]
+    Schedule(#[from] ScheduleError),
+}
+
+/// The model with its weights (in the `VarStore` it was made in).
+#[derive(Debug)]
+pub struct DiffusionPolicy {
+    cfg: DiffusionConfig,
+    encoders: Vec<RgbEncoder>,
+    unet: ConditionalUnet1d,
+    schedule: NoiseSchedule,
+    ddim: Ddim,
+}
+
+impl DiffusionPolicy {
+    /// LeRobot's names: `rgb_encoder.<k>.*` per camera, `unet.*`.
+    pub fn new(vs: nn::Path<'_>, cfg: DiffusionConfig) -> Result<DiffusionPolicy, PolicyError> {
+        let encoders = (0..cfg.cameras.len())
+            .map(|k| RgbEncoder::new(&vs / "rgb_encoder" / k.to_string(), cfg.keypoints))
+            .collect();
+        let unet = ConditionalUnet1d::new(&vs / "unet", &cfg.unet());
+        let schedule = NoiseSchedule::squared_cosine(cfg.train_steps)?;
+        let ddim = Ddim::new(schedule.clone(), cfg.inference_steps, cfg.clip)?;
+        Ok(DiffusionPolicy { cfg, encoders, unet, schedule, ddim })
+    }
+
+    pub fn config(&self) -> &DiffusionConfig {
+        &self.cfg
+    }
+
+    fn expect(what: &str, t: &Tensor, want: &[i64]) -> Result<(), PolicyError> {
+        let got = t.size();
+        let ok = got.len() == want.len() && got.iter().zip(want).all(|(g, w)| *w < 0 || g == w);
+        if ok { Ok(()) } else { Err(PolicyError::Shape { what: what.to_owned(), want: want.to_vec(), got }) }
+    }
+
+    /// Crops (B*, 3, S, S) images to `crop_size`: at random offsets in training (one per
+    /// image), centred otherwise.
+    fn crop(&self, images: &Tensor, train: bool) -> Tensor {
+        let (size, crop) = (self.cfg.image_size, self.cfg.crop_size);
+        if crop >= size {
+            return images.shallow_clone();
+        }
+        if !train {
+            let off = (size - crop) / 2;
+            return images.narrow(2, off, crop).narrow(3, off, crop);
+        }
+        let n = images.size()[0];
+        let offs = Tensor::randint(size - crop + 1, [n, 2], (Kind::Int64, images.device()));
+        let crops: Vec<Tensor> = (0..n)
+            .map(|i| {
+                let (r, c) = (offs.int64_value(&[i, 0]), offs.int64_value(&[i, 1]));
+                images.get(i).narrow(1, r, crop).narrow(2, c, crop)
+            })
+            .collect();
+        Tensor::stack(&crops, 0)
+    }
+
+    /// The observation as the U-Net's conditioning: per step [state, camera 0's features, ...],
+    /// the `To` steps concatenated: (B, global_cond_dim).
+    pub fn global_cond(&self, images: &[Tensor], state: &Tensor, train: bool) -> Result<Tensor, PolicyError> {
+        let c = &self.cfg;
+        if images.len() != self.encoders.len() {
+            return Err(PolicyError::Cameras { given: images.len(), wanted: self.encoders.len() });
+        }
+        Self::expect("observation.state", state, &[-1, c.n_obs_steps, c.state_dim])?;
+        let b = state.size()[0];
+        let mut per_step = vec![state.shallow_clone()];
+        for (k, (enc, img)) in self.encoders.iter().zip(images).enumerate() {
+            Self::expect(
+                &format!("observation.images.{}", c.cameras[k]),
+                img,
+                &[b, c.n_obs_steps, 3, c.image_size, c.image_size],
+            )?;
+            let flat = img.reshape([b * c.n_obs_steps, 3, c.image_size, c.image_size]);
+            let features = enc.forward(&self.crop(&flat, train));
+            per_step.push(features.reshape([b, c.n_obs_steps, -1]));
+        }
+        Ok(Tensor::cat(&per_step, -1).flatten(1, -1))
+    }
+
+    /// Training's loss for a batch: the noise added at timesteps `t` (B) to the action chunk
+    /// (B, Tp, action_dim), predicted by the U-Net; mean squared error.
+    pub fn loss(
+        &self,
+        images: &[Tensor],
+        state: &Tensor,
+        actions: &Tensor,
+        noise: &Tensor,
+        t: &[i64],
+    ) -> Result<Tensor, PolicyError> {
+        let c = &self.cfg;
+        Self::expect("action", actions, &[-1, c.horizon, c.action_dim])?;
+        let cond = self.global_cond(images, state, true)?;
+        let noisy = self.schedule.add_noise(actions, noise, t)?;
+        let pred = self.unet.forward(&noisy, &Tensor::from_slice(t).to_device(actions.device()), &cond);
+        Ok(pred.mse_loss(noise, tch::Reduction::Mean))
+    }
+
+    /// One action chunk (B, Tp, action_dim), normalised, from the initial `noise` (DDIM,
+    /// deterministic given it). The executed actions are [`DiffusionPolicy::executed`].
+    pub fn sample(&self, images: &[Tensor], state: &Tensor, noise: &Tensor) -> Result<Tensor, PolicyError> {
+        let c = &self.cfg;
+        Self::expect("noise", noise, &[-1, c.horizon, c.action_dim])?;
+        let cond = self.global_cond(images, state, false)?;
+        let b = noise.size()[0];
+        Ok(self
+            .ddim
+            .sample(noise, |x, t| self.unet.forward(x, &Tensor::full([b], t, (Kind::Int64, noise.device())), &cond))?)
+    }
+
+    /// The `Ta` steps a chunk executes: from the last observed step on.
+    pub fn executed(&self, chunk: &Tensor) -> Tensor {
+        chunk.narrow(1, self.cfg.n_obs_steps - 1, self.cfg.n_action_steps)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::Device;
+    use tch::nn::OptimizerConfig;
+
+    fn tiny() -> DiffusionConfig {
+        DiffusionConfig {
+            image_size: 32,
+            crop_size: 28,
+            keypoints: 8,
+            down_dims: vec![16, 32],
+            step_embed_dim: 16,
+            ..DiffusionConfig::small()
+        }
+    }
+
+    fn batch(cfg: &DiffusionConfig, b: i64) -> (Vec<Tensor>, Tensor, Tensor) {
+        let images = cfg
+            .cameras
+            .iter()
+            .map(|_| Tensor::rand([b, cfg.n_obs_steps, 3, cfg.image_size, cfg.image_size], (Kind::Float, Device::Cpu)))
+            .collect();
+        let state = Tensor::rand([b, cfg.n_obs_steps, cfg.state_dim], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        let actions = Tensor::rand([b, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        (images, state, actions)
+    }
+
+    #[test]
+    fn presets_have_the_papers_numbers() {
+        let p = DiffusionConfig::paper_dp();
+        assert_eq!((p.n_obs_steps, p.horizon, p.n_action_steps), (2, 16, 8));
+        assert_eq!(p.down_dims, [256, 512, 1024]);
+        assert_eq!(p.global_cond_dim(), 2 * (7 + 2 * 64));
+        assert_eq!(p.crop_size as f64 / p.image_size as f64, 115.0 / 128.0);
+        assert_eq!(DiffusionConfig::small().global_cond_dim(), 2 * (7 + 64));
+    }
+
+    /// Sampling is deterministic given the initial noise, has the chunk's shape, stays inside
+    /// [-1, 1] (clipping), and executes Ta steps from the last observed one.
+    #[test]
+    fn a_chunk_is_sampled_deterministically_from_its_noise() {
+        tch::manual_seed(3);
+        let cfg = tiny();
+        let vs = nn::VarStore::new(Device::Cpu);
+        let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
+        let (images, state, _) = batch(&cfg, 2);
+        let noise = Tensor::randn([2, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let a = tch::no_grad(|| policy.sample(&images, &state, &noise)).unwrap();
+        let b = tch::no_grad(|| policy.sample(&images, &state, &noise)).unwrap();
+        assert_eq!(a.size(), [2, 16, 7]);
+        assert_eq!((&a - &b).abs().max().double_value(&[]), 0.0);
+        assert!(a.abs().max().double_value(&[]) <= 1.0 + 1e-6);
+        assert_eq!(policy.executed(&a).size(), [2, 8, 7]);
+        // Wrong shapes are named, not panics.
+        let err = policy.sample(&images, &state.narrow(1, 0, 1), &noise).unwrap_err();
+        assert!(err.to_string().starts_with("observation.state: expected shape [-1, 2, 7]"), "{err}");
+        assert_eq!(policy.sample(&[], &state, &noise).unwrap_err(), PolicyError::Cameras { given: 0, wanted: 1 });
+    }
+
+    /// The model learns: Adam on one fixed batch drives the noise-prediction loss down.
+    #[test]
+    fn training_steps_lower_the_loss_on_a_fixed_batch() {
+        tch::manual_seed(5);
+        let cfg = tiny();
+        let vs = nn::VarStore::new(Device::Cpu);
+        let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
+        let mut opt = nn::Adam { beta1: 0.95, beta2: 0.999, wd: 1e-6, ..Default::default() }.build(&vs, 1e-3).unwrap();
+        let (images, state, actions) = batch(&cfg, 4);
+        let noise = Tensor::randn([4, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let t = [5i64, 30, 60, 95];
+        let first = policy.loss(&images, &state, &actions, &noise, &t).unwrap().double_value(&[]);
+        let mut last = first;
+        for _ in 0..40 {
+            let loss = policy.loss(&images, &state, &actions, &noise, &t).unwrap();
+            opt.backward_step(&loss);
+            last = loss.double_value(&[]);
+        }
+        assert!(last < 0.5 * first, "loss {first:.4} -> {last:.4}");
+    }
+}
