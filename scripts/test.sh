@@ -16,6 +16,9 @@ export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$LABRIG_CACHE/target}"
 export RUST_BACKTRACE=1
 # A test run gains nothing from incremental compilation and its caches cost gigabytes.
 export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
+# The property tests (tests named fuzz*) draw their cases from this seed, so a run is
+# repeatable; explore new cases with another one (PROPTEST_RNG_SEED=$RANDOM bash scripts/test.sh).
+export PROPTEST_RNG_SEED="${PROPTEST_RNG_SEED:-16}"
 
 echo "== build"
 cargo build --workspace --all-targets --locked

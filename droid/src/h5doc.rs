@@ -82,7 +82,16 @@ pub enum H5Error {
     Hdf5 { path: String, what: String, source: hdf5::Error },
     #[error("{path}: dataset `{dataset}` has shape {shape:?} but {values} values")]
     Shape { path: String, dataset: String, shape: Vec<usize>, values: usize },
+    #[error(
+        "{path}: dataset `{dataset}` claims shape {shape:?} ({values} values), more than the {MAX_VALUES} a trajectory holds: a damaged file?"
+    )]
+    TooLarge { path: String, dataset: String, shape: Vec<usize>, values: usize },
 }
+
+/// The most values one dataset may claim before it is read (a DROID trajectory.h5 holds a few
+/// thousand steps of a few dozen numbers; a damaged header can claim 10^10 and the read would
+/// try to allocate them).
+pub const MAX_VALUES: usize = 1 << 26;
 
 fn err(path: &Path, what: impl Into<String>) -> impl FnOnce(hdf5::Error) -> H5Error {
     let path = path.display().to_string();
@@ -203,6 +212,10 @@ fn read_group(group: &hdf5::Group, prefix: &str, doc: &mut H5Doc, path: &Path) -
         let what = format!("reading `{full}`");
         let desc = ds.dtype().and_then(|t| t.to_descriptor()).map_err(err(path, what.clone()))?;
         let shape = ds.shape();
+        let values = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).unwrap_or(usize::MAX);
+        if values > MAX_VALUES {
+            return Err(H5Error::TooLarge { path: path.display().to_string(), dataset: full, shape, values });
+        }
         let data = match desc {
             TypeDescriptor::Float(_) => ds.read_raw::<f64>().map(Data::F64),
             TypeDescriptor::Integer(_) | TypeDescriptor::Unsigned(_) => ds.read_raw::<i64>().map(Data::I64),
@@ -220,6 +233,23 @@ fn read_group(group: &hdf5::Group, prefix: &str, doc: &mut H5Doc, path: &Path) -
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Found by the property tests (a bit flip in a dataset's header): a dataset claiming 10^10
+    /// values made the read allocate 80 GB and abort the process. Refused by name instead.
+    #[test]
+    fn a_dataset_claiming_ten_billion_values_is_refused_not_allocated() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("huge.h5");
+        {
+            let f = hdf5::File::create(&path).unwrap();
+            // Chunked and never written: a small file whose header claims 10^10 values.
+            f.new_dataset::<f64>().chunk(1024).shape(10_000_000_000usize).create("action/huge").unwrap();
+        }
+        assert!(std::fs::metadata(&path).unwrap().len() < 100_000);
+        let e = read(&path).unwrap_err();
+        assert!(matches!(e, H5Error::TooLarge { values: 10_000_000_000, .. }), "{e}");
+        assert!(e.to_string().contains("action/huge") && e.to_string().contains("huge.h5"), "{e}");
+    }
 
     #[test]
     fn a_document_round_trips_bytes_included() {
