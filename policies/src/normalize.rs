@@ -20,7 +20,7 @@ pub enum NormalizeError {
 }
 
 /// Per-dimension minimum and maximum of the training data.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MinMax {
     pub min: Vec<f32>,
     pub max: Vec<f32>,

@@ -15,7 +15,8 @@ use tch::{Kind, Tensor};
 
 /// Every number of the model (the presets are [`DiffusionConfig::paper_dp`] and
 /// [`DiffusionConfig::small`]).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DiffusionConfig {
     /// Cameras whose images are observed, one encoder each (the paper: the two shoulder ones).
     pub cameras: Vec<String>,
