@@ -17,7 +17,10 @@
 //! - [`checkpoint`]: a trained policy on disk (safetensors weights and EMA weights, the
 //!   config, normaliser statistics and data manifest as JSON).
 //!
-//! To come: the trainer with the co-training sampler (`labrig train`), the LeRobot fixture
+//! - [`sampler`]: the paper's co-training sampler (target with probability w, whatever the
+//!   sets' sizes).
+//!
+//! To come: the trainer (`labrig train`), the LeRobot fixture
 //! comparison, `labrig policy infer` and `labrig bench policy`.
 //!
 //! The only crate that links libtorch besides the policy server (checked by
@@ -27,6 +30,7 @@ pub mod checkpoint;
 pub mod encoder;
 pub mod normalize;
 pub mod policy;
+pub mod sampler;
 pub mod schedule;
 pub mod spatial_softmax;
 pub mod unet;
