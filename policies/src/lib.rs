@@ -18,7 +18,9 @@
 //!   config, normaliser statistics and data manifest as JSON).
 //!
 //! - [`sampler`]: the paper's co-training sampler (target with probability w, whatever the
-//!   sets' sizes).
+//!   sets' sizes);
+//! - [`window`]: the training samples of an episode (To observation steps, Tp action steps,
+//!   padded at the ends).
 //!
 //! To come: the trainer (`labrig train`), the LeRobot fixture
 //! comparison, `labrig policy infer` and `labrig bench policy`.
@@ -34,3 +36,4 @@ pub mod sampler;
 pub mod schedule;
 pub mod spatial_softmax;
 pub mod unet;
+pub mod window;
