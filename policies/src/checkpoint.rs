@@ -116,17 +116,6 @@ mod tests {
     use super::*;
     use tch::{Device, Kind, Tensor};
 
-    fn tiny() -> DiffusionConfig {
-        DiffusionConfig {
-            image_size: 32,
-            crop_size: 28,
-            keypoints: 8,
-            down_dims: vec![16, 32],
-            step_embed_dim: 16,
-            ..DiffusionConfig::small()
-        }
-    }
-
     fn meta(config: DiffusionConfig) -> CheckpointMeta {
         CheckpointMeta {
             format: FORMAT,
@@ -145,20 +134,20 @@ mod tests {
         tch::manual_seed(11);
         let dir = tempfile::tempdir().unwrap();
         let vs = VarStore::new(Device::Cpu);
-        let policy = DiffusionPolicy::new(vs.root(), tiny()).unwrap();
+        let policy = DiffusionPolicy::new(vs.root(), DiffusionConfig::tiny()).unwrap();
         let images = vec![Tensor::rand([1, 2, 3, 32, 32], (Kind::Float, Device::Cpu))];
         let state = Tensor::rand([1, 2, 7], (Kind::Float, Device::Cpu));
         let noise = Tensor::randn([1, 16, 7], (Kind::Float, Device::Cpu));
         let chunk = tch::no_grad(|| policy.sample(&images, &state, &noise)).unwrap();
-        save(dir.path(), &meta(tiny()), &vs, None).unwrap();
+        save(dir.path(), &meta(DiffusionConfig::tiny()), &vs, None).unwrap();
         let (_vs2, loaded, m) = load(dir.path(), Device::Cpu).unwrap();
-        assert_eq!(m, meta(tiny()));
+        assert_eq!(m, meta(DiffusionConfig::tiny()));
         let again = tch::no_grad(|| loaded.sample(&images, &state, &noise)).unwrap();
         assert_eq!((&chunk - &again).abs().max().double_value(&[]), 0.0);
         // With EMA weights beside them, those are loaded: other weights, another chunk.
         let ema = VarStore::new(Device::Cpu);
-        let _other = DiffusionPolicy::new(ema.root(), tiny()).unwrap();
-        save(dir.path(), &meta(tiny()), &vs, Some(&ema)).unwrap();
+        let _other = DiffusionPolicy::new(ema.root(), DiffusionConfig::tiny()).unwrap();
+        save(dir.path(), &meta(DiffusionConfig::tiny()), &vs, Some(&ema)).unwrap();
         let (_vs3, from_ema, _) = load(dir.path(), Device::Cpu).unwrap();
         let ema_chunk = tch::no_grad(|| from_ema.sample(&images, &state, &noise)).unwrap();
         assert!((&chunk - &ema_chunk).abs().max().double_value(&[]) > 1e-6);
@@ -170,14 +159,17 @@ mod tests {
         let e = load(dir.path(), Device::Cpu).unwrap_err();
         assert!(e.to_string().contains("checkpoint.json: reading"), "{e}");
         let vs = VarStore::new(Device::Cpu);
-        let _p = DiffusionPolicy::new(vs.root(), tiny()).unwrap();
-        save(dir.path(), &meta(tiny()), &vs, None).unwrap();
+        let _p = DiffusionPolicy::new(vs.root(), DiffusionConfig::tiny()).unwrap();
+        save(dir.path(), &meta(DiffusionConfig::tiny()), &vs, None).unwrap();
         // Weights of another shape than the config says: refused by tch, naming the file.
-        let other = CheckpointMeta { config: DiffusionConfig { keypoints: 4, ..tiny() }, ..meta(tiny()) };
+        let other = CheckpointMeta {
+            config: DiffusionConfig { keypoints: 4, ..DiffusionConfig::tiny() },
+            ..meta(DiffusionConfig::tiny())
+        };
         std::fs::write(dir.path().join(META), serde_json::to_string(&other).unwrap()).unwrap();
         let e = load(dir.path(), Device::Cpu).unwrap_err();
         assert!(e.to_string().contains("model.safetensors: loading the weights"), "{e}");
-        let newer = CheckpointMeta { format: FORMAT + 1, ..meta(tiny()) };
+        let newer = CheckpointMeta { format: FORMAT + 1, ..meta(DiffusionConfig::tiny()) };
         std::fs::write(dir.path().join(META), serde_json::to_string(&newer).unwrap()).unwrap();
         assert!(matches!(load(dir.path(), Device::Cpu).unwrap_err(), CheckpointError::Format { found: 2, .. }));
     }

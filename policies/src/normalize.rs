@@ -2,7 +2,7 @@
 //! training data's statistics (stored in the checkpoint). A dimension whose range is below
 //! [`MIN_RANGE`] (a constant joint, an unused gripper) is left unscaled rather than blown up.
 
-use tch::{Kind, Tensor};
+use tch::Tensor;
 
 /// Dimensions that vary less than this are passed through unscaled.
 pub const MIN_RANGE: f32 = 1e-4;
@@ -92,12 +92,10 @@ impl MinMax {
     }
 }
 
-/// The kind statistics are applied in when a caller has no tensor yet.
-pub const KIND: Kind = Kind::Float;
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tch::Kind;
 
     #[test]
     fn data_maps_to_minus_one_one_and_back() {
@@ -125,7 +123,7 @@ mod tests {
         assert!(matches!(MinMax::fit(nan).unwrap_err(), NormalizeError::NotFinite { row: 1, dim: 1, .. }));
         let mm = MinMax { min: vec![0.0; 3], max: vec![1.0; 3] };
         assert_eq!(
-            mm.normalize(&Tensor::zeros([2, 4], (KIND, tch::Device::Cpu))).unwrap_err(),
+            mm.normalize(&Tensor::zeros([2, 4], (Kind::Float, tch::Device::Cpu))).unwrap_err(),
             NormalizeError::Width { stats: 3, got: 4 }
         );
     }

@@ -222,13 +222,10 @@ impl DiffusionPolicy {
     }
 }
 
+/// A model small enough for unit tests (32x32 images, 8 keypoints, a 16/32 U-Net).
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use tch::Device;
-    use tch::nn::OptimizerConfig;
-
-    fn tiny() -> DiffusionConfig {
+impl DiffusionConfig {
+    pub(crate) fn tiny() -> DiffusionConfig {
         DiffusionConfig {
             image_size: 32,
             crop_size: 28,
@@ -238,6 +235,13 @@ mod tests {
             ..DiffusionConfig::small()
         }
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::Device;
+    use tch::nn::OptimizerConfig;
 
     fn batch(cfg: &DiffusionConfig, b: i64) -> (Vec<Tensor>, Tensor, Tensor) {
         let images = cfg
@@ -265,7 +269,7 @@ mod tests {
     #[test]
     fn a_chunk_is_sampled_deterministically_from_its_noise() {
         tch::manual_seed(3);
-        let cfg = tiny();
+        let cfg = DiffusionConfig::tiny();
         let vs = nn::VarStore::new(Device::Cpu);
         let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
         let (images, state, _) = batch(&cfg, 2);
@@ -286,7 +290,7 @@ mod tests {
     #[test]
     fn training_steps_lower_the_loss_on_a_fixed_batch() {
         tch::manual_seed(5);
-        let cfg = tiny();
+        let cfg = DiffusionConfig::tiny();
         let vs = nn::VarStore::new(Device::Cpu);
         let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
         let mut opt = nn::Adam { beta1: 0.95, beta2: 0.999, wd: 1e-6, ..Default::default() }.build(&vs, 1e-3).unwrap();

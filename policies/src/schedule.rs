@@ -7,7 +7,7 @@
 //! `alphas_cumprod` is a float32 cumulative product), so the same timesteps give the same
 //! coefficients to the last bit.
 
-use tch::{Kind, Tensor};
+use tch::Tensor;
 
 /// A schedule or sampler asked for something it cannot be.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -137,12 +137,10 @@ impl Ddim {
     }
 }
 
-/// The float32 scalar type every coefficient is applied in.
-pub const KIND: Kind = Kind::Float;
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tch::Kind;
 
     #[test]
     fn squared_cosine_betas_follow_the_formula_and_the_cap() {
@@ -187,8 +185,8 @@ mod tests {
         tch::manual_seed(7);
         let s = NoiseSchedule::squared_cosine(100).unwrap();
         let d = Ddim::new(s.clone(), 16, None).unwrap();
-        let x0 = Tensor::rand([3, 16, 7], (KIND, tch::Device::Cpu)) * 1.6 - 0.8;
-        let eps = Tensor::randn([3, 16, 7], (KIND, tch::Device::Cpu));
+        let x0 = Tensor::rand([3, 16, 7], (Kind::Float, tch::Device::Cpu)) * 1.6 - 0.8;
+        let eps = Tensor::randn([3, 16, 7], (Kind::Float, tch::Device::Cpu));
         let mut x = s.add_noise(&x0, &eps, &[90, 90, 90]).unwrap();
         for &t in d.timesteps() {
             x = d.step(&eps, t, &x).unwrap();
@@ -205,7 +203,7 @@ mod tests {
         let d = Ddim::new(s, 100, Some(1.0)).unwrap();
         // At the last step (t = 0 -> abar_prev = 1) the output is the clipped x0 itself.
         let x = Tensor::from_slice(&[5.0f32, -5.0, 0.5]);
-        let out = d.step(&Tensor::zeros([3], (KIND, tch::Device::Cpu)), 0, &x).unwrap();
+        let out = d.step(&Tensor::zeros([3], (Kind::Float, tch::Device::Cpu)), 0, &x).unwrap();
         let v: Vec<f32> = out.try_into().unwrap();
         let a0 = NoiseSchedule::squared_cosine(100).unwrap().alphas_cumprod[0];
         assert_eq!(v[0], 1.0);

@@ -3,8 +3,8 @@
 //! positions, and each keypoint's expected (x, y) on a grid spanning [-1, 1] (x along the
 //! width, y along the height, row-major like numpy's `meshgrid(linspace_w, linspace_h)`).
 
+use tch::Tensor;
 use tch::nn::{self, Module};
-use tch::{Kind, Tensor};
 
 /// The expected (x, y) of each map: `logits` (B, K, H, W) -> (B, K, 2).
 pub fn keypoints(logits: &Tensor) -> Tensor {
@@ -42,18 +42,16 @@ impl Module for SpatialSoftmax {
     }
 }
 
-/// The kind the head runs in.
-pub const KIND: Kind = Kind::Float;
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tch::Kind;
 
     /// A map with one sharp peak puts its keypoint on the peak's grid position.
     #[test]
     fn a_sharp_peak_is_its_keypoint() {
         let (h, w) = (5i64, 9i64);
-        let logits = Tensor::zeros([2, 3, h, w], (KIND, tch::Device::Cpu));
+        let logits = Tensor::zeros([2, 3, h, w], (Kind::Float, tch::Device::Cpu));
         let peaks = [(0, 0, 0, 0), (0, 1, 4, 8), (0, 2, 2, 4), (1, 0, 1, 6), (1, 1, 3, 2), (1, 2, 4, 0)];
         for &(b, k, r, c) in &peaks {
             let _ = logits.get(b).get(k).get(r).get(c).fill_(60.0);
@@ -67,7 +65,7 @@ mod tests {
             assert!((got.0 - x).abs() < 1e-5 && (got.1 - y).abs() < 1e-5, "peak ({r}, {c}): {got:?} vs ({x}, {y})");
         }
         // A flat map's keypoint is the centre.
-        let flat = keypoints(&Tensor::zeros([1, 1, h, w], (KIND, tch::Device::Cpu)));
+        let flat = keypoints(&Tensor::zeros([1, 1, h, w], (Kind::Float, tch::Device::Cpu)));
         assert!(flat.abs().max().double_value(&[]) < 1e-6);
     }
 
@@ -75,7 +73,7 @@ mod tests {
     fn the_head_maps_channels_to_keypoints() {
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let head = SpatialSoftmax::new(vs.root(), 512, 32);
-        let out = head.forward(&Tensor::randn([4, 512, 4, 4], (KIND, tch::Device::Cpu)));
+        let out = head.forward(&Tensor::randn([4, 512, 4, 4], (Kind::Float, tch::Device::Cpu)));
         assert_eq!(out.size(), [4, 32, 2]);
         assert!(out.abs().max().double_value(&[]) <= 1.0 + 1e-6, "inside the grid");
         // LeRobot's parameter names: `nets.weight`, `nets.bias`.

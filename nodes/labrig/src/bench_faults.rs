@@ -257,12 +257,17 @@ fn rig(root: &Path, episodes: u64, recorder_sets: &[&str]) -> anyhow::Result<(La
     let ctl = cfg.node_mut("control").context("no `control` node")?;
     set(&mut ctl.args, "--episodes", &episodes.to_string());
     set(&mut ctl.args, "--clock", "wall");
-    // The camera frames of this rig alone (other rigs may run on the machine).
+    own_frames_namespace(&mut cfg);
+    Ok((cfg, order))
+}
+
+/// The camera frames of this rig alone (other rigs may run on the machine): every node gets
+/// the same fresh namespace.
+fn own_frames_namespace(cfg: &mut LaunchConfig) {
     let ns = format!("faults_{}_{}", std::process::id(), NEXT_RIG.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
     for n in &mut cfg.nodes {
         n.env.insert(labrig_runtime::frames::NAMESPACE_ENV.into(), ns.clone());
     }
-    Ok((cfg, order))
 }
 
 /// The DROID rig's layout in the sim (sim_droid.toml): the bridge as hardware under /sim
@@ -308,10 +313,7 @@ health = "/control/status"
         root.display()
     );
     let (mut cfg, order) = LaunchConfig::parse(&text, Path::new("<bench faults>"))?;
-    let ns = format!("faults_{}_{}", std::process::id(), NEXT_RIG.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
-    for n in &mut cfg.nodes {
-        n.env.insert(labrig_runtime::frames::NAMESPACE_ENV.into(), ns.clone());
-    }
+    own_frames_namespace(&mut cfg);
     Ok((cfg, order))
 }
 

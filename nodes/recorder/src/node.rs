@@ -206,6 +206,31 @@ struct Episode {
 }
 
 impl Episode {
+    /// A part written from now on, with no earlier parts (a continuation sets them).
+    fn new(writer: EpisodeWriter, staging: PathBuf, opened_ns: i64, first_tick_ns: i64) -> Episode {
+        Episode {
+            uuid: writer.metadata().uuid.clone(),
+            writer,
+            staging,
+            started: Instant::now(),
+            frames: 0,
+            opened_ns,
+            closing: None,
+            prior_steps: 0,
+            prior_parts: 0,
+            resume_after: BTreeMap::new(),
+            first_tick_ns,
+        }
+    }
+
+    /// Whether a camera frame belongs in this part: not in an earlier part (by capture time,
+    /// the frames' publish time in the file), not sent after the end event. Frames are stamped
+    /// on the rig's clock (the sim's, in a simulation), so the Start's wall time is no bound.
+    fn takes_frame(&self, camera: &str, capture_ns: i64, publish_ns: i64) -> bool {
+        let in_earlier = self.resume_after.get(&topics::camera_image(camera)).is_some_and(|&t| capture_ns <= t);
+        !in_earlier && self.closing.is_none_or(|c| publish_ns <= c.sent_before_ns)
+    }
+
     /// Whether a message published at `publish_ns` on `topic` belongs in this part.
     fn takes(&self, topic: &str, publish_ns: i64) -> bool {
         publish_ns >= self.opened_ns
@@ -472,10 +497,8 @@ impl Recorder {
         let now = Clock::Wall.now().0;
         let mut written = 0;
         for e in &buffered {
-            let topic = topics::camera_image(&e.camera);
-            let in_earlier = ep.resume_after.get(&topic).is_some_and(|&t| e.capture_ns <= t);
             let before_start = e.capture_ns < ep.first_tick_ns - PREROLL_NS;
-            if in_earlier || before_start || ep.closing.is_some_and(|c| e.publish_ns > c.sent_before_ns) {
+            if before_start || !ep.takes_frame(&e.camera, e.capture_ns, e.publish_ns) {
                 continue;
             }
             if let Err(err) = write_image(ep, e, now) {
@@ -742,19 +765,7 @@ impl Recorder {
         {
             tracing::warn!("/rig/episode: {e}");
         }
-        let mut ep = Episode {
-            uuid: writer.metadata().uuid.clone(),
-            writer,
-            staging,
-            started: Instant::now(),
-            frames: 0,
-            opened_ns: sent_ns,
-            closing: None,
-            prior_steps: 0,
-            prior_parts: 0,
-            resume_after: BTreeMap::new(),
-            first_tick_ns: Nanos::from(ev.header.stamp).0,
-        };
+        let mut ep = Episode::new(writer, staging, sent_ns, Nanos::from(ev.header.stamp).0);
         // The first step's frames were published before the Start (the loop announces an
         // episode on its first tick): the frames kept while idle go in when they belong to
         // that tick.
@@ -792,21 +803,10 @@ impl Recorder {
             dir = %staging.display(), parts = infos.len(), steps = prior_steps,
             "a dead recorder's episode is still in progress: recovered, recording its next part"
         );
-        let writer = EpisodeWriter::create_part(&staging, meta.clone(), infos.clone())?;
+        let prior_parts = infos.len();
+        let writer = EpisodeWriter::create_part(&staging, meta, infos)?;
         self.held.clear();
-        Ok(Episode {
-            uuid: meta.uuid,
-            writer,
-            staging,
-            started: Instant::now(),
-            frames: 0,
-            opened_ns: sent_ns,
-            closing: None,
-            prior_steps,
-            prior_parts: infos.len(),
-            resume_after,
-            first_tick_ns,
-        })
+        Ok(Episode { prior_steps, prior_parts, resume_after, ..Episode::new(writer, staging, sent_ns, first_tick_ns) })
     }
 
     /// Topics and camera frames into the open episode.
@@ -828,11 +828,8 @@ impl Recorder {
                     self.held.insert(camera.clone(), frame);
                     continue;
                 };
-                // Frames are stamped on the rig's clock (the sim's, in a simulation): ended by
-                // their publish time, continued after the last one an earlier part holds.
                 let h = frame.header();
-                let in_earlier = ep.resume_after.get(&topics::camera_image(camera)).is_some_and(|&t| h.capture_ns <= t);
-                if in_earlier || ep.closing.is_some_and(|c| h.publish_ns > c.sent_before_ns) {
+                if !ep.takes_frame(camera, h.capture_ns, h.publish_ns) {
                     continue;
                 }
                 if let Err(e) = write_frame(ep, camera, &frame, self.cfg.jpeg_quality, Clock::Wall.now().0) {
