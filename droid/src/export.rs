@@ -250,7 +250,4 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
     }
 }
 
-/// Every episode under `root` (directories holding an episode file), sorted.
-pub fn find_episodes(root: &Path) -> Vec<PathBuf> {
-    crate::dirs_holding(root, labrig_episode::episode::EPISODE_FILE)
-}
+pub use labrig_episode::episode::find_episodes;

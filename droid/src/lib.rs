@@ -16,28 +16,7 @@ pub mod video;
 
 use std::path::{Path, PathBuf};
 
-/// Every directory under `root` holding `marker` (not looked into further), sorted; hidden
-/// directories (the recorder's `.recording/` staging, a `.partial` export) skipped.
-pub fn dirs_holding(root: &Path, marker: &str) -> Vec<PathBuf> {
-    let mut found = Vec::new();
-    let mut stack = vec![root.to_owned()];
-    while let Some(d) = stack.pop() {
-        if d.join(marker).is_file() {
-            found.push(d);
-            continue;
-        }
-        let Ok(entries) = std::fs::read_dir(&d) else { continue };
-        for e in entries.flatten() {
-            let p = e.path();
-            let hidden = p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with('.'));
-            if p.is_dir() && !hidden {
-                stack.push(p);
-            }
-        }
-    }
-    found.sort();
-    found
-}
+pub use labrig_episode::episode::dirs_holding;
 
 /// Why an export or import failed; every variant names the file or directory.
 #[derive(Debug, thiserror::Error)]

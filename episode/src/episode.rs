@@ -24,6 +24,34 @@ pub fn part_file(k: u32) -> String {
     format!("episode_{k}.mcap")
 }
 
+/// Every directory under `root` holding `marker` (not looked into further), sorted; hidden
+/// directories (the recorder's `.recording/` staging, a `.partial` export) skipped.
+pub fn dirs_holding(root: &Path, marker: &str) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut stack = vec![root.to_owned()];
+    while let Some(d) = stack.pop() {
+        if d.join(marker).is_file() {
+            found.push(d);
+            continue;
+        }
+        let Ok(entries) = std::fs::read_dir(&d) else { continue };
+        for e in entries.flatten() {
+            let p = e.path();
+            let hidden = p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with('.'));
+            if p.is_dir() && !hidden {
+                stack.push(p);
+            }
+        }
+    }
+    found.sort();
+    found
+}
+
+/// The episode directories under `root` (each holding an `episode_0.mcap`), sorted.
+pub fn find_episodes(root: &Path) -> Vec<PathBuf> {
+    dirs_holding(root, EPISODE_FILE)
+}
+
 /// The parts of the episode in `dir`, in order (`episode_0.mcap`, `episode_1.mcap`, ...).
 pub fn part_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
     let mut parts: Vec<(u32, PathBuf)> = std::fs::read_dir(dir)?

@@ -26,7 +26,8 @@ pub struct Percentiles {
 }
 
 impl Percentiles {
-    fn of(mut v: Vec<f64>) -> Option<Percentiles> {
+    /// The percentiles of `v` (nearest rank); none of an empty set.
+    pub fn of(mut v: Vec<f64>) -> Option<Percentiles> {
         if v.is_empty() {
             return None;
         }

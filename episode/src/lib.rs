@@ -14,6 +14,7 @@
 pub mod bag;
 mod chunk;
 pub mod episode;
+pub mod font;
 pub mod inspect;
 pub mod jpeg;
 pub mod metadata;

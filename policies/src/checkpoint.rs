@@ -10,6 +10,7 @@
 use crate::normalize::MinMax;
 use crate::policy::{DiffusionConfig, DiffusionPolicy, PolicyError};
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use tch::nn::VarStore;
 
@@ -47,6 +48,16 @@ pub enum CheckpointError {
     Policy(#[from] PolicyError),
 }
 
+/// A camera's per-channel image statistics: x -> (x - mean) / (std + eps).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MeanStd {
+    pub mean: [f32; 3],
+    pub std: [f32; 3],
+    /// Added to `std` (in f32) before dividing: LeRobot's 1e-8.
+    #[serde(default)]
+    pub eps: f32,
+}
+
 /// Everything but the weights.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CheckpointMeta {
@@ -54,6 +65,10 @@ pub struct CheckpointMeta {
     pub config: DiffusionConfig,
     pub action_stats: MinMax,
     pub state_stats: MinMax,
+    /// Per camera, the images' mean-std normalisation (LeRobot's; labrig's own training feeds
+    /// images in [0, 1] and leaves this empty).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub image_stats: BTreeMap<String, MeanStd>,
     /// The episodes trained on (DROID uuids), target then co-training set.
     pub manifest: Vec<String>,
     pub step: u64,
@@ -120,8 +135,9 @@ mod tests {
         CheckpointMeta {
             format: FORMAT,
             config,
-            action_stats: MinMax { min: vec![-1.0; 7], max: vec![1.0; 7] },
-            state_stats: MinMax { min: vec![0.0; 7], max: vec![2.0; 7] },
+            action_stats: MinMax { min: vec![-1.0; 7], max: vec![1.0; 7], zero_range_eps: None },
+            state_stats: MinMax { min: vec![0.0; 7], max: vec![2.0; 7], zero_range_eps: None },
+            image_stats: BTreeMap::new(),
             manifest: vec!["LABRIG+operator+2026-11-24-22h-04m-49s".into()],
             step: 1200,
         }

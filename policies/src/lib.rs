@@ -28,12 +28,17 @@
 //! The only crate that links libtorch besides the policy server (checked by
 //! `tests/tests/layering.rs`).
 
+pub mod bench;
 pub mod checkpoint;
+pub mod data;
 pub mod encoder;
+pub mod infer;
+pub mod lerobot;
 pub mod normalize;
 pub mod policy;
 pub mod sampler;
 pub mod schedule;
 pub mod spatial_softmax;
+pub mod train;
 pub mod unet;
 pub mod window;

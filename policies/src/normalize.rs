@@ -1,6 +1,10 @@
 //! Min-max normalisation of actions and low-dimensional observations to [-1, 1] from the
 //! training data's statistics (stored in the checkpoint). A dimension whose range is below
 //! [`MIN_RANGE`] (a constant joint, an unused gripper) is left unscaled rather than blown up.
+//!
+//! The arithmetic is LeRobot's (`2 (x - min) / (max - min) - 1` and back), and statistics
+//! imported from LeRobot keep its zero-range rule (divide by its eps instead), so an imported
+//! policy sees exactly the numbers it was trained on.
 
 use tch::Tensor;
 
@@ -24,6 +28,10 @@ pub enum NormalizeError {
 pub struct MinMax {
     pub min: Vec<f32>,
     pub max: Vec<f32>,
+    /// LeRobot's rule for a dimension whose max equals its min: divide by this instead
+    /// (imported statistics). Absent: labrig's rule (range < [`MIN_RANGE`] is unscaled).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub zero_range_eps: Option<f32>,
 }
 
 impl MinMax {
@@ -35,7 +43,7 @@ impl MinMax {
                 return Err(NormalizeError::NotFinite { row, dim, value });
             }
             match &mut stats {
-                None => stats = Some(MinMax { min: values.to_vec(), max: values.to_vec() }),
+                None => stats = Some(MinMax { min: values.to_vec(), max: values.to_vec(), zero_range_eps: None }),
                 Some(s) => {
                     if values.len() != s.min.len() {
                         return Err(NormalizeError::Ragged { row, got: values.len(), want: s.min.len() });
@@ -54,19 +62,24 @@ impl MinMax {
         self.min.len()
     }
 
-    /// y = x * scale + offset per dimension: [min, max] -> [-1, 1], or identity.
+    /// Per dimension the (low, range) of `2 (x - low) / range - 1`: [min, max] -> [-1, 1], or
+    /// (-1, 2), the identity, for a dimension left unscaled.
     fn affine(&self, like: &Tensor) -> (Tensor, Tensor) {
-        let (scale, offset): (Vec<f32>, Vec<f32>) = self
+        let (low, range): (Vec<f32>, Vec<f32>) = self
             .min
             .iter()
             .zip(&self.max)
             .map(|(&lo, &hi)| {
                 let range = hi - lo;
-                if range < MIN_RANGE { (1.0, 0.0) } else { (2.0 / range, -1.0 - 2.0 * lo / range) }
+                match self.zero_range_eps {
+                    Some(eps) => (lo, if range == 0.0 { eps } else { range }),
+                    None if range < MIN_RANGE => (-1.0, 2.0),
+                    None => (lo, range),
+                }
             })
             .unzip();
         let t = |v: Vec<f32>| Tensor::from_slice(&v).to_kind(like.kind()).to_device(like.device());
-        (t(scale), t(offset))
+        (t(low), t(range))
     }
 
     fn check(&self, x: &Tensor) -> Result<(), NormalizeError> {
@@ -80,15 +93,15 @@ impl MinMax {
     /// `x` (any shape, last dimension = the statistics' width) into [-1, 1].
     pub fn normalize(&self, x: &Tensor) -> Result<Tensor, NormalizeError> {
         self.check(x)?;
-        let (scale, offset) = self.affine(x);
-        Ok(x * scale + offset)
+        let (low, range) = self.affine(x);
+        Ok((x - low) * 2.0 / range - 1.0)
     }
 
     /// The inverse of [`MinMax::normalize`] (a policy's actions back to the robot's units).
     pub fn unnormalize(&self, y: &Tensor) -> Result<Tensor, NormalizeError> {
         self.check(y)?;
-        let (scale, offset) = self.affine(y);
-        Ok((y - offset) / scale)
+        let (low, range) = self.affine(y);
+        Ok((y + 1.0) / 2.0 * range + low)
     }
 }
 
@@ -112,6 +125,12 @@ mod tests {
         }
         let back = mm.unnormalize(&y).unwrap();
         assert!((back - &x).abs().max().double_value(&[]) < 1e-5);
+        // LeRobot's rule, for imported statistics: a zero range divides by eps, so the
+        // constant maps to -1 and back to itself.
+        let lerobot = MinMax { min: vec![0.25], max: vec![0.25], zero_range_eps: Some(1e-8) };
+        let y = lerobot.normalize(&Tensor::from_slice(&[0.25f32])).unwrap();
+        assert_eq!(f32::try_from(&y.get(0)).unwrap(), -1.0);
+        assert_eq!(f32::try_from(&lerobot.unnormalize(&Tensor::from_slice(&[0.3f32])).unwrap().get(0)).unwrap(), 0.25);
     }
 
     #[test]
@@ -121,7 +140,7 @@ mod tests {
         assert_eq!(MinMax::fit(ragged).unwrap_err(), NormalizeError::Ragged { row: 1, got: 1, want: 2 });
         let nan: Vec<&[f32]> = vec![&[1.0, 2.0], &[1.0, f32::NAN]];
         assert!(matches!(MinMax::fit(nan).unwrap_err(), NormalizeError::NotFinite { row: 1, dim: 1, .. }));
-        let mm = MinMax { min: vec![0.0; 3], max: vec![1.0; 3] };
+        let mm = MinMax { min: vec![0.0; 3], max: vec![1.0; 3], zero_range_eps: None };
         assert_eq!(
             mm.normalize(&Tensor::zeros([2, 4], (Kind::Float, tch::Device::Cpu))).unwrap_err(),
             NormalizeError::Width { stats: 3, got: 4 }

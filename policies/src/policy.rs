@@ -40,6 +40,22 @@ pub struct DiffusionConfig {
     pub inference_steps: usize,
     /// Predicted clean samples clipped to [-clip, clip].
     pub clip: Option<f64>,
+    /// Which of the recorded `action` keys the policy outputs.
+    #[serde(default)]
+    pub action_space: ActionSpace,
+}
+
+/// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ActionSpace {
+    /// The paper's: the end-effector target position (3) + orientation as an axis-angle
+    /// vector (3) + the gripper position (1) (`cartesian_position`, `gripper_position`).
+    #[default]
+    EefAxisAngle,
+    /// DROID's: the end-effector velocity (3 linear + 3 angular, in [-1, 1]) + the gripper
+    /// position (`cartesian_velocity`, `gripper_position`).
+    CartesianVelocity,
 }
 
 impl DiffusionConfig {
@@ -65,6 +81,7 @@ impl DiffusionConfig {
             train_steps: 100,
             inference_steps: 16,
             clip: Some(1.0),
+            action_space: ActionSpace::EefAxisAngle,
         }
     }
 
@@ -98,6 +115,14 @@ impl DiffusionConfig {
     }
 }
 
+/// torchvision's CenterCrop offset: `int(round((size - crop) / 2))`, Python's round (half to
+/// even), so a crop an odd number of pixels smaller starts where LeRobot's does.
+pub fn centre_offset(size: i64, crop: i64) -> i64 {
+    let d = size - crop;
+    let half = d / 2;
+    if d % 2 == 1 && half % 2 == 1 { half + 1 } else { half }
+}
+
 /// What a policy's input must look like, when it does not.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum PolicyError {
@@ -107,6 +132,19 @@ pub enum PolicyError {
     Cameras { given: usize, wanted: usize },
     #[error(transparent)]
     Schedule(#[from] ScheduleError),
+}
+
+/// A sampled chunk and the stages it went through.
+#[derive(Debug)]
+pub struct Trace {
+    /// Per camera (B, To, features).
+    pub features: Vec<Tensor>,
+    pub global_cond: Tensor,
+    /// The U-Net's noise estimate at the first and the last DDIM timestep (with the timestep).
+    pub eps_first: (i64, Tensor),
+    pub eps_last: (i64, Tensor),
+    /// (B, Tp, action_dim), normalised.
+    pub chunk: Tensor,
 }
 
 /// The model with its weights (in the `VarStore` it was made in).
@@ -149,7 +187,7 @@ impl DiffusionPolicy {
             return images.shallow_clone();
         }
         if !train {
-            let off = (size - crop) / 2;
+            let off = centre_offset(size, crop);
             return images.narrow(2, off, crop).narrow(3, off, crop);
         }
         let n = images.size()[0];
@@ -163,16 +201,14 @@ impl DiffusionPolicy {
         Tensor::stack(&crops, 0)
     }
 
-    /// The observation as the U-Net's conditioning: per step [state, camera 0's features, ...],
-    /// the `To` steps concatenated: (B, global_cond_dim).
-    pub fn global_cond(&self, images: &[Tensor], state: &Tensor, train: bool) -> Result<Tensor, PolicyError> {
+    /// Each camera's features (B, To, 2 x keypoints), its images (B, To, 3, S, S) cropped
+    /// (random crops in training, centred otherwise).
+    pub fn encode(&self, images: &[Tensor], b: i64, train: bool) -> Result<Vec<Tensor>, PolicyError> {
         let c = &self.cfg;
         if images.len() != self.encoders.len() {
             return Err(PolicyError::Cameras { given: images.len(), wanted: self.encoders.len() });
         }
-        Self::expect("observation.state", state, &[-1, c.n_obs_steps, c.state_dim])?;
-        let b = state.size()[0];
-        let mut per_step = vec![state.shallow_clone()];
+        let mut features = Vec::with_capacity(images.len());
         for (k, (enc, img)) in self.encoders.iter().zip(images).enumerate() {
             Self::expect(
                 &format!("observation.images.{}", c.cameras[k]),
@@ -180,14 +216,29 @@ impl DiffusionPolicy {
                 &[b, c.n_obs_steps, 3, c.image_size, c.image_size],
             )?;
             let flat = img.reshape([b * c.n_obs_steps, 3, c.image_size, c.image_size]);
-            let features = enc.forward(&self.crop(&flat, train));
-            per_step.push(features.reshape([b, c.n_obs_steps, -1]));
+            features.push(enc.forward(&self.crop(&flat, train)).reshape([b, c.n_obs_steps, -1]));
         }
-        Ok(Tensor::cat(&per_step, -1).flatten(1, -1))
+        Ok(features)
+    }
+
+    /// The observation as the U-Net's conditioning: per step [state, camera 0's features, ...],
+    /// the `To` steps concatenated: (B, global_cond_dim).
+    pub fn global_cond(&self, images: &[Tensor], state: &Tensor, train: bool) -> Result<Tensor, PolicyError> {
+        let c = &self.cfg;
+        Self::expect("observation.state", state, &[-1, c.n_obs_steps, c.state_dim])?;
+        let features = self.encode(images, state.size()[0], train)?;
+        Ok(Self::cond_of(state, &features))
+    }
+
+    fn cond_of(state: &Tensor, features: &[Tensor]) -> Tensor {
+        let per_step: Vec<Tensor> =
+            std::iter::once(state.shallow_clone()).chain(features.iter().map(Tensor::shallow_clone)).collect();
+        Tensor::cat(&per_step, -1).flatten(1, -1)
     }
 
     /// Training's loss for a batch: the noise added at timesteps `t` (B) to the action chunk
-    /// (B, Tp, action_dim), predicted by the U-Net; mean squared error.
+    /// (B, Tp, action_dim), predicted by the U-Net; mean squared error. `train`: random crops
+    /// (validation takes the centre ones).
     pub fn loss(
         &self,
         images: &[Tensor],
@@ -195,10 +246,11 @@ impl DiffusionPolicy {
         actions: &Tensor,
         noise: &Tensor,
         t: &[i64],
+        train: bool,
     ) -> Result<Tensor, PolicyError> {
         let c = &self.cfg;
         Self::expect("action", actions, &[-1, c.horizon, c.action_dim])?;
-        let cond = self.global_cond(images, state, true)?;
+        let cond = self.global_cond(images, state, train)?;
         let noisy = self.schedule.add_noise(actions, noise, t)?;
         let pred = self.unet.forward(&noisy, &Tensor::from_slice(t).to_device(actions.device()), &cond);
         Ok(pred.mse_loss(noise, tch::Reduction::Mean))
@@ -207,13 +259,33 @@ impl DiffusionPolicy {
     /// One action chunk (B, Tp, action_dim), normalised, from the initial `noise` (DDIM,
     /// deterministic given it). The executed actions are [`DiffusionPolicy::executed`].
     pub fn sample(&self, images: &[Tensor], state: &Tensor, noise: &Tensor) -> Result<Tensor, PolicyError> {
+        Ok(self.sample_traced(images, state, noise)?.chunk)
+    }
+
+    /// [`DiffusionPolicy::sample`] with what happened on the way (to compare stage by stage
+    /// with a reference implementation).
+    pub fn sample_traced(&self, images: &[Tensor], state: &Tensor, noise: &Tensor) -> Result<Trace, PolicyError> {
         let c = &self.cfg;
         Self::expect("noise", noise, &[-1, c.horizon, c.action_dim])?;
-        let cond = self.global_cond(images, state, false)?;
-        let b = noise.size()[0];
-        Ok(self
-            .ddim
-            .sample(noise, |x, t| self.unet.forward(x, &Tensor::full([b], t, (Kind::Int64, noise.device())), &cond))?)
+        Self::expect("observation.state", state, &[noise.size()[0], c.n_obs_steps, c.state_dim])?;
+        let features = self.encode(images, noise.size()[0], false)?;
+        let global_cond = Self::cond_of(state, &features);
+        let (mut first, mut last): (Option<(i64, Tensor)>, Option<(i64, Tensor)>) = (None, None);
+        let chunk = self.ddim.sample(noise, |x, t| {
+            let e = self.denoise(x, t, &global_cond);
+            if first.is_none() {
+                first = Some((t, e.shallow_clone()));
+            }
+            last = Some((t, e.shallow_clone()));
+            e
+        })?;
+        let (eps_first, eps_last) = (first.expect("DDIM takes >= 1 step"), last.expect("DDIM takes >= 1 step"));
+        Ok(Trace { features, global_cond, eps_first, eps_last, chunk })
+    }
+
+    /// The U-Net's noise estimate for `x` at timestep `t` (one DDIM step's network call).
+    pub fn denoise(&self, x: &Tensor, t: i64, global_cond: &Tensor) -> Tensor {
+        self.unet.forward(x, &Tensor::full([x.size()[0]], t, (Kind::Int64, x.device())), global_cond)
     }
 
     /// The `Ta` steps a chunk executes: from the last observed step on.
@@ -264,6 +336,12 @@ mod tests {
         assert_eq!(DiffusionConfig::small().global_cond_dim(), 2 * (7 + 64));
     }
 
+    /// torchvision rounds half to even: 13 -> 6 (128 -> 115), 7 -> 4, 5 -> 2, 8 -> 4.
+    #[test]
+    fn centre_crops_start_where_torchvisions_do() {
+        assert_eq!([(128, 115), (64, 57), (64, 59), (64, 56)].map(|(s, c)| centre_offset(s, c)), [6, 4, 2, 4]);
+    }
+
     /// Sampling is deterministic given the initial noise, has the chunk's shape, stays inside
     /// [-1, 1] (clipping), and executes Ta steps from the last observed one.
     #[test]
@@ -297,10 +375,10 @@ mod tests {
         let (images, state, actions) = batch(&cfg, 4);
         let noise = Tensor::randn([4, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
         let t = [5i64, 30, 60, 95];
-        let first = policy.loss(&images, &state, &actions, &noise, &t).unwrap().double_value(&[]);
+        let first = policy.loss(&images, &state, &actions, &noise, &t, true).unwrap().double_value(&[]);
         let mut last = first;
         for _ in 0..40 {
-            let loss = policy.loss(&images, &state, &actions, &noise, &t).unwrap();
+            let loss = policy.loss(&images, &state, &actions, &noise, &t, true).unwrap();
             opt.backward_step(&loss);
             last = loss.double_value(&[]);
         }

@@ -383,16 +383,9 @@ pub fn text(r: &Report) -> String {
 fn register_font() -> Result<(), FontMissing> {
     static DONE: std::sync::OnceLock<Result<(), FontMissing>> = std::sync::OnceLock::new();
     DONE.get_or_init(|| {
-        let candidates = ["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"];
-        let path = candidates.iter().find(|p| std::path::Path::new(p).exists()).ok_or_else(|| {
-            FontMissing(format!(
-                "no DejaVuSans.ttf for the plot's text (looked in {candidates:?}; apt-get install fonts-dejavu-core)"
-            ))
-        })?;
-        let bytes: &'static [u8] =
-            Box::leak(std::fs::read(path).map_err(|e| FontMissing(format!("{path}: {e}")))?.into_boxed_slice());
+        let bytes = labrig_episode::font::dejavu_sans().map_err(FontMissing)?;
         plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
-            .map_err(|_| FontMissing(format!("{path} is not a font ab_glyph can read")))
+            .map_err(|_| FontMissing("DejaVuSans.ttf is not a font ab_glyph can read".into()))
     })
     .clone()
 }

@@ -96,6 +96,24 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Train a Diffusion Policy on episodes: `labrig train --target <episodes> [--cotrain
+    /// <episodes|manifest>] [--w 0.5] [--preset paper_dp|small|<file.toml>] --out <run> --steps N
+    /// [--resume]` (see `labrig train --help`; `labrig-policy train`).
+    #[command(disable_help_flag = true)]
+    Train {
+        /// The options of `labrig-policy train`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// Policy checkpoints: `labrig policy infer <ckpt> --obs <obs.safetensors> --noise
+    /// <noise.safetensors> --out <actions.safetensors>`, `labrig policy import-lerobot <dir>
+    /// --out <ckpt>` (`labrig-policy`).
+    #[command(disable_help_flag = true)]
+    Policy {
+        /// `infer` or `import-lerobot`, then its options.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The episode recorder: `labrig recorder run --root episodes` (see `labrig recorder run --help`).
     #[command(disable_help_flag = true)]
     Recorder {
@@ -197,6 +215,15 @@ pub enum BenchCommand {
     /// Faults injected into the simulated rig (recorder killed, disk full, DDS stopped): data
     /// lost, time to detect, time to recover.
     Faults(crate::bench_faults::FaultArgs),
+    /// The Diffusion Policy: one chunk's latency (encoders, U-Net step, chunk; p50/p99) and
+    /// training samples/s per preset, beside LeRobot's PyTorch model where its venv exists;
+    /// `labrig-policy bench`.
+    #[command(disable_help_flag = true)]
+    Policy {
+        /// The options of `labrig-policy bench` (see `labrig bench policy --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -216,6 +243,13 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
+        Command::Bench(BenchCommand::Policy { args }) => node("labrig-policy", &tool("bench", args)),
+        Command::Train { args } => node("labrig-policy", &tool("train", args)),
+        Command::Policy { args } => match args.first().map(String::as_str) {
+            Some("infer" | "import-lerobot") => node("labrig-policy", &args),
+            Some("--help" | "-h") | None => node("labrig-policy", &["--help".to_owned()]),
+            Some(other) => anyhow::bail!("labrig policy: unknown command `{other}` (commands: infer, import-lerobot)"),
+        },
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),

@@ -303,11 +303,8 @@ pub fn contact_sheet(mcap_file: &Path, png_out: &Path) -> anyhow::Result<()> {
     let n = frames.iter().map(Vec::len).min().unwrap_or(0);
     anyhow::ensure!(n > 0, "the episode has no frames from every camera");
     let decode = |jpeg: &[u8]| -> anyhow::Result<(usize, usize, Vec<u8>)> {
-        let mut d = jpeg_decoder::Decoder::new(jpeg);
-        let pixels = d.decode()?;
-        let info = d.info().context("a JPEG without a header")?;
-        anyhow::ensure!(info.pixel_format == jpeg_decoder::PixelFormat::RGB24, "not an RGB JPEG");
-        Ok((info.width as usize, info.height as usize, pixels))
+        let rgb = labrig_episode::jpeg::decode_rgb(jpeg)?;
+        Ok((rgb.width, rgb.height, rgb.pixels))
     };
     let (w, h, _) = decode(&frames[0][0])?;
     let rows = [0, n / 2, n - 1];

@@ -12,7 +12,7 @@ pub fn sibling_binary(name: &str) -> anyhow::Result<std::path::PathBuf> {
     let path = me.with_file_name(name);
     anyhow::ensure!(
         path.exists(),
-        "{} not found next to {}: build it with `cargo build -p {name}` (scripts/labrig does)",
+        "{} not found next to {}: build it with `cargo build --bin {name}` (scripts/labrig does)",
         path.display(),
         me.display()
     );

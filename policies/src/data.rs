@@ -1,0 +1,406 @@
+//! Training data from labrig's own episodes: each episode's `/rig/step` records give the
+//! low-dimensional observation (end-effector position + quaternion) and the action (the
+//! config's [`ActionSpace`]); its recorded JPEG frames of the config's cameras are decoded
+//! once, resized to the config's square, and kept as u8 tensors (cached on disk, so that a
+//! second run or a resumed one does not decode video again).
+//!
+//! A step's frame for a camera is the one the step referenced (by capture time); a step that
+//! referenced none takes the camera's previous frame (the DROID export's rule).
+
+use crate::policy::{ActionSpace, DiffusionConfig};
+use labrig_episode::{ReadError, read_episode};
+use labrig_msgs::labrig_msgs::{ActionDict, RobotState, Step};
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::topics::CAMERAS_PREFIX;
+use nalgebra::{UnitQuaternion, Vector3};
+use std::collections::BTreeMap;
+use std::hash::{Hash, Hasher};
+use std::path::{Path, PathBuf};
+use tch::{Kind, Tensor};
+
+/// Bumped when what a cache file holds changes.
+const CACHE_VERSION: u32 = 1;
+
+/// Why an episode cannot be trained on; every variant names it.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error(transparent)]
+    Read(#[from] ReadError),
+    #[error("{}: {what}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: {reason}", path.display())]
+    Bad { path: PathBuf, reason: String },
+    #[error("{}: no camera `{camera}` (the config's cameras are {wanted:?}; the episode has {has:?})", path.display())]
+    MissingCamera { path: PathBuf, camera: String, wanted: Vec<String>, has: Vec<String> },
+    #[error("{}: step {step}: {what} holds a value that is not a finite number ({values:?})", path.display())]
+    NotFinite { path: PathBuf, step: u64, what: &'static str, values: Vec<f64> },
+    #[error("{}: the frame cache: {source}", path.display())]
+    Cache {
+        path: PathBuf,
+        #[source]
+        source: tch::TchError,
+    },
+}
+
+/// One episode, ready to train on.
+#[derive(Debug)]
+pub struct EpisodeTensors {
+    pub path: PathBuf,
+    pub uuid: String,
+    pub success: Option<bool>,
+    /// (T, 7): position xyz + quaternion (x, y, z, w), sign kept continuous along the episode.
+    pub state: Tensor,
+    /// (T, 7): the config's action space.
+    pub action: Tensor,
+    /// (T, cameras, 3, S, S) u8.
+    pub frames: Tensor,
+}
+
+impl EpisodeTensors {
+    pub fn len(&self) -> usize {
+        self.state.size()[0] as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// xyz + euler xyz (DROID's `cartesian_position`) -> the rotation.
+fn rotation(p: &[f64; 6]) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_euler_angles(p[3], p[4], p[5])
+}
+
+/// The observed state: position + quaternion (x, y, z, w); `prev` keeps the sign continuous
+/// (q and -q are the same rotation).
+pub fn state_of(rs: &RobotState, prev: Option<&[f32; 7]>) -> [f32; 7] {
+    let p = &rs.cartesian_position;
+    let q = rotation(p);
+    let mut v = [q.i, q.j, q.k, q.w];
+    let flip = match prev {
+        Some(prev) => (0..4).map(|k| prev[3 + k] as f64 * v[k]).sum::<f64>() < 0.0,
+        None => q.w < 0.0,
+    };
+    if flip {
+        v = v.map(|x| -x);
+    }
+    [p[0], p[1], p[2], v[0], v[1], v[2], v[3]].map(|x| x as f32)
+}
+
+/// The recorded action in `space`. An axis-angle vector is kept continuous along the episode:
+/// near a half turn the same rotation has two vectors (angle θ about n, or 2π - θ about -n),
+/// and the one nearer `prev` is taken, so a top-down grasp does not flip sign between steps.
+pub fn action_of(a: &ActionDict, space: ActionSpace, prev: Option<&[f32; 7]>) -> [f32; 7] {
+    let v: [f64; 7] = match space {
+        ActionSpace::CartesianVelocity => {
+            let c = &a.cartesian_velocity;
+            [c[0], c[1], c[2], c[3], c[4], c[5], a.gripper_position]
+        }
+        ActionSpace::EefAxisAngle => {
+            let p = &a.cartesian_position;
+            let mut r = rotation(p).scaled_axis();
+            if let Some(prev) = prev {
+                let before = Vector3::new(prev[3] as f64, prev[4] as f64, prev[5] as f64);
+                let angle = r.norm();
+                if angle > 1e-9 {
+                    let other = r * ((angle - 2.0 * std::f64::consts::PI) / angle);
+                    if (other - before).norm() < (r - before).norm() {
+                        r = other;
+                    }
+                }
+            }
+            [p[0], p[1], p[2], r.x, r.y, r.z, a.gripper_position]
+        }
+    };
+    v.map(|x| x as f32)
+}
+
+/// The part files of an episode (its directory, or one `.mcap` file).
+fn part_files(path: &Path) -> Result<Vec<PathBuf>, DataError> {
+    if path.is_file() {
+        return Ok(vec![path.to_owned()]);
+    }
+    let parts = labrig_episode::episode::part_files(path).map_err(|source| DataError::Io {
+        path: path.to_owned(),
+        what: "listing the episode's files",
+        source,
+    })?;
+    if parts.is_empty() {
+        let droid = path.join("trajectory.h5").is_file();
+        let reason = if droid {
+            "a DROID raw episode: convert it first with `labrig import droid <dir> --out <episodes>`".to_owned()
+        } else {
+            "no episode_<k>.mcap here: not a labrig episode".to_owned()
+        };
+        return Err(DataError::Bad { path: path.to_owned(), reason });
+    }
+    Ok(parts)
+}
+
+/// The cache file for `path`'s episode as `cfg` sees it: keyed by the episode's files (path,
+/// size, modification time), the cameras, the image size and the action space.
+fn cache_file(cache: &Path, path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> PathBuf {
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    CACHE_VERSION.hash(&mut h);
+    std::fs::canonicalize(path).unwrap_or(path.to_owned()).hash(&mut h);
+    for p in parts {
+        if let Ok(m) = std::fs::metadata(p) {
+            (p, m.len(), m.modified().ok()).hash(&mut h);
+        }
+    }
+    (&cfg.cameras, cfg.image_size, cfg.action_space).hash(&mut h);
+    cache.join(format!("{:016x}.safetensors", h.finish()))
+}
+
+/// Loads one episode (from `cache` when it holds it; decoded and written there otherwise).
+pub fn load_episode(path: &Path, cfg: &DiffusionConfig, cache: Option<&Path>) -> Result<EpisodeTensors, DataError> {
+    let parts = part_files(path)?;
+    let cached = cache.map(|c| cache_file(c, path, &parts, cfg));
+    if let Some(file) = cached.as_ref().filter(|f| f.is_file())
+        && let Ok(ep) = read_cache(file, path)
+    {
+        return Ok(ep);
+    }
+    let ep = decode_episode(path, &parts, cfg)?;
+    if let Some(file) = cached {
+        write_cache(&file, &ep)?;
+    }
+    Ok(ep)
+}
+
+fn read_cache(file: &Path, path: &Path) -> Result<EpisodeTensors, tch::TchError> {
+    let mut named: BTreeMap<String, Tensor> = Tensor::read_safetensors(file)?.into_iter().collect();
+    let mut take = |k: &str| named.remove(k).ok_or_else(|| tch::TchError::FileFormat(format!("no {k}")));
+    let uuid: Vec<u8> = Vec::try_from(take("uuid")?)?;
+    let success: Vec<i8> = Vec::try_from(take("success")?)?;
+    Ok(EpisodeTensors {
+        path: path.to_owned(),
+        uuid: String::from_utf8_lossy(&uuid).into_owned(),
+        success: match success.first() {
+            Some(1) => Some(true),
+            Some(0) => Some(false),
+            _ => None,
+        },
+        state: take("state")?,
+        action: take("action")?,
+        frames: take("frames")?,
+    })
+}
+
+fn write_cache(file: &Path, ep: &EpisodeTensors) -> Result<(), DataError> {
+    let dir = file.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|source| DataError::Io {
+        path: dir.to_owned(),
+        what: "creating the frame cache",
+        source,
+    })?;
+    let success = match ep.success {
+        Some(true) => 1i8,
+        Some(false) => 0,
+        None => -1,
+    };
+    let tmp = file.with_extension("tmp");
+    let tensors = [
+        ("uuid", Tensor::from_slice(ep.uuid.as_bytes())),
+        ("success", Tensor::from_slice(&[success])),
+        ("state", ep.state.shallow_clone()),
+        ("action", ep.action.shallow_clone()),
+        ("frames", ep.frames.shallow_clone()),
+    ];
+    Tensor::write_safetensors(&tensors, &tmp).map_err(|source| DataError::Cache { path: tmp.clone(), source })?;
+    std::fs::rename(&tmp, file).map_err(|source| DataError::Io {
+        path: file.to_owned(),
+        what: "moving the cache file into place",
+        source,
+    })
+}
+
+/// The episode's steps as state and action rows, every value checked finite.
+fn rows(path: &Path, steps: &[Step], space: ActionSpace) -> Result<(Vec<[f32; 7]>, Vec<[f32; 7]>), DataError> {
+    let mut states: Vec<[f32; 7]> = Vec::with_capacity(steps.len());
+    let mut actions: Vec<[f32; 7]> = Vec::with_capacity(steps.len());
+    for s in steps {
+        let not_finite =
+            |what, values: Vec<f64>| DataError::NotFinite { path: path.to_owned(), step: s.step_index, what, values };
+        let rs = &s.robot_state;
+        if rs.cartesian_position.iter().any(|v| !v.is_finite()) {
+            return Err(not_finite("robot_state.cartesian_position", rs.cartesian_position.to_vec()));
+        }
+        let a = &s.action;
+        let used: Vec<f64> = match space {
+            ActionSpace::EefAxisAngle => a.cartesian_position.iter().copied().chain([a.gripper_position]).collect(),
+            ActionSpace::CartesianVelocity => {
+                a.cartesian_velocity.iter().copied().chain([a.gripper_position]).collect()
+            }
+        };
+        if used.iter().any(|v| !v.is_finite()) {
+            return Err(not_finite("action", used));
+        }
+        states.push(state_of(rs, states.last()));
+        actions.push(action_of(a, space, actions.last()));
+    }
+    Ok((states, actions))
+}
+
+/// Every recorded frame of `cameras` in the episode's files: camera -> capture time -> JPEG.
+/// An unfinished file is read up to its damage.
+fn recorded_frames(parts: &[PathBuf], cameras: &[String]) -> Result<Vec<BTreeMap<i64, Vec<u8>>>, DataError> {
+    let mut frames = vec![BTreeMap::new(); cameras.len()];
+    for part in parts {
+        let buf =
+            std::fs::read(part).map_err(|source| DataError::Io { path: part.clone(), what: "reading", source })?;
+        let Ok(stream) = mcap::MessageStream::new(&buf) else { continue };
+        for m in stream {
+            let Ok(m) = m else { break };
+            let Some(cam) =
+                m.channel.topic.strip_prefix(CAMERAS_PREFIX).and_then(|t| t.strip_suffix("/image/compressed"))
+            else {
+                continue;
+            };
+            let Some(k) = cameras.iter().position(|c| c == cam) else { continue };
+            let img = labrig_msgs::decode::<CompressedImage>(&m.data)
+                .map_err(|e| DataError::Bad { path: part.clone(), reason: format!("{}: {e}", m.channel.topic) })?;
+            frames[k].insert(labrig_msgs::Nanos::from(img.header.stamp).0, img.data);
+        }
+    }
+    Ok(frames)
+}
+
+/// A decoded RGB frame resized (antialiased bilinear, torchvision's `Resize`) to size x size:
+/// (3, size, size) u8.
+pub fn resize_rgb(rgb: &labrig_episode::jpeg::Rgb, size: i64) -> Tensor {
+    let img = Tensor::from_slice(&rgb.pixels).view([rgb.height as i64, rgb.width as i64, 3]).permute([2, 0, 1]);
+    if rgb.height as i64 == size && rgb.width as i64 == size {
+        return img.contiguous();
+    }
+    img.to_kind(Kind::Float)
+        .unsqueeze(0)
+        .internal_upsample_bilinear2d_aa([size, size], false, None, None)
+        .squeeze_dim(0)
+        .round()
+        .clamp(0.0, 255.0)
+        .to_kind(Kind::Uint8)
+}
+
+fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Result<EpisodeTensors, DataError> {
+    let data = read_episode(path)?;
+    let meta = data.metadata.as_ref();
+    let uuid = meta.map(|m| m.uuid.clone()).unwrap_or_else(|| path.display().to_string());
+    if data.steps.is_empty() {
+        return Err(DataError::Bad {
+            path: path.to_owned(),
+            reason: "no /rig/step records: nothing to train on".into(),
+        });
+    }
+    let (states, actions) = rows(path, &data.steps, cfg.action_space)?;
+    let recorded = recorded_frames(parts, &cfg.cameras)?;
+    let mut per_camera = Vec::with_capacity(cfg.cameras.len());
+    for (camera, frames) in cfg.cameras.iter().zip(&recorded) {
+        if frames.is_empty() {
+            let mut has: Vec<String> =
+                data.steps.iter().flat_map(|s| s.cameras.iter().map(|c| c.camera_id.clone())).collect();
+            has.sort();
+            has.dedup();
+            return Err(DataError::MissingCamera {
+                path: path.to_owned(),
+                camera: camera.clone(),
+                wanted: cfg.cameras.clone(),
+                has,
+            });
+        }
+        // The step's own frame; else the last one at or before the step's time; else the first.
+        let mut decoded: BTreeMap<i64, Tensor> = BTreeMap::new();
+        let mut last: Option<i64> = None;
+        let mut images = Vec::with_capacity(data.steps.len());
+        for s in &data.steps {
+            let wanted = s.cameras.iter().find(|c| &c.camera_id == camera).map(|c| c.capture_ns);
+            let key = match wanted {
+                Some(t) if frames.contains_key(&t) => t,
+                Some(t) => frames
+                    .range(..=t)
+                    .next_back()
+                    .map(|(k, _)| *k)
+                    .or(last)
+                    .unwrap_or(*frames.keys().next().expect("not empty")),
+                None => last.unwrap_or(*frames.keys().next().expect("not empty")),
+            };
+            last = Some(key);
+            if !decoded.contains_key(&key) {
+                let rgb = labrig_episode::jpeg::decode_rgb(&frames[&key]).map_err(|e| DataError::Bad {
+                    path: path.to_owned(),
+                    reason: format!("camera {camera}, step {}: {e}", s.step_index),
+                })?;
+                decoded.insert(key, resize_rgb(&rgb, cfg.image_size));
+            }
+            images.push(decoded[&key].shallow_clone());
+        }
+        per_camera.push(Tensor::stack(&images, 0));
+    }
+    let flat = |rows: &[[f32; 7]]| Tensor::from_slice(rows.as_flattened()).view([rows.len() as i64, 7]);
+    Ok(EpisodeTensors {
+        path: path.to_owned(),
+        uuid,
+        success: meta.and_then(|m| m.success),
+        state: flat(&states),
+        action: flat(&actions),
+        frames: Tensor::stack(&per_camera, 1),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn robot_state(p: [f64; 6]) -> RobotState {
+        RobotState { cartesian_position: p, ..Default::default() }
+    }
+
+    /// The quaternion's sign follows the previous step's; the axis-angle vector does not flip
+    /// across a half turn (a top-down grasp at yaw ± a little).
+    #[test]
+    fn orientations_stay_continuous_along_an_episode() {
+        use std::f64::consts::PI;
+        let a = state_of(&robot_state([0.5, 0.0, 0.3, PI, 0.0, 0.1]), None);
+        assert!((a[3..].iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-6 && a[6] >= 0.0, "{a:?}");
+        let b = state_of(&robot_state([0.5, 0.0, 0.3, -PI + 1e-3, 0.0, 0.1]), Some(&a));
+        let dot: f32 = (0..4).map(|k| a[3 + k] * b[3 + k]).sum();
+        assert!(dot > 0.99, "{a:?} {b:?}");
+
+        let act = |roll: f64| ActionDict { cartesian_position: [0.5, 0.0, 0.3, roll, 0.0, 0.2], ..Default::default() };
+        let first = action_of(&act(PI - 1e-3), ActionSpace::EefAxisAngle, None);
+        let second = action_of(&act(-PI + 1e-3), ActionSpace::EefAxisAngle, Some(&first));
+        let jump: f32 = (3..6).map(|k| (first[k] - second[k]).powi(2)).sum::<f32>().sqrt();
+        assert!(jump < 0.01, "axis-angle jumped {jump}: {first:?} -> {second:?}");
+        // The rotation is still the recorded one.
+        let r = UnitQuaternion::from_scaled_axis(Vector3::new(second[3] as f64, second[4] as f64, second[5] as f64));
+        assert!(r.angle_to(&rotation(&act(-PI + 1e-3).cartesian_position)) < 1e-5);
+        // DROID's velocity action: 6 + gripper.
+        let v = ActionDict {
+            cartesian_velocity: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
+            gripper_position: 0.7,
+            ..Default::default()
+        };
+        assert_eq!(action_of(&v, ActionSpace::CartesianVelocity, None), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]);
+    }
+
+    #[test]
+    fn frames_resize_with_antialiasing() {
+        let rgb = labrig_episode::jpeg::Rgb {
+            width: 4,
+            height: 4,
+            pixels: (0..16).flat_map(|i| if (i / 4 + i % 4) % 2 == 0 { [255u8; 3] } else { [0u8; 3] }).collect(),
+        };
+        let small = resize_rgb(&rgb, 2);
+        assert_eq!(small.size(), [3, 2, 2]);
+        assert_eq!(small.kind(), Kind::Uint8);
+        // A checkerboard averages to grey, not to one of its squares.
+        let v: Vec<u8> = small.flatten(0, -1).try_into().unwrap();
+        assert!(v.iter().all(|&x| (100..=155).contains(&x)), "{v:?}");
+        assert_eq!(resize_rgb(&rgb, 4).size(), [3, 4, 4]);
+    }
+}

@@ -1,0 +1,82 @@
+//! One action chunk from a checkpoint, for an observation and initial noise given as tensors
+//! in LeRobot's names and layouts: `observation.images.<camera>` (B, To, 3, H, W) in [0, 1],
+//! `observation.state` (B, To, state_dim) and `noise` (B, Tp, action_dim); the result is
+//! `action` (B, Tp, action_dim) in the robot's units (the whole chunk) and `action.executed`
+//! (B, Ta, action_dim), the steps a rollout executes.
+
+use crate::checkpoint::CheckpointMeta;
+use crate::normalize::NormalizeError;
+use crate::policy::{DiffusionPolicy, PolicyError, Trace};
+use std::collections::BTreeMap;
+use tch::Tensor;
+
+#[derive(Debug, thiserror::Error)]
+pub enum InferError {
+    #[error("no tensor `{name}` in the observation (it has {has:?})")]
+    Missing { name: String, has: Vec<String> },
+    #[error("the checkpoint has image statistics for {has:?} but none for camera `{camera}`")]
+    ImageStats { camera: String, has: Vec<String> },
+    #[error("normaliser statistics: {0}")]
+    Normalize(#[from] NormalizeError),
+    #[error(transparent)]
+    Policy(#[from] PolicyError),
+}
+
+/// A chunk in the robot's units beside the model's trace.
+#[derive(Debug)]
+pub struct Inference {
+    pub trace: Trace,
+    /// (B, Tp, action_dim), unnormalised.
+    pub action: Tensor,
+    /// (B, Ta, action_dim), unnormalised.
+    pub executed: Tensor,
+    /// What the model saw: normalised images per camera and state.
+    pub images: Vec<Tensor>,
+    pub state: Tensor,
+}
+
+fn take<'a>(named: &'a BTreeMap<String, Tensor>, name: &str) -> Result<&'a Tensor, InferError> {
+    named.get(name).ok_or_else(|| InferError::Missing { name: name.to_owned(), has: named.keys().cloned().collect() })
+}
+
+/// The observation in `named` normalised as the checkpoint says: images per camera (its
+/// mean-std statistics where it has them), the state min-max.
+pub fn observation(
+    meta: &CheckpointMeta,
+    named: &BTreeMap<String, Tensor>,
+) -> Result<(Vec<Tensor>, Tensor), InferError> {
+    let mut images = Vec::new();
+    for camera in &meta.config.cameras {
+        let img = take(named, &format!("observation.images.{camera}"))?;
+        let img = match meta.image_stats.get(camera) {
+            Some(s) => {
+                let per_channel = |v: &[f32; 3]| Tensor::from_slice(v).view([3, 1, 1]).to_kind(img.kind());
+                (img - per_channel(&s.mean)) / (per_channel(&s.std) + f64::from(s.eps))
+            }
+            None if !meta.image_stats.is_empty() => {
+                return Err(InferError::ImageStats {
+                    camera: camera.clone(),
+                    has: meta.image_stats.keys().cloned().collect(),
+                });
+            }
+            None => img.shallow_clone(),
+        };
+        images.push(img);
+    }
+    let state = meta.state_stats.normalize(take(named, "observation.state")?)?;
+    Ok((images, state))
+}
+
+/// One chunk from `noise` (deterministic given it).
+pub fn infer(
+    policy: &DiffusionPolicy,
+    meta: &CheckpointMeta,
+    named: &BTreeMap<String, Tensor>,
+    noise: &Tensor,
+) -> Result<Inference, InferError> {
+    let (images, state) = observation(meta, named)?;
+    let trace = tch::no_grad(|| policy.sample_traced(&images, &state, noise))?;
+    let action = meta.action_stats.unnormalize(&trace.chunk)?;
+    let executed = policy.executed(&action);
+    Ok(Inference { trace, action, executed, images, state })
+}

@@ -1,0 +1,873 @@
+//! The trainer behind `labrig train`: the paper's Diffusion Policy fitted to labrig episodes,
+//! with the co-training sampler, Adam + cosine schedule with warm-up, an EMA of the weights,
+//! a held-out validation split, checkpoints every N steps and `--resume`.
+//!
+//! One run directory holds `checkpoints/step_<n>/` (see [`crate::checkpoint`]),
+//! `checkpoints/last` (the name of the newest), `loss.csv` (step, train loss, validation loss,
+//! learning rate), `loss.png` and `run.json` (the figures of the run).
+
+use crate::checkpoint::{self, CheckpointError, CheckpointMeta};
+use crate::data::{DataError, EpisodeTensors, load_episode};
+use crate::normalize::{MinMax, NormalizeError};
+use crate::policy::{DiffusionConfig, DiffusionPolicy, PolicyError};
+use crate::sampler::{CotrainSampler, Draw, SamplerError};
+use crate::window::windows;
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tch::nn::{self, OptimizerConfig};
+use tch::{Device, Kind, Tensor};
+
+/// The optimisation's numbers (the paper's / LeRobot's defaults).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    pub batch_size: usize,
+    pub lr: f64,
+    pub betas: [f64; 2],
+    pub weight_decay: f64,
+    /// Linear warm-up, capped at a tenth of the run.
+    pub warmup_steps: usize,
+    pub grad_clip_norm: f64,
+    /// EMA decay = 1 - (1 + step)^-power, at most `ema_max` (diffusion_policy's EMAModel).
+    pub ema_power: f64,
+    pub ema_max: f64,
+    /// The fraction of the target episodes held out for validation (at least one episode).
+    pub val_fraction: f64,
+    pub val_every: usize,
+    /// Validation samples (a fixed set, fixed noise and timesteps).
+    pub val_samples: usize,
+    pub checkpoint_every: usize,
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> TrainConfig {
+        TrainConfig {
+            batch_size: 128,
+            lr: 1e-4,
+            betas: [0.95, 0.999],
+            weight_decay: 1e-6,
+            warmup_steps: 500,
+            grad_clip_norm: 10.0,
+            ema_power: 0.75,
+            ema_max: 0.9999,
+            val_fraction: 0.1,
+            val_every: 250,
+            val_samples: 256,
+            checkpoint_every: 1000,
+            seed: 0,
+        }
+    }
+}
+
+/// A model and how to train it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Preset {
+    pub model: DiffusionConfig,
+    #[serde(default)]
+    pub train: TrainConfig,
+}
+
+impl Preset {
+    pub const NAMES: [&str; 2] = ["paper_dp", "small"];
+
+    pub fn named(name: &str) -> Option<Preset> {
+        match name {
+            "paper_dp" => Some(Preset { model: DiffusionConfig::paper_dp(), train: TrainConfig::default() }),
+            "small" => Some(Preset {
+                model: DiffusionConfig::small(),
+                train: TrainConfig { batch_size: 64, lr: 3e-4, ..TrainConfig::default() },
+            }),
+            _ => None,
+        }
+    }
+
+    /// A preset by name, or a TOML file: `preset = "small"` (the base, default paper_dp) with
+    /// `[model]` and `[train]` tables overriding any of its fields.
+    pub fn resolve(arg: &str) -> Result<Preset, TrainError> {
+        if let Some(p) = Preset::named(arg) {
+            return Ok(p);
+        }
+        let path = Path::new(arg);
+        let bad = |reason: String| TrainError::Preset { arg: arg.to_owned(), reason };
+        if !path.is_file() {
+            return Err(bad(format!("neither a preset ({}) nor a TOML file", Preset::NAMES.join(", "))));
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+        let mut over: toml::Table = text.parse().map_err(|e: toml::de::Error| bad(e.to_string()))?;
+        let base_name = match over.remove("preset") {
+            Some(toml::Value::String(s)) => s,
+            None => "paper_dp".to_owned(),
+            Some(v) => return Err(bad(format!("`preset` must be a name, not {v}"))),
+        };
+        let base = Preset::named(&base_name).ok_or_else(|| bad(format!("unknown base preset `{base_name}`")))?;
+        let mut merged = toml::Table::try_from(&base).map_err(|e| bad(e.to_string()))?;
+        for (section, table) in over {
+            let (Some(toml::Value::Table(into)), toml::Value::Table(from)) = (merged.get_mut(&section), table) else {
+                return Err(bad(format!("unknown section `{section}` (the sections are [model] and [train])")));
+            };
+            into.extend(from);
+        }
+        toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| bad(e.to_string()))
+    }
+}
+
+/// Why a run could not go on; each names what it is about.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error("--preset {arg}: {reason}")]
+    Preset { arg: String, reason: String },
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Policy(#[from] PolicyError),
+    #[error(transparent)]
+    Sampler(#[from] SamplerError),
+    #[error("normaliser statistics: {0}")]
+    Normalize(#[from] NormalizeError),
+    #[error("{}: {what}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Setup(String),
+    #[error(
+        "step {step}: {what} is not finite; the step was refused and the run stopped (the last good checkpoint, {last_checkpoint}, is kept). The batch came from {episodes:?}"
+    )]
+    NotFinite { step: u64, what: &'static str, episodes: Vec<String>, last_checkpoint: String },
+    #[error("the checkpoint in {} was made by another model config than --preset's: {reason}", path.display())]
+    OtherPreset { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+}
+
+fn io<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(std::io::Error) -> TrainError + 'a {
+    move |source| TrainError::Io { path: path.to_owned(), what, source }
+}
+
+/// One set of episodes as training samples: every step of every episode, its window's
+/// observation and action rows as indices into the set's concatenated tensors.
+#[derive(Debug)]
+pub struct SampleSet {
+    pub uuids: Vec<String>,
+    frames: Tensor,
+    state: Tensor,
+    action: Tensor,
+    /// (samples, To) and (samples, Tp) row indices.
+    obs_rows: Vec<i64>,
+    action_rows: Vec<i64>,
+    episode_of: Vec<usize>,
+    n_obs: usize,
+    horizon: usize,
+}
+
+/// A batch ready for the model: normalised, images in [0, 1] per camera.
+#[derive(Debug)]
+pub struct Batch {
+    pub images: Vec<Tensor>,
+    pub state: Tensor,
+    pub action: Tensor,
+    /// The episodes (uuids) the samples came from.
+    pub episodes: Vec<String>,
+}
+
+impl SampleSet {
+    pub fn new(episodes: &[EpisodeTensors], cfg: &DiffusionConfig) -> SampleSet {
+        let (n_obs, horizon) = (cfg.n_obs_steps as usize, cfg.horizon as usize);
+        // LeRobot's drop_n_last_frames: the last steps, whose chunks would be mostly padding,
+        // are not sampled.
+        let drop_last = (cfg.horizon - cfg.n_action_steps - cfg.n_obs_steps + 1).max(0) as usize;
+        let (mut obs_rows, mut action_rows, mut episode_of) = (Vec::new(), Vec::new(), Vec::new());
+        let mut offset = 0i64;
+        for (e, ep) in episodes.iter().enumerate() {
+            let keep = ep.len().saturating_sub(drop_last).max(1);
+            for w in windows(ep.len(), n_obs, horizon).into_iter().take(keep) {
+                obs_rows.extend(w.obs.iter().map(|&i| offset + i as i64));
+                action_rows.extend(w.actions.iter().map(|&i| offset + i as i64));
+                episode_of.push(e);
+            }
+            offset += ep.len() as i64;
+        }
+        let cat = |f: &dyn Fn(&EpisodeTensors) -> Tensor| {
+            if episodes.is_empty() {
+                Tensor::empty([0], (Kind::Float, Device::Cpu))
+            } else {
+                Tensor::cat(&episodes.iter().map(f).collect::<Vec<_>>(), 0)
+            }
+        };
+        SampleSet {
+            uuids: episodes.iter().map(|e| e.uuid.clone()).collect(),
+            frames: cat(&|e| e.frames.shallow_clone()),
+            state: cat(&|e| e.state.shallow_clone()),
+            action: cat(&|e| e.action.shallow_clone()),
+            obs_rows,
+            action_rows,
+            episode_of,
+            n_obs,
+            horizon,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.episode_of.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.episode_of.is_empty()
+    }
+
+    /// The rows of `idx`'s windows (`per` rows each).
+    fn rows(all: &[i64], per: usize, idx: &[usize]) -> Tensor {
+        let v: Vec<i64> = idx.iter().flat_map(|&i| all[i * per..(i + 1) * per].iter().copied()).collect();
+        Tensor::from_slice(&v)
+    }
+
+    /// Samples `idx` as a batch, normalised with `stats` (state, action).
+    pub fn batch(&self, idx: &[usize], stats: (&MinMax, &MinMax)) -> Result<Batch, NormalizeError> {
+        let b = idx.len() as i64;
+        let obs = Self::rows(&self.obs_rows, self.n_obs, idx);
+        let act = Self::rows(&self.action_rows, self.horizon, idx);
+        let frames = self.frames.index_select(0, &obs);
+        let cams = frames.size()[1];
+        let frames = frames.to_kind(Kind::Float) / 255.0;
+        let s = frames.size();
+        let frames = frames.view([b, self.n_obs as i64, cams, 3, s[3], s[4]]);
+        let images = (0..cams).map(|k| frames.select(2, k)).collect();
+        let state = stats.0.normalize(&self.state.index_select(0, &obs).view([b, self.n_obs as i64, -1]))?;
+        let action = stats.1.normalize(&self.action.index_select(0, &act).view([b, self.horizon as i64, -1]))?;
+        let mut episodes: Vec<String> = idx.iter().map(|&i| self.uuids[self.episode_of[i]].clone()).collect();
+        episodes.sort();
+        episodes.dedup();
+        Ok(Batch { images, state, action, episodes })
+    }
+
+    /// Every state and action row (for the normaliser's statistics).
+    fn rows_of(t: &Tensor) -> Vec<Vec<f32>> {
+        if t.numel() == 0 {
+            return Vec::new();
+        }
+        let w = t.size()[1];
+        let flat: Vec<f32> = t.flatten(0, -1).try_into().unwrap_or_default();
+        flat.chunks(w as usize).map(<[f32]>::to_vec).collect()
+    }
+}
+
+/// How long a run trains.
+#[derive(Debug, Clone, Copy)]
+pub enum Length {
+    /// Optimisation steps in all.
+    Steps(usize),
+    /// Passes over the target's training samples (rounded up to whole steps).
+    Epochs(f64),
+}
+
+/// What `labrig train` was asked to do.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    pub target: Vec<PathBuf>,
+    pub cotrain: Vec<PathBuf>,
+    pub w: f64,
+    pub preset: Preset,
+    pub out: PathBuf,
+    pub length: Length,
+    pub resume: bool,
+    pub include_failures: bool,
+    pub cache: PathBuf,
+    pub progress: bool,
+}
+
+/// The figures of a run (also `run.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunReport {
+    pub steps: u64,
+    pub resumed_from: Option<u64>,
+    pub target_episodes: usize,
+    pub val_episodes: usize,
+    pub cotrain_episodes: usize,
+    pub skipped_unsuccessful: usize,
+    pub w: f64,
+    pub drawn_target: u64,
+    pub drawn_cotrain: u64,
+    pub first_val_loss: Option<f64>,
+    pub last_val_loss: Option<f64>,
+    pub last_train_loss: f64,
+    pub samples_per_s: f64,
+    /// The share of a step's time spent assembling its batch.
+    pub loader_share: f64,
+    pub decode_s: f64,
+    pub threads: i32,
+    pub checkpoint: PathBuf,
+}
+
+/// diffusers' cosine schedule with linear warm-up: the learning rate's factor at `step`.
+pub fn lr_factor(step: usize, warmup: usize, total: usize) -> f64 {
+    if step < warmup {
+        return (step + 1) as f64 / warmup.max(1) as f64;
+    }
+    let progress = (step - warmup) as f64 / (total.saturating_sub(warmup)).max(1) as f64;
+    0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
+}
+
+/// diffusion_policy's EMA decay after `step` optimisation steps.
+pub fn ema_decay(step: u64, power: f64, max: f64) -> f64 {
+    if step == 0 {
+        return 0.0;
+    }
+    (1.0 - (1.0 + step as f64).powf(-power)).clamp(0.0, max)
+}
+
+/// Loads the episodes at `paths` (a progress bar when asked), dropping unsuccessful ones
+/// unless `include_failures`; returns them and how many were dropped.
+pub fn load_set(
+    paths: &[PathBuf],
+    cfg: &DiffusionConfig,
+    cache: &Path,
+    include_failures: bool,
+    progress: bool,
+    what: &str,
+) -> Result<(Vec<EpisodeTensors>, usize), TrainError> {
+    let bar = if progress { indicatif::ProgressBar::new(paths.len() as u64) } else { indicatif::ProgressBar::hidden() };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{prefix} {bar:30} {pos}/{len} episodes ({elapsed}, ETA {eta})")
+            .expect("a valid template"),
+    );
+    bar.set_prefix(format!("decoding {what}"));
+    let mut kept = Vec::new();
+    let mut skipped = 0;
+    for p in paths {
+        let ep = load_episode(p, cfg, Some(cache))?;
+        bar.inc(1);
+        if ep.success != Some(true) && !include_failures {
+            skipped += 1;
+            continue;
+        }
+        if !ep.is_empty() {
+            kept.push(ep);
+        }
+    }
+    bar.finish_and_clear();
+    Ok((kept, skipped))
+}
+
+/// Splits off `fraction` of the episodes (at least one when there are two or more; none of
+/// a single one) for validation, by a seeded shuffle.
+pub fn split(mut eps: Vec<EpisodeTensors>, fraction: f64, seed: u64) -> (Vec<EpisodeTensors>, Vec<EpisodeTensors>) {
+    use rand::SeedableRng;
+    use rand::seq::SliceRandom;
+    if fraction <= 0.0 || eps.len() < 2 {
+        return (eps, Vec::new());
+    }
+    let n_val = ((eps.len() as f64 * fraction).round() as usize).clamp(1, eps.len() - 1);
+    eps.sort_by(|a, b| a.uuid.cmp(&b.uuid));
+    eps.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(seed));
+    let val = eps.split_off(eps.len() - n_val);
+    (eps, val)
+}
+
+/// The newest checkpoint of a run (what `checkpoints/last` names).
+pub fn last_checkpoint(out: &Path) -> Option<PathBuf> {
+    let name = std::fs::read_to_string(out.join("checkpoints").join("last")).ok()?;
+    let dir = out.join("checkpoints").join(name.trim());
+    dir.join(checkpoint::META).is_file().then_some(dir)
+}
+
+/// The model being trained, its EMA copy and optimiser.
+#[derive(Debug)]
+pub struct Trainer {
+    pub vs: nn::VarStore,
+    pub policy: DiffusionPolicy,
+    pub ema_vs: nn::VarStore,
+    pub ema: DiffusionPolicy,
+    opt: nn::Optimizer,
+    pub cfg: TrainConfig,
+    pub step: u64,
+}
+
+impl Trainer {
+    pub fn new(model: &DiffusionConfig, cfg: &TrainConfig) -> Result<Trainer, TrainError> {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let policy = DiffusionPolicy::new(vs.root(), model.clone())?;
+        let mut ema_vs = nn::VarStore::new(Device::Cpu);
+        let ema = DiffusionPolicy::new(ema_vs.root(), model.clone())?;
+        ema_vs.copy(&vs)?;
+        let opt = nn::Adam { beta1: cfg.betas[0], beta2: cfg.betas[1], wd: cfg.weight_decay, ..Default::default() }
+            .build(&vs, cfg.lr)?;
+        Ok(Trainer { vs, policy, ema_vs, ema, opt, cfg: cfg.clone(), step: 0 })
+    }
+
+    /// Continues from a checkpoint's weights, EMA weights and step (the optimiser's moments
+    /// start afresh: tch cannot save them).
+    pub fn restore(&mut self, dir: &Path) -> Result<CheckpointMeta, TrainError> {
+        let (vs, _policy, meta) = checkpoint::load(dir, Device::Cpu)?;
+        if &meta.config != self.policy.config() {
+            let reason = format!("checkpoint {:?} vs preset {:?}", meta.config, self.policy.config());
+            return Err(TrainError::OtherPreset { path: dir.to_owned(), reason });
+        }
+        let model = dir.join(checkpoint::WEIGHTS);
+        self.vs.load(&model).map_err(|source| CheckpointError::Torch {
+            path: model,
+            what: "loading the weights",
+            source,
+        })?;
+        self.ema_vs.copy(&vs)?;
+        self.step = meta.step;
+        Ok(meta)
+    }
+
+    /// One optimisation step on `batch` at learning rate `lr`: the loss, or the step refused
+    /// (nothing changed) when the batch or its loss is not finite.
+    pub fn step(
+        &mut self,
+        batch: &Batch,
+        lr: f64,
+        rng_noise: &Tensor,
+        t: &[i64],
+    ) -> Result<f64, (&'static str, Vec<String>)> {
+        let finite = |x: &Tensor| x.isfinite().all().int64_value(&[]) == 1;
+        if !batch.images.iter().all(finite) || !finite(&batch.state) || !finite(&batch.action) {
+            return Err(("the batch", batch.episodes.clone()));
+        }
+        let loss = self
+            .policy
+            .loss(&batch.images, &batch.state, &batch.action, rng_noise, t, true)
+            .map_err(|_| ("the batch's shape", batch.episodes.clone()))?;
+        let value = loss.double_value(&[]);
+        if !value.is_finite() {
+            return Err(("the loss", batch.episodes.clone()));
+        }
+        self.opt.set_lr(lr);
+        self.opt.zero_grad();
+        loss.backward();
+        let grads_finite = self.vs.trainable_variables().iter().all(|v| {
+            let g = v.grad();
+            !g.defined() || finite(&g)
+        });
+        if !grads_finite {
+            self.opt.zero_grad();
+            return Err(("a gradient", batch.episodes.clone()));
+        }
+        self.opt.clip_grad_norm(self.cfg.grad_clip_norm);
+        self.opt.step();
+        self.step += 1;
+        let decay = ema_decay(self.step, self.cfg.ema_power, self.cfg.ema_max);
+        tch::no_grad(|| {
+            let live = self.vs.variables();
+            for (name, mut e) in self.ema_vs.variables() {
+                if let Some(p) = live.get(&name) {
+                    e.copy_(&(&e * decay + p * (1.0 - decay)));
+                }
+            }
+        });
+        Ok(value)
+    }
+}
+
+/// The validation loss of the EMA weights on a fixed set: the first `n` samples spread over
+/// the set, centre crops, noise and timesteps from `seed`.
+#[derive(Debug)]
+pub struct Validation {
+    batches: Vec<(Batch, Tensor, Vec<i64>)>,
+}
+
+impl Validation {
+    pub fn new(
+        set: &SampleSet,
+        stats: (&MinMax, &MinMax),
+        cfg: &DiffusionConfig,
+        n: usize,
+        batch: usize,
+        seed: u64,
+    ) -> Result<Validation, TrainError> {
+        use rand::{Rng, SeedableRng};
+        if set.is_empty() {
+            return Ok(Validation { batches: Vec::new() });
+        }
+        let n = n.min(set.len()).max(1);
+        let idx: Vec<usize> = (0..n).map(|k| k * set.len() / n).collect();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_0F_7A1);
+        let gen_noise = Tensor::randn([n as i64, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let mut batches = Vec::new();
+        for (c, chunk) in idx.chunks(batch.max(1)).enumerate() {
+            let b = set.batch(chunk, stats)?;
+            let noise = gen_noise.narrow(0, (c * batch) as i64, chunk.len() as i64);
+            let t: Vec<i64> = chunk.iter().map(|_| rng.random_range(0..cfg.train_steps as i64)).collect();
+            batches.push((b, noise, t));
+        }
+        Ok(Validation { batches })
+    }
+
+    pub fn loss(&self, policy: &DiffusionPolicy) -> Result<Option<f64>, TrainError> {
+        if self.batches.is_empty() {
+            return Ok(None);
+        }
+        let (mut sum, mut n) = (0.0, 0usize);
+        for (b, noise, t) in &self.batches {
+            let l = tch::no_grad(|| policy.loss(&b.images, &b.state, &b.action, noise, t, false))?;
+            sum += l.double_value(&[]) * t.len() as f64;
+            n += t.len();
+        }
+        Ok(Some(sum / n as f64))
+    }
+}
+
+/// One row of `loss.csv`.
+#[derive(Debug, Clone, Copy)]
+pub struct LossRow {
+    pub step: u64,
+    pub train: f64,
+    pub val: Option<f64>,
+    pub lr: f64,
+}
+
+fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
+    text.lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            Some(LossRow {
+                step: f.first()?.parse().ok()?,
+                train: f.get(1)?.parse().ok()?,
+                val: f.get(2).and_then(|v| v.parse().ok()),
+                lr: f.get(3)?.parse().ok()?,
+            })
+        })
+        .filter(|r| r.step <= up_to)
+        .collect()
+}
+
+fn write_loss_csv(path: &Path, rows: &[LossRow]) -> Result<(), TrainError> {
+    let mut s = String::from("step,train_loss,val_loss,lr\n");
+    for r in rows {
+        let val = r.val.map(|v| format!("{v:.6}")).unwrap_or_default();
+        s.push_str(&format!("{},{:.6},{},{:.3e}\n", r.step, r.train, val, r.lr));
+    }
+    std::fs::write(path, s).map_err(io(path, "writing the loss log"))
+}
+
+/// The loss curve: training loss (per logged step) and validation loss, log scale.
+pub fn plot_loss(rows: &[LossRow], title: &str, path: &Path) -> Result<(), TrainError> {
+    use plotters::prelude::*;
+    let fail = |e: String| TrainError::Setup(format!("{}: plotting the loss curve: {e}", path.display()));
+    let font = labrig_episode::font::dejavu_sans().map_err(fail)?;
+    let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, font);
+    let train: Vec<(f64, f64)> = rows.iter().filter(|r| r.train > 0.0).map(|r| (r.step as f64, r.train)).collect();
+    let val: Vec<(f64, f64)> =
+        rows.iter().filter_map(|r| r.val.filter(|v| *v > 0.0).map(|v| (r.step as f64, v))).collect();
+    let all = train.iter().chain(&val).map(|p| p.1);
+    let (lo, hi) = all.fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+    if lo > hi {
+        return Err(fail("no losses to plot".into()));
+    }
+    let last = rows.iter().map(|r| r.step).max().unwrap_or(1).max(1) as f64;
+    let root = BitMapBackend::new(path, (1000, 600)).into_drawing_area();
+    let e = |e: DrawingAreaErrorKind<_>| fail(format!("{e:?}"));
+    root.fill(&WHITE).map_err(e)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..last, (lo * 0.8..hi * 1.25).log_scale())
+        .map_err(e)?;
+    chart.configure_mesh().x_desc("step").y_desc("noise-prediction MSE (log)").draw().map_err(e)?;
+    chart
+        .draw_series(LineSeries::new(train, RGBColor(120, 120, 220).stroke_width(1)))
+        .map_err(e)?
+        .label("training batch")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RGBColor(120, 120, 220).stroke_width(2)));
+    chart
+        .draw_series(LineSeries::new(val.clone(), RED.stroke_width(3)))
+        .map_err(e)?
+        .label("validation (EMA weights)")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(3)));
+    chart.draw_series(val.iter().map(|p| Circle::new(*p, 3, RED.filled()))).map_err(e)?;
+    chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
+    root.present().map_err(e)?;
+    Ok(())
+}
+
+/// Runs `labrig train`.
+pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
+    let Preset { model, train: tc } = &opts.preset;
+    let threads = tch::get_num_threads();
+    std::fs::create_dir_all(&opts.out).map_err(io(&opts.out, "creating the run directory"))?;
+    let decode_started = Instant::now();
+    let (target, skipped_t) =
+        load_set(&opts.target, model, &opts.cache, opts.include_failures, opts.progress, "target")?;
+    let (cotrain, skipped_c) =
+        load_set(&opts.cotrain, model, &opts.cache, opts.include_failures, opts.progress, "co-training")?;
+    let decode_s = decode_started.elapsed().as_secs_f64();
+    if target.is_empty() {
+        return Err(TrainError::Setup(format!(
+            "no successful target episodes among {} found ({} unsuccessful skipped; --include-failures trains on them)",
+            opts.target.len(),
+            skipped_t
+        )));
+    }
+    let (train_eps, val_eps) = split(target, tc.val_fraction, tc.seed);
+    let (n_train, n_val, n_co) = (train_eps.len(), val_eps.len(), cotrain.len());
+
+    let mut trainer = Trainer::new(model, tc)?;
+    let last = if opts.resume { last_checkpoint(&opts.out) } else { None };
+    if opts.resume && last.is_none() {
+        eprintln!("--resume: no checkpoint in {} yet; starting from step 0", opts.out.display());
+    }
+    let (state_stats, action_stats, resumed_from) = match &last {
+        Some(dir) => {
+            let meta = trainer.restore(dir)?;
+            (meta.state_stats, meta.action_stats, Some(meta.step))
+        }
+        None => {
+            let rows = |f: &dyn Fn(&EpisodeTensors) -> &Tensor| -> Vec<Vec<f32>> {
+                train_eps.iter().chain(&cotrain).flat_map(|e| SampleSet::rows_of(f(e))).collect()
+            };
+            let s = rows(&|e| &e.state);
+            let a = rows(&|e| &e.action);
+            (MinMax::fit(s.iter().map(Vec::as_slice))?, MinMax::fit(a.iter().map(Vec::as_slice))?, None)
+        }
+    };
+    let manifest: Vec<String> = train_eps.iter().chain(&val_eps).chain(&cotrain).map(|e| e.uuid.clone()).collect();
+    let train_set = SampleSet::new(&train_eps, model);
+    let val_set = SampleSet::new(&val_eps, model);
+    let co_set = SampleSet::new(&cotrain, model);
+    drop((train_eps, val_eps, cotrain));
+    let stats = (&state_stats, &action_stats);
+    let w = if co_set.is_empty() { 1.0 } else { opts.w };
+    let mut sampler = CotrainSampler::new(train_set.len(), co_set.len(), w, tc.seed ^ trainer.step)?;
+    let validation = Validation::new(&val_set, stats, model, tc.val_samples, tc.batch_size, tc.seed)?;
+
+    let ckpt_dir = opts.out.join("checkpoints");
+    let csv = opts.out.join("loss.csv");
+    let mut log = read_loss_csv(&csv, trainer.step);
+    let total = match opts.length {
+        Length::Steps(n) => n as u64,
+        Length::Epochs(e) => (e * train_set.len() as f64 / tc.batch_size as f64).ceil() as u64,
+    };
+    let warmup = tc.warmup_steps.min(total as usize / 10);
+    let mut last_ckpt = last.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "none yet".into());
+    let save = |trainer: &Trainer, last_ckpt: &mut String| -> Result<PathBuf, TrainError> {
+        let name = format!("step_{}", trainer.step);
+        let dir = ckpt_dir.join(&name);
+        let meta = CheckpointMeta {
+            format: checkpoint::FORMAT,
+            config: model.clone(),
+            action_stats: action_stats.clone(),
+            state_stats: state_stats.clone(),
+            image_stats: Default::default(),
+            manifest: manifest.clone(),
+            step: trainer.step,
+        };
+        checkpoint::save(&dir, &meta, &trainer.vs, Some(&trainer.ema_vs))?;
+        let pointer = ckpt_dir.join("last");
+        let tmp = ckpt_dir.join(".last.tmp");
+        std::fs::write(&tmp, &name).map_err(io(&tmp, "writing"))?;
+        std::fs::rename(&tmp, &pointer).map_err(io(&pointer, "moving into place"))?;
+        *last_ckpt = dir.display().to_string();
+        Ok(dir)
+    };
+
+    let first_val = if trainer.step == 0 { validation.loss(&trainer.ema)? } else { log.iter().find_map(|r| r.val) };
+    if trainer.step == 0 {
+        log.push(LossRow { step: 0, train: 0.0, val: first_val, lr: 0.0 });
+    }
+    println!(
+        "training {} ({} steps, batch {}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {w}, {} threads",
+        if resumed_from.is_some() { "resumed" } else { "from scratch" },
+        total,
+        tc.batch_size,
+        n_train,
+        train_set.len(),
+        n_val,
+        n_co,
+        co_set.len(),
+        threads
+    );
+    let bar = if opts.progress { indicatif::ProgressBar::new(total) } else { indicatif::ProgressBar::hidden() };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  ETA {eta}")
+            .expect("a valid template"),
+    );
+    bar.set_position(trainer.step);
+    let (mut load_s, mut step_s, mut samples) = (0.0f64, 0.0f64, 0u64);
+    let mut last_train = f64::NAN;
+    let mut last_val = first_val;
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(tc.seed.wrapping_add(trainer.step).wrapping_mul(0x9E37_79B9));
+    while trainer.step < total {
+        let t0 = Instant::now();
+        let draws = sampler.batch(tc.batch_size);
+        let (ti, ci): (Vec<usize>, Vec<usize>) = draws.iter().fold((Vec::new(), Vec::new()), |(mut t, mut c), d| {
+            match *d {
+                Draw::Target(i) => t.push(i),
+                Draw::Cotrain(i) => c.push(i),
+            }
+            (t, c)
+        });
+        let mut parts = Vec::new();
+        if !ti.is_empty() {
+            parts.push(train_set.batch(&ti, stats)?);
+        }
+        if !ci.is_empty() {
+            parts.push(co_set.batch(&ci, stats)?);
+        }
+        let batch = concat(parts);
+        let b = tc.batch_size as i64;
+        let noise = Tensor::randn([b, model.horizon, model.action_dim], (Kind::Float, Device::Cpu));
+        let t: Vec<i64> = (0..b).map(|_| rng.random_range(0..model.train_steps as i64)).collect();
+        let t1 = Instant::now();
+        let lr = tc.lr * lr_factor(trainer.step as usize, warmup, total as usize);
+        let loss = trainer.step(&batch, lr, &noise, &t).map_err(|(what, episodes)| TrainError::NotFinite {
+            step: trainer.step,
+            what,
+            episodes,
+            last_checkpoint: last_ckpt.clone(),
+        })?;
+        let t2 = Instant::now();
+        load_s += (t1 - t0).as_secs_f64();
+        step_s += (t2 - t0).as_secs_f64();
+        samples += b as u64;
+        last_train = loss;
+        let at = trainer.step;
+        let mut row = LossRow { step: at, train: loss, val: None, lr };
+        if at % tc.val_every as u64 == 0 || at == total {
+            row.val = validation.loss(&trainer.ema)?;
+            last_val = row.val.or(last_val);
+            let fall = match (first_val, row.val) {
+                (Some(a), Some(b)) if b > 0.0 => format!(" ({:.1}x below the start)", a / b),
+                _ => String::new(),
+            };
+            bar.suspend(|| {
+                println!(
+                    "step {at}/{total}: train {loss:.4}, validation {}{fall}, lr {lr:.2e}, {:.1} samples/s",
+                    row.val.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
+                    samples as f64 / step_s.max(1e-9)
+                )
+            });
+        }
+        log.push(row);
+        if at % tc.checkpoint_every as u64 == 0 || at == total {
+            save(&trainer, &mut last_ckpt)?;
+            write_loss_csv(&csv, &log)?;
+        }
+        bar.set_message(format!("loss {loss:.4}  {:.1} samples/s", samples as f64 / step_s.max(1e-9)));
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let checkpoint = match last_checkpoint(&opts.out) {
+        Some(dir) => dir,
+        None => save(&trainer, &mut last_ckpt)?,
+    };
+    write_loss_csv(&csv, &log)?;
+    let title =
+        format!("labrig train: {} target + {} co-training episodes, w = {w}, batch {}", n_train, n_co, tc.batch_size);
+    if let Err(e) = plot_loss(&log, &title, &opts.out.join("loss.png")) {
+        eprintln!("warning: {e}");
+    }
+    let report = RunReport {
+        steps: trainer.step,
+        resumed_from,
+        target_episodes: n_train,
+        val_episodes: n_val,
+        cotrain_episodes: n_co,
+        skipped_unsuccessful: skipped_t + skipped_c,
+        w,
+        drawn_target: sampler.drawn_target,
+        drawn_cotrain: sampler.drawn_cotrain,
+        first_val_loss: first_val,
+        last_val_loss: last_val,
+        last_train_loss: last_train,
+        samples_per_s: samples as f64 / step_s.max(1e-9),
+        loader_share: load_s / step_s.max(1e-9),
+        decode_s,
+        threads,
+        checkpoint,
+    };
+    let path = opts.out.join("run.json");
+    let mut f = std::fs::File::create(&path).map_err(io(&path, "writing"))?;
+    f.write_all(serde_json::to_string_pretty(&report).unwrap_or_default().as_bytes()).map_err(io(&path, "writing"))?;
+    Ok(report)
+}
+
+/// One batch of several sets' samples.
+fn concat(mut parts: Vec<Batch>) -> Batch {
+    if parts.len() == 1 {
+        return parts.pop().expect("one");
+    }
+    let cams = parts[0].images.len();
+    let images = (0..cams)
+        .map(|k| Tensor::cat(&parts.iter().map(|p| p.images[k].shallow_clone()).collect::<Vec<_>>(), 0))
+        .collect();
+    let cat = |f: &dyn Fn(&Batch) -> Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
+    let mut episodes: Vec<String> = parts.iter().flat_map(|p| p.episodes.iter().cloned()).collect();
+    episodes.sort();
+    episodes.dedup();
+    Batch { images, state: cat(&|p| p.state.shallow_clone()), action: cat(&|p| p.action.shallow_clone()), episodes }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_learning_rate_warms_up_then_follows_a_cosine() {
+        assert!((lr_factor(0, 10, 100) - 0.1).abs() < 1e-12);
+        assert!((lr_factor(9, 10, 100) - 1.0).abs() < 1e-12);
+        assert!((lr_factor(10, 10, 100) - 1.0).abs() < 1e-12);
+        assert!((lr_factor(55, 10, 100) - 0.5).abs() < 1e-12);
+        assert!(lr_factor(100, 10, 100).abs() < 1e-12);
+        assert_eq!(ema_decay(0, 0.75, 0.9999), 0.0);
+        assert!((ema_decay(1, 0.75, 0.9999) - (1.0 - 2f64.powf(-0.75))).abs() < 1e-12);
+        assert_eq!(ema_decay(10_000_000, 0.75, 0.9999), 0.9999);
+    }
+
+    #[test]
+    fn presets_resolve_by_name_or_from_toml_overrides() {
+        assert_eq!(Preset::resolve("small").unwrap().model, DiffusionConfig::small());
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("p.toml");
+        std::fs::write(&f, "preset = \"small\"\n[model]\nimage_size = 32\ncrop_size = 28\n[train]\nbatch_size = 8\n")
+            .unwrap();
+        let p = Preset::resolve(f.to_str().unwrap()).unwrap();
+        assert_eq!((p.model.image_size, p.model.crop_size, p.train.batch_size), (32, 28, 8));
+        assert_eq!(p.model.down_dims, DiffusionConfig::small().down_dims);
+        std::fs::write(&f, "[model]\nimage_sise = 32\n").unwrap();
+        let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
+        assert!(e.contains("image_sise"), "{e}");
+        let e = Preset::resolve("big").unwrap_err().to_string();
+        assert!(e.contains("neither a preset (paper_dp, small) nor a TOML file"), "{e}");
+    }
+
+    /// A batch holding NaN is refused: the weights are untouched and the episodes named.
+    #[test]
+    fn a_batch_with_nan_is_refused_and_named() {
+        tch::manual_seed(1);
+        let cfg = DiffusionConfig::tiny();
+        let mut tr = Trainer::new(&cfg, &TrainConfig::default()).unwrap();
+        let b = 2;
+        let batch = Batch {
+            images: vec![Tensor::rand([b, 2, 3, 32, 32], (Kind::Float, Device::Cpu))],
+            state: Tensor::zeros([b, 2, 7], (Kind::Float, Device::Cpu)),
+            action: Tensor::zeros([b, 16, 7], (Kind::Float, Device::Cpu)),
+            episodes: vec!["ep-a".into()],
+        };
+        let noise = Tensor::randn([b, 16, 7], (Kind::Float, Device::Cpu));
+        assert!(tr.step(&batch, 1e-4, &noise, &[3, 50]).is_ok());
+        let before: Vec<Tensor> = tr.vs.trainable_variables().iter().map(|v| v.copy()).collect();
+        let _ = batch.action.get(1).get(3).get(2).fill_(f64::NAN);
+        let (what, eps) = tr.step(&batch, 1e-4, &noise, &[3, 50]).unwrap_err();
+        assert_eq!((what, eps), ("the batch", vec!["ep-a".to_owned()]));
+        for (a, b) in before.iter().zip(tr.vs.trainable_variables()) {
+            assert!(a.equal(&b));
+        }
+        assert_eq!(tr.step, 1);
+    }
+}
