@@ -153,7 +153,7 @@ fn cache_file(cache: &Path, path: &Path, parts: &[PathBuf], cfg: &DiffusionConfi
             (p, m.len(), m.modified().ok()).hash(&mut h);
         }
     }
-    (&cfg.cameras, cfg.image_size, cfg.action_space).hash(&mut h);
+    (&cfg.cameras, cfg.image_size, cfg.action_space, cfg.scene_state).hash(&mut h);
     cache.join(format!("{:016x}.safetensors", h.finish()))
 }
 
@@ -271,6 +271,23 @@ fn recorded_frames(parts: &[PathBuf], cameras: &[String]) -> Result<Vec<BTreeMap
     Ok(frames)
 }
 
+/// The sim scene's object and receptacle positions (from the episode's `sim_scene` metadata).
+fn scene_positions(path: &Path, scene: Option<&str>) -> Result<[f32; 6], DataError> {
+    let bad = |reason: String| DataError::Bad { path: path.to_owned(), reason };
+    let scene = scene
+        .ok_or_else(|| bad("no sim scene in the metadata: scene_state needs episodes of the simulated rig".into()))?;
+    let v: serde_json::Value = serde_json::from_str(scene).map_err(|e| bad(format!("the sim scene: {e}")))?;
+    let xyz = |k: &str| -> Result<Vec<f32>, DataError> {
+        v.get(k)
+            .and_then(serde_json::Value::as_array)
+            .and_then(|a| a.iter().map(|x| x.as_f64().map(|x| x as f32)).collect::<Option<Vec<f32>>>())
+            .filter(|a| a.len() == 3)
+            .ok_or_else(|| bad(format!("the sim scene has no `{k}` [x, y, z]")))
+    };
+    let (o, r) = (xyz("object_position")?, xyz("receptacle_position")?);
+    Ok([o[0], o[1], o[2], r[0], r[1], r[2]])
+}
+
 /// A decoded RGB frame resized (antialiased bilinear, torchvision's `Resize`) to size x size:
 /// (3, size, size) u8.
 pub fn resize_rgb(rgb: &labrig_episode::jpeg::Rgb, size: i64) -> Tensor {
@@ -297,7 +314,13 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
             reason: "no /rig/step records: nothing to train on".into(),
         });
     }
-    let (states, actions) = rows(path, &data.steps, cfg.action_space)?;
+    let (mut states, actions) = rows(path, &data.steps, cfg.action_space)?;
+    let states: Vec<Vec<f32>> = if cfg.scene_state {
+        let scene = scene_positions(path, meta.and_then(|m| m.sim_scene.as_deref()))?;
+        states.drain(..).map(|s| s.iter().chain(&scene).copied().collect()).collect()
+    } else {
+        states.drain(..).map(|s| s.to_vec()).collect()
+    };
     let recorded = recorded_frames(parts, &cfg.cameras)?;
     let mut per_camera = Vec::with_capacity(cfg.cameras.len());
     for (camera, frames) in cfg.cameras.iter().zip(&recorded) {
@@ -341,14 +364,21 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
         }
         per_camera.push(Tensor::stack(&images, 0));
     }
-    let flat = |rows: &[[f32; 7]]| Tensor::from_slice(rows.as_flattened()).view([rows.len() as i64, 7]);
+    let width = states[0].len() as i64;
     Ok(EpisodeTensors {
         path: path.to_owned(),
         uuid,
         success: meta.and_then(|m| m.success),
-        state: flat(&states),
-        action: flat(&actions),
-        frames: Tensor::stack(&per_camera, 1),
+        state: Tensor::from_slice(&states.concat()).view([states.len() as i64, width]),
+        action: Tensor::from_slice(actions.as_flattened()).view([actions.len() as i64, 7]),
+        frames: if per_camera.is_empty() {
+            Tensor::zeros(
+                [data.steps.len() as i64, 0, 3, cfg.image_size, cfg.image_size],
+                (Kind::Uint8, tch::Device::Cpu),
+            )
+        } else {
+            Tensor::stack(&per_camera, 1)
+        },
     })
 }
 
@@ -386,6 +416,29 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(action_of(&v, ActionSpace::CartesianVelocity, None), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]);
+    }
+
+    /// A step whose pose or action is NaN is named (episode and step), not trained on.
+    #[test]
+    fn a_step_with_nan_is_named() {
+        let step = |i: u64, x: f64| Step {
+            step_index: i,
+            robot_state: robot_state([0.5, 0.0, 0.3, 3.0, 0.0, 0.0]),
+            action: ActionDict { cartesian_position: [x, 0.0, 0.3, 3.0, 0.0, 0.0], ..Default::default() },
+            ..Default::default()
+        };
+        let path = Path::new("episodes/ep7");
+        let (s, a) = rows(path, &[step(0, 0.5), step(1, 0.51)], ActionSpace::EefAxisAngle).unwrap();
+        assert_eq!((s.len(), a.len()), (2, 2));
+        let e = rows(path, &[step(0, 0.5), step(1, f64::NAN)], ActionSpace::EefAxisAngle).unwrap_err();
+        assert!(
+            e.to_string().starts_with("episodes/ep7: step 1: action holds a value that is not a finite number"),
+            "{e}"
+        );
+        let mut bad = step(2, 0.5);
+        bad.robot_state.cartesian_position[4] = f64::INFINITY;
+        let e = rows(path, &[bad], ActionSpace::CartesianVelocity).unwrap_err();
+        assert!(e.to_string().contains("step 2: robot_state.cartesian_position"), "{e}");
     }
 
     #[test]

@@ -155,6 +155,7 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
             .unwrap_or(train_steps),
         clip,
         action_space: ActionSpace::default(),
+        scene_state: false,
     })
 }
 

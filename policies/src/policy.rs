@@ -43,6 +43,10 @@ pub struct DiffusionConfig {
     /// Which of the recorded `action` keys the policy outputs.
     #[serde(default)]
     pub action_space: ActionSpace,
+    /// Append the sim scene's object and receptacle positions (3 + 3) to the state (the
+    /// low-dimensional variant of the small preset: no cameras, the scene's ground truth).
+    #[serde(default)]
+    pub scene_state: bool,
 }
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
@@ -82,6 +86,7 @@ impl DiffusionConfig {
             inference_steps: 16,
             clip: Some(1.0),
             action_space: ActionSpace::EefAxisAngle,
+            scene_state: false,
         }
     }
 
@@ -95,6 +100,17 @@ impl DiffusionConfig {
             step_embed_dim: 64,
             ..DiffusionConfig::paper_dp()
         }
+    }
+
+    /// Low-dimensional only, for this CPU: no cameras; the state is the end-effector pose
+    /// plus the sim scene's object and receptacle positions (13); U-Net 64/128/256.
+    pub fn small_lowdim() -> DiffusionConfig {
+        DiffusionConfig { cameras: vec![], state_dim: 7 + 6, scene_state: true, ..DiffusionConfig::small() }
+    }
+
+    /// The state's width the data gives this config (pose 7, + 6 with the scene's positions).
+    pub fn data_state_dim(&self) -> i64 {
+        if self.scene_state { 13 } else { 7 }
     }
 
     /// Width of the global conditioning: To x (state + 2 x keypoints per camera).

@@ -72,7 +72,7 @@ pub struct Preset {
 }
 
 impl Preset {
-    pub const NAMES: [&str; 2] = ["paper_dp", "small"];
+    pub const NAMES: [&str; 3] = ["paper_dp", "small", "small_lowdim"];
 
     pub fn named(name: &str) -> Option<Preset> {
         match name {
@@ -80,6 +80,10 @@ impl Preset {
             "small" => Some(Preset {
                 model: DiffusionConfig::small(),
                 train: TrainConfig { batch_size: 64, lr: 3e-4, ..TrainConfig::default() },
+            }),
+            "small_lowdim" => Some(Preset {
+                model: DiffusionConfig::small_lowdim(),
+                train: TrainConfig { batch_size: 64, lr: 1e-3, ..TrainConfig::default() },
             }),
             _ => None,
         }
@@ -111,7 +115,16 @@ impl Preset {
             };
             into.extend(from);
         }
-        toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| bad(e.to_string()))
+        let p: Preset = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| bad(e.to_string()))?;
+        if p.model.state_dim != p.model.data_state_dim() {
+            return Err(bad(format!(
+                "state_dim = {} but the data gives {} (pose 7{})",
+                p.model.state_dim,
+                p.model.data_state_dim(),
+                if p.model.scene_state { " + scene 6" } else { "" }
+            )));
+        }
+        Ok(p)
     }
 }
 
@@ -578,7 +591,14 @@ pub fn plot_loss(rows: &[LossRow], title: &str, path: &Path) -> Result<(), Train
         .y_label_area_size(70)
         .build_cartesian_2d(0.0..last, (lo * 0.8..hi * 1.25).log_scale())
         .map_err(e)?;
-    chart.configure_mesh().x_desc("step").y_desc("noise-prediction MSE (log)").draw().map_err(e)?;
+    chart
+        .configure_mesh()
+        .x_desc("step")
+        .y_desc("noise-prediction MSE (log)")
+        .x_label_formatter(&|x| format!("{x:.0}"))
+        .y_label_formatter(&|y| format!("{y:.3}"))
+        .draw()
+        .map_err(e)?;
     chart
         .draw_series(LineSeries::new(train, RGBColor(120, 120, 220).stroke_width(1)))
         .map_err(e)?
