@@ -22,13 +22,8 @@ pub const FORMAT: u32 = 1;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("{}: {what}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        what: &'static str,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] crate::FileError),
     #[error("{}: {source}", path.display())]
     Json {
         path: PathBuf,
@@ -77,7 +72,8 @@ pub struct CheckpointMeta {
 /// Writes `meta`, the weights of `vs` and, if given, the EMA weights into `dir` (made if
 /// missing; files replaced through a temporary name, so a crash leaves the last checkpoint).
 pub fn save(dir: &Path, meta: &CheckpointMeta, vs: &VarStore, ema: Option<&VarStore>) -> Result<(), CheckpointError> {
-    let io = |path: &Path, what, source| CheckpointError::Io { path: path.to_owned(), what, source };
+    let io =
+        |path: &Path, what, source| CheckpointError::from(crate::FileError { path: path.to_owned(), what, source });
     std::fs::create_dir_all(dir).map_err(|e| io(dir, "creating the checkpoint directory", e))?;
     let put_weights = |store: &VarStore, name: &str| -> Result<(), CheckpointError> {
         let path = dir.join(name);
@@ -104,11 +100,7 @@ pub fn save(dir: &Path, meta: &CheckpointMeta, vs: &VarStore, ema: Option<&VarSt
 /// The policy of the checkpoint in `dir`, on `device`, with its EMA weights when it has them.
 pub fn load(dir: &Path, device: tch::Device) -> Result<(VarStore, DiffusionPolicy, CheckpointMeta), CheckpointError> {
     let path = dir.join(META);
-    let text = std::fs::read_to_string(&path).map_err(|source| CheckpointError::Io {
-        path: path.clone(),
-        what: "reading",
-        source,
-    })?;
+    let text = std::fs::read_to_string(&path).map_err(crate::FileError::at(&path, "reading"))?;
     let meta: CheckpointMeta =
         serde_json::from_str(&text).map_err(|source| CheckpointError::Json { path: path.clone(), source })?;
     if meta.format > FORMAT {
@@ -185,6 +177,12 @@ mod tests {
         std::fs::write(dir.path().join(META), serde_json::to_string(&other).unwrap()).unwrap();
         let e = load(dir.path(), Device::Cpu).unwrap_err();
         assert!(e.to_string().contains("model.safetensors: loading the weights"), "{e}");
+        // A missing normaliser statistic is named.
+        let mut v = serde_json::to_value(meta(DiffusionConfig::tiny())).unwrap();
+        v.as_object_mut().unwrap().remove("action_stats");
+        std::fs::write(dir.path().join(META), v.to_string()).unwrap();
+        let e = load(dir.path(), Device::Cpu).unwrap_err().to_string();
+        assert!(e.contains("checkpoint.json") && e.contains("missing field `action_stats`"), "{e}");
         let newer = CheckpointMeta { format: FORMAT + 1, ..meta(DiffusionConfig::tiny()) };
         std::fs::write(dir.path().join(META), serde_json::to_string(&newer).unwrap()).unwrap();
         assert!(matches!(load(dir.path(), Device::Cpu).unwrap_err(), CheckpointError::Format { found: 2, .. }));

@@ -26,13 +26,8 @@ const CACHE_VERSION: u32 = 1;
 pub enum DataError {
     #[error(transparent)]
     Read(#[from] ReadError),
-    #[error("{}: {what}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        what: &'static str,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] crate::FileError),
     #[error("{}: {reason}", path.display())]
     Bad { path: PathBuf, reason: String },
     #[error("{}: no camera `{camera}` (the config's cameras are {wanted:?}; the episode has {has:?})", path.display())]
@@ -125,11 +120,8 @@ fn part_files(path: &Path) -> Result<Vec<PathBuf>, DataError> {
     if path.is_file() {
         return Ok(vec![path.to_owned()]);
     }
-    let parts = labrig_episode::episode::part_files(path).map_err(|source| DataError::Io {
-        path: path.to_owned(),
-        what: "listing the episode's files",
-        source,
-    })?;
+    let parts =
+        labrig_episode::episode::part_files(path).map_err(crate::FileError::at(path, "listing the episode's files"))?;
     if parts.is_empty() {
         let droid = path.join("trajectory.h5").is_file();
         let reason = if droid {
@@ -194,11 +186,7 @@ fn read_cache(file: &Path, path: &Path) -> Result<EpisodeTensors, tch::TchError>
 
 fn write_cache(file: &Path, ep: &EpisodeTensors) -> Result<(), DataError> {
     let dir = file.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(|source| DataError::Io {
-        path: dir.to_owned(),
-        what: "creating the frame cache",
-        source,
-    })?;
+    std::fs::create_dir_all(dir).map_err(crate::FileError::at(dir, "creating the frame cache"))?;
     let success = match ep.success {
         Some(true) => 1i8,
         Some(false) => 0,
@@ -213,11 +201,7 @@ fn write_cache(file: &Path, ep: &EpisodeTensors) -> Result<(), DataError> {
         ("frames", ep.frames.shallow_clone()),
     ];
     Tensor::write_safetensors(&tensors, &tmp).map_err(|source| DataError::Cache { path: tmp.clone(), source })?;
-    std::fs::rename(&tmp, file).map_err(|source| DataError::Io {
-        path: file.to_owned(),
-        what: "moving the cache file into place",
-        source,
-    })
+    std::fs::rename(&tmp, file).map_err(|e| crate::FileError::at(file, "moving the cache file into place")(e).into())
 }
 
 /// The episode's steps as state and action rows, every value checked finite.
@@ -252,8 +236,7 @@ fn rows(path: &Path, steps: &[Step], space: ActionSpace) -> Result<(Vec<[f32; 7]
 fn recorded_frames(parts: &[PathBuf], cameras: &[String]) -> Result<Vec<BTreeMap<i64, Vec<u8>>>, DataError> {
     let mut frames = vec![BTreeMap::new(); cameras.len()];
     for part in parts {
-        let buf =
-            std::fs::read(part).map_err(|source| DataError::Io { path: part.clone(), what: "reading", source })?;
+        let buf = std::fs::read(part).map_err(crate::FileError::at(part, "reading"))?;
         let Ok(stream) = mcap::MessageStream::new(&buf) else { continue };
         for m in stream {
             let Ok(m) = m else { break };

@@ -1,31 +1,22 @@
 //! labrig-policies: the paper's Diffusion Policy in Rust on libtorch (tch 0.26.0, PyTorch
-//! 2.13.0 libraries assembled from PyPI wheels by `scripts/setup.sh`).
+//! 2.13.0 libraries assembled from PyPI wheels by `scripts/setup.sh`), with the reference
+//! implementation's semantics and parameter names (LeRobot's `DiffusionPolicy`, diffusers'
+//! schedulers), so that a LeRobot checkpoint imports by name and samples the same chunk.
 //!
-//! Built so far (issue 17, first part), with the reference implementation's semantics and
-//! parameter names (LeRobot's `DiffusionPolicy`, diffusers' schedulers):
-//! - [`schedule`]: the squared-cosine noise schedule of training and the DDIM sampler of
-//!   inference (epsilon prediction, clipped samples, eta 0, "leading" timesteps);
-//! - [`normalize`]: min-max normalisation of actions and low-dimensional observations to
-//!   [-1, 1] from the training data's statistics;
-//! - [`spatial_softmax`]: the image encoder's keypoint head (robomimic's SpatialSoftmax);
-//! - [`encoder`]: one camera's encoder, the GroupNorm ResNet-18 trunk + keypoints + Linear,
-//!   with LeRobot's parameter names;
-//! - [`unet`]: the noise network, a 1-D U-Net over the action chunk with FiLM conditioning on
-//!   the diffusion step and the observation features, with LeRobot's parameter names;
-//! - [`policy`]: the policy assembled (observation -> conditioning, training's loss, DDIM
-//!   sampling of a chunk), with the paper's and a small preset;
-//! - [`checkpoint`]: a trained policy on disk (safetensors weights and EMA weights, the
-//!   config, normaliser statistics and data manifest as JSON).
+//! - [`schedule`]: the squared-cosine noise schedule and the DDIM sampler;
+//! - [`normalize`]: min-max normalisation to [-1, 1] (LeRobot's arithmetic);
+//! - [`spatial_softmax`], [`encoder`]: one camera's GroupNorm ResNet-18 + keypoints + Linear;
+//! - [`unet`]: the FiLM-conditioned 1-D U-Net noise network;
+//! - [`policy`]: the policy assembled (conditioning, loss, traced DDIM sampling) and presets;
+//! - [`data`], [`window`], [`sampler`]: labrig episodes as training tensors (frames decoded
+//!   once and cached), LeRobot's sample windows, the paper's co-training sampler;
+//! - [`train`]: `labrig train` (Adam, cosine warm-up, EMA, validation, checkpoints, resume);
+//! - [`checkpoint`], [`infer`], [`lerobot`]: checkpoints on disk, one chunk from tensors in
+//!   LeRobot's names, LeRobot 0.4 policy directories imported;
+//! - [`bench`]: `labrig bench policy`.
 //!
-//! - [`sampler`]: the paper's co-training sampler (target with probability w, whatever the
-//!   sets' sizes);
-//! - [`window`]: the training samples of an episode (To observation steps, Tp action steps,
-//!   padded at the ends).
-//!
-//! To come: the trainer (`labrig train`), the LeRobot fixture
-//! comparison, `labrig policy infer` and `labrig bench policy`.
-//!
-//! The only crate that links libtorch besides the policy server (checked by
+//! The program `labrig-policy` (src/main.rs) is what the CLI forwards `train`, `policy` and
+//! `bench policy` to. The only crate that links libtorch besides the policy server (checked by
 //! `tests/tests/layering.rs`).
 
 pub mod bench;
@@ -42,3 +33,20 @@ pub mod spatial_softmax;
 pub mod train;
 pub mod unet;
 pub mod window;
+
+/// A file operation that failed, naming the file and what was being done.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: {what}: {source}", path.display())]
+pub struct FileError {
+    pub path: std::path::PathBuf,
+    pub what: &'static str,
+    #[source]
+    pub source: std::io::Error,
+}
+
+impl FileError {
+    /// For `map_err`: the error of `what` on `path`.
+    pub fn at<'a>(path: &'a std::path::Path, what: &'static str) -> impl FnOnce(std::io::Error) -> FileError + 'a {
+        move |source| FileError { path: path.to_owned(), what, source }
+    }
+}

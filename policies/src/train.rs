@@ -143,13 +143,8 @@ pub enum TrainError {
     Sampler(#[from] SamplerError),
     #[error("normaliser statistics: {0}")]
     Normalize(#[from] NormalizeError),
-    #[error("{}: {what}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        what: &'static str,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] crate::FileError),
     #[error("{0}")]
     Setup(String),
     #[error(
@@ -163,7 +158,7 @@ pub enum TrainError {
 }
 
 fn io<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(std::io::Error) -> TrainError + 'a {
-    move |source| TrainError::Io { path: path.to_owned(), what, source }
+    move |source| crate::FileError::at(path, what)(source).into()
 }
 
 /// One set of episodes as training samples: every step of every episode, its window's

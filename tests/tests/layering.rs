@@ -184,7 +184,8 @@ fn the_readme_wrapper_builds_packages_and_programs_that_exist() {
     // scripts/labrig (the README's `./scripts/labrig demo`) builds `-p <package> --bin <program>`
     // pairs: each package must exist and own that program (a crate rename once broke it).
     let script = std::fs::read_to_string(labrig_tests::repo_root().join("scripts/labrig")).unwrap();
-    let line = script.lines().find(|l| l.trim_start().starts_with("cargo build")).expect("a cargo build line");
+    // Every `cargo build` line (the policy program has its own, for the commands that run it).
+    let line: String = script.lines().filter(|l| l.contains("cargo build")).collect::<Vec<_>>().join(" ");
     let words: Vec<&str> = line.split_whitespace().collect();
     let out = cargo().args(["metadata", "--offline", "--format-version", "1", "--no-deps"]).output().unwrap();
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
@@ -211,5 +212,6 @@ fn the_readme_wrapper_builds_packages_and_programs_that_exist() {
         }
     }
     // Every program the launcher and the CLI run is built.
-    assert!(pairs >= 8, "{pairs} -p/--bin pairs in: {line}");
+    assert!(pairs >= 9, "{pairs} -p/--bin pairs in: {line}");
+    assert!(line.contains("-p labrig-policies --bin labrig-policy"), "{line}");
 }

@@ -35,6 +35,14 @@ fn train(args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `labrig train` with a preset file holding `toml`.
+fn train_with_file(dir: &Path, toml: &str, target: &str, out: &Path, more: &[&str]) -> Output {
+    let file = dir.join("preset.toml");
+    std::fs::write(&file, toml).unwrap();
+    let args = ["--target", target, "--preset", file.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    train(&[&args[..], more].concat())
+}
+
 fn report(o: &Output) -> Value {
     assert!(o.status.success(), "labrig train failed: {}", String::from_utf8_lossy(&o.stderr));
     let text = String::from_utf8_lossy(&o.stdout);
@@ -85,19 +93,13 @@ fn train_converges_resumes_cotrains_and_names_bad_input() {
     assert_eq!(steps, (0..=650).collect::<Vec<u64>>());
 
     // Another model config cannot resume this run.
-    let toml = dir.path().join("wide.toml");
-    std::fs::write(&toml, "preset = \"small_lowdim\"\n[model]\ndown_dims = [32, 64]\n").unwrap();
-    let e = err(&train(&[
-        "--target",
+    let e = err(&train_with_file(
+        dir.path(),
+        "preset = \"small_lowdim\"\n[model]\ndown_dims = [32, 64]\n",
         eps_s,
-        "--preset",
-        toml.to_str().unwrap(),
-        "--out",
-        run_s,
-        "--steps",
-        "700",
-        "--resume",
-    ]));
+        &run,
+        &["--steps", "700", "--resume"],
+    ));
     assert!(e.contains("made by another model config than --preset's"), "{e}");
 
     // Co-training: w = 0.3 of the samples from the target (one episode), the rest from the others.
@@ -134,17 +136,7 @@ fn train_converges_resumes_cotrains_and_names_bad_input() {
     assert_eq!((r["cotrain_episodes"].as_u64(), r["val_episodes"].as_u64()), (Some(kept - 1), Some(0)), "{r}");
 
     // An image preset asking for a camera the episodes lack names it and the episode.
-    let toml = dir.path().join("cam.toml");
-    std::fs::write(&toml, "preset = \"small\"\n[model]\ncameras = [\"ext9\"]\n").unwrap();
-    let e = err(&train(&[
-        "--target",
-        eps_s,
-        "--preset",
-        toml.to_str().unwrap(),
-        "--out",
-        dir.path().join("y").to_str().unwrap(),
-        "--steps",
-        "1",
-    ]));
+    let toml = "preset = \"small\"\n[model]\ncameras = [\"ext9\"]\n";
+    let e = err(&train_with_file(dir.path(), toml, eps_s, &dir.path().join("y"), &["--steps", "1"]));
     assert!(e.contains("no camera `ext9`") && e.contains("episode") && e.contains("ext1"), "{e}");
 }
