@@ -376,7 +376,7 @@ mod tests {
         assert_eq!(policy.executed(&a).size(), [2, 8, 7]);
         // Wrong shapes are named, not panics.
         let err = policy.sample(&images, &state.narrow(1, 0, 1), &noise).unwrap_err();
-        assert!(err.to_string().starts_with("observation.state: expected shape [-1, 2, 7]"), "{err}");
+        assert!(err.to_string().starts_with("observation.state: expected shape [2, 2, 7], got [2, 1, 7]"), "{err}");
         assert_eq!(policy.sample(&[], &state, &noise).unwrap_err(), PolicyError::Cameras { given: 0, wanted: 1 });
     }
 

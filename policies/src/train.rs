@@ -858,7 +858,7 @@ mod tests {
         let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
         assert!(e.contains("image_sise"), "{e}");
         let e = Preset::resolve("big").unwrap_err().to_string();
-        assert!(e.contains("neither a preset (paper_dp, small) nor a TOML file"), "{e}");
+        assert!(e.contains("neither a preset (paper_dp, small, small_lowdim) nor a TOML file"), "{e}");
     }
 
     /// A batch holding NaN is refused: the weights are untouched and the episodes named.
