@@ -205,7 +205,10 @@ fn write_cache(file: &Path, ep: &EpisodeTensors) -> Result<(), DataError> {
 }
 
 /// The episode's steps as state and action rows, every value checked finite.
-fn rows(path: &Path, steps: &[Step], space: ActionSpace) -> Result<(Vec<[f32; 7]>, Vec<[f32; 7]>), DataError> {
+/// An episode's rows: per step 7 values.
+type Rows = Vec<[f32; 7]>;
+
+fn rows(path: &Path, steps: &[Step], space: ActionSpace) -> Result<(Rows, Rows), DataError> {
     let mut states: Vec<[f32; 7]> = Vec::with_capacity(steps.len());
     let mut actions: Vec<[f32; 7]> = Vec::with_capacity(steps.len());
     for s in steps {
@@ -336,12 +339,12 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
                 None => last.unwrap_or(*frames.keys().next().expect("not empty")),
             };
             last = Some(key);
-            if !decoded.contains_key(&key) {
+            if let std::collections::btree_map::Entry::Vacant(slot) = decoded.entry(key) {
                 let rgb = labrig_episode::jpeg::decode_rgb(&frames[&key]).map_err(|e| DataError::Bad {
                     path: path.to_owned(),
                     reason: format!("camera {camera}, step {}: {e}", s.step_index),
                 })?;
-                decoded.insert(key, resize_rgb(&rgb, cfg.image_size));
+                slot.insert(resize_rgb(&rgb, cfg.image_size));
             }
             images.push(decoded[&key].shallow_clone());
         }

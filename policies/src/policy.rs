@@ -286,7 +286,8 @@ impl DiffusionPolicy {
         Self::expect("observation.state", state, &[noise.size()[0], c.n_obs_steps, c.state_dim])?;
         let features = self.encode(images, noise.size()[0], false)?;
         let global_cond = Self::cond_of(state, &features);
-        let (mut first, mut last): (Option<(i64, Tensor)>, Option<(i64, Tensor)>) = (None, None);
+        let mut first: Option<(i64, Tensor)> = None;
+        let mut last: Option<(i64, Tensor)> = None;
         let chunk = self.ddim.sample(noise, |x, t| {
             let e = self.denoise(x, t, &global_cond);
             if first.is_none() {

@@ -500,7 +500,7 @@ impl Validation {
         }
         let n = n.min(set.len()).max(1);
         let idx: Vec<usize> = (0..n).map(|k| k * set.len() / n).collect();
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_0F_7A1);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x0005_EED0_F7A1);
         let gen_noise = Tensor::randn([n as i64, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
         let mut batches = Vec::new();
         for (c, chunk) in idx.chunks(batch.max(1)).enumerate() {
