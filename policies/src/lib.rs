@@ -15,7 +15,7 @@
 //!   LeRobot's names, LeRobot 0.4 policy directories imported;
 //! - [`bench`]: `labrig bench policy`.
 //!
-//! The program `labrig-policy` (src/main.rs) is what the CLI forwards `train`, `policy` and
+//! The program `labrig-policies` (src/main.rs) is what the CLI forwards `train`, `policy` and
 //! `bench policy` to. The only crate that links libtorch besides the policy server (checked by
 //! `tests/tests/layering.rs`).
 

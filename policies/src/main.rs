@@ -1,4 +1,4 @@
-//! `labrig-policy`: the program behind `labrig train`, `labrig policy ...` and `labrig bench
+//! `labrig-policies`: the program behind `labrig train`, `labrig policy ...` and `labrig bench
 //! policy` (the CLI forwards to it: only this crate links libtorch).
 
 use anyhow::Context;
@@ -11,7 +11,7 @@ use std::process::ExitCode;
 use tch::Tensor;
 
 #[derive(Debug, Parser)]
-#[command(name = "labrig-policy", version, about = "labrig's Diffusion Policy: train, infer, import, bench")]
+#[command(name = "labrig-policies", version, about = "labrig's Diffusion Policy: train, infer, import, bench")]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -1,7 +1,7 @@
 //! labrig's Diffusion Policy against LeRobot's, from the committed fixture
 //! (`tests/fixtures/lerobot_dp_tiny`, made by `scripts/make_lerobot_fixture.py` with LeRobot
 //! 0.4.4's own `DiffusionPolicy`): LeRobot's saved policy directory is imported with
-//! `labrig-policy import-lerobot`, one chunk is sampled with `labrig-policy infer` from the
+//! `labrig-policies import-lerobot`, one chunk is sampled with `labrig-policies infer` from the
 //! fixture's observation and initial noise, and every stage is compared with LeRobot's
 //! within rtol 2e-3, atol 1e-5 (LeRobot's own DP regression tolerance).
 
@@ -58,9 +58,9 @@ fn lerobot_dir(weights: &BTreeMap<String, Tensor>, into: &Path) -> PathBuf {
 
 fn run(args: &[&str]) -> String {
     let out =
-        Command::new(env!("CARGO_BIN_EXE_labrig-policy")).args(args).env("OMP_NUM_THREADS", "1").output().unwrap();
+        Command::new(env!("CARGO_BIN_EXE_labrig-policies")).args(args).env("OMP_NUM_THREADS", "1").output().unwrap();
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "labrig-policy {args:?}: {text}");
+    assert!(out.status.success(), "labrig-policies {args:?}: {text}");
     text
 }
 
@@ -154,7 +154,7 @@ fn a_mismatched_or_unsupported_lerobot_policy_is_named() {
     let mut w = lerobot_weights();
     w.remove("diffusion.unet.final_conv.1.bias");
     let src = lerobot_dir(&w, tmp.path());
-    let out = Command::new(env!("CARGO_BIN_EXE_labrig-policy"))
+    let out = Command::new(env!("CARGO_BIN_EXE_labrig-policies"))
         .args(["import-lerobot", src.to_str().unwrap(), "--out", tmp.path().join("c").to_str().unwrap()])
         .output()
         .unwrap();
@@ -164,7 +164,7 @@ fn a_mismatched_or_unsupported_lerobot_policy_is_named() {
     let cfg = src.join("config.json");
     let text = std::fs::read_to_string(&cfg).unwrap().replace("\"DDIM\"", "\"DDPM\"");
     std::fs::write(&cfg, text).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_labrig-policy"))
+    let out = Command::new(env!("CARGO_BIN_EXE_labrig-policies"))
         .args(["import-lerobot", src.to_str().unwrap(), "--out", tmp.path().join("c").to_str().unwrap()])
         .output()
         .unwrap();

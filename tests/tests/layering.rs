@@ -213,5 +213,5 @@ fn the_readme_wrapper_builds_packages_and_programs_that_exist() {
     }
     // Every program the launcher and the CLI run is built.
     assert!(pairs >= 9, "{pairs} -p/--bin pairs in: {line}");
-    assert!(line.contains("-p labrig-policies --bin labrig-policy"), "{line}");
+    assert!(line.contains("-p labrig-policies --bin labrig-policies"), "{line}");
 }

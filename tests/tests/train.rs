@@ -25,7 +25,7 @@ fn demo(out: &Path, episodes: u32) {
 }
 
 fn train(args: &[&str]) -> Output {
-    workspace_bin("labrig-policy", "labrig-policies");
+    workspace_bin("labrig-policies", "labrig-policies");
     Command::new(labrig_bin())
         .arg("train")
         .args(args)

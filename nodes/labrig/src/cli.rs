@@ -98,16 +98,16 @@ pub enum Command {
     },
     /// Train a Diffusion Policy on episodes: `labrig train --target <episodes> [--cotrain
     /// <episodes|manifest>] [--w 0.5] [--preset paper_dp|small|<file.toml>] --out <run> --steps N
-    /// [--resume]` (see `labrig train --help`; `labrig-policy train`).
+    /// [--resume]` (see `labrig train --help`; `labrig-policies train`).
     #[command(disable_help_flag = true)]
     Train {
-        /// The options of `labrig-policy train`.
+        /// The options of `labrig-policies train`.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
     /// Policy checkpoints: `labrig policy infer <ckpt> --obs <obs.safetensors> --noise
     /// <noise.safetensors> --out <actions.safetensors>`, `labrig policy import-lerobot <dir>
-    /// --out <ckpt>` (`labrig-policy`).
+    /// --out <ckpt>` (`labrig-policies`).
     #[command(disable_help_flag = true)]
     Policy {
         /// `infer` or `import-lerobot`, then its options.
@@ -217,10 +217,10 @@ pub enum BenchCommand {
     Faults(crate::bench_faults::FaultArgs),
     /// The Diffusion Policy: one chunk's latency (encoders, U-Net step, chunk; p50/p99) and
     /// training samples/s per preset, beside LeRobot's PyTorch model where its venv exists;
-    /// `labrig-policy bench`.
+    /// `labrig-policies bench`.
     #[command(disable_help_flag = true)]
     Policy {
-        /// The options of `labrig-policy bench` (see `labrig bench policy --help`).
+        /// The options of `labrig-policies bench` (see `labrig bench policy --help`).
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
@@ -243,11 +243,11 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
-        Command::Bench(BenchCommand::Policy { args }) => node("labrig-policy", &tool("bench", args)),
-        Command::Train { args } => node("labrig-policy", &tool("train", args)),
+        Command::Bench(BenchCommand::Policy { args }) => node("labrig-policies", &tool("bench", args)),
+        Command::Train { args } => node("labrig-policies", &tool("train", args)),
         Command::Policy { args } => match args.first().map(String::as_str) {
-            Some("infer" | "import-lerobot") => node("labrig-policy", &args),
-            Some("--help" | "-h") | None => node("labrig-policy", &["--help".to_owned()]),
+            Some("infer" | "import-lerobot") => node("labrig-policies", &args),
+            Some("--help" | "-h") | None => node("labrig-policies", &["--help".to_owned()]),
             Some(other) => anyhow::bail!("labrig policy: unknown command `{other}` (commands: infer, import-lerobot)"),
         },
         Command::Recover(a) => crate::recover::run(a),
