@@ -633,12 +633,27 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
 
     let mut trainer = Trainer::new(model, tc)?;
     let last = if opts.resume { last_checkpoint(&opts.out) } else { None };
+    if !opts.resume && last_checkpoint(&opts.out).is_some() {
+        return Err(TrainError::Setup(format!(
+            "{} holds a run already: --resume continues it; another --out starts a new one",
+            opts.out.display()
+        )));
+    }
     if opts.resume && last.is_none() {
         eprintln!("--resume: no checkpoint in {} yet; starting from step 0", opts.out.display());
     }
     let (state_stats, action_stats, resumed_from) = match &last {
         Some(dir) => {
             let meta = trainer.restore(dir)?;
+            let now: std::collections::BTreeSet<&String> =
+                train_eps.iter().chain(&val_eps).chain(&cotrain).map(|e| &e.uuid).collect();
+            if now != meta.manifest.iter().collect() {
+                eprintln!(
+                    "warning: resuming on other episodes than the checkpoint's ({} now, {} then); its normaliser statistics are kept",
+                    now.len(),
+                    meta.manifest.len()
+                );
+            }
             (meta.state_stats, meta.action_stats, Some(meta.step))
         }
         None => {
@@ -662,7 +677,7 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
 
     let ckpt_dir = opts.out.join("checkpoints");
     let csv = opts.out.join("loss.csv");
-    let mut log = read_loss_csv(&csv, trainer.step);
+    let mut log = if resumed_from.is_some() { read_loss_csv(&csv, trainer.step) } else { Vec::new() };
     let total = match opts.length {
         Length::Steps(n) => n as u64,
         Length::Epochs(e) => (e * train_set.len() as f64 / tc.batch_size as f64).ceil() as u64,

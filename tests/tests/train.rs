@@ -92,6 +92,10 @@ fn train_converges_resumes_cotrains_and_names_bad_input() {
     let steps: Vec<u64> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
     assert_eq!(steps, (0..=650).collect::<Vec<u64>>());
 
+    // A second run into the same directory without --resume is refused (the run is kept).
+    let e = err(&train(&[&common[..], &["--out", run_s, "--steps", "10"]].concat()));
+    assert!(e.contains("holds a run already: --resume continues it"), "{e}");
+
     // Another model config cannot resume this run.
     let e = err(&train_with_file(
         dir.path(),
