@@ -385,6 +385,57 @@ labrig_message!(
     "uint16 version\nstd_msgs/Header header\nstring policy_id\nuint64 observation_step\nuint64 first_step\nuint32 horizon\nuint32 action_dim\nfloat64[] actions\nfloat64 inference_ms\n"
 );
 
+/// labrig_msgs/msg/PolicyObservation: one control step as a policy sees it: the step's robot
+/// state and the JPEG frames (as recorded) of the cameras the policy names, each with its
+/// camera id in `header.frame_id`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct PolicyObservation {
+    pub version: SchemaVersion,
+    /// The tick's time.
+    pub header: Header,
+    pub step_index: u64,
+    pub robot_state: RobotState,
+    pub images: Vec<crate::sensor_msgs::CompressedImage>,
+}
+impl PolicyObservation {
+    fn check_fields(&self) -> Result<(), Invalid> {
+        self.robot_state.validate()
+    }
+}
+labrig_message!(
+    PolicyObservation,
+    "labrig_msgs/msg/PolicyObservation",
+    [Header, RobotState, crate::sensor_msgs::CompressedImage],
+    "uint16 version\nstd_msgs/Header header\nuint64 step_index\nlabrig_msgs/RobotState robot_state\nsensor_msgs/CompressedImage[] images\n"
+);
+
+/// labrig_msgs/msg/PolicyRequest: the rig loop asking the policy server for an action chunk
+/// from its most recent observations (oldest first, as many as the policy observes); `scene`
+/// is the sim scene's JSON where a policy conditions on it (empty on a real rig).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct PolicyRequest {
+    pub version: SchemaVersion,
+    pub header: Header,
+    pub request_id: u64,
+    pub episode_id: String,
+    pub scene: String,
+    pub observations: Vec<PolicyObservation>,
+}
+impl PolicyRequest {
+    fn check_fields(&self) -> Result<(), Invalid> {
+        if self.observations.is_empty() {
+            return Err(Invalid::new("observations", "a request without observations"));
+        }
+        self.observations.iter().try_for_each(|o| o.validate())
+    }
+}
+labrig_message!(
+    PolicyRequest,
+    "labrig_msgs/msg/PolicyRequest",
+    [Header, PolicyObservation],
+    "uint16 version\nstd_msgs/Header header\nuint64 request_id\nstring episode_id\nstring scene\nlabrig_msgs/PolicyObservation[] observations\n"
+);
+
 /// labrig_msgs/msg/CameraFrameRef: which frame of one camera went into an observation.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct CameraFrameRef {
@@ -479,6 +530,8 @@ versioned!(
     TeleopState,
     EpisodeEvent,
     ActionChunk,
+    PolicyObservation,
+    PolicyRequest,
     CameraFrameRef,
     ControlTiming,
     Step,

@@ -64,6 +64,8 @@ registry!(
     crate::labrig_msgs::TeleopState,
     crate::labrig_msgs::EpisodeEvent,
     crate::labrig_msgs::ActionChunk,
+    crate::labrig_msgs::PolicyObservation,
+    crate::labrig_msgs::PolicyRequest,
     crate::labrig_msgs::CameraFrameRef,
     crate::labrig_msgs::ControlTiming,
     crate::labrig_msgs::Step,

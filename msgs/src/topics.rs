@@ -8,7 +8,9 @@
 //! where the endpoint is made (`labrig_runtime::ros::Ros::publisher_on(&topics::ARM_STATE, 10)`).
 //! Tools that learn topics at run time (`labrig topic echo`, the recorder) still take names.
 
-use crate::labrig_msgs::{ArmCommand, EpisodeEvent, GripperCommand, GripperState, RobotState, Step, TeleopState};
+use crate::labrig_msgs::{
+    ActionChunk, ArmCommand, EpisodeEvent, GripperCommand, GripperState, PolicyRequest, RobotState, Step, TeleopState,
+};
 use crate::rosgraph_msgs::Clock;
 use crate::sensor_msgs::{CameraInfo, CompressedImage, JointState};
 use crate::std_msgs::StringMsg;
@@ -101,6 +103,13 @@ pub const RECORDER_STATUS: Topic<StringMsg> = Topic::new("/recorder/status", Lat
 pub const TELEOP_STATE: Topic<TeleopState> = Topic::new("/teleop/state", Reliable);
 /// Teleop actions (cartesian velocity + gripper), stamped with the controller reading's time.
 pub const TELEOP_ACTION: Topic<ArmCommand> = Topic::new("/teleop/action", Reliable);
+
+// --- the policy server ---
+/// The rig loop's requests for an action chunk (its newest observations).
+pub const POLICY_REQUEST: Topic<PolicyRequest> = Topic::new("/policy/request", Reliable);
+/// The policy server's chunks, stamped with the newest observation's time (action `i` is
+/// meant for that time + i control periods).
+pub const POLICY_CHUNK: Topic<ActionChunk> = Topic::new("/policy/chunk", Reliable);
 
 // --- the simulated rig ---
 /// Sim time (rosgraph_msgs/Clock).

@@ -257,8 +257,9 @@ fn recorded_frames(parts: &[PathBuf], cameras: &[String]) -> Result<Vec<BTreeMap
     Ok(frames)
 }
 
-/// The sim scene's object and receptacle positions (from the episode's `sim_scene` metadata).
-fn scene_positions(path: &Path, scene: Option<&str>) -> Result<[f32; 6], DataError> {
+/// The sim scene's object and receptacle positions (from the episode's `sim_scene` metadata,
+/// or the `/sim/scene` JSON a policy request carries).
+pub fn scene_positions(path: &Path, scene: Option<&str>) -> Result<[f32; 6], DataError> {
     let bad = |reason: String| DataError::Bad { path: path.to_owned(), reason };
     let scene = scene
         .ok_or_else(|| bad("no sim scene in the metadata: scene_state needs episodes of the simulated rig".into()))?;

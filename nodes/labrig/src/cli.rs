@@ -105,12 +105,13 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
-    /// Policy checkpoints: `labrig policy infer <ckpt> --obs <obs.safetensors> --noise
+    /// Policies: `labrig policy run --checkpoint <ckpt>` (the policy server node,
+    /// `labrig-policy`), `labrig policy infer <ckpt> --obs <obs.safetensors> --noise
     /// <noise.safetensors> --out <actions.safetensors>`, `labrig policy import-lerobot <dir>
     /// --out <ckpt>` (`labrig-policies`).
     #[command(disable_help_flag = true)]
     Policy {
-        /// `infer` or `import-lerobot`, then its options.
+        /// `run`, `infer` or `import-lerobot`, then its options.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
@@ -247,8 +248,11 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Train { args } => node("labrig-policies", &tool("train", args)),
         Command::Policy { args } => match args.first().map(String::as_str) {
             Some("infer" | "import-lerobot") => node("labrig-policies", &args),
+            Some("run") => node("labrig-policy", &args),
             Some("--help" | "-h") | None => node("labrig-policies", &["--help".to_owned()]),
-            Some(other) => anyhow::bail!("labrig policy: unknown command `{other}` (commands: infer, import-lerobot)"),
+            Some(other) => {
+                anyhow::bail!("labrig policy: unknown command `{other}` (commands: run, infer, import-lerobot)")
+            }
         },
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),

@@ -1,0 +1,52 @@
+//! labrig-policy-server: the policy server node (`labrig-policy run --checkpoint <dir>`). It
+//! loads a labrig checkpoint once, takes the rig loop's requests on `/policy/request` (the
+//! newest observations: robot state + the JPEG frames of the cameras the policy names) and
+//! answers each with an action chunk on `/policy/chunk`. Inference runs on its own thread; a
+//! request that arrives while one is computed replaces any older one still waiting (the
+//! newest observation wins). The model and its arithmetic are labrig-policies'; this crate adds
+//! the transport ([`serve`] has no ROS in it).
+
+pub mod node;
+pub mod serve;
+
+use labrig_msgs::Invalid;
+use labrig_runtime::{RosConfig, Shutdown};
+use node::{PolicyServerConfig, ServeStats};
+use std::path::PathBuf;
+
+/// The policy server node: `labrig-policy run` (`labrig_runtime::node_main`).
+#[derive(Debug)]
+pub struct PolicyServerNode;
+
+/// `labrig-policy run`'s own flags.
+#[derive(Debug, clap::Args, serde::Serialize)]
+pub struct PolicyFlags {
+    /// The checkpoint directory (`checkpoint`).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    checkpoint: Option<PathBuf>,
+    /// Inference threads (`threads`; 0 = every core).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    threads: Option<i32>,
+}
+
+impl labrig_runtime::Node for PolicyServerNode {
+    const NAME: &'static str = "labrig-policy";
+    const ABOUT: &'static str = "Serves a Diffusion Policy checkpoint's action chunks to the rig loop";
+    type Config = PolicyServerConfig;
+    type Flags = PolicyFlags;
+    type Stats = ServeStats;
+
+    fn ros(config: &mut PolicyServerConfig) -> &mut RosConfig {
+        &mut config.ros
+    }
+
+    fn validate(config: &PolicyServerConfig) -> Result<(), Invalid> {
+        config.validate()
+    }
+
+    async fn run(config: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<ServeStats> {
+        node::run(config, shutdown).await
+    }
+}

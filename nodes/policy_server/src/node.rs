@@ -1,0 +1,157 @@
+//! The node: `/policy/request` in, `/policy/chunk` out, inference on its own thread.
+
+use crate::serve::Server;
+use labrig_msgs::Invalid;
+use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest, RIG_CAMERAS};
+use labrig_msgs::topics;
+use labrig_runtime::ros::Ros;
+use labrig_runtime::{RosConfig, Shutdown};
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
+
+/// The node's config (TOML; every key optional, unknown keys refused).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PolicyServerConfig {
+    pub ros: RosConfig,
+    /// The checkpoint directory (`labrig train`'s `checkpoints/step_<n>`, or an imported one).
+    pub checkpoint: Option<PathBuf>,
+    /// Inference threads; 0 = every core.
+    pub threads: i32,
+    /// The rig's cameras: a checkpoint observing another is refused at start.
+    pub rig_cameras: Vec<String>,
+}
+
+impl Default for PolicyServerConfig {
+    fn default() -> PolicyServerConfig {
+        PolicyServerConfig {
+            ros: RosConfig::default(),
+            checkpoint: None,
+            threads: 0,
+            rig_cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
+        }
+    }
+}
+
+impl PolicyServerConfig {
+    pub fn validate(&self) -> Result<(), Invalid> {
+        if self.checkpoint.is_none() {
+            return Err(Invalid::new("checkpoint", "policy server config: no `checkpoint` (--checkpoint <dir>)"));
+        }
+        if self.threads < 0 {
+            return Err(Invalid::new(
+                "threads",
+                format!("policy server config: `threads` must be >= 0, got {}", self.threads),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What a run served.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ServeStats {
+    pub policy_id: String,
+    pub requests: u64,
+    pub chunks: u64,
+    /// Requests replaced by a newer one before inference took them.
+    pub superseded: u64,
+    /// Requests that could not be answered (named in the log).
+    pub failed: u64,
+    pub inference_ms_p50: f64,
+    pub inference_ms_p99: f64,
+}
+
+/// The request waiting for the inference thread (the newest only) and whether to stop.
+#[derive(Debug, Default)]
+struct Waiting {
+    request: Option<PolicyRequest>,
+    stop: bool,
+}
+
+pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<ServeStats> {
+    let threads = if cfg.threads > 0 {
+        cfg.threads
+    } else {
+        std::thread::available_parallelism().map(|n| n.get() as i32).unwrap_or(1)
+    };
+    let dir = cfg.checkpoint.clone().expect("validated");
+    let server = Server::load(&dir)?;
+    server.check_rig(&cfg.rig_cameras)?;
+    let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
+    tracing::info!(
+        policy = server.id(),
+        cameras = ?server.config().cameras,
+        threads,
+        "serving {} on /policy/chunk",
+        dir.display()
+    );
+    let mut ros = Ros::new(&cfg.ros, "labrig_policy")?;
+    let requests = ros.subscription_on(&topics::POLICY_REQUEST, 10)?;
+    let chunks = ros.publisher_on(&topics::POLICY_CHUNK, 10)?;
+
+    let waiting = Arc::new((Mutex::new(Waiting::default()), Condvar::new()));
+    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<Result<ActionChunk, String>>();
+    let worker = {
+        let waiting = Arc::clone(&waiting);
+        std::thread::Builder::new().name("inference".into()).spawn(move || {
+            tch::set_num_threads(threads);
+            loop {
+                let req = {
+                    let (lock, cv) = &*waiting;
+                    let mut w = lock.lock().unwrap_or_else(|p| p.into_inner());
+                    while w.request.is_none() && !w.stop {
+                        w = cv.wait(w).unwrap_or_else(|p| p.into_inner());
+                    }
+                    if w.stop {
+                        return;
+                    }
+                    w.request.take().expect("checked")
+                };
+                let answer = server.chunk(&req).map_err(|e| e.to_string());
+                if done_tx.send(answer).is_err() {
+                    return;
+                }
+            }
+        })?
+    };
+
+    let mut latencies: Vec<f64> = Vec::new();
+    while !shutdown.is_triggered() {
+        while let Some(r) = requests.try_take()? {
+            stats.requests += 1;
+            let (lock, cv) = &*waiting;
+            let mut w = lock.lock().unwrap_or_else(|p| p.into_inner());
+            if w.request.replace(r.msg).is_some() {
+                stats.superseded += 1;
+            }
+            cv.notify_one();
+        }
+        while let Ok(answer) = done_rx.try_recv() {
+            match answer {
+                Ok(chunk) => {
+                    latencies.push(chunk.inference_ms);
+                    chunks.publish(chunk)?;
+                    stats.chunks += 1;
+                }
+                Err(e) => {
+                    stats.failed += 1;
+                    tracing::warn!("{e}");
+                }
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    {
+        let (lock, cv) = &*waiting;
+        lock.lock().unwrap_or_else(|p| p.into_inner()).stop = true;
+        cv.notify_one();
+    }
+    let _ = worker.join();
+    if let Some(p) = labrig_episode::inspect::Percentiles::of(latencies) {
+        (stats.inference_ms_p50, stats.inference_ms_p99) = (p.p50, p.p99);
+    }
+    Ok(stats)
+}

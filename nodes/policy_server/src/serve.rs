@@ -1,0 +1,166 @@
+//! A checkpoint serving chunks, without transport: a [`PolicyRequest`] (the newest
+//! observations as the loop saw them) in, an [`ActionChunk`] out. The observation goes through
+//! exactly the functions training used on recorded episodes (JPEG decoding, the resize, the
+//! state's quaternion, the scene's positions), so the policy sees at the rig what it saw in
+//! the data.
+
+use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
+use labrig_msgs::std_msgs::Header;
+use labrig_policies::checkpoint::{self, CheckpointError, CheckpointMeta};
+use labrig_policies::data::{resize_rgb, scene_positions, state_of};
+use labrig_policies::infer::{self, InferError};
+use labrig_policies::policy::{DiffusionConfig, DiffusionPolicy};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Instant;
+use tch::{Device, Kind, Tensor};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error("{checkpoint}: {what}")]
+    Mismatch { checkpoint: String, what: String },
+    #[error("request {request}: {what}")]
+    Request { request: u64, what: String },
+    #[error("request {request}: {source}")]
+    Infer {
+        request: u64,
+        #[source]
+        source: InferError,
+    },
+}
+
+/// A loaded checkpoint.
+#[derive(Debug)]
+pub struct Server {
+    _vs: tch::nn::VarStore,
+    policy: DiffusionPolicy,
+    meta: CheckpointMeta,
+    id: String,
+}
+
+impl Server {
+    pub fn load(dir: &Path) -> Result<Server, ServeError> {
+        let (vs, policy, meta) = checkpoint::load(dir, Device::Cpu)?;
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let id = format!("{name}@{}", meta.step);
+        Ok(Server { _vs: vs, policy, meta, id })
+    }
+
+    /// The checkpoint's id in chunks and episode metadata (`<directory>@<step>`).
+    pub fn id(&self) -> &str {
+        &self.id
+    }
+
+    pub fn config(&self) -> &DiffusionConfig {
+        &self.meta.config
+    }
+
+    /// Refuses a checkpoint that needs a camera the rig does not have, naming it.
+    pub fn check_rig(&self, rig_cameras: &[String]) -> Result<(), ServeError> {
+        let missing: Vec<&String> = self.meta.config.cameras.iter().filter(|c| !rig_cameras.contains(c)).collect();
+        if missing.is_empty() {
+            return Ok(());
+        }
+        Err(ServeError::Mismatch {
+            checkpoint: self.id.clone(),
+            what: format!(
+                "the policy observes cameras {missing:?}, which the rig does not have (it has {rig_cameras:?})"
+            ),
+        })
+    }
+
+    /// The observation tensors in LeRobot's names: images (1, To, 3, S, S) in [0, 1] per
+    /// camera, the state (1, To, D). With fewer observations than To (an episode's first
+    /// ticks) the oldest one is repeated, as LeRobot's observation queue does.
+    pub fn observation(&self, req: &PolicyRequest) -> Result<BTreeMap<String, Tensor>, ServeError> {
+        let c = &self.meta.config;
+        let bad = |what: String| ServeError::Request { request: req.request_id, what };
+        let n_obs = c.n_obs_steps as usize;
+        let newest = &req.observations[req.observations.len().saturating_sub(n_obs)..];
+        let padded: Vec<_> = std::iter::repeat_n(&newest[0], n_obs - newest.len()).chain(newest).collect();
+        let mut named = BTreeMap::new();
+        for camera in &c.cameras {
+            let mut frames = Vec::with_capacity(n_obs);
+            for o in &padded {
+                let img = o
+                    .images
+                    .iter()
+                    .find(|i| &i.header.frame_id == camera)
+                    .ok_or_else(|| bad(format!("step {} has no image from camera {camera}", o.step_index)))?;
+                let rgb = labrig_episode::jpeg::decode_rgb(&img.data)
+                    .map_err(|e| bad(format!("step {}, camera {camera}: {e}", o.step_index)))?;
+                frames.push(resize_rgb(&rgb, c.image_size).to_kind(Kind::Float) / 255.0);
+            }
+            named.insert(format!("observation.images.{camera}"), Tensor::stack(&frames, 0).unsqueeze(0));
+        }
+        let scene = if c.scene_state {
+            let s = (!req.scene.is_empty()).then_some(req.scene.as_str());
+            Some(scene_positions(Path::new("the request"), s).map_err(|e| bad(e.to_string()))?)
+        } else {
+            None
+        };
+        let mut rows: Vec<f32> = Vec::new();
+        let mut prev: Option<[f32; 7]> = None;
+        for o in &padded {
+            let s = state_of(&o.robot_state, prev.as_ref());
+            prev = Some(s);
+            rows.extend(s);
+            rows.extend(scene.iter().flatten());
+        }
+        named.insert("observation.state".into(), Tensor::from_slice(&rows).view([1, n_obs as i64, -1]));
+        Ok(named)
+    }
+
+    /// The chunk for `req`: the actions from the newest observation's step on (Tp - To + 1 of
+    /// them), in the robot's units. The initial noise is seeded by the episode and step, so the
+    /// same request gives the same chunk (lockstep rollouts repeat).
+    pub fn chunk(&self, req: &PolicyRequest) -> Result<ActionChunk, ServeError> {
+        let started = Instant::now();
+        let newest = req
+            .observations
+            .last()
+            .ok_or_else(|| ServeError::Request { request: req.request_id, what: "no observations".into() })?;
+        let named = self.observation(req)?;
+        let c = &self.meta.config;
+        tch::manual_seed(noise_seed(&req.episode_id, newest.step_index));
+        let noise = Tensor::randn([1, c.horizon, c.action_dim], (Kind::Float, Device::Cpu));
+        let r = infer::infer(&self.policy, &self.meta, &named, &noise)
+            .map_err(|source| ServeError::Infer { request: req.request_id, source })?;
+        let from = c.n_obs_steps - 1;
+        let rows = c.horizon - from;
+        let actions: Vec<f64> = Vec::<f32>::try_from(r.action.get(0).narrow(0, from, rows).flatten(0, -1))
+            .map_err(|e| ServeError::Request { request: req.request_id, what: e.to_string() })?
+            .into_iter()
+            .map(f64::from)
+            .collect();
+        if let Some(i) = actions.iter().position(|a| !a.is_finite()) {
+            return Err(ServeError::Request {
+                request: req.request_id,
+                what: format!(
+                    "the policy produced a non-finite action value (row {}, dimension {})",
+                    i / c.action_dim as usize,
+                    i % c.action_dim as usize
+                ),
+            });
+        }
+        Ok(ActionChunk {
+            header: Header { stamp: newest.header.stamp, frame_id: String::new() },
+            policy_id: self.id.clone(),
+            observation_step: newest.step_index,
+            first_step: newest.step_index,
+            horizon: rows as u32,
+            action_dim: c.action_dim as u32,
+            actions,
+            inference_ms: started.elapsed().as_secs_f64() * 1e3,
+            ..ActionChunk::default()
+        })
+    }
+}
+
+/// The initial noise's seed for an episode's step (FNV-1a of the episode id, mixed with it).
+pub fn noise_seed(episode_id: &str, step: u64) -> i64 {
+    let h = episode_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
+    ((h ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 1) as i64
+}
