@@ -164,3 +164,92 @@ pub fn noise_seed(episode_id: &str, step: u64) -> i64 {
     let h = episode_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
     ((h ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 1) as i64
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use labrig_msgs::labrig_msgs::{PolicyObservation, RobotState};
+    use labrig_msgs::sensor_msgs::CompressedImage;
+    use labrig_policies::normalize::MinMax;
+    use std::path::PathBuf;
+
+    /// A small random-weight checkpoint observing ext1 at 32x32.
+    fn checkpoint(dir: &Path) -> PathBuf {
+        tch::manual_seed(4);
+        let config = DiffusionConfig {
+            image_size: 32,
+            crop_size: 28,
+            keypoints: 8,
+            down_dims: vec![16, 32],
+            step_embed_dim: 16,
+            ..DiffusionConfig::small()
+        };
+        let vs = tch::nn::VarStore::new(Device::Cpu);
+        let _p = DiffusionPolicy::new(vs.root(), config.clone()).unwrap();
+        let stats = |lo: f32, hi: f32| MinMax { min: vec![lo; 7], max: vec![hi; 7], zero_range_eps: None };
+        let meta = CheckpointMeta {
+            format: checkpoint::FORMAT,
+            config,
+            action_stats: stats(-1.0, 1.0),
+            state_stats: stats(-1.0, 1.0),
+            image_stats: BTreeMap::new(),
+            manifest: vec![],
+            step: 9,
+        };
+        let out = dir.join("step_9");
+        checkpoint::save(&out, &meta, &vs, None).unwrap();
+        out
+    }
+
+    fn observation(step: u64, x: f64, camera: &str) -> PolicyObservation {
+        let px: Vec<u8> = (0..48 * 40 * 3).map(|i| ((i * 7 + step as usize * 31) % 251) as u8).collect();
+        let jpeg = labrig_episode::jpeg::encode_rgb(&px, 48, 40, 90).unwrap();
+        PolicyObservation {
+            step_index: step,
+            robot_state: RobotState { cartesian_position: [x, 0.1, 0.3, 3.0, 0.0, 0.2], ..RobotState::default() },
+            images: vec![CompressedImage {
+                header: Header { frame_id: camera.into(), ..Header::default() },
+                format: "jpeg".into(),
+                data: jpeg,
+            }],
+            ..PolicyObservation::default()
+        }
+    }
+
+    fn request(observations: Vec<PolicyObservation>) -> PolicyRequest {
+        PolicyRequest { request_id: 5, episode_id: "ep".into(), observations, ..PolicyRequest::default() }
+    }
+
+    #[test]
+    fn a_request_becomes_a_chunk_from_its_newest_step() {
+        let dir = tempfile::tempdir().unwrap();
+        let server = Server::load(&checkpoint(dir.path())).unwrap();
+        assert_eq!(server.id(), "step_9@9");
+        server.check_rig(&["ext1".into(), "wrist".into()]).unwrap();
+        let e = server.check_rig(&["wrist".into()]).unwrap_err().to_string();
+        assert!(e.contains("observes cameras [\"ext1\"], which the rig does not have"), "{e}");
+
+        // One observation is repeated to To = 2; images resized to 32x32 in [0, 1].
+        let named = server.observation(&request(vec![observation(3, 0.5, "ext1")])).unwrap();
+        let img = &named["observation.images.ext1"];
+        assert_eq!(img.size(), [1, 2, 3, 32, 32]);
+        assert!(img.get(0).get(0).equal(&img.get(0).get(1)));
+        assert!(img.min().double_value(&[]) >= 0.0 && img.max().double_value(&[]) <= 1.0);
+        assert_eq!(named["observation.state"].size(), [1, 2, 7]);
+
+        let req = request(vec![observation(3, 0.5, "ext1"), observation(4, 0.52, "ext1")]);
+        let a = server.chunk(&req).unwrap();
+        assert_eq!((a.observation_step, a.first_step, a.horizon, a.action_dim), (4, 4, 15, 7));
+        assert_eq!(server.chunk(&req).unwrap().actions, a.actions, "seeded by episode and step");
+        let other = PolicyRequest { episode_id: "another".into(), ..req.clone() };
+        assert_ne!(server.chunk(&other).unwrap().actions, a.actions, "another episode, another noise");
+
+        let blind = request(vec![observation(3, 0.5, "wrist")]);
+        let e = server.chunk(&blind).unwrap_err().to_string();
+        assert_eq!(e, "request 5: step 3 has no image from camera ext1");
+        let mut broken = observation(3, 0.5, "ext1");
+        broken.images[0].data.truncate(50);
+        let e = server.chunk(&request(vec![broken])).unwrap_err().to_string();
+        assert!(e.starts_with("request 5: step 3, camera ext1: JPEG decoding"), "{e}");
+    }
+}
