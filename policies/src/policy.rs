@@ -311,10 +311,10 @@ impl DiffusionPolicy {
     }
 }
 
-/// A model small enough for unit tests (32x32 images, 8 keypoints, a 16/32 U-Net).
-#[cfg(test)]
+/// A model small enough for tests (32x32 images, 8 keypoints, a 16/32 U-Net): this crate's
+/// and the policy server's.
 impl DiffusionConfig {
-    pub(crate) fn tiny() -> DiffusionConfig {
+    pub fn tiny() -> DiffusionConfig {
         DiffusionConfig {
             image_size: 32,
             crop_size: 28,

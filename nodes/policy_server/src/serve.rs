@@ -176,14 +176,7 @@ mod tests {
     /// A small random-weight checkpoint observing ext1 at 32x32.
     fn checkpoint(dir: &Path) -> PathBuf {
         tch::manual_seed(4);
-        let config = DiffusionConfig {
-            image_size: 32,
-            crop_size: 28,
-            keypoints: 8,
-            down_dims: vec![16, 32],
-            step_embed_dim: 16,
-            ..DiffusionConfig::small()
-        };
+        let config = DiffusionConfig::tiny();
         let vs = tch::nn::VarStore::new(Device::Cpu);
         let _p = DiffusionPolicy::new(vs.root(), config.clone()).unwrap();
         let stats = |lo: f32, hi: f32| MinMax { min: vec![lo; 7], max: vec![hi; 7], zero_range_eps: None };
