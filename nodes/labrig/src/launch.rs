@@ -23,8 +23,15 @@ use std::time::{Duration, Instant};
 
 /// The programs a launch config may start (built beside the `labrig` binary). Only programs
 /// that exist: a config naming another one (a node still to come, a typo) is refused by name.
-pub const PROGRAMS: [&str; 6] =
-    ["labrig-sim", "labrig-franka", "labrig-gripper", "labrig-recorder", "labrig-control", "labrig-teleop"];
+pub const PROGRAMS: [&str; 7] = [
+    "labrig-sim",
+    "labrig-franka",
+    "labrig-gripper",
+    "labrig-recorder",
+    "labrig-control",
+    "labrig-teleop",
+    "labrig-policy",
+];
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
