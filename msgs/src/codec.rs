@@ -76,14 +76,27 @@ pub fn decode_payload<T: RosMessage>(id: [u8; 2], body: &[u8]) -> Result<T, Code
     decode_body::<T>(id, body, None)
 }
 
+/// The CDR body in either byte order (`id` checked by the caller), with the bytes it used.
+pub(crate) fn from_cdr<T: serde::de::DeserializeOwned>(
+    id: [u8; 2],
+    body: &[u8],
+) -> Result<(T, usize), cdr_encoding::Error> {
+    if id == CDR_BE { from_bytes::<T, BE>(body) } else { from_bytes::<T, LE>(body) }
+}
+
 fn decode_body<T: RosMessage>(id: [u8; 2], body: &[u8], declared_padding: Option<usize>) -> Result<T, CodecError> {
     let type_name = T::TYPE_NAME;
-    let (msg, used) = match id {
-        CDR_LE => from_bytes::<T, LE>(body),
-        CDR_BE => from_bytes::<T, BE>(body),
-        _ => return Err(CodecError::UnsupportedEncapsulation { type_name, id }),
+    if id != CDR_LE && id != CDR_BE {
+        return Err(CodecError::UnsupportedEncapsulation { type_name, id });
     }
-    .map_err(|source| CodecError::Malformed { type_name, source })?;
+    let (msg, used) = match from_cdr::<T>(id, body) {
+        Ok(m) => m,
+        // A body too short for the current layout may be the type's earlier one.
+        Err(source) => match T::decode_legacy(id, body) {
+            Some(Ok(m)) => m,
+            _ => return Err(CodecError::Malformed { type_name, source }),
+        },
+    };
     let rest = &body[used.min(body.len())..];
     // Only alignment padding may follow: fewer than 4 bytes, all zero, and where the header
     // declares a padding count, exactly that many.

@@ -62,8 +62,19 @@ macro_rules! versioned {
 
 /// Implements RosMessage for a labrig type with the version check as its validation.
 macro_rules! labrig_message {
+    ($ty:ty, $name:literal, [$($dep:ty),* $(,)?], $text:expr, legacy = $old:ty) => {
+        labrig_message!(@impl $ty, $name, [$($dep),*], $text,
+            fn decode_legacy(id: [u8; 2], body: &[u8]) -> Option<Result<(Self, usize), cdr_encoding::Error>> {
+                Some(crate::codec::from_cdr::<$old>(id, body).map(|(m, used)| (Self::from(m), used)))
+            }
+        );
+    };
     ($ty:ty, $name:literal, [$($dep:ty),* $(,)?], $text:expr) => {
+        labrig_message!(@impl $ty, $name, [$($dep),*], $text,);
+    };
+    (@impl $ty:ty, $name:literal, [$($dep:ty),* $(,)?], $text:expr, $($legacy:item)?) => {
         impl RosMessage for $ty {
+            $($legacy)?
             const TYPE_NAME: &'static str = $name;
             const MSG_TEXT: &'static str = $text;
             #[allow(unused_variables)]
@@ -342,7 +353,10 @@ labrig_message!(
 );
 
 /// labrig_msgs/msg/ActionChunk: a policy's prediction, `horizon` actions of `action_dim` each,
-/// row-major in `actions`; the first is meant for the control tick `first_step`.
+/// row-major in `actions`; the first is meant for the control tick `first_step`, and row `i`
+/// for the time `times_ns[i]` (the observation's time plus `i` control periods): a loop skips
+/// the rows whose time has passed when the chunk arrives. `request_id` names the request it
+/// answers (the chunk's id in the loop's records).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct ActionChunk {
     pub version: SchemaVersion,
@@ -355,9 +369,18 @@ pub struct ActionChunk {
     pub action_dim: u32,
     pub actions: Vec<f64>,
     pub inference_ms: f64,
+    pub request_id: u64,
+    /// When each row is meant to be executed (ns on the loop's clock).
+    pub times_ns: Vec<i64>,
 }
 impl ActionChunk {
     fn check_fields(&self) -> Result<(), Invalid> {
+        if self.times_ns.len() != self.horizon as usize {
+            return Err(Invalid::new(
+                "times_ns",
+                format!("{} action times for horizon {}", self.times_ns.len(), self.horizon),
+            ));
+        }
         let expected = self.horizon as usize * self.action_dim as usize;
         if self.actions.len() != expected {
             return Err(Invalid::new(
@@ -382,7 +405,7 @@ labrig_message!(
     ActionChunk,
     "labrig_msgs/msg/ActionChunk",
     [Header],
-    "uint16 version\nstd_msgs/Header header\nstring policy_id\nuint64 observation_step\nuint64 first_step\nuint32 horizon\nuint32 action_dim\nfloat64[] actions\nfloat64 inference_ms\n"
+    "uint16 version\nstd_msgs/Header header\nstring policy_id\nuint64 observation_step\nuint64 first_step\nuint32 horizon\nuint32 action_dim\nfloat64[] actions\nfloat64 inference_ms\nuint64 request_id\nint64[] times_ns\n"
 );
 
 /// labrig_msgs/msg/PolicyObservation: one control step as a policy sees it: the step's robot
@@ -411,7 +434,10 @@ labrig_message!(
 
 /// labrig_msgs/msg/PolicyRequest: the rig loop asking the policy server for an action chunk
 /// from its most recent observations (oldest first, as many as the policy observes); `scene`
-/// is the sim scene's JSON where a policy conditions on it (empty on a real rig).
+/// is the sim scene's JSON where a policy conditions on it (empty on a real rig). `seed`
+/// seeds the diffusion's initial noise with the newest step (the sim scene's seed, so
+/// lockstep rollouts repeat; on a real rig one drawn per episode); `period_ns` is the loop's
+/// control period, which spaces the chunk's action times.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct PolicyRequest {
     pub version: SchemaVersion,
@@ -420,11 +446,16 @@ pub struct PolicyRequest {
     pub episode_id: String,
     pub scene: String,
     pub observations: Vec<PolicyObservation>,
+    pub seed: u64,
+    pub period_ns: i64,
 }
 impl PolicyRequest {
     fn check_fields(&self) -> Result<(), Invalid> {
         if self.observations.is_empty() {
             return Err(Invalid::new("observations", "a request without observations"));
+        }
+        if self.period_ns <= 0 {
+            return Err(Invalid::new("period_ns", format!("period_ns = {} must be > 0", self.period_ns)));
         }
         self.observations.iter().try_for_each(|o| o.validate())
     }
@@ -433,7 +464,7 @@ labrig_message!(
     PolicyRequest,
     "labrig_msgs/msg/PolicyRequest",
     [Header, PolicyObservation],
-    "uint16 version\nstd_msgs/Header header\nuint64 request_id\nstring episode_id\nstring scene\nlabrig_msgs/PolicyObservation[] observations\n"
+    "uint16 version\nstd_msgs/Header header\nuint64 request_id\nstring episode_id\nstring scene\nlabrig_msgs/PolicyObservation[] observations\nuint64 seed\nint64 period_ns\n"
 );
 
 /// labrig_msgs/msg/CameraFrameRef: which frame of one camera went into an observation.
@@ -497,7 +528,53 @@ pub struct Step {
     /// One of the `SOURCE_*` constants.
     pub action_source: u8,
     pub movement_enabled: bool,
+    /// A policy's action: the checkpoint's id (`<dir>@<step>`), else empty.
+    pub policy_id: String,
+    /// A policy's action: the chunk it came from (the request id that chunk answers), else 0.
+    pub chunk_id: u64,
+    /// A policy's action: its row in that chunk.
+    pub chunk_row: u32,
 }
+
+/// Step as recorded before the policy fields: what episodes recorded then hold, decoded by
+/// [`Step`]'s legacy path with the policy fields empty.
+#[derive(Deserialize)]
+#[cfg_attr(test, derive(Serialize, Clone))]
+struct StepV1 {
+    version: SchemaVersion,
+    header: Header,
+    episode_id: String,
+    step_index: u64,
+    robot_state: RobotState,
+    cameras: Vec<CameraFrameRef>,
+    camera_skew_ns: i64,
+    timing: ControlTiming,
+    action: ActionDict,
+    action_source: u8,
+    movement_enabled: bool,
+}
+
+impl From<StepV1> for Step {
+    fn from(o: StepV1) -> Step {
+        Step {
+            version: o.version,
+            header: o.header,
+            episode_id: o.episode_id,
+            step_index: o.step_index,
+            robot_state: o.robot_state,
+            cameras: o.cameras,
+            camera_skew_ns: o.camera_skew_ns,
+            timing: o.timing,
+            action: o.action,
+            action_source: o.action_source,
+            movement_enabled: o.movement_enabled,
+            policy_id: String::new(),
+            chunk_id: 0,
+            chunk_row: 0,
+        }
+    }
+}
+
 impl Step {
     pub const SOURCE_NONE: u8 = 0;
     pub const SOURCE_TELEOP: u8 = 1;
@@ -518,7 +595,8 @@ labrig_message!(
     Step,
     "labrig_msgs/msg/Step",
     [Header, RobotState, CameraFrameRef, ControlTiming, ActionDict],
-    "uint8 SOURCE_NONE=0\nuint8 SOURCE_TELEOP=1\nuint8 SOURCE_POLICY=2\nuint8 SOURCE_SCRIPTED=3\nuint8 SOURCE_REPLAY=4\nuint16 version\nstd_msgs/Header header\nstring episode_id\nuint64 step_index\nlabrig_msgs/RobotState robot_state\nlabrig_msgs/CameraFrameRef[] cameras\nint64 camera_skew_ns\nlabrig_msgs/ControlTiming timing\nlabrig_msgs/ActionDict action\nuint8 action_source\nbool movement_enabled\n"
+    "uint8 SOURCE_NONE=0\nuint8 SOURCE_TELEOP=1\nuint8 SOURCE_POLICY=2\nuint8 SOURCE_SCRIPTED=3\nuint8 SOURCE_REPLAY=4\nuint16 version\nstd_msgs/Header header\nstring episode_id\nuint64 step_index\nlabrig_msgs/RobotState robot_state\nlabrig_msgs/CameraFrameRef[] cameras\nint64 camera_skew_ns\nlabrig_msgs/ControlTiming timing\nlabrig_msgs/ActionDict action\nuint8 action_source\nbool movement_enabled\nstring policy_id\nuint64 chunk_id\nuint32 chunk_row\n",
+    legacy = StepV1
 );
 
 versioned!(
@@ -536,3 +614,36 @@ versioned!(
     ControlTiming,
     Step,
 );
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn steps_recorded_before_the_policy_fields_still_decode() {
+        let old = StepV1 {
+            version: SchemaVersion::default(),
+            header: Header::default(),
+            episode_id: "LAB+op+2026-11-01-10h-00m-00s".into(),
+            step_index: 7,
+            robot_state: RobotState::default(),
+            cameras: vec![CameraFrameRef { camera_id: "ext1".into(), sequence: 3, ..Default::default() }],
+            camera_skew_ns: 5,
+            timing: ControlTiming::default(),
+            action: ActionDict::default(),
+            action_source: Step::SOURCE_SCRIPTED,
+            movement_enabled: true,
+        };
+        let mut bytes = crate::codec::CDR_LE.to_vec();
+        bytes.extend([0, 0]);
+        bytes.extend(cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&old).unwrap());
+        let step: Step = crate::decode(&bytes).unwrap();
+        assert_eq!(step, Step::from(old.clone()));
+        assert_eq!((step.step_index, step.cameras[0].sequence, step.chunk_id), (7, 3, 0));
+        // The current layout round-trips with its own fields.
+        let new = Step { policy_id: "run@600".into(), chunk_id: 4, chunk_row: 2, ..Step::from(old) };
+        assert_eq!(crate::decode::<Step>(&crate::encode(&new).unwrap()).unwrap(), new);
+        // A body that fits neither layout is still refused.
+        assert!(crate::decode::<Step>(&bytes[..bytes.len() - 12]).is_err());
+    }
+}

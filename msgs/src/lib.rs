@@ -45,6 +45,13 @@ pub trait RosMessage:
     fn validate(&self) -> Result<(), Invalid> {
         Ok(())
     }
+
+    /// The type's earlier layout, where it grew fields since: decodes a body written in it
+    /// (with the bytes it used), the new fields empty. [`decode`] falls back to it when the
+    /// current layout does not fit.
+    fn decode_legacy(_id: [u8; 2], _body: &[u8]) -> Option<Result<(Self, usize), cdr_encoding::Error>> {
+        None
+    }
 }
 
 /// The ROS 2 service types labrig uses: a request and a response message.

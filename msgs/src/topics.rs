@@ -110,6 +110,10 @@ pub const POLICY_REQUEST: Topic<PolicyRequest> = Topic::new("/policy/request", R
 /// The policy server's chunks, stamped with the newest observation's time (action `i` is
 /// meant for that time + i control periods).
 pub const POLICY_CHUNK: Topic<ActionChunk> = Topic::new("/policy/chunk", Reliable);
+/// What the server serves (JSON: policy_id, cameras, image_size, n_obs_steps, horizon,
+/// n_action_steps, action_space, action_dim), latched: the loop reads it before it sends a
+/// request and refuses a policy it cannot feed or execute.
+pub const POLICY_INFO: Topic<StringMsg> = Topic::new("/policy/info", Latched);
 
 // --- the simulated rig ---
 /// Sim time (rosgraph_msgs/Clock).
@@ -125,6 +129,9 @@ pub const SIM_FAULT: Topic<StringMsg> = Topic::new("/sim/fault", Reliable);
 pub const SIM_EXPERT_ACTION: Topic<ArmCommand> = Topic::new("/sim/expert/action", Reliable);
 /// The scripted expert's progress (JSON: phase, done, success).
 pub const SIM_EXPERT_STATUS: Topic<StringMsg> = Topic::new("/sim/expert/status", Reliable);
+/// The task's success predicate judged on the physics after every step (JSON: stamp_ns,
+/// seed, success), whatever moves the arm: how a rollout of a policy is judged in the sim.
+pub const SIM_TASK: Topic<StringMsg> = Topic::new("/sim/task", Reliable);
 /// The prefix the bridge serves the hardware topics under when the franka and gripper nodes'
 /// `sim` backends stand in front of it.
 pub const SIM_HARDWARE_PREFIX: &str = "/sim";

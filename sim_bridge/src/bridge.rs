@@ -88,7 +88,8 @@ pub struct BridgeConfig {
     pub meshes: Meshes,
     /// Render and send the five cameras (false: physics and state only).
     pub cameras: bool,
-    /// Publish the scripted expert's action for the current state every tick
+    /// (Whatever the action source, the task's success predicate goes out after every step on
+    /// `/sim/task`.) Publish the scripted expert's action for the current state every tick
     /// (`/sim/expert/action`, an ArmCommand in DROID's cartesian_position form with the
     /// gripper) and its progress (`/sim/expert/status`, JSON: phase, done, success judged on
     /// the physics): an action source for the rig loop, which decides whether to follow it.
@@ -249,6 +250,8 @@ struct Publishers {
     tf: RosPublisher<TFMessage>,
     clock: RosPublisher<ClockMsg>,
     camera_info: Vec<RosPublisher<CameraInfo>>,
+    /// The task's success predicate after every step (`/sim/task`).
+    task: RosPublisher<StringMsg>,
 }
 
 fn header(t: Nanos, frame: &str) -> Header {
@@ -359,6 +362,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         gripper_state: ros.publisher_at(hw, &topics::GRIPPER_STATE, 10)?,
         tf: ros.publisher_on(&topics::TF, 10)?,
         clock: ros.publisher_on(&topics::CLOCK, 10)?,
+        task: ros.publisher_on(&topics::SIM_TASK, 10)?,
         camera_info: cameras
             .iter()
             .map(|c| ros.publisher(&topics::camera_info(c), qos::reliable(10)))
@@ -739,6 +743,13 @@ fn publish_state(sim: &Sim, pubs: &Publishers, state: &CommandState) -> Result<(
         tf.push(transform(t, BASE_FRAME, "wrist_optical", pos, &optical(&rot)));
     }
     pubs.tf.publish(TFMessage { transforms: tf })?;
+    // Judged before /clock goes out: a loop ticking on /clock finds the tick's verdict there.
+    let task = serde_json::json!({
+        "stamp_ns": t.0,
+        "seed": sim.scene().seed,
+        "success": labrig_sim::expert::task_success(sim),
+    });
+    pubs.task.publish(StringMsg { data: task.to_string() })?;
     pubs.clock.publish(ClockMsg { clock: Time::from(t) })?;
     Ok(())
 }

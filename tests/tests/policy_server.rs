@@ -138,8 +138,12 @@ fn the_policy_server_answers_requests_with_chunks() {
             request_id: id,
             episode_id: "policy-server-test".into(),
             observations,
+            seed: 11,
+            period_ns: 50_000_000,
             ..PolicyRequest::default()
         };
+        // What it serves, latched for the loop.
+        let info = ros.subscription_on(&topics::POLICY_INFO, 1).unwrap();
         requests.publish(request(1, obs.clone())).unwrap();
         let a = next_chunk(&chunks, Duration::from_secs(60)).await.expect("a chunk");
         assert_eq!(a.policy_id, "step_3@3");
@@ -148,8 +152,25 @@ fn the_policy_server_answers_requests_with_chunks() {
         assert_eq!((a.horizon, a.action_dim, a.actions.len()), (15, 7, 105));
         assert!(a.actions.iter().all(|v| v.is_finite()) && a.inference_ms > 0.0, "{a:?}");
         assert_eq!(a.header.stamp, obs[1].header.stamp, "stamped with the newest observation's time");
+        let t0 = labrig_msgs::Nanos::from(obs[1].header.stamp).0;
+        assert_eq!(a.request_id, 1);
+        assert_eq!(a.times_ns, (0..15).map(|i| t0 + i * 50_000_000).collect::<Vec<_>>(), "one time per action");
+        let until = Instant::now() + Duration::from_secs(10);
+        let served = loop {
+            if let Some(m) = info.try_take().unwrap() {
+                break serde_json::from_str::<serde_json::Value>(&m.msg.data).unwrap();
+            }
+            assert!(Instant::now() < until, "no /policy/info");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        };
+        assert_eq!(served["policy_id"], "step_3@3");
+        assert_eq!(served["cameras"], serde_json::json!(["ext1"]));
+        assert_eq!(
+            (served["n_obs_steps"].as_i64(), served["action_space"].as_str()),
+            (Some(2), Some("eef_axis_angle"))
+        );
 
-        // The same request, the same chunk (the initial noise is seeded by episode and step).
+        // The same request, the same chunk (the initial noise is seeded by the seed and step).
         requests.publish(request(2, obs.clone())).unwrap();
         let b = next_chunk(&chunks, Duration::from_secs(60)).await.expect("a second chunk");
         assert_eq!(a.actions, b.actions);

@@ -5,7 +5,9 @@
 //!   discarded -> resetting -> idle), driven by events.
 //! - [`step`]: one `labrig_msgs/Step` record per tick from the observation, the action and
 //!   the tick's timing.
-//! - [`source`]: action sources behind one trait (the sim's scripted expert now).
+//! - [`source`]: action sources behind one trait (the sim's scripted expert, teleop).
+//! - [`policy`]: the policy server as an action source (chunks timed to ticks, blending,
+//!   asynchronous requests).
 //! - [`rig`]: the loop as a state machine ([`rig::RigLoop`]: begin a tick, observe, decide,
 //!   act), driven tick by tick by the node or by a test with in-memory inputs and outputs.
 //! - [`node`]: the node (`labrig-control run`) feeding the state machine from ROS 2 and shared
@@ -14,6 +16,7 @@
 pub mod episode;
 pub mod frames;
 pub mod node;
+pub mod policy;
 pub mod rig;
 pub mod source;
 pub mod step;

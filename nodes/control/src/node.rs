@@ -24,7 +24,9 @@
 //! step_end) is on the loop's clock: in sim, the tick's sim time plus wall time spent in it.
 
 use crate::frames::FrameTimes;
+use crate::policy::{PolicySource, PolicySourceConfig};
 use crate::rig::{RigLoop, RigOutputs};
+use crate::source::RgbFrame;
 use crate::source::{ActionSource, ScriptedExpert};
 use anyhow::Context;
 use labrig_arm::ik::{Ik, IkConfig, delta_to_velocity, pose_error, xyz_euler};
@@ -37,12 +39,15 @@ use labrig_msgs::labrig_msgs::{
 };
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
+use labrig_runtime::frames::FrameEncoding;
 use labrig_runtime::frames::{FrameNode, FrameSubscriber};
 use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
 use labrig_runtime::{RosConfig, Shutdown};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
+use std::collections::VecDeque;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// DROID's `max_gripper_delta`: a full-scale gripper velocity moves it this far per step.
@@ -60,6 +65,9 @@ pub enum SourceKind {
     /// The Quest teleop node (`labrig-teleop`): `/teleop/action`, deadman on `/teleop/state`;
     /// episodes from `/rig/request` (the operator's and the controller's A/B).
     Teleop,
+    /// The policy server (`labrig-policy run`): action chunks for the loop's observations
+    /// (`[policy]`); in the sim `/sim/task` judges success, on a real rig the operator.
+    Policy,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -120,6 +128,8 @@ pub struct ControlConfig {
     pub safety: SafetyConfig,
     /// The FR3 URDF (default: the one setup installs).
     pub urdf: Option<PathBuf>,
+    /// The policy source (`source = "policy"`).
+    pub policy: PolicySourceConfig,
 }
 
 impl Default for ControlConfig {
@@ -149,6 +159,7 @@ impl Default for ControlConfig {
             // The loop makes its own commands each tick: no age check on them.
             safety: SafetyConfig { max_command_age_s: 0.0, ..SafetyConfig::default() },
             urdf: None,
+            policy: PolicySourceConfig::default(),
         }
     }
 }
@@ -210,6 +221,7 @@ impl ControlConfig {
                 return Err(Invalid::new(name, format!("{name} = {v} must be at most 86400 (a day)")));
             }
         }
+        self.policy.validate()?;
         self.safety.validate()
     }
 }
@@ -247,6 +259,9 @@ pub struct Summary {
     pub arm_faults: u64,
     /// On the sim's clock, ticks started by the sim's `/clock` (the rest by the arm's state).
     pub clock_ticks: u64,
+    /// What the action source reported (the policy source: requests, chunks, skipped rows,
+    /// round trips).
+    pub source: Option<serde_json::Value>,
     /// How late ticks began after their boundary (us): p50, p99, max. On the wall clock, from
     /// the scheduled instant; on the sim's clock, from the sim's `/clock` message of the
     /// boundary (sent the moment its step is done). The same figure in both clock modes;
@@ -301,7 +316,18 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         SourceKind::Teleop => {
             Some(Box::new(crate::source::Teleop::new(&mut ros, Duration::from_secs_f64(cfg.teleop_max_age_s))?))
         }
+        SourceKind::Policy => {
+            let period = Nanos::from_secs_rounded(cfg.period_s);
+            let p =
+                PolicySource::connect(&mut ros, cfg.policy.clone(), cfg.clock, period, &cfg.cameras, &shutdown).await?;
+            Some(Box::new(p))
+        }
     };
+    // The cameras whose pixels the source observes: their newest frames, copied.
+    let mut pixels: Vec<PixelRing> = source
+        .as_ref()
+        .map(|s| s.cameras().iter().map(|c| PixelRing { camera: c.clone(), frames: VecDeque::new() }).collect())
+        .unwrap_or_default();
     let frame_node = match &cfg.frames_namespace {
         Some(ns) => FrameNode::new_in(ns)?,
         None => FrameNode::new()?,
@@ -461,6 +487,9 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                         name,
                         FrameTimes { sequence: h.sequence, capture_ns: h.capture_ns, arrival_ns: h.arrival_ns },
                     );
+                    if let Some(ring) = pixels.iter_mut().find(|r| &r.camera == name) {
+                        ring.push(&f);
+                    }
                 }
             }
             if !rig.frames_pending() || Instant::now() >= frames_deadline || shutdown.is_triggered() {
@@ -496,6 +525,11 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         }
         // 4. Episode events.
         rig.decide(source.as_deref_mut(), &mut out)?;
+        // The tick as recorded, to a source that observes (the policy's request goes out here).
+        if let (Some(s), Some(mut view)) = (source.as_mut(), rig.view()) {
+            view.images = pixels.iter().filter_map(|r| r.at(view.tick).map(|f| (r.camera.as_str(), f))).collect();
+            s.observe(view);
+        }
         // Lockstep: the source's action for this state comes right after the state.
         if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, rig.recording()) {
             let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
@@ -508,11 +542,56 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         rig.act(source.as_deref_mut(), &mut out)?;
     }
     let mut summary = rig.finish(&mut out);
+    summary.source = source.as_ref().and_then(|s| s.stats());
     summary.clock_ticks = clock_ticks;
     summary.tick_lateness_us = percentiles_us(&mut lateness_ns);
     // The last events reach their readers (the recorder) before the participant goes.
     tokio::time::sleep(Duration::from_millis(1000)).await;
     Ok(summary)
+}
+
+/// One camera's newest frames, pixels copied out of shared memory, for a source that
+/// observes them.
+struct PixelRing {
+    camera: String,
+    frames: VecDeque<Arc<RgbFrame>>,
+}
+
+impl PixelRing {
+    /// Frames kept: the tick's own may be followed by a newer one before the tick reads it.
+    const DEPTH: usize = 3;
+
+    fn push(&mut self, f: &labrig_runtime::frames::Frame) {
+        let h = *f.header();
+        if h.encoding() != Some(FrameEncoding::Rgb8) {
+            return;
+        }
+        let (w, stride) = (h.width as usize * 3, h.stride as usize);
+        let px = f.pixels();
+        let pixels = if stride == w || stride == 0 {
+            px.get(..w * h.height as usize).map(<[u8]>::to_vec)
+        } else {
+            (0..h.height as usize)
+                .map(|y| px.get(y * stride..y * stride + w))
+                .collect::<Option<Vec<_>>>()
+                .map(|r| r.concat())
+        };
+        let Some(pixels) = pixels else { return };
+        self.frames.push_back(Arc::new(RgbFrame {
+            width: h.width,
+            height: h.height,
+            pixels,
+            capture_ns: h.capture_ns,
+        }));
+        while self.frames.len() > Self::DEPTH {
+            self.frames.pop_front();
+        }
+    }
+
+    /// The newest frame captured at or before `tick` (the Step's frame).
+    fn at(&self, tick: Nanos) -> Option<Arc<RgbFrame>> {
+        self.frames.iter().rev().find(|f| f.capture_ns <= tick.0).cloned()
+    }
 }
 
 /// On the sim's clock, how long a tick started by `/clock` waits for the arm's state of its

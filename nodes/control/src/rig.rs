@@ -18,7 +18,7 @@
 use crate::episode::{Effect, Ending, Episodes, State};
 use crate::frames::{FrameBook, FrameTimes};
 use crate::node::{ClockKind, ControlConfig, EpisodeReport, Summary, action_dict, episode_uuid, percentiles_us};
-use crate::source::{ActionSource, Proposal, Verdict};
+use crate::source::{ActionSource, Proposal, TickView, Verdict};
 use crate::step::{Decision, Observation, TickTimes, make_step};
 use labrig_arm::safety::{ArmView, Refusal, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, Joints};
@@ -67,12 +67,17 @@ pub enum LoopError {
 struct Scene {
     seed: Option<u64>,
     instruction: String,
+    json: String,
 }
 
 impl Scene {
     fn parse(json: &str) -> Result<Scene, serde_json::Error> {
         let v: serde_json::Value = serde_json::from_str(json)?;
-        Ok(Scene { seed: v["seed"].as_u64(), instruction: v["instruction"].as_str().unwrap_or_default().to_owned() })
+        Ok(Scene {
+            seed: v["seed"].as_u64(),
+            instruction: v["instruction"].as_str().unwrap_or_default().to_owned(),
+            json: json.to_owned(),
+        })
     }
 }
 
@@ -243,6 +248,19 @@ impl RigLoop {
 
     pub fn recording(&self) -> bool {
         self.episodes.recording()
+    }
+
+    /// While recording, what a source sees of this tick (the pixels are the node's to add).
+    pub fn view(&self) -> Option<TickView<'_>> {
+        self.episodes.recording().then(|| TickView {
+            tick: Nanos(self.tick().ns),
+            step_index: self.episodes.steps,
+            episode_id: &self.episode_id,
+            robot: &self.robot,
+            scene: &self.scene.json,
+            scene_seed: self.scene.seed,
+            images: Vec::new(),
+        })
     }
 
     /// Counts ticks the wall clock skipped (it runs on regardless of the loop).
@@ -427,9 +445,16 @@ impl RigLoop {
             let verdict = source.as_ref().map_or(Verdict::Running, |s| s.verdict(Nanos(tick_ns)));
             event = match verdict {
                 Verdict::Succeeded => Some(EpisodeEventKind::Success),
-                Verdict::Failed => Some(EpisodeEventKind::Failure),
+                Verdict::Failed { why } => {
+                    if let Some(why) = why {
+                        tracing::warn!(episode = %self.episode_id, "the episode failed: {why}");
+                        self.end_note = why;
+                    }
+                    Some(EpisodeEventKind::Failure)
+                }
                 Verdict::Running if self.episodes.steps >= self.cfg.max_steps => {
                     tracing::warn!(steps = self.episodes.steps, "step budget spent: the episode failed");
+                    self.end_note = format!("the step budget ({} steps) was spent", self.cfg.max_steps);
                     Some(EpisodeEventKind::Failure)
                 }
                 Verdict::Running => None,
@@ -559,7 +584,7 @@ impl RigLoop {
                     gripper_position: 0.0,
                     ..Default::default()
                 };
-                (Some(Proposal { command: cmd, movement_enabled: true }), Step::SOURCE_NONE)
+                (Some(Proposal { command: cmd, movement_enabled: true, chunk: None }), Step::SOURCE_NONE)
             }
             State::Idle => (None, Step::SOURCE_NONE),
         };
@@ -570,14 +595,15 @@ impl RigLoop {
             gripper_position: gripper_target,
             ..Default::default()
         };
-        let (mut wanted, mut moving) = match proposal.filter(|p| p.movement_enabled) {
-            Some(p) => (p.command, true),
-            None => (hold(), false),
+        let (mut wanted, mut moving, mut chunk) = match proposal.filter(|p| p.movement_enabled) {
+            Some(p) => (p.command, true, p.chunk),
+            None => (hold(), false, None),
         };
         let safe = match self.filter.filter(&wanted, &view, Nanos(tick_ns)) {
             Ok(s) => s,
             Err(refusal) => {
                 moving = false;
+                chunk = None;
                 // The record holds what was done (a hold), never the refused values.
                 wanted = hold();
                 self.summary.refused += 1;
@@ -630,7 +656,7 @@ impl RigLoop {
                 step_end: tick.now(),
             };
             let obs = Observation { robot: self.robot.clone(), gripper: self.gripper.clone(), frames };
-            let decision = Decision { action, source: source_kind, movement_enabled: moving };
+            let decision = Decision { action, source: source_kind, movement_enabled: moving, chunk };
             out.step(make_step(&self.episode_id, self.episodes.steps, &obs, &decision, &times))?;
             self.episodes.tick();
         }
@@ -751,7 +777,7 @@ mod tests {
             self.actions.pop_front().unwrap_or(Err(SourceError::Silent { from: "test queue" }))
         }
         fn verdict(&self, _tick: Nanos) -> Verdict {
-            self.verdict.unwrap_or(Verdict::Running)
+            self.verdict.clone().unwrap_or(Verdict::Running)
         }
         fn restart(&mut self, _start: Nanos) {
             self.restarts += 1;
@@ -793,7 +819,7 @@ mod tests {
     fn go(joints: [f64; 7]) -> Result<Proposal, SourceError> {
         let command =
             ArmCommand { mode: ArmCommandMode::JointPosition as u8, joint_position: joints, ..Default::default() };
-        Ok(Proposal { command, movement_enabled: true })
+        Ok(Proposal { command, movement_enabled: true, chunk: None })
     }
 
     /// One tick at `k` periods with the arm where it was last commanded (a perfect arm).

@@ -1,10 +1,11 @@
-//! Action sources: what the rig loop asks for an action each tick. The scripted expert now
-//! (the sim bridge's `/sim/expert/action`), teleop and the policy server later, behind the
-//! same trait. A source proposes an arm command (any `ArmCommand` mode) and may say the task
-//! is over; the loop passes the proposal through the safety layer, never the source.
+//! Action sources: what the rig loop asks for an action each tick. The scripted expert (the
+//! sim bridge's `/sim/expert/action`), teleop and the policy server ([`crate::policy`]), behind
+//! the same trait. A source proposes an arm command (any `ArmCommand` mode) and may say the
+//! task is over; the loop passes the proposal through the safety layer, never the source.
 
+use crate::step::ChunkRef;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, Step, TeleopState};
+use labrig_msgs::labrig_msgs::{ArmCommand, RobotState, Step, TeleopState};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, RosError, RosSubscription};
@@ -15,14 +16,44 @@ pub struct Proposal {
     pub command: ArmCommand,
     /// The deadman (teleop grip) or the source's own go-ahead; a disabled proposal holds.
     pub movement_enabled: bool,
+    /// A policy's action: the chunk and row it came from (recorded in the Step).
+    pub chunk: Option<ChunkRef>,
 }
 
 /// What a source says about the task at a tick.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Verdict {
     Running,
     Succeeded,
-    Failed,
+    /// The task failed; `why` goes into the episode's end event where the source knows it.
+    Failed {
+        why: Option<String>,
+    },
+}
+
+/// What a source sees of a tick while an episode is recorded: the observation a policy is
+/// given (the Step's robot state and the pixels of the cameras it names).
+#[derive(Debug)]
+pub struct TickView<'a> {
+    pub tick: Nanos,
+    pub step_index: u64,
+    pub episode_id: &'a str,
+    pub robot: &'a RobotState,
+    /// The sim scene's JSON (empty on a real rig) and its seed.
+    pub scene: &'a str,
+    pub scene_seed: Option<u64>,
+    /// Per camera the source names ([`ActionSource::cameras`]), its frame at the tick.
+    pub images: Vec<(&'a str, std::sync::Arc<RgbFrame>)>,
+}
+
+/// One camera frame's pixels, copied out of shared memory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RgbFrame {
+    pub width: u32,
+    pub height: u32,
+    /// RGB8, tightly packed.
+    pub pixels: Vec<u8>,
+    pub capture_ns: i64,
 }
 
 /// Why a source had no action for a tick.
@@ -49,6 +80,17 @@ pub trait ActionSource: Send {
     fn verdict(&self, tick: Nanos) -> Verdict;
     /// A new episode begins at `start` (a source with memory of the last one forgets it).
     fn restart(&mut self, start: Nanos);
+    /// The cameras whose pixels the source observes (the loop copies their frames).
+    fn cameras(&self) -> &[String] {
+        &[]
+    }
+    /// The tick as recorded, before [`ActionSource::has`] and [`ActionSource::action`] are
+    /// asked (a policy sends its request from here).
+    fn observe(&mut self, _view: TickView<'_>) {}
+    /// What the source did over the run, for the loop's summary.
+    fn stats(&self) -> Option<serde_json::Value> {
+        None
+    }
 }
 
 /// The sim bridge's scripted expert (`labrig sim run --expert`): its action for every sim
@@ -128,7 +170,7 @@ impl ActionSource for ScriptedExpert {
                 limit_ms: max_age_ns as f64 / 1e6,
             });
         }
-        Ok(Proposal { command: a.clone(), movement_enabled: true })
+        Ok(Proposal { command: a.clone(), movement_enabled: true, chunk: None })
     }
 
     fn verdict(&self, _tick: Nanos) -> Verdict {
@@ -137,7 +179,7 @@ impl ActionSource for ScriptedExpert {
                 if ok {
                     Verdict::Succeeded
                 } else {
-                    Verdict::Failed
+                    Verdict::Failed { why: None }
                 }
             }
             _ => Verdict::Running,
@@ -222,7 +264,7 @@ impl ActionSource for Teleop {
             return Err(SourceError::Stale { from: source, age_ms: age as f64 / 1e6, limit_ms: limit as f64 / 1e6 });
         }
         let enabled = self.state.as_ref().is_some_and(|s| s.movement_enabled && s.controller_connected);
-        Ok(Proposal { command: a.clone(), movement_enabled: enabled })
+        Ok(Proposal { command: a.clone(), movement_enabled: enabled, chunk: None })
     }
 
     fn verdict(&self, _tick: Nanos) -> Verdict {

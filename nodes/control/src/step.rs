@@ -38,6 +38,17 @@ pub struct Decision {
     pub source: u8,
     /// The deadman (teleop grip) or the source's own go-ahead.
     pub movement_enabled: bool,
+    /// A policy's action: which chunk and row it came from.
+    pub chunk: Option<ChunkRef>,
+}
+
+/// Where a policy's action came from: the checkpoint, the chunk (the request id it answers)
+/// and the row in it.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ChunkRef {
+    pub policy_id: String,
+    pub chunk_id: u64,
+    pub row: u32,
 }
 
 /// Assembles the Step of one tick. The gripper's measured position goes into the robot
@@ -65,6 +76,9 @@ pub fn make_step(episode_id: &str, step_index: u64, obs: &Observation, decision:
         action: decision.action.clone(),
         action_source: decision.source,
         movement_enabled: decision.movement_enabled,
+        policy_id: decision.chunk.as_ref().map(|c| c.policy_id.clone()).unwrap_or_default(),
+        chunk_id: decision.chunk.as_ref().map_or(0, |c| c.chunk_id),
+        chunk_row: decision.chunk.as_ref().map_or(0, |c| c.row),
         ..Default::default()
     }
 }
@@ -92,8 +106,10 @@ mod tests {
             step_end: 1_005,
         };
         let obs = Observation { robot, gripper: Some(gripper), frames };
-        let decision = Decision { action, source: Step::SOURCE_SCRIPTED, movement_enabled: true };
+        let chunk = Some(ChunkRef { policy_id: "run@600".into(), chunk_id: 4, row: 2 });
+        let decision = Decision { action, source: Step::SOURCE_POLICY, movement_enabled: true, chunk };
         let s = make_step("ep", 3, &obs, &decision, &times);
+        assert_eq!((s.policy_id.as_str(), s.chunk_id, s.chunk_row), ("run@600", 4, 2));
         assert_eq!(s.step_index, 3);
         assert_eq!(s.robot_state.gripper_position, 0.4);
         assert_eq!(s.cameras.iter().map(|c| c.sequence).collect::<Vec<_>>(), vec![7, 9]);

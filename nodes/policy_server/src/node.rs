@@ -91,6 +91,8 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     let mut ros = Ros::new(&cfg.ros, "labrig_policy")?;
     let requests = ros.subscription_on(&topics::POLICY_REQUEST, 10)?;
     let chunks = ros.publisher_on(&topics::POLICY_CHUNK, 10)?;
+    let info = ros.publisher_on(&topics::POLICY_INFO, 1)?;
+    info.publish(labrig_msgs::std_msgs::StringMsg { data: server.info().to_string() })?;
 
     let waiting = Arc::new((Mutex::new(Waiting::default()), Condvar::new()));
     let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<Result<ActionChunk, String>>();

@@ -113,9 +113,27 @@ impl Server {
         Ok(named)
     }
 
+    /// What the server serves, as `/policy/info` carries it (JSON).
+    pub fn info(&self) -> serde_json::Value {
+        let c = &self.meta.config;
+        serde_json::json!({
+            "policy_id": self.id,
+            "cameras": c.cameras,
+            "image_size": c.image_size,
+            "n_obs_steps": c.n_obs_steps,
+            "horizon": c.horizon,
+            "n_action_steps": c.n_action_steps,
+            "action_space": c.action_space,
+            "action_dim": c.action_dim,
+            "scene_state": c.scene_state,
+            "step": self.meta.step,
+        })
+    }
+
     /// The chunk for `req`: the actions from the newest observation's step on (Tp - To + 1 of
-    /// them), in the robot's units. The initial noise is seeded by the episode and step, so the
-    /// same request gives the same chunk (lockstep rollouts repeat).
+    /// them), in the robot's units, row `i` for the newest observation's time + `i` periods.
+    /// The initial noise is seeded by the request's seed and the step, so the same request
+    /// gives the same chunk (lockstep rollouts repeat).
     pub fn chunk(&self, req: &PolicyRequest) -> Result<ActionChunk, ServeError> {
         let started = Instant::now();
         let newest = req
@@ -124,7 +142,7 @@ impl Server {
             .ok_or_else(|| ServeError::Request { request: req.request_id, what: "no observations".into() })?;
         let named = self.observation(req)?;
         let c = &self.meta.config;
-        tch::manual_seed(noise_seed(&req.episode_id, newest.step_index));
+        tch::manual_seed(noise_seed(req.seed, newest.step_index));
         let noise = Tensor::randn([1, c.horizon, c.action_dim], (Kind::Float, Device::Cpu));
         let r = infer::infer(&self.policy, &self.meta, &named, &noise)
             .map_err(|source| ServeError::Infer { request: req.request_id, source })?;
@@ -145,8 +163,11 @@ impl Server {
                 ),
             });
         }
+        let t0 = labrig_msgs::Nanos::from(newest.header.stamp).0;
         Ok(ActionChunk {
             header: Header { stamp: newest.header.stamp, frame_id: String::new() },
+            request_id: req.request_id,
+            times_ns: (0..rows).map(|i| t0 + i * req.period_ns).collect(),
             policy_id: self.id.clone(),
             observation_step: newest.step_index,
             first_step: newest.step_index,
@@ -159,10 +180,13 @@ impl Server {
     }
 }
 
-/// The initial noise's seed for an episode's step (FNV-1a of the episode id, mixed with it).
-pub fn noise_seed(episode_id: &str, step: u64) -> i64 {
-    let h = episode_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
-    ((h ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 1) as i64
+/// The initial noise's seed for a rollout's step: the rollout's seed and the step mixed
+/// (splitmix64), non-negative.
+pub fn noise_seed(seed: u64, step: u64) -> i64 {
+    let mut z = seed.wrapping_add(step.wrapping_mul(0x9E37_79B9_7F4A_7C15)).wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    ((z ^ (z >> 31)) >> 1) as i64
 }
 
 #[cfg(test)]
@@ -210,7 +234,14 @@ mod tests {
     }
 
     fn request(observations: Vec<PolicyObservation>) -> PolicyRequest {
-        PolicyRequest { request_id: 5, episode_id: "ep".into(), observations, ..PolicyRequest::default() }
+        PolicyRequest {
+            request_id: 5,
+            episode_id: "ep".into(),
+            observations,
+            seed: 3,
+            period_ns: 50_000_000,
+            ..PolicyRequest::default()
+        }
     }
 
     #[test]
@@ -232,10 +263,12 @@ mod tests {
 
         let req = request(vec![observation(3, 0.5, "ext1"), observation(4, 0.52, "ext1")]);
         let a = server.chunk(&req).unwrap();
-        assert_eq!((a.observation_step, a.first_step, a.horizon, a.action_dim), (4, 4, 15, 7));
-        assert_eq!(server.chunk(&req).unwrap().actions, a.actions, "seeded by episode and step");
-        let other = PolicyRequest { episode_id: "another".into(), ..req.clone() };
-        assert_ne!(server.chunk(&other).unwrap().actions, a.actions, "another episode, another noise");
+        assert_eq!((a.observation_step, a.first_step, a.horizon, a.action_dim, a.request_id), (4, 4, 15, 7, 5));
+        let t0 = labrig_msgs::Nanos::from(req.observations[1].header.stamp).0;
+        assert_eq!(a.times_ns, (0..15).map(|i| t0 + i * 50_000_000).collect::<Vec<_>>());
+        assert_eq!(server.chunk(&req).unwrap().actions, a.actions, "seeded by the rollout's seed and step");
+        let other = PolicyRequest { seed: 4, ..req.clone() };
+        assert_ne!(server.chunk(&other).unwrap().actions, a.actions, "another seed, another noise");
 
         let blind = request(vec![observation(3, 0.5, "wrist")]);
         let e = server.chunk(&blind).unwrap_err().to_string();

@@ -1,0 +1,729 @@
+//! The policy server as the loop's action source (`source = "policy"`, `labrig-policy run`).
+//!
+//! Each recorded tick the loop hands the source its observation ([`TickView`]: the Step's
+//! robot state and the pixels of the cameras the policy names). The source keeps the newest
+//! `n_obs_steps` of them and, when the next chunk is due, sends them on `/policy/request`
+//! (JPEG-encoded on its own thread at the recorder's quality, so the policy sees what it was
+//! trained on; the loop's thread only copies pixels). Chunks come back on `/policy/chunk`,
+//! each row with the time it is meant for; a tick executes the row meant for it:
+//!
+//! - A chunk is asked for once `execute_steps` rows of the newest one have run (the
+//!   receding horizon), `lead` ticks early so that it arrives in time: on the wall clock
+//!   `lead` is the measured round trip in ticks (rounded up), in lockstep it is
+//!   `lockstep_delay_steps` (0: the loop waits for the chunk, as synchronous inference does;
+//!   N: the sim plays an inference latency of N ticks, deterministically).
+//! - Rows whose time passed before their chunk arrived are skipped (counted); no row for a
+//!   tick (the server is slow, stalled or gone) holds the arm, as any stale source does.
+//! - A new chunk replaces the rest of the old one (`blend = "replace"`), or overlapping rows
+//!   are averaged with weights `exp(-blend_decay * k)`, `k` how many steps older a chunk's
+//!   observation is than the newest's (`"exponential"`; rotations by slerp).
+//! - No answer to a request within `server_timeout_s`: the episode fails, saying so.
+//! - In the sim, `/sim/task` (the physics' success predicate) ends an episode as a success;
+//!   on a real rig the operator judges (`/rig/request`).
+//!
+//! At start the loop waits for the server's `/policy/info` and refuses a policy it cannot
+//! serve: a camera it does not record, an action space it cannot execute, or another action
+//! width, each named.
+
+use crate::node::ClockKind;
+use crate::source::{ActionSource, Proposal, RgbFrame, SourceError, TickView, Verdict};
+use crate::step::ChunkRef;
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ActionChunk, ArmCommand, ArmCommandMode, PolicyObservation, PolicyRequest, Step};
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::std_msgs::{Header, StringMsg};
+use labrig_msgs::topics;
+use labrig_runtime::Shutdown;
+use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
+use nalgebra::{UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+/// How a new chunk meets the rest of the old one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Blend {
+    /// The new chunk's rows only.
+    Replace,
+    /// Overlapping rows averaged, newer chunks weighted up.
+    Exponential,
+}
+
+/// `[policy]` in the control node's config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PolicySourceConfig {
+    pub blend: Blend,
+    /// Exponential blending: a chunk's weight is `exp(-blend_decay * k)`, `k` how many steps
+    /// older its newest observation is than the newest chunk's (0: a plain average).
+    pub blend_decay: f64,
+    /// Rows of a chunk executed before the next one is due (0: the checkpoint's
+    /// `n_action_steps`).
+    pub execute_steps: u32,
+    /// Lockstep only: a chunk asked for at step t is used from step t + this (0: the loop
+    /// waits for it).
+    pub lockstep_delay_steps: u32,
+    /// How long the node waits at start for the server's `/policy/info` (s).
+    pub server_wait_s: f64,
+    /// A request unanswered this long (s, wall time) fails the episode.
+    pub server_timeout_s: f64,
+    /// The action space this rig executes (`eef_axis_angle` or `cartesian_velocity`); a policy
+    /// predicting another is refused at start. Empty: either.
+    pub action_space: String,
+    /// JPEG quality of the observation images: the recorder's, so the policy sees the
+    /// compression it was trained on.
+    pub jpeg_quality: u8,
+}
+
+impl Default for PolicySourceConfig {
+    fn default() -> Self {
+        PolicySourceConfig {
+            blend: Blend::Replace,
+            blend_decay: 0.5,
+            execute_steps: 0,
+            lockstep_delay_steps: 0,
+            server_wait_s: 120.0,
+            server_timeout_s: 1.0,
+            action_space: String::new(),
+            jpeg_quality: 90,
+        }
+    }
+}
+
+/// The action spaces the loop executes.
+pub const EXECUTABLE: [&str; 2] = ["eef_axis_angle", "cartesian_velocity"];
+
+impl PolicySourceConfig {
+    pub fn validate(&self) -> Result<(), labrig_msgs::Invalid> {
+        use labrig_msgs::Invalid;
+        for (name, v) in
+            [("policy.server_wait_s", self.server_wait_s), ("policy.server_timeout_s", self.server_timeout_s)]
+        {
+            if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+                return Err(Invalid::new(name, format!("{name} = {v} must be in (0, 86400]")));
+            }
+        }
+        if !(self.blend_decay.is_finite() && self.blend_decay >= 0.0) {
+            return Err(Invalid::new(
+                "policy.blend_decay",
+                format!("policy.blend_decay = {} must be >= 0", self.blend_decay),
+            ));
+        }
+        if !self.action_space.is_empty() && !EXECUTABLE.contains(&self.action_space.as_str()) {
+            return Err(Invalid::new(
+                "policy.action_space",
+                format!("policy.action_space = {:?}: the loop executes {EXECUTABLE:?}", self.action_space),
+            ));
+        }
+        if !(1..=100).contains(&self.jpeg_quality) {
+            return Err(Invalid::new("policy.jpeg_quality", "policy.jpeg_quality must be 1..=100"));
+        }
+        Ok(())
+    }
+}
+
+/// What the server serves (`/policy/info`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PolicyInfo {
+    pub policy_id: String,
+    pub cameras: Vec<String>,
+    pub n_obs_steps: usize,
+    pub horizon: usize,
+    pub n_action_steps: usize,
+    pub action_space: String,
+    pub action_dim: usize,
+}
+
+impl PolicyInfo {
+    /// Whether this loop can feed and execute the policy; the mismatch named if not.
+    pub fn check(&self, rig_cameras: &[String], action_space: &str) -> Result<(), String> {
+        let id = &self.policy_id;
+        let missing: Vec<&String> = self.cameras.iter().filter(|c| !rig_cameras.contains(c)).collect();
+        if !missing.is_empty() {
+            return Err(format!(
+                "the policy {id} observes cameras {missing:?}, which this rig does not record (it has {rig_cameras:?})"
+            ));
+        }
+        if !EXECUTABLE.contains(&self.action_space.as_str()) {
+            return Err(format!(
+                "the policy {id} predicts {:?} actions, which the loop cannot execute (it executes {EXECUTABLE:?})",
+                self.action_space
+            ));
+        }
+        if !action_space.is_empty() && self.action_space != action_space {
+            return Err(format!(
+                "the policy {id} predicts {:?} actions; this rig is configured for {action_space:?} (policy.action_space)",
+                self.action_space
+            ));
+        }
+        if self.action_dim != 7 {
+            return Err(format!(
+                "the policy {id} predicts {}-wide actions; {:?} is 7 wide (6 + the gripper)",
+                self.action_dim, self.action_space
+            ));
+        }
+        if self.n_obs_steps == 0 || self.horizon < self.n_obs_steps || self.n_action_steps == 0 {
+            return Err(format!(
+                "the policy {id} has n_obs_steps {}, horizon {}, n_action_steps {}: no action to execute",
+                self.n_obs_steps, self.horizon, self.n_action_steps
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What a run of the policy source did.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PolicyStats {
+    pub policy_id: String,
+    pub requests: u64,
+    pub chunks: u64,
+    /// Rows whose time had passed when their chunk arrived.
+    pub rows_skipped: u64,
+    /// Rows executed (blended ones count once).
+    pub rows_executed: u64,
+    /// Ticks the policy had no row for (the arm held).
+    pub ticks_without_action: u64,
+    /// Requests not sent for lack of a camera's frame.
+    pub requests_without_images: u64,
+    /// Request to chunk, wall time (ms): p50, p99, max.
+    pub round_trip_ms: [f64; 3],
+    /// The lead (ticks) the last request was sent with.
+    pub lead_steps: u32,
+}
+
+/// One tick as the policy sees it.
+#[derive(Debug, Clone)]
+struct Obs {
+    step_index: u64,
+    tick_ns: i64,
+    robot: labrig_msgs::labrig_msgs::RobotState,
+    images: Vec<(String, Arc<RgbFrame>)>,
+}
+
+/// A chunk being executed.
+#[derive(Debug, Clone)]
+struct Chunk {
+    id: u64,
+    obs_step: u64,
+    times_ns: Vec<i64>,
+    rows: Vec<[f64; 7]>,
+    /// The first row executed (the ones before it were late).
+    first_used: Option<usize>,
+}
+
+impl Chunk {
+    /// The row meant for `tick` (within half a period).
+    fn row_at(&self, tick: i64, tol: i64) -> Option<usize> {
+        self.times_ns.iter().position(|&t| (t - tick).abs() <= tol)
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct InFlight {
+    id: u64,
+    /// The tick its chunk is due at (lockstep waits for it there).
+    due_ns: i64,
+    sent: Instant,
+}
+
+/// A request for the encoder thread: observations with raw pixels.
+struct Job {
+    request: PolicyRequest,
+    images: Vec<Vec<(String, Arc<RgbFrame>)>>,
+}
+
+pub struct PolicySource {
+    cfg: PolicySourceConfig,
+    info: PolicyInfo,
+    clock: ClockKind,
+    period_ns: i64,
+    chunks_sub: RosSubscription<ActionChunk>,
+    task_sub: RosSubscription<StringMsg>,
+    jobs: Option<mpsc::Sender<Job>>,
+    encoder: Option<std::thread::JoinHandle<()>>,
+    history: VecDeque<Obs>,
+    /// Oldest first; the last is the newest.
+    active: Vec<Chunk>,
+    in_flight: Option<InFlight>,
+    next_request: u64,
+    /// Chunks answering older requests belong to an earlier episode.
+    first_request_of_episode: u64,
+    /// Rows of the newest chunk executed.
+    executed: u32,
+    since_ns: i64,
+    /// (stamp, success) of the newest `/sim/task`.
+    task: Option<(i64, bool)>,
+    round_trips_ms: Vec<f64>,
+    stats: PolicyStats,
+    warned_images: bool,
+}
+
+impl std::fmt::Debug for PolicySource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PolicySource").field("info", &self.info).field("stats", &self.stats).finish_non_exhaustive()
+    }
+}
+
+/// Why the policy source could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyStartError {
+    #[error(transparent)]
+    Ros(#[from] RosError),
+    #[error(
+        "no /policy/info within {0:.0} s: is the policy server (`labrig policy run --checkpoint <dir>`) running on this domain?"
+    )]
+    NoServer(f64),
+    #[error("/policy/info is not what a policy server sends: {0}")]
+    BadInfo(String),
+    #[error("{0}")]
+    Mismatch(String),
+    #[error("stopped before the policy server came up")]
+    Stopped,
+}
+
+impl PolicySource {
+    /// Connects to the server: waits for its `/policy/info` and checks the policy against
+    /// this loop (`cameras` it records).
+    pub async fn connect(
+        ros: &mut Ros,
+        cfg: PolicySourceConfig,
+        clock: ClockKind,
+        period: Nanos,
+        cameras: &[String],
+        shutdown: &Shutdown,
+    ) -> Result<PolicySource, PolicyStartError> {
+        let info_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::POLICY_INFO, 1)?;
+        let chunks_sub = ros.subscription_on(&topics::POLICY_CHUNK, 100)?;
+        let task_sub = ros.subscription_on(&topics::SIM_TASK, 100)?;
+        let requests: RosPublisher<PolicyRequest> = ros.publisher_on(&topics::POLICY_REQUEST, 10)?;
+        let until = Instant::now() + Duration::from_secs_f64(cfg.server_wait_s);
+        let info: PolicyInfo = loop {
+            if let Some(m) = info_sub.try_take()? {
+                break serde_json::from_str(&m.msg.data).map_err(|e| PolicyStartError::BadInfo(format!("{e}")))?;
+            }
+            if shutdown.is_triggered() {
+                return Err(PolicyStartError::Stopped);
+            }
+            if Instant::now() > until {
+                return Err(PolicyStartError::NoServer(cfg.server_wait_s));
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        info.check(cameras, &cfg.action_space).map_err(PolicyStartError::Mismatch)?;
+        let (jobs, rx) = mpsc::channel::<Job>();
+        let quality = cfg.jpeg_quality;
+        let encoder = std::thread::Builder::new()
+            .name("policy-requests".into())
+            .spawn(move || encode_and_send(&rx, &requests, quality))
+            .map_err(|e| PolicyStartError::BadInfo(format!("cannot start the request thread: {e}")))?;
+        tracing::info!(policy = %info.policy_id, cameras = ?info.cameras, action_space = %info.action_space, "policy source up");
+        let stats = PolicyStats { policy_id: info.policy_id.clone(), ..PolicyStats::default() };
+        Ok(PolicySource {
+            cfg,
+            info,
+            clock,
+            period_ns: period.0,
+            chunks_sub,
+            task_sub,
+            jobs: Some(jobs),
+            encoder: Some(encoder),
+            history: VecDeque::new(),
+            active: Vec::new(),
+            in_flight: None,
+            next_request: 1,
+            first_request_of_episode: 1,
+            executed: 0,
+            since_ns: i64::MIN,
+            task: None,
+            round_trips_ms: Vec::new(),
+            stats,
+            warned_images: false,
+        })
+    }
+
+    pub fn info(&self) -> &PolicyInfo {
+        &self.info
+    }
+
+    pub fn stats(&self) -> PolicyStats {
+        let mut s = self.stats.clone();
+        let mut v: Vec<i64> = self.round_trips_ms.iter().map(|ms| (ms * 1e6) as i64).collect();
+        let us = crate::node::percentiles_us(&mut v);
+        s.round_trip_ms = us.map(|u| u / 1e3);
+        s
+    }
+
+    fn execute_steps(&self) -> u32 {
+        if self.cfg.execute_steps > 0 { self.cfg.execute_steps } else { self.info.n_action_steps as u32 }
+    }
+
+    /// How many ticks before the newest chunk's `execute_steps` are spent the next is asked for.
+    fn lead_steps(&self) -> u32 {
+        match self.clock {
+            ClockKind::Sim => self.cfg.lockstep_delay_steps,
+            ClockKind::Wall => {
+                // The slowest of the recent round trips, in ticks, rounded up (1 before any).
+                let recent = &self.round_trips_ms[self.round_trips_ms.len().saturating_sub(20)..];
+                let worst = recent.iter().copied().fold(f64::NAN, f64::max);
+                if worst.is_nan() { 1 } else { (worst * 1e6 / self.period_ns as f64).ceil().max(1.0) as u32 }
+            }
+        }
+    }
+
+    fn tolerance(&self) -> i64 {
+        self.period_ns / 2
+    }
+
+    fn take_chunk(&mut self, c: ActionChunk) {
+        if c.request_id < self.first_request_of_episode {
+            return; // an earlier episode's
+        }
+        if c.action_dim != 7 || c.times_ns.len() != c.horizon as usize {
+            tracing::warn!(chunk = c.request_id, "a chunk of {} x {}: ignored", c.horizon, c.action_dim);
+            return;
+        }
+        if let Some(f) = self.in_flight.filter(|f| f.id == c.request_id) {
+            self.round_trips_ms.push(f.sent.elapsed().as_secs_f64() * 1e3);
+            self.in_flight = None;
+        }
+        self.stats.chunks += 1;
+        let rows = (0..c.horizon as usize)
+            .map(|i| {
+                let a = c.action(i).expect("validated width");
+                std::array::from_fn(|k| a[k])
+            })
+            .collect();
+        let chunk =
+            Chunk { id: c.request_id, obs_step: c.observation_step, times_ns: c.times_ns, rows, first_used: None };
+        match self.cfg.blend {
+            Blend::Replace => self.active.clear(),
+            Blend::Exponential => {}
+        }
+        self.active.push(chunk);
+        self.executed = 0;
+    }
+
+    fn send(&mut self, tick_ns: i64, lead: u32, view: &TickView<'_>) {
+        let n = self.info.n_obs_steps;
+        let newest: Vec<&Obs> = self.history.iter().rev().take(n).rev().collect();
+        let id = self.next_request;
+        self.next_request += 1;
+        let seed = view.scene_seed.unwrap_or_else(|| fnv1a(view.episode_id));
+        let request = PolicyRequest {
+            header: Header { stamp: Nanos(tick_ns).into(), frame_id: String::new() },
+            request_id: id,
+            episode_id: view.episode_id.to_owned(),
+            scene: view.scene.to_owned(),
+            observations: newest
+                .iter()
+                .map(|o| PolicyObservation {
+                    header: Header { stamp: Nanos(o.tick_ns).into(), frame_id: "base".into() },
+                    step_index: o.step_index,
+                    robot_state: o.robot.clone(),
+                    images: Vec::new(),
+                    ..PolicyObservation::default()
+                })
+                .collect(),
+            seed,
+            period_ns: self.period_ns,
+            ..PolicyRequest::default()
+        };
+        let images = newest.iter().map(|o| o.images.clone()).collect();
+        if let Some(jobs) = &self.jobs
+            && jobs.send(Job { request, images }).is_err()
+        {
+            tracing::error!("the policy request thread is gone");
+        }
+        self.stats.requests += 1;
+        self.stats.lead_steps = lead;
+        self.in_flight =
+            Some(InFlight { id, due_ns: tick_ns + i64::from(lead) * self.period_ns, sent: Instant::now() });
+    }
+
+    /// The action meant for `tick`: per blending, from the chunks that have a row for it; the
+    /// newest such chunk and its row.
+    fn blended(&self, tick: i64) -> Option<([f64; 7], usize, usize)> {
+        let tol = self.tolerance();
+        let rows: Vec<(usize, usize)> =
+            self.active.iter().enumerate().filter_map(|(k, c)| c.row_at(tick, tol).map(|r| (k, r))).collect();
+        let &(newest, row) = rows.last()?;
+        if self.cfg.blend == Blend::Replace || rows.len() == 1 {
+            return Some((self.active[newest].rows[row], newest, row));
+        }
+        let newest_step = self.active[newest].obs_step;
+        let weighted: Vec<([f64; 7], f64)> = rows
+            .iter()
+            .map(|&(k, r)| {
+                let age = newest_step.saturating_sub(self.active[k].obs_step) as f64;
+                (self.active[k].rows[r], (-self.cfg.blend_decay * age).exp())
+            })
+            .collect();
+        Some((blend(&weighted, &self.info.action_space), newest, row))
+    }
+}
+
+/// Weighted average of actions: positions (or velocities) and the gripper linearly,
+/// axis-angle rotations by incremental slerp.
+fn blend(rows: &[([f64; 7], f64)], action_space: &str) -> [f64; 7] {
+    let total: f64 = rows.iter().map(|(_, w)| w).sum();
+    let mut out = [0.0; 7];
+    for (a, w) in rows {
+        for k in 0..7 {
+            out[k] += a[k] * w / total;
+        }
+    }
+    if action_space == "eef_axis_angle" {
+        let rot = |a: &[f64; 7]| UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5]));
+        let mut q = rot(&rows[0].0);
+        let mut acc = rows[0].1;
+        for (a, w) in &rows[1..] {
+            let mut next = rot(a);
+            if q.coords.dot(&next.coords) < 0.0 {
+                next = UnitQuaternion::new_unchecked(-next.into_inner());
+            }
+            q = q.slerp(&next, w / (acc + w));
+            acc += w;
+        }
+        let v = q.scaled_axis();
+        out[3..6].copy_from_slice(&[v.x, v.y, v.z]);
+    }
+    out
+}
+
+/// The request thread: each observation's images JPEG-encoded, the request sent.
+fn encode_and_send(rx: &mpsc::Receiver<Job>, requests: &RosPublisher<PolicyRequest>, quality: u8) {
+    while let Ok(Job { mut request, images }) = rx.recv() {
+        for (obs, imgs) in request.observations.iter_mut().zip(images) {
+            for (camera, frame) in imgs {
+                match labrig_episode::jpeg::encode_rgb(&frame.pixels, frame.width as u16, frame.height as u16, quality)
+                {
+                    Ok(data) => obs.images.push(CompressedImage {
+                        header: Header { stamp: Nanos(frame.capture_ns).into(), frame_id: camera },
+                        format: "jpeg".into(),
+                        data,
+                    }),
+                    Err(e) => tracing::warn!("camera {camera}: {e}"),
+                }
+            }
+        }
+        if let Err(e) = requests.publish(request) {
+            tracing::warn!("/policy/request: {e}");
+        }
+    }
+}
+
+/// FNV-1a of a string: a seed from an episode id where no scene seed is known.
+fn fnv1a(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3))
+}
+
+impl Drop for PolicySource {
+    fn drop(&mut self) {
+        self.jobs = None;
+        if let Some(t) = self.encoder.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl ActionSource for PolicySource {
+    fn name(&self) -> &'static str {
+        "the policy server (/policy/chunk)"
+    }
+
+    fn kind(&self) -> u8 {
+        Step::SOURCE_POLICY
+    }
+
+    fn poll(&mut self) -> Result<(), RosError> {
+        while let Some(c) = self.chunks_sub.try_take()? {
+            self.take_chunk(c.msg);
+        }
+        while let Some(t) = self.task_sub.try_take()? {
+            let Ok(v) = serde_json::from_str::<serde_json::Value>(&t.msg.data) else {
+                tracing::warn!("/sim/task: not JSON: {:?}", t.msg.data);
+                continue;
+            };
+            self.task = Some((v["stamp_ns"].as_i64().unwrap_or(i64::MIN), v["success"] == true));
+        }
+        Ok(())
+    }
+
+    /// Lockstep: the tick a chunk is due at waits for it (until the server's timeout).
+    fn has(&self, tick: Nanos) -> bool {
+        !self
+            .in_flight
+            .is_some_and(|f| f.due_ns <= tick.0 && f.sent.elapsed().as_secs_f64() < self.cfg.server_timeout_s)
+    }
+
+    fn action(&mut self, tick: Nanos, _max_age: Nanos) -> Result<Proposal, SourceError> {
+        let from = "the policy server";
+        let Some((a, k, row)) = self.blended(tick.0) else {
+            self.stats.ticks_without_action += 1;
+            let last = self.active.last().and_then(|c| c.times_ns.last().copied());
+            return Err(match last {
+                None => SourceError::Silent { from },
+                Some(t) => SourceError::Stale {
+                    from,
+                    age_ms: (tick.0 - t) as f64 / 1e6,
+                    limit_ms: self.tolerance() as f64 / 1e6,
+                },
+            });
+        };
+        let newest = k + 1 == self.active.len();
+        let chunk = &mut self.active[k];
+        if chunk.first_used.is_none() {
+            chunk.first_used = Some(row);
+            self.stats.rows_skipped += row as u64;
+        }
+        let chunk_ref = ChunkRef { policy_id: self.info.policy_id.clone(), chunk_id: chunk.id, row: row as u32 };
+        if newest {
+            self.executed += 1;
+        }
+        self.stats.rows_executed += 1;
+        // Chunks with no row left after this tick are done.
+        let tol = self.tolerance();
+        let keep_last = self.active.len() - 1;
+        let mut i = 0;
+        self.active.retain(|c| {
+            let keep = i == keep_last || c.times_ns.last().is_some_and(|&t| t > tick.0 + tol);
+            i += 1;
+            keep
+        });
+        let mut command = ArmCommand { gripper_position: a[6], ..ArmCommand::default() };
+        if self.info.action_space == "cartesian_velocity" {
+            command.mode = ArmCommandMode::CartesianVelocity as u8;
+            command.cartesian_velocity.copy_from_slice(&a[..6]);
+        } else {
+            command.mode = ArmCommandMode::CartesianPositionAxisAngle as u8;
+            command.cartesian_position.copy_from_slice(&a[..6]);
+        }
+        command.header.stamp = tick.into();
+        Ok(Proposal { command, movement_enabled: true, chunk: Some(chunk_ref) })
+    }
+
+    fn verdict(&self, _tick: Nanos) -> Verdict {
+        if let Some(f) = self.in_flight
+            && f.sent.elapsed().as_secs_f64() >= self.cfg.server_timeout_s
+        {
+            return Verdict::Failed {
+                why: Some(format!(
+                    "the policy server ({}) did not answer request {} within {:.1} s",
+                    self.info.policy_id, f.id, self.cfg.server_timeout_s
+                )),
+            };
+        }
+        match self.task {
+            Some((t, true)) if t >= self.since_ns => Verdict::Succeeded,
+            _ => Verdict::Running,
+        }
+    }
+
+    fn restart(&mut self, start: Nanos) {
+        self.since_ns = start.0;
+        self.history.clear();
+        self.active.clear();
+        self.in_flight = None;
+        self.executed = 0;
+        self.first_request_of_episode = self.next_request;
+    }
+
+    fn cameras(&self) -> &[String] {
+        &self.info.cameras
+    }
+
+    fn stats(&self) -> Option<serde_json::Value> {
+        serde_json::to_value(PolicySource::stats(self)).ok()
+    }
+
+    fn observe(&mut self, view: TickView<'_>) {
+        let tick = view.tick.0;
+        let images: Vec<(String, Arc<RgbFrame>)> =
+            view.images.iter().map(|(c, f)| (c.to_string(), Arc::clone(f))).collect();
+        let complete = self.info.cameras.iter().all(|c| images.iter().any(|(n, _)| n == c));
+        self.history.push_back(Obs { step_index: view.step_index, tick_ns: tick, robot: view.robot.clone(), images });
+        while self.history.len() > self.info.n_obs_steps {
+            self.history.pop_front();
+        }
+        if self.in_flight.is_some() {
+            return;
+        }
+        let lead = self.lead_steps();
+        let due = match self.active.last() {
+            None => true,
+            Some(c) => {
+                let left = c.times_ns.iter().filter(|&&t| t > tick + self.tolerance()).count() as u32;
+                self.executed + lead >= self.execute_steps() || left <= lead
+            }
+        };
+        if !due {
+            return;
+        }
+        if !complete {
+            self.stats.requests_without_images += 1;
+            if !self.warned_images {
+                tracing::warn!(step = view.step_index, cameras = ?self.info.cameras, "no frame of a policy camera at the tick: no request");
+                self.warned_images = true;
+            }
+            return;
+        }
+        self.send(tick, lead, &view);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn info() -> PolicyInfo {
+        PolicyInfo {
+            policy_id: "run@600".into(),
+            cameras: vec!["ext1".into()],
+            n_obs_steps: 2,
+            horizon: 16,
+            n_action_steps: 8,
+            action_space: "eef_axis_angle".into(),
+            action_dim: 7,
+        }
+    }
+
+    #[test]
+    fn a_policy_the_rig_cannot_serve_is_refused_by_name() {
+        let rig: Vec<String> = ["ext1", "wrist"].map(String::from).to_vec();
+        assert_eq!(info().check(&rig, ""), Ok(()));
+        assert_eq!(info().check(&rig, "eef_axis_angle"), Ok(()));
+        let e = info().check(&["wrist".to_string()], "").unwrap_err();
+        assert!(e.contains("run@600 observes cameras [\"ext1\"], which this rig does not record"), "{e}");
+        let e = PolicyInfo { action_space: "joint_velocity".into(), ..info() }.check(&rig, "").unwrap_err();
+        assert!(e.contains("predicts \"joint_velocity\" actions, which the loop cannot execute"), "{e}");
+        let e = info().check(&rig, "cartesian_velocity").unwrap_err();
+        assert!(e.contains("this rig is configured for \"cartesian_velocity\""), "{e}");
+        let e = PolicyInfo { action_dim: 10, ..info() }.check(&rig, "").unwrap_err();
+        assert!(e.contains("10-wide"), "{e}");
+    }
+
+    #[test]
+    fn blending_weights_newer_chunks_and_slerps_rotations() {
+        let a = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let b = [1.0, 0.0, 0.0, 0.0, 0.0, std::f64::consts::FRAC_PI_2, 1.0];
+        let even = blend(&[(a, 1.0), (b, 1.0)], "eef_axis_angle");
+        assert!((even[0] - 0.5).abs() < 1e-12 && (even[6] - 0.5).abs() < 1e-12);
+        assert!((even[5] - std::f64::consts::FRAC_PI_4).abs() < 1e-9, "{even:?}");
+        let newer = blend(&[(a, (-2.0f64).exp()), (b, 1.0)], "eef_axis_angle");
+        assert!(newer[0] > 0.85 && newer[5] > even[5], "{newer:?}");
+        // The same rotation written two ways (angle 3 vs 3 - 2 pi about the same axis)
+        // averages to itself, not to the identity.
+        let r = [0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0];
+        let r2 = [0.0, 0.0, 0.0, 3.0 - 2.0 * std::f64::consts::PI, 0.0, 0.0, 0.0];
+        let m = blend(&[(r, 1.0), (r2, 1.0)], "eef_axis_angle");
+        let q = UnitQuaternion::from_scaled_axis(Vector3::new(m[3], m[4], m[5]));
+        assert!(q.angle_to(&UnitQuaternion::from_scaled_axis(Vector3::new(3.0, 0.0, 0.0))) < 1e-9, "{m:?}");
+        // Velocities average linearly.
+        let v = blend(&[(a, 1.0), (b, 1.0)], "cartesian_velocity");
+        assert!((v[5] - std::f64::consts::FRAC_PI_4).abs() < 1e-12);
+    }
+}
