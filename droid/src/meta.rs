@@ -104,6 +104,7 @@ pub fn to_json(i: &JsonInput<'_>) -> Value {
             "action_source": source_name(i.action_source),
             "sim_scene": m.sim_scene,
             "recovered": m.recovered,
+            "policy": m.policy,
         }),
     );
     v
@@ -206,6 +207,7 @@ pub fn parse(v: &Value) -> Result<Parsed, Invalid> {
         trajectory_length: v.get("trajectory_length").and_then(Value::as_u64).unwrap_or(0),
         sim_scene: labrig.and_then(|l| l.get("sim_scene")).and_then(Value::as_str).map(str::to_owned),
         recovered: labrig.and_then(|l| l.get("recovered")).and_then(Value::as_str).map(str::to_owned),
+        policy: labrig.and_then(|l| l.get("policy")).and_then(Value::as_str).map(str::to_owned),
     };
     let action_source =
         labrig.and_then(|l| l.get("action_source")).and_then(Value::as_str).map_or(Step::SOURCE_TELEOP, source_of);
@@ -231,6 +233,7 @@ mod tests {
         m.trajectory_length = 7;
         m.extrinsics.insert("ext1".into(), [0.1, -0.2, 0.3, 1.0, 0.5, -3.0]);
         m.sim_scene = Some("{\"seed\":3}".into());
+        m.policy = Some("run@600".into());
         m.camera_serials.insert("ext1".into(), "ext1".into());
         let cams = vec![
             ("ext1".to_owned(), "ext1".to_owned(), Some([0.1, -0.2, 0.3, 1.0, 0.5, -3.0])),

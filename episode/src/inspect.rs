@@ -549,6 +549,9 @@ impl Inspection {
         if let Some(r) = self.metadata.as_ref().and_then(|m| m.recovered.as_ref()) {
             let _ = writeln!(s, "  recovered: {r}");
         }
+        if let Some(p) = self.metadata.as_ref().and_then(|m| m.policy.as_ref()) {
+            let _ = writeln!(s, "  policy rollout: {p}");
+        }
         if self.flags.is_empty() {
             s.push_str("  OK\n");
         }

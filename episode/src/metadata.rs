@@ -77,6 +77,8 @@ pub struct EpisodeMetadata {
     /// Set when a recorder died while recording it: what was recovered and how it was judged
     /// (e.g. "recorder restarted: 2 parts, the loop's verdict" or "unjudged").
     pub recovered: Option<String>,
+    /// A policy's rollout: the checkpoint whose actions the steps executed (`<dir>@<step>`).
+    pub policy: Option<String>,
 }
 
 impl EpisodeMetadata {
@@ -97,6 +99,7 @@ impl EpisodeMetadata {
             trajectory_length: 0,
             sim_scene: None,
             recovered: None,
+            policy: None,
         }
     }
 
@@ -124,6 +127,9 @@ impl EpisodeMetadata {
         }
         if let Some(r) = &self.recovered {
             m.insert("recovered".into(), r.clone());
+        }
+        if let Some(p) = &self.policy {
+            m.insert("policy".into(), p.clone());
         }
         m
     }
@@ -153,6 +159,7 @@ impl EpisodeMetadata {
             trajectory_length: num("trajectory_length")? as u64,
             sim_scene: m.get("sim_scene").cloned(),
             recovered: m.get("recovered").cloned(),
+            policy: m.get("policy").cloned(),
         })
     }
 }
@@ -217,6 +224,7 @@ mod tests {
         m.trajectory_length = 123;
         m.sim_scene = Some("{\"seed\":3}".into());
         m.recovered = Some("recorder restarted: 2 parts".into());
+        m.policy = Some("run@600".into());
         let back = EpisodeMetadata::from_record(&m.to_record()).unwrap();
         assert_eq!(back, m);
         assert_eq!(m.to_record()["current_task"], "put the cube in the bin");

@@ -98,6 +98,33 @@ pub fn save(dir: &Path, meta: &CheckpointMeta, vs: &VarStore, ema: Option<&VarSt
 }
 
 /// The policy of the checkpoint in `dir`, on `device`, with its EMA weights when it has them.
+/// The checkpoint a path names: a checkpoint directory itself, a run's `checkpoints/last`
+/// pointer, or a run directory (its last checkpoint).
+pub fn resolve(path: &Path) -> Result<PathBuf, CheckpointError> {
+    let pointer = |file: &Path| -> Result<PathBuf, CheckpointError> {
+        let name = std::fs::read_to_string(file).map_err(crate::FileError::at(file, "reading"))?;
+        Ok(file.with_file_name(name.trim()))
+    };
+    let dir = if path.join(META).is_file() {
+        path.to_path_buf()
+    } else if path.is_file() {
+        pointer(path)?
+    } else if path.join("checkpoints").join("last").is_file() {
+        pointer(&path.join("checkpoints").join("last"))?
+    } else {
+        path.to_path_buf()
+    };
+    Ok(dir)
+}
+
+/// A checkpoint's id in chunks and episode metadata: `<run>@<step>` for a run's
+/// `checkpoints/step_<n>`, else `<directory>@<step>`.
+pub fn id(dir: &Path, step: u64) -> String {
+    let name = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let run = dir.parent().filter(|p| name(p) == "checkpoints").and_then(Path::parent);
+    format!("{}@{step}", run.map_or_else(|| name(dir), name))
+}
+
 pub fn load(dir: &Path, device: tch::Device) -> Result<(VarStore, DiffusionPolicy, CheckpointMeta), CheckpointError> {
     let path = dir.join(META);
     let text = std::fs::read_to_string(&path).map_err(crate::FileError::at(&path, "reading"))?;
@@ -122,6 +149,21 @@ pub fn load(dir: &Path, device: tch::Device) -> Result<(VarStore, DiffusionPolic
 mod tests {
     use super::*;
     use tch::{Device, Kind, Tensor};
+
+    #[test]
+    fn a_run_its_last_pointer_and_a_checkpoint_all_resolve() {
+        let run = tempfile::tempdir().unwrap();
+        let ckpt = run.path().join("checkpoints").join("step_40");
+        std::fs::create_dir_all(&ckpt).unwrap();
+        std::fs::write(ckpt.join(META), "{}").unwrap();
+        std::fs::write(run.path().join("checkpoints").join("last"), "step_40\n").unwrap();
+        for p in [ckpt.clone(), run.path().join("checkpoints").join("last"), run.path().to_path_buf()] {
+            assert_eq!(resolve(&p).unwrap(), ckpt, "{}", p.display());
+        }
+        let run_name = run.path().file_name().unwrap().to_string_lossy().into_owned();
+        assert_eq!(id(&ckpt, 40), format!("{run_name}@40"));
+        assert_eq!(id(Path::new("/x/imported"), 3), "imported@3");
+    }
 
     fn meta(config: DiffusionConfig) -> CheckpointMeta {
         CheckpointMeta {

@@ -87,6 +87,18 @@ pub fn state_of(rs: &RobotState, prev: Option<&[f32; 7]>) -> [f32; 7] {
     [p[0], p[1], p[2], v[0], v[1], v[2], v[3]].map(|x| x as f32)
 }
 
+/// A policy's state for one step: the pose (`state_of`), then the gripper's opening
+/// (`gripper_state`), then the scene's positions (`scene_state`). Training and the policy
+/// server build it here alike.
+pub fn state_row(pose: &[f32; 7], rs: &RobotState, cfg: &DiffusionConfig, scene: Option<&[f32; 6]>) -> Vec<f32> {
+    let mut row = pose.to_vec();
+    if cfg.gripper_state {
+        row.push(rs.gripper_position as f32);
+    }
+    row.extend(scene.into_iter().flatten());
+    row
+}
+
 /// The recorded action in `space`. An axis-angle vector is kept continuous along the episode:
 /// near a half turn the same rotation has two vectors (angle θ about n, or 2π - θ about -n),
 /// and the one nearer `prev` is taken, so a top-down grasp does not flip sign between steps.
@@ -145,7 +157,7 @@ fn cache_file(cache: &Path, path: &Path, parts: &[PathBuf], cfg: &DiffusionConfi
             (p, m.len(), m.modified().ok()).hash(&mut h);
         }
     }
-    (&cfg.cameras, cfg.image_size, cfg.action_space, cfg.scene_state).hash(&mut h);
+    (&cfg.cameras, cfg.image_size, cfg.action_space, cfg.scene_state, cfg.gripper_state).hash(&mut h);
     cache.join(format!("{:016x}.safetensors", h.finish()))
 }
 
@@ -301,13 +313,11 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
             reason: "no /rig/step records: nothing to train on".into(),
         });
     }
-    let (mut states, actions) = rows(path, &data.steps, cfg.action_space)?;
-    let states: Vec<Vec<f32>> = if cfg.scene_state {
-        let scene = scene_positions(path, meta.and_then(|m| m.sim_scene.as_deref()))?;
-        states.drain(..).map(|s| s.iter().chain(&scene).copied().collect()).collect()
-    } else {
-        states.drain(..).map(|s| s.to_vec()).collect()
-    };
+    let (states, actions) = rows(path, &data.steps, cfg.action_space)?;
+    let scene =
+        if cfg.scene_state { Some(scene_positions(path, meta.and_then(|m| m.sim_scene.as_deref()))?) } else { None };
+    let states: Vec<Vec<f32>> =
+        states.iter().zip(&data.steps).map(|(s, step)| state_row(s, &step.robot_state, cfg, scene.as_ref())).collect();
     let recorded = recorded_frames(parts, &cfg.cameras)?;
     let mut per_camera = Vec::with_capacity(cfg.cameras.len());
     for (camera, frames) in cfg.cameras.iter().zip(&recorded) {

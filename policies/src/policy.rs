@@ -47,6 +47,11 @@ pub struct DiffusionConfig {
     /// low-dimensional variant of the small preset: no cameras, the scene's ground truth).
     #[serde(default)]
     pub scene_state: bool,
+    /// Append the gripper's measured opening to the state (after the pose). The paper's state
+    /// is the pose alone (its cameras show the gripper); the CPU presets' one small camera,
+    /// or none, does not show whether it holds the object.
+    #[serde(default)]
+    pub gripper_state: bool,
 }
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
@@ -87,10 +92,12 @@ impl DiffusionConfig {
             clip: Some(1.0),
             action_space: ActionSpace::EefAxisAngle,
             scene_state: false,
+            gripper_state: false,
         }
     }
 
-    /// For this 2-core CPU: one camera at 64x64, a U-Net of 64/128/256, step embedding 64.
+    /// For this 2-core CPU: one camera at 64x64, a U-Net of 64/128/256, step embedding 64;
+    /// the state is the pose and the gripper's opening (8).
     pub fn small() -> DiffusionConfig {
         DiffusionConfig {
             cameras: vec!["ext1".into()],
@@ -98,19 +105,23 @@ impl DiffusionConfig {
             crop_size: 58,
             down_dims: vec![64, 128, 256],
             step_embed_dim: 64,
+            state_dim: 8,
+            gripper_state: true,
             ..DiffusionConfig::paper_dp()
         }
     }
 
-    /// Low-dimensional only, for this CPU: no cameras; the state is the end-effector pose
-    /// plus the sim scene's object and receptacle positions (13); U-Net 64/128/256.
+    /// Low-dimensional only, for this CPU: no cameras; the state is the end-effector pose,
+    /// the gripper's opening and the sim scene's object and receptacle positions (14); U-Net
+    /// 64/128/256.
     pub fn small_lowdim() -> DiffusionConfig {
-        DiffusionConfig { cameras: vec![], state_dim: 7 + 6, scene_state: true, ..DiffusionConfig::small() }
+        DiffusionConfig { cameras: vec![], state_dim: 7 + 1 + 6, scene_state: true, ..DiffusionConfig::small() }
     }
 
-    /// The state's width the data gives this config (pose 7, + 6 with the scene's positions).
+    /// The state's width the data gives this config (pose 7, + 1 with the gripper, + 6 with
+    /// the scene's positions).
     pub fn data_state_dim(&self) -> i64 {
-        if self.scene_state { 13 } else { 7 }
+        7 + i64::from(self.gripper_state) + 6 * i64::from(self.scene_state)
     }
 
     /// Width of the global conditioning: To x (state + 2 x keypoints per camera).
@@ -350,7 +361,9 @@ mod tests {
         assert_eq!(p.down_dims, [256, 512, 1024]);
         assert_eq!(p.global_cond_dim(), 2 * (7 + 2 * 64));
         assert_eq!(p.crop_size as f64 / p.image_size as f64, 115.0 / 128.0);
-        assert_eq!(DiffusionConfig::small().global_cond_dim(), 2 * (7 + 64));
+        assert_eq!(DiffusionConfig::small().global_cond_dim(), 2 * (8 + 64));
+        assert_eq!(DiffusionConfig::small_lowdim().data_state_dim(), 14);
+        assert_eq!(DiffusionConfig::paper_dp().data_state_dim(), 7);
     }
 
     /// torchvision rounds half to even: 13 -> 6 (128 -> 115), 7 -> 4, 5 -> 2, 8 -> 4.

@@ -118,9 +118,10 @@ impl Preset {
         let p: Preset = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| bad(e.to_string()))?;
         if p.model.state_dim != p.model.data_state_dim() {
             return Err(bad(format!(
-                "state_dim = {} but the data gives {} (pose 7{})",
+                "state_dim = {} but the data gives {} (pose 7{}{})",
                 p.model.state_dim,
                 p.model.data_state_dim(),
+                if p.model.gripper_state { " + gripper 1" } else { "" },
                 if p.model.scene_state { " + scene 6" } else { "" }
             )));
         }

@@ -146,7 +146,7 @@ fn the_policy_server_answers_requests_with_chunks() {
         let info = ros.subscription_on(&topics::POLICY_INFO, 1).unwrap();
         requests.publish(request(1, obs.clone())).unwrap();
         let a = next_chunk(&chunks, Duration::from_secs(60)).await.expect("a chunk");
-        assert_eq!(a.policy_id, "step_3@3");
+        assert_eq!(a.policy_id, "run@3");
         assert_eq!((a.observation_step, a.first_step), (11, 11));
         // Tp 16 - To 2 + 1 actions from the newest observation's step on, 7 values each.
         assert_eq!((a.horizon, a.action_dim, a.actions.len()), (15, 7, 105));
@@ -163,7 +163,7 @@ fn the_policy_server_answers_requests_with_chunks() {
             assert!(Instant::now() < until, "no /policy/info");
             tokio::time::sleep(Duration::from_millis(5)).await;
         };
-        assert_eq!(served["policy_id"], "step_3@3");
+        assert_eq!(served["policy_id"], "run@3");
         assert_eq!(served["cameras"], serde_json::json!(["ext1"]));
         assert_eq!(
             (served["n_obs_steps"].as_i64(), served["action_space"].as_str()),

@@ -213,6 +213,11 @@ struct Chunk {
     rows: Vec<[f64; 7]>,
     /// The first row executed (the ones before it were late).
     first_used: Option<usize>,
+    /// Rows of it executed.
+    executed: u32,
+    /// Lockstep: the tick it was due at (not used before it, so the run does not depend on
+    /// how fast the server answered); on the wall clock, from its arrival.
+    usable_from: i64,
 }
 
 impl Chunk {
@@ -225,6 +230,8 @@ impl Chunk {
 #[derive(Debug, Clone, Copy)]
 struct InFlight {
     id: u64,
+    /// The tick it was sent at.
+    sent_ns: i64,
     /// The tick its chunk is due at (lockstep waits for it there).
     due_ns: i64,
     sent: Instant,
@@ -252,8 +259,6 @@ pub struct PolicySource {
     next_request: u64,
     /// Chunks answering older requests belong to an earlier episode.
     first_request_of_episode: u64,
-    /// Rows of the newest chunk executed.
-    executed: u32,
     since_ns: i64,
     /// (stamp, success) of the newest `/sim/task`.
     task: Option<(i64, bool)>,
@@ -336,7 +341,6 @@ impl PolicySource {
             in_flight: None,
             next_request: 1,
             first_request_of_episode: 1,
-            executed: 0,
             since_ns: i64::MIN,
             task: None,
             round_trips_ms: Vec::new(),
@@ -386,9 +390,13 @@ impl PolicySource {
             tracing::warn!(chunk = c.request_id, "a chunk of {} x {}: ignored", c.horizon, c.action_dim);
             return;
         }
+        let mut usable_from = i64::MIN;
         if let Some(f) = self.in_flight.filter(|f| f.id == c.request_id) {
             self.round_trips_ms.push(f.sent.elapsed().as_secs_f64() * 1e3);
             self.in_flight = None;
+            if self.clock == ClockKind::Sim {
+                usable_from = f.due_ns;
+            }
         }
         self.stats.chunks += 1;
         let rows = (0..c.horizon as usize)
@@ -397,14 +405,15 @@ impl PolicySource {
                 std::array::from_fn(|k| a[k])
             })
             .collect();
-        let chunk =
-            Chunk { id: c.request_id, obs_step: c.observation_step, times_ns: c.times_ns, rows, first_used: None };
-        match self.cfg.blend {
-            Blend::Replace => self.active.clear(),
-            Blend::Exponential => {}
-        }
-        self.active.push(chunk);
-        self.executed = 0;
+        self.active.push(Chunk {
+            id: c.request_id,
+            obs_step: c.observation_step,
+            times_ns: c.times_ns,
+            rows,
+            first_used: None,
+            executed: 0,
+            usable_from,
+        });
     }
 
     fn send(&mut self, tick_ns: i64, lead: u32, view: &TickView<'_>) {
@@ -440,16 +449,25 @@ impl PolicySource {
         }
         self.stats.requests += 1;
         self.stats.lead_steps = lead;
-        self.in_flight =
-            Some(InFlight { id, due_ns: tick_ns + i64::from(lead) * self.period_ns, sent: Instant::now() });
+        self.in_flight = Some(InFlight {
+            id,
+            sent_ns: tick_ns,
+            due_ns: tick_ns + i64::from(lead) * self.period_ns,
+            sent: Instant::now(),
+        });
     }
 
     /// The action meant for `tick`: per blending, from the chunks that have a row for it; the
     /// newest such chunk and its row.
     fn blended(&self, tick: i64) -> Option<([f64; 7], usize, usize)> {
         let tol = self.tolerance();
-        let rows: Vec<(usize, usize)> =
-            self.active.iter().enumerate().filter_map(|(k, c)| c.row_at(tick, tol).map(|r| (k, r))).collect();
+        let rows: Vec<(usize, usize)> = self
+            .active
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.usable_from <= tick)
+            .filter_map(|(k, c)| c.row_at(tick, tol).map(|r| (k, r)))
+            .collect();
         let &(newest, row) = rows.last()?;
         if self.cfg.blend == Blend::Replace || rows.len() == 1 {
             return Some((self.active[newest].rows[row], newest, row));
@@ -574,23 +592,21 @@ impl ActionSource for PolicySource {
                 },
             });
         };
-        let newest = k + 1 == self.active.len();
         let chunk = &mut self.active[k];
         if chunk.first_used.is_none() {
             chunk.first_used = Some(row);
             self.stats.rows_skipped += row as u64;
         }
+        chunk.executed += 1;
         let chunk_ref = ChunkRef { policy_id: self.info.policy_id.clone(), chunk_id: chunk.id, row: row as u32 };
-        if newest {
-            self.executed += 1;
-        }
         self.stats.rows_executed += 1;
-        // Chunks with no row left after this tick are done.
+        // Replaced chunks (older than the one executed) and chunks with no row left after
+        // this tick are done; the newest is kept (the next request counts its rows).
         let tol = self.tolerance();
-        let keep_last = self.active.len() - 1;
+        let (last, replace) = (self.active.len() - 1, self.cfg.blend == Blend::Replace);
         let mut i = 0;
         self.active.retain(|c| {
-            let keep = i == keep_last || c.times_ns.last().is_some_and(|&t| t > tick.0 + tol);
+            let keep = i == last || (!(replace && i < k) && c.times_ns.last().is_some_and(|&t| t > tick.0 + tol));
             i += 1;
             keep
         });
@@ -606,9 +622,14 @@ impl ActionSource for PolicySource {
         Ok(Proposal { command, movement_enabled: true, chunk: Some(chunk_ref) })
     }
 
-    fn verdict(&self, _tick: Nanos) -> Verdict {
+    /// A request unanswered for `server_timeout_s` fails the episode: wall time (the server
+    /// process) and the loop's time (in lockstep the ticks go on after the wait gives up,
+    /// executing the rows left and then holding, as they would on the wall clock).
+    fn verdict(&self, tick: Nanos) -> Verdict {
+        let timeout = self.cfg.server_timeout_s;
         if let Some(f) = self.in_flight
-            && f.sent.elapsed().as_secs_f64() >= self.cfg.server_timeout_s
+            && f.sent.elapsed().as_secs_f64() >= timeout
+            && (tick.0 - f.sent_ns) as f64 / 1e9 >= timeout
         {
             return Verdict::Failed {
                 why: Some(format!(
@@ -628,7 +649,6 @@ impl ActionSource for PolicySource {
         self.history.clear();
         self.active.clear();
         self.in_flight = None;
-        self.executed = 0;
         self.first_request_of_episode = self.next_request;
     }
 
@@ -657,7 +677,7 @@ impl ActionSource for PolicySource {
             None => true,
             Some(c) => {
                 let left = c.times_ns.iter().filter(|&&t| t > tick + self.tolerance()).count() as u32;
-                self.executed + lead >= self.execute_steps() || left <= lead
+                c.executed + lead >= self.execute_steps() || left <= lead
             }
         };
         if !due {

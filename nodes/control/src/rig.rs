@@ -256,7 +256,10 @@ impl RigLoop {
             tick: Nanos(self.tick().ns),
             step_index: self.episodes.steps,
             episode_id: &self.episode_id,
-            robot: &self.robot,
+            robot: RobotState {
+                gripper_position: self.gripper.as_ref().map_or(self.robot.gripper_position, |g| g.position),
+                ..self.robot.clone()
+            },
             scene: &self.scene.json,
             scene_seed: self.scene.seed,
             images: Vec::new(),

@@ -38,7 +38,8 @@ pub struct TickView<'a> {
     pub tick: Nanos,
     pub step_index: u64,
     pub episode_id: &'a str,
-    pub robot: &'a RobotState,
+    /// The Step's robot state (the gripper's measured opening in `gripper_position`).
+    pub robot: RobotState,
     /// The sim scene's JSON (empty on a real rig) and its seed.
     pub scene: &'a str,
     pub scene_seed: Option<u64>,

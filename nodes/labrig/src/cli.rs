@@ -32,6 +32,9 @@ pub enum Command {
     Recover(crate::recover::RecoverArgs),
     /// The main job on a fresh machine: the simulated rig records scripted pick-and-place episodes.
     Demo(crate::demo::DemoArgs),
+    /// A policy's closed-loop success rate in the simulated rig: seeded rollouts, each a
+    /// recorded episode judged by the sim (`labrig rollout --policy <checkpoint>`).
+    Rollout(crate::rollout::RolloutArgs),
     /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
     #[command(disable_help_flag = true)]
     Sim {
@@ -258,6 +261,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
         Command::Demo(a) => crate::demo::run(a),
+        Command::Rollout(a) => crate::rollout::run(a),
         Command::Episode(a) => crate::episode::run(a),
         Command::Replay { args } => replay(&args),
         Command::Export { args } => convert("export", &args),

@@ -13,4 +13,5 @@ pub mod json;
 pub mod launch;
 pub mod programs;
 pub mod recover;
+pub mod rollout;
 pub mod topic;

@@ -7,7 +7,7 @@
 use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
 use labrig_msgs::std_msgs::Header;
 use labrig_policies::checkpoint::{self, CheckpointError, CheckpointMeta};
-use labrig_policies::data::{resize_rgb, scene_positions, state_of};
+use labrig_policies::data::{resize_rgb, scene_positions, state_of, state_row};
 use labrig_policies::infer::{self, InferError};
 use labrig_policies::policy::{DiffusionConfig, DiffusionPolicy};
 use std::collections::BTreeMap;
@@ -41,14 +41,16 @@ pub struct Server {
 }
 
 impl Server {
-    pub fn load(dir: &Path) -> Result<Server, ServeError> {
-        let (vs, policy, meta) = checkpoint::load(dir, Device::Cpu)?;
-        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let id = format!("{name}@{}", meta.step);
+    /// Loads the checkpoint `path` names (a checkpoint directory, a run's `checkpoints/last`,
+    /// or a run directory: its last checkpoint).
+    pub fn load(path: &Path) -> Result<Server, ServeError> {
+        let dir = checkpoint::resolve(path)?;
+        let (vs, policy, meta) = checkpoint::load(&dir, Device::Cpu)?;
+        let id = checkpoint::id(&dir, meta.step);
         Ok(Server { _vs: vs, policy, meta, id })
     }
 
-    /// The checkpoint's id in chunks and episode metadata (`<directory>@<step>`).
+    /// The checkpoint's id in chunks and episode metadata (`<run>@<step>`).
     pub fn id(&self) -> &str {
         &self.id
     }
@@ -106,8 +108,7 @@ impl Server {
         for o in &padded {
             let s = state_of(&o.robot_state, prev.as_ref());
             prev = Some(s);
-            rows.extend(s);
-            rows.extend(scene.iter().flatten());
+            rows.extend(state_row(&s, &o.robot_state, c, scene.as_ref()));
         }
         named.insert("observation.state".into(), Tensor::from_slice(&rows).view([1, n_obs as i64, -1]));
         Ok(named)
@@ -126,6 +127,7 @@ impl Server {
             "action_space": c.action_space,
             "action_dim": c.action_dim,
             "scene_state": c.scene_state,
+            "gripper_state": c.gripper_state,
             "step": self.meta.step,
         })
     }

@@ -905,6 +905,7 @@ impl Recorder {
     fn end(&mut self, ep: Episode, outcome: Outcome, why: &str) {
         let Episode { mut writer, staging, prior_steps, .. } = ep;
         let start_ns = writer.metadata_mut().start_ns;
+        let uuid = writer.metadata().uuid.clone();
         writer.metadata_mut().trajectory_length = prior_steps + writer.count(topics::RIG_STEP.name);
         self.last = match writer.finish() {
             Ok(summary) => {
@@ -920,7 +921,7 @@ impl Recorder {
                 match moved {
                     Ok(()) => {
                         tracing::info!(dir = %dest.display(), messages = summary.messages, "episode recorded {}", why);
-                        json!({ "state": "recorded", "outcome": outcome.dir(), "dir": dest, "messages": summary.messages, "bytes": summary.bytes, "note": why })
+                        json!({ "state": "recorded", "episode": uuid, "outcome": outcome.dir(), "dir": dest, "messages": summary.messages, "bytes": summary.bytes, "note": why })
                     }
                     Err(e) => {
                         tracing::error!("moving {} to {}: {e}", staging.display(), dest.display());
@@ -1043,6 +1044,14 @@ fn drain_topics(
                 // this part's.
                 if !ep.takes(&r.spec.topic, publish) {
                     continue;
+                }
+                // A policy's rollout: the checkpoint its steps executed goes into the metadata.
+                if r.spec.topic == topics::RIG_STEP.name
+                    && ep.writer.metadata().policy.is_none()
+                    && let Ok(step) = labrig_msgs::decode::<labrig_msgs::labrig_msgs::Step>(&cdr)
+                    && !step.policy_id.is_empty()
+                {
+                    ep.writer.metadata_mut().policy = Some(step.policy_id);
                 }
                 let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
                 let ty = RawType { name: &r.spec.type_name, schema: &r.schema };

@@ -1,0 +1,543 @@
+//! `labrig rollout`: a policy's closed-loop success rate in the simulated rig, measured the
+//! way the paper measures it: N rollouts from fixed, seeded initial scenes.
+//!
+//! The rig is launch_configs/sim_rollout.toml: the MuJoCo bridge (lockstep, or real time on
+//! the wall clock), the recorder, the policy server serving the checkpoint, and the control
+//! loop with the policy as its action source. Each rollout is a recorded episode (DROID
+//! layout under `<out>/rollouts/`), ended by the sim's success predicate (`/sim/task`) or
+//! failed at the step budget or when the server stops answering. The command prints the
+//! success rate with its 95% (Wilson) interval, each rollout's outcome, length and reason,
+//! the chunks' inference time (p50/p99) and the ticks the arm held for lack of an action;
+//! it writes `rollouts.json`, a contact sheet per rollout and `summary.png`.
+
+use crate::demo::{contact_sheet, set_arg};
+use crate::launch::{LaunchConfig, Output};
+use anyhow::{Context, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use labrig_msgs::labrig_msgs::{EpisodeEventKind, Step};
+use labrig_msgs::std_msgs::StringMsg;
+use labrig_msgs::topics;
+use labrig_runtime::ros::{Ros, qos};
+use labrig_runtime::{RosConfig, Shutdown};
+use serde::Serialize;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+/// The rollout rig, compiled in (the same file `labrig launch` reads).
+const SIM_ROLLOUT: &str = include_str!("../../../launch_configs/sim_rollout.toml");
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BlendArg {
+    Replace,
+    Exponential,
+}
+
+#[derive(Debug, Args)]
+pub struct RolloutArgs {
+    /// The checkpoint: `labrig train`'s `checkpoints/step_<n>`, its `checkpoints/last`, or the
+    /// run directory (its last checkpoint).
+    #[arg(long)]
+    pub policy: PathBuf,
+    /// The scene: a built-in one (pick_place, drawer_open, drawer_close) or a spec file.
+    #[arg(long, default_value = "pick_place")]
+    pub scene: String,
+    /// Rollouts (the paper: 20).
+    #[arg(long, default_value_t = 20)]
+    pub episodes: u64,
+    /// The first scene seed; rollouts take seeds first..first+episodes. The default keeps
+    /// clear of `labrig demo`'s seeds (0..), so a policy is judged on scenes it was not
+    /// trained on.
+    #[arg(long, default_value_t = 1000)]
+    pub first_seed: u64,
+    /// The sim and the loop advance together, one tick per action: the result does not
+    /// depend on machine speed, and the same policy and seeds give the same episodes
+    /// (the default).
+    #[arg(long, conflicts_with = "realtime")]
+    pub lockstep: bool,
+    /// The sim in real time, the loop on the wall clock: inference latency costs what it
+    /// costs on a robot.
+    #[arg(long)]
+    pub realtime: bool,
+    /// A rollout that has not succeeded after this many steps fails.
+    #[arg(long, default_value_t = 300)]
+    pub max_steps: u64,
+    /// Inference threads for the policy server (0: every core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: i32,
+    /// How a new chunk meets the rest of the old one (the loop's `policy.blend`).
+    #[arg(long, value_enum)]
+    pub blend: Option<BlendArg>,
+    /// Lockstep: play an inference latency of this many ticks (`policy.lockstep_delay_steps`).
+    #[arg(long)]
+    pub delay_steps: Option<u32>,
+    /// Rows of a chunk executed before the next is due (`policy.execute_steps`; default the
+    /// checkpoint's n_action_steps).
+    #[arg(long)]
+    pub execute_steps: Option<u32>,
+    /// Where the rollouts (DROID layout under `rollouts/`), the report and the pictures go.
+    #[arg(long, default_value = "out/rollout")]
+    pub out: PathBuf,
+    /// DDS domain id for the rollout rig.
+    #[arg(long, default_value_t = 43)]
+    pub domain_id: u16,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One rollout as the run saw it.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Rollout {
+    pub episode_id: String,
+    pub seed: Option<u64>,
+    pub success: bool,
+    /// Why it ended (the loop's end event note: the step budget, the server, ...).
+    pub reason: String,
+    pub steps: u64,
+    /// Recorded steps the arm held for lack of a policy action.
+    pub held_steps: u64,
+    /// Chunks whose rows it executed.
+    pub chunks: u64,
+    /// Rows whose time had passed when their chunk arrived.
+    pub skipped_rows: u64,
+    pub dir: Option<PathBuf>,
+    pub contact_sheet: Option<PathBuf>,
+}
+
+/// The run's report.
+#[derive(Debug, Clone, Serialize)]
+pub struct RolloutReport {
+    pub policy: String,
+    pub scene: String,
+    pub mode: &'static str,
+    pub first_seed: u64,
+    pub rollouts: Vec<Rollout>,
+    pub successes: u64,
+    pub success_rate: f64,
+    /// Wilson score interval, 95%.
+    pub ci95: [f64; 2],
+    pub inference_ms_p50: f64,
+    pub inference_ms_p99: f64,
+    pub chunks: u64,
+    pub held_steps: u64,
+    pub summary_png: Option<PathBuf>,
+    pub errors: Vec<String>,
+}
+
+/// Wilson's 95% interval for `k` successes in `n` trials.
+pub fn wilson95(k: u64, n: u64) -> [f64; 2] {
+    if n == 0 {
+        return [0.0, 1.0];
+    }
+    let (k, n, z) = (k as f64, n as f64, 1.959_963_984_540_054);
+    let p = k / n;
+    let centre = (p + z * z / (2.0 * n)) / (1.0 + z * z / n);
+    let half = z * (p * (1.0 - p) / n + z * z / (4.0 * n * n)).sqrt() / (1.0 + z * z / n);
+    [(centre - half).max(0.0), (centre + half).min(1.0)]
+}
+
+pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!((1..=1000).contains(&args.episodes), "--episodes must be in 1..=1000");
+    // The server resolves it (a checkpoint, `checkpoints/last`, a run) and names what is wrong.
+    let ckpt = std::fs::canonicalize(&args.policy)
+        .with_context(|| format!("the checkpoint {} (--policy)", args.policy.display()))?;
+    let origin = Path::new("launch_configs/sim_rollout.toml");
+    let (mut cfg, order) = LaunchConfig::parse(SIM_ROLLOUT, origin)?;
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let out = std::fs::canonicalize(&args.out)?;
+    let root = out.join("rollouts");
+    {
+        let sim = cfg.node_mut("sim").context("sim_rollout.toml has no `sim` node")?;
+        set_arg(&mut sim.args, "--mode", if args.realtime { "realtime" } else { "lockstep" });
+        set_arg(&mut sim.args, "--scene", &args.scene);
+        set_arg(&mut sim.args, "--seed", &args.first_seed.to_string());
+        if args.realtime {
+            sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
+        }
+        let rec = cfg.node_mut("recorder").context("sim_rollout.toml has no `recorder` node")?;
+        set_arg(&mut rec.args, "--root", &root.display().to_string());
+        let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
+        set_arg(&mut pol.args, "--checkpoint", &ckpt.display().to_string());
+        set_arg(&mut pol.args, "--threads", &args.threads.to_string());
+        let ctl = cfg.node_mut("control").context("sim_rollout.toml has no `control` node")?;
+        set_arg(&mut ctl.args, "--episodes", &args.episodes.to_string());
+        set_arg(&mut ctl.args, "--first-seed", &args.first_seed.to_string());
+        set_arg(&mut ctl.args, "--max-steps", &args.max_steps.to_string());
+        if args.realtime {
+            set_arg(&mut ctl.args, "--clock", "wall");
+        }
+        let mut set = |kv: String| ctl.args.extend(["--set".into(), kv]);
+        if let Some(b) = args.blend {
+            set(format!("policy.blend=\"{}\"", if b == BlendArg::Replace { "replace" } else { "exponential" }));
+        }
+        if let Some(d) = args.delay_steps {
+            set(format!("policy.lockstep_delay_steps={d}"));
+        }
+        if let Some(e) = args.execute_steps {
+            set(format!("policy.execute_steps={e}"));
+        }
+    }
+    // The camera frames of this rig alone (another rig may run on the machine), unless the
+    // caller chose a namespace.
+    if labrig_runtime::frames::default_namespace().is_none() {
+        let ns = format!("rollout_{}", std::process::id());
+        for n in &mut cfg.nodes {
+            n.env.insert(labrig_runtime::frames::NAMESPACE_ENV.into(), ns.clone());
+        }
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let mut seen = Seen::default();
+    let failure = rt.block_on(run_rig(&args, cfg, order, &mut seen)).err();
+    drop(rt);
+
+    let mut errors: Vec<String> = failure.iter().map(|e| format!("{e:#}")).collect();
+    let mut rollouts = Vec::new();
+    for (k, id) in seen.order.iter().enumerate() {
+        let ep = &seen.episodes[id];
+        let Some(end) = &ep.end else { continue };
+        let dir = seen.recorded.get(id).cloned();
+        let mut r = Rollout {
+            episode_id: id.clone(),
+            seed: ep.seed,
+            success: end.0 == EpisodeEventKind::Success,
+            reason: if end.0 == EpisodeEventKind::Success {
+                "the sim's success predicate".into()
+            } else {
+                end.1.clone()
+            },
+            steps: ep.steps,
+            held_steps: ep.held,
+            chunks: ep.chunks.len() as u64,
+            skipped_rows: ep.chunks.values().map(|&r| u64::from(r)).sum(),
+            dir: dir.clone(),
+            contact_sheet: None,
+        };
+        match &dir {
+            Some(d) => match labrig_episode::inspect::inspect(d) {
+                Ok(i) => {
+                    let sheet = out.join(format!("rollout_{k:02}_cameras.png"));
+                    match contact_sheet(&i.path, &sheet) {
+                        Ok(()) => r.contact_sheet = Some(sheet),
+                        Err(e) => errors.push(format!("contact sheet of rollout {k}: {e:#}")),
+                    }
+                    if i.metadata.as_ref().and_then(|m| m.success) != Some(r.success) {
+                        errors.push(format!(
+                            "rollout {k}: the recording's success flag disagrees with the loop's verdict"
+                        ));
+                    }
+                }
+                Err(e) => errors.push(format!("rollout {k} ({}): {e}", d.display())),
+            },
+            None => errors.push(format!("rollout {k} ({id}) was not reported recorded")),
+        }
+        rollouts.push(r);
+    }
+    let n = rollouts.len() as u64;
+    let successes = rollouts.iter().filter(|r| r.success).count() as u64;
+    let mut lat = seen.inference_ms.clone();
+    lat.sort_by(f64::total_cmp);
+    let pct = |q: f64| lat.get(((lat.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(f64::NAN);
+    let mut report = RolloutReport {
+        policy: ckpt.display().to_string(),
+        scene: args.scene.clone(),
+        mode: if args.realtime { "realtime" } else { "lockstep" },
+        first_seed: args.first_seed,
+        successes,
+        success_rate: if n > 0 { successes as f64 / n as f64 } else { 0.0 },
+        ci95: wilson95(successes, n),
+        inference_ms_p50: pct(0.5),
+        inference_ms_p99: pct(0.99),
+        chunks: lat.len() as u64,
+        held_steps: rollouts.iter().map(|r| r.held_steps).sum(),
+        rollouts,
+        summary_png: None,
+        errors: Vec::new(),
+    };
+    if n < args.episodes {
+        errors.push(format!("{n} of {} rollouts finished", args.episodes));
+    }
+    if n > 0 {
+        let png = out.join("summary.png");
+        match plot_summary(&report, &png) {
+            Ok(()) => report.summary_png = Some(png),
+            Err(e) => errors.push(format!("summary plot: {e:#}")),
+        }
+    }
+    report.errors = errors;
+    std::fs::write(out.join("rollouts.json"), serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", out.join("rollouts.json").display()))?;
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print!("{}", report_text(&report));
+    }
+    Ok(if report.errors.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(1) })
+}
+
+fn report_text(r: &RolloutReport) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let n = r.rollouts.len();
+    let _ = writeln!(
+        s,
+        "labrig rollout: {} of {n} rollouts succeeded ({:.0}%, 95% CI {:.0}-{:.0}%), {} in {}, seeds {}..{}",
+        r.successes,
+        100.0 * r.success_rate,
+        100.0 * r.ci95[0],
+        100.0 * r.ci95[1],
+        r.scene,
+        r.mode,
+        r.first_seed,
+        r.first_seed + n as u64
+    );
+    let _ = writeln!(s, "policy {}", r.policy);
+    let _ = writeln!(
+        s,
+        "inference per chunk p50 {:.1} ms / p99 {:.1} ms over {} chunks; {} steps held for lack of an action",
+        r.inference_ms_p50, r.inference_ms_p99, r.chunks, r.held_steps
+    );
+    let _ = writeln!(s);
+    let _ = writeln!(s, "  #  seed  outcome  steps  held  chunks  skipped  reason");
+    for (k, o) in r.rollouts.iter().enumerate() {
+        let _ = writeln!(
+            s,
+            "{k:>3} {:>5}  {:<7}  {:>5}  {:>4}  {:>6}  {:>7}  {}",
+            o.seed.map_or("-".into(), |v| v.to_string()),
+            if o.success { "success" } else { "failure" },
+            o.steps,
+            o.held_steps,
+            o.chunks,
+            o.skipped_rows,
+            o.reason
+        );
+    }
+    if let Some(p) = &r.summary_png {
+        let _ = writeln!(s, "\nsummary: {}; contact sheets: rollout_NN_cameras.png beside it", p.display());
+    }
+    for e in &r.errors {
+        let _ = writeln!(s, "error: {e}");
+    }
+    s
+}
+
+/// What the run heard of one episode.
+#[derive(Debug, Default)]
+struct EpisodeSeen {
+    seed: Option<u64>,
+    end: Option<(EpisodeEventKind, String)>,
+    steps: u64,
+    held: u64,
+    /// Chunk id -> the first row executed from it.
+    chunks: BTreeMap<u64, u32>,
+}
+
+#[derive(Debug, Default)]
+struct Seen {
+    order: Vec<String>,
+    episodes: BTreeMap<String, EpisodeSeen>,
+    recorded: BTreeMap<String, PathBuf>,
+    inference_ms: Vec<f64>,
+}
+
+async fn run_rig(args: &RolloutArgs, cfg: LaunchConfig, order: Vec<usize>, seen: &mut Seen) -> anyhow::Result<()> {
+    let ros_cfg = RosConfig { domain_id: args.domain_id, ..RosConfig::default() };
+    ros_cfg.validate(Path::new("<command line>"))?;
+    let mut ros = Ros::new(&ros_cfg, "labrig_rollout")?;
+    let events = ros.subscription_on(&topics::RIG_EPISODE, 100)?;
+    let steps = ros.subscription_on(&topics::RIG_STEP, 1000)?;
+    let chunks = ros.subscription_on(&topics::POLICY_CHUNK, 100)?;
+    let scene = ros.subscription_on(&topics::SIM_SCENE, 10)?;
+    let status = ros.subscription::<StringMsg>(topics::RECORDER_STATUS.name, qos::reliable(100))?;
+    let bar = ProgressBar::new(args.episodes);
+    bar.set_style(ProgressStyle::with_template("{spinner} rollout {bar:25} {pos}/{len}  {msg}  [{elapsed}]")?);
+    if args.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    bar.enable_steady_tick(Duration::from_millis(200));
+    bar.set_message("starting the simulated rig and loading the policy");
+    let watch = Shutdown::new();
+    let stop = Shutdown::new();
+    stop.trigger_on_signals()?;
+    let rig = {
+        let (watch, stop) = (watch.clone(), stop.clone());
+        let domain = args.domain_id;
+        tokio::spawn(async move {
+            let dir = PathBuf::from("launch_configs");
+            let r = crate::launch::supervise_until(cfg, order, dir, domain, None, Output::Quiet, stop).await;
+            watch.trigger();
+            r
+        })
+    };
+    let mut scene_seed: Option<u64> = None;
+    let mut current: Option<String> = None;
+    let mut ended = BTreeSet::new();
+    loop {
+        while let Some(m) = scene.try_take()? {
+            scene_seed = serde_json::from_str::<serde_json::Value>(&m.msg.data).ok().and_then(|v| v["seed"].as_u64());
+        }
+        while let Some(e) = events.try_take()? {
+            let id = e.msg.episode_id.clone();
+            match e.msg.kind() {
+                Ok(EpisodeEventKind::Start) => {
+                    seen.order.push(id.clone());
+                    seen.episodes.insert(id.clone(), EpisodeSeen { seed: scene_seed, ..EpisodeSeen::default() });
+                    bar.set_message(format!("rollout {} (seed {})", seen.order.len(), scene_seed.unwrap_or_default()));
+                    current = Some(id);
+                }
+                Ok(k @ (EpisodeEventKind::Success | EpisodeEventKind::Failure | EpisodeEventKind::Stop)) => {
+                    if let Some(ep) = seen.episodes.get_mut(&id) {
+                        let kind = if k == EpisodeEventKind::Stop { EpisodeEventKind::Failure } else { k };
+                        ep.end = Some((kind, e.msg.note.clone()));
+                        if ended.insert(id.clone()) {
+                            bar.inc(1);
+                        }
+                        let ok = seen
+                            .episodes
+                            .values()
+                            .filter(|e| matches!(e.end, Some((EpisodeEventKind::Success, _))))
+                            .count();
+                        bar.set_message(format!("{ok} of {} succeeded", ended.len()));
+                    }
+                }
+                _ => {}
+            }
+        }
+        while let Some(s) = steps.try_take()? {
+            let s = s.msg;
+            if current.as_deref() != Some(s.episode_id.as_str()) {
+                continue;
+            }
+            let Some(ep) = seen.episodes.get_mut(&s.episode_id) else { continue };
+            ep.steps += 1;
+            if s.action_source == Step::SOURCE_POLICY && !s.movement_enabled {
+                ep.held += 1;
+            }
+            if s.chunk_id != 0 {
+                ep.chunks.entry(s.chunk_id).or_insert(s.chunk_row);
+            }
+        }
+        while let Some(c) = chunks.try_take()? {
+            seen.inference_ms.push(c.msg.inference_ms);
+        }
+        while let Some(s) = status.try_take()? {
+            let v: serde_json::Value = serde_json::from_str(&s.msg.data).unwrap_or_default();
+            if v["state"] == "recorded"
+                && let (Some(dir), Some(id)) = (v["dir"].as_str(), v["episode"].as_str())
+            {
+                seen.recorded.insert(id.to_owned(), PathBuf::from(dir));
+            } else if v["state"] == "error" {
+                bar.println(format!("recorder: {}", v["error"]));
+            }
+        }
+        if watch.is_triggered() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // The recorder's last reports may trail the rig's stop.
+    let until = std::time::Instant::now() + Duration::from_secs(2);
+    while std::time::Instant::now() < until {
+        while let Some(s) = status.try_take()? {
+            let v: serde_json::Value = serde_json::from_str(&s.msg.data).unwrap_or_default();
+            if let (Some(dir), Some(id), true) = (v["dir"].as_str(), v["episode"].as_str(), v["state"] == "recorded") {
+                seen.recorded.insert(id.to_owned(), PathBuf::from(dir));
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    bar.finish_and_clear();
+    let code = rig.await.context("the launcher task")??;
+    if code != ExitCode::SUCCESS {
+        bail!("the rollout rig stopped with an error (see above)");
+    }
+    Ok(())
+}
+
+/// Each rollout's length, green for a success and red for a failure, under the success rate
+/// and its interval.
+fn plot_summary(r: &RolloutReport, path: &Path) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    let font = labrig_episode::font::dejavu_sans().map_err(anyhow::Error::msg)?;
+    let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, font);
+    let n = r.rollouts.len();
+    let top = r.rollouts.iter().map(|o| o.steps).max().unwrap_or(1).max(1) as f64 * 1.15;
+    let root = BitMapBackend::new(path, (1000, 560)).into_drawing_area();
+    let e = |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("{e:?}");
+    root.fill(&WHITE).map_err(e)?;
+    let name = Path::new(&r.policy).file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+    let title = format!(
+        "{name}: {}/{n} succeeded ({:.0}%, 95% CI {:.0}-{:.0}%), {} {}, p50 inference {:.0} ms",
+        r.successes,
+        100.0 * r.success_rate,
+        100.0 * r.ci95[0],
+        100.0 * r.ci95[1],
+        r.scene,
+        r.mode,
+        r.inference_ms_p50
+    );
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(14)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(-0.5..(n as f64 - 0.5), 0.0..top)
+        .map_err(e)?;
+    chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .x_desc("rollout (scene seed)")
+        .y_desc("steps (20 Hz)")
+        .x_labels(n.min(25))
+        .x_label_formatter(&|x| {
+            let k = x.round() as usize;
+            r.rollouts.get(k).and_then(|o| o.seed).map_or(String::new(), |s| s.to_string())
+        })
+        .draw()
+        .map_err(e)?;
+    let green = RGBColor(60, 160, 90);
+    let red = RGBColor(210, 70, 60);
+    chart
+        .draw_series(r.rollouts.iter().enumerate().map(|(k, o)| {
+            let c = if o.success { green } else { red };
+            Rectangle::new([(k as f64 - 0.35, 0.0), (k as f64 + 0.35, o.steps as f64)], c.filled())
+        }))
+        .map_err(e)?;
+    chart
+        .draw_series(r.rollouts.iter().enumerate().filter(|(_, o)| o.held_steps > 0).map(|(k, o)| {
+            Rectangle::new([(k as f64 - 0.35, 0.0), (k as f64 + 0.35, o.held_steps as f64)], BLACK.mix(0.5).filled())
+        }))
+        .map_err(e)?
+        .label("held (no action)")
+        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], BLACK.mix(0.5).filled()));
+    chart
+        .draw_series(std::iter::once(Rectangle::new([(0.0, 0.0), (0.0, 0.0)], green.filled())))
+        .map_err(e)?
+        .label("success")
+        .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], green.filled()));
+    chart
+        .draw_series(std::iter::once(Rectangle::new([(0.0, 0.0), (0.0, 0.0)], red.filled())))
+        .map_err(e)?
+        .label("failure")
+        .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], red.filled()));
+    chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
+    root.present().map_err(e)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wilson_intervals_match_the_textbook() {
+        // 16 of 20: 0.8, Wilson 95% [0.584, 0.919].
+        let [lo, hi] = wilson95(16, 20);
+        assert!((lo - 0.584).abs() < 1e-3 && (hi - 0.919).abs() < 1e-3, "{lo} {hi}");
+        let [lo, hi] = wilson95(20, 20);
+        assert!((lo - 0.839).abs() < 1e-3 && hi == 1.0, "{lo} {hi}");
+        assert_eq!(wilson95(0, 0), [0.0, 1.0]);
+    }
+}

@@ -1,0 +1,244 @@
+//! The policy on the rig, end to end: `labrig rollout` with a committed tiny checkpoint
+//! (tests/fixtures/policies/tiny_lowdim: the small_lowdim preset shrunk to a U-Net of 16/32,
+//! 300 steps on 48 scripted demos) in the simulated rig, and the loop against a policy server
+//! that is killed mid-episode or serves a policy the rig cannot execute. The mechanics, not a
+//! success rate: chunks arrive, their rows execute in order, late rows are skipped and
+//! counted, every step is recorded with the policy as its source, lockstep repeats itself,
+//! a dead server holds the arm and fails the episode, a mismatch is refused by name.
+
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, Step};
+use labrig_msgs::topics;
+use labrig_runtime::RosConfig;
+use labrig_runtime::frames::NAMESPACE_ENV;
+use labrig_runtime::ros::Ros;
+use labrig_tests::{Proc, domain_for, labrig_bin, repo_root, rt, sim_bin, workspace_bin};
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+const POLICY_ID: &str = "tiny_lowdim@300";
+
+fn tiny() -> PathBuf {
+    repo_root().join("tests/fixtures/policies/tiny_lowdim")
+}
+
+/// `labrig rollout --json` with the tiny checkpoint; its report.
+fn rollout(key: &str, out: &Path, extra: &[&str]) -> Value {
+    let o = Command::new(labrig_bin())
+        .args(["rollout", "--threads", "1", "--json", "--domain-id", &domain_for(key).to_string(), "--policy"])
+        .arg(tiny())
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+        .current_dir(repo_root())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{}", String::from_utf8_lossy(&o.stderr)));
+    assert_eq!(o.status.code(), Some(0), "{report:#}\n{}", String::from_utf8_lossy(&o.stderr));
+    report
+}
+
+fn steps(dir: &Value) -> (Vec<Step>, labrig_episode::metadata::EpisodeMetadata) {
+    let data = labrig_episode::read_episode(Path::new(dir.as_str().expect("a recorded dir"))).unwrap();
+    (data.steps, data.metadata.expect("DROID metadata"))
+}
+
+/// Each chunk's executed rows in step order: (chunk id, rows).
+fn chunks(steps: &[Step]) -> Vec<(u64, Vec<u32>)> {
+    let mut out: Vec<(u64, Vec<u32>)> = Vec::new();
+    for s in steps.iter().filter(|s| s.chunk_id != 0) {
+        match out.last_mut() {
+            Some((id, rows)) if *id == s.chunk_id => rows.push(s.chunk_row),
+            _ => out.push((s.chunk_id, vec![s.chunk_row])),
+        }
+    }
+    out
+}
+
+#[test]
+fn rollouts_execute_chunks_in_order_and_are_recorded_as_the_policys() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = rollout("rollout_lockstep", dir.path(), &["--episodes", "2", "--max-steps", "40"]);
+    let rollouts = r["rollouts"].as_array().unwrap();
+    assert_eq!(rollouts.len(), 2, "{r:#}");
+    assert_eq!(rollouts.iter().map(|o| o["seed"].as_u64().unwrap()).collect::<Vec<_>>(), [1000, 1001]);
+    assert!(r["errors"].as_array().unwrap().is_empty(), "{r:#}");
+    assert_eq!(r["held_steps"], 0, "lockstep waits for each chunk: no tick without an action");
+    assert!(r["inference_ms_p50"].as_f64().unwrap() > 0.0);
+    assert!(Path::new(r["summary_png"].as_str().unwrap()).is_file());
+    for o in rollouts {
+        let (steps, meta) = steps(&o["dir"]);
+        assert_eq!(meta.policy.as_deref(), Some(POLICY_ID), "the checkpoint in the episode's metadata");
+        assert_eq!(steps.len() as u64, o["steps"].as_u64().unwrap());
+        assert!(steps.iter().all(|s| s.action_source == Step::SOURCE_POLICY));
+        assert!(steps.iter().all(|s| s.movement_enabled && s.policy_id == POLICY_ID && s.chunk_id != 0));
+        // A chunk's rows run in order from its first (nothing is late in lockstep), eight of
+        // them (n_action_steps), then the next chunk takes over.
+        let runs = chunks(&steps);
+        assert!(runs.len() >= 2, "{runs:?}");
+        for (k, (id, rows)) in runs.iter().enumerate() {
+            assert_eq!(rows[0], 0, "chunk {id}: {rows:?}");
+            assert!(rows.windows(2).all(|w| w[1] == w[0] + 1), "chunk {id} out of order: {rows:?}");
+            if k + 1 < runs.len() {
+                assert_eq!(rows.len(), 8, "chunk {id}: {rows:?}");
+                assert!(runs[k + 1].0 > *id, "chunk ids increase: {runs:?}");
+            }
+        }
+        assert_eq!(o["skipped_rows"], 0);
+        assert_eq!(o["chunks"].as_u64().unwrap(), runs.len() as u64);
+        if o["success"] == true {
+            assert_eq!(o["reason"], "the sim's success predicate");
+        } else {
+            assert_eq!(o["steps"], 40);
+            assert_eq!(o["reason"], "the step budget (40 steps) was spent");
+        }
+        assert!(Path::new(o["contact_sheet"].as_str().unwrap()).is_file());
+    }
+}
+
+#[test]
+fn a_played_latency_skips_late_rows_and_lockstep_repeats_itself() {
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let args = ["--episodes", "1", "--max-steps", "30", "--delay-steps", "3", "--first-seed", "7"];
+    let first = rollout("rollout_delay", a.path(), &args);
+    let second = rollout("rollout_delay", b.path(), &args);
+    let (s1, _) = steps(&first["rollouts"][0]["dir"]);
+    let (s2, _) = steps(&second["rollouts"][0]["dir"]);
+    // A chunk asked for 3 ticks before it is due arrives with its first 3 rows in the past:
+    // they are skipped and rows 3..11 run. The first one too: its 3 ticks hold the arm.
+    let runs = chunks(&s1);
+    assert!(runs.len() >= 3, "{runs:?}");
+    for (id, rows) in &runs[..runs.len() - 1] {
+        assert_eq!(rows, &(3..11).collect::<Vec<u32>>(), "chunk {id}");
+    }
+    assert_eq!(runs.last().unwrap().1[0], 3, "{runs:?}");
+    let skipped = first["rollouts"][0]["skipped_rows"].as_u64().unwrap();
+    assert_eq!(skipped, 3 * runs.len() as u64, "{first:#}");
+    assert_eq!(first["rollouts"][0]["held_steps"], 3, "{first:#}");
+    assert!(s1[..3].iter().all(|s| !s.movement_enabled) && s1[3].movement_enabled);
+    // The same policy, seeds and latency: the same episode.
+    assert_eq!(s1.len(), s2.len());
+    for (x, y) in s1.iter().zip(&s2) {
+        assert_eq!((x.chunk_id, x.chunk_row), (y.chunk_id, y.chunk_row));
+        assert_eq!(x.action.joint_position, y.action.joint_position, "step {}", x.step_index);
+        assert_eq!(x.robot_state.joint_positions, y.robot_state.joint_positions, "step {}", x.step_index);
+    }
+}
+
+/// This process's own camera frames (tests run side by side).
+fn frames_namespace() -> String {
+    format!("rollout_faults_{}", std::process::id())
+}
+
+/// The rig by hand: the sim in lockstep, the recorder under `root`, the policy server.
+fn rig(domain: u16, root: &Path) -> (Proc, Proc, Proc) {
+    let d = domain.to_string();
+    let ns = frames_namespace();
+    let mut sim = Command::new(sim_bin());
+    sim.args(["run", "--mode", "lockstep", "--seed", "1000", "--domain-id", &d]).env(NAMESPACE_ENV, &ns);
+    let mut rec = Command::new(workspace_bin("labrig-recorder", "labrig-recorder"));
+    rec.args(["run", "--domain-id", &d, "--root"]).arg(root).env(NAMESPACE_ENV, &ns);
+    let mut pol = Command::new(workspace_bin("labrig-policy", "labrig-policy-server"));
+    pol.args(["run", "--threads", "1", "--domain-id", &d, "--checkpoint"]).arg(tiny());
+    (Proc::spawn("labrig-sim", sim), Proc::spawn("labrig-recorder", rec), Proc::spawn("labrig-policy", pol))
+}
+
+#[test]
+fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let domain = domain_for("rollout_server_faults");
+    let (_sim, _rec, mut server) = rig(domain, dir.path());
+    let control = workspace_bin("labrig-control", "labrig-control");
+    let d = domain.to_string();
+    let base = ["run", "--source", "policy", "--clock", "sim", "--episodes", "1", "--first-seed", "1000"];
+
+    // A rig configured for another action space refuses the policy at start, by name.
+    let o = Command::new(&control)
+        .args(base)
+        .args(["--domain-id", &d, "--set", "policy.action_space=\"cartesian_velocity\""])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "the policy {POLICY_ID} predicts \"eef_axis_angle\" actions; this rig is configured for \"cartesian_velocity\""
+        )),
+        "{err}"
+    );
+
+    let mut cmd = Command::new(&control);
+    cmd.env(NAMESPACE_ENV, frames_namespace());
+    cmd.args(base).args(["--max-steps", "400", "--set", "policy.server_timeout_s=1.0", "--domain-id", &d]);
+    let mut ctl = Proc::spawn("labrig-control --source policy", cmd);
+    let (steps, events) = rt().block_on(async {
+        let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "rollout_fault").unwrap();
+        let step_sub = ros.subscription_on(&topics::RIG_STEP, 1000).unwrap();
+        let event_sub = ros.subscription_on(&topics::RIG_EPISODE, 100).unwrap();
+        let (mut steps, mut events): (Vec<Step>, Vec<EpisodeEvent>) = (Vec::new(), Vec::new());
+        let until = Instant::now() + Duration::from_secs(180);
+        let mut killed = false;
+        while Instant::now() < until {
+            while let Some(s) = step_sub.try_take().unwrap() {
+                steps.push(s.msg);
+            }
+            while let Some(e) = event_sub.try_take().unwrap() {
+                events.push(e.msg);
+            }
+            // Mid-rollout (three chunks in), the server dies.
+            if !killed && steps.iter().filter(|s| s.chunk_id != 0).map(|s| s.chunk_id).max().unwrap_or(0) >= 3 {
+                server.child.kill().unwrap();
+                killed = true;
+            }
+            if events.iter().any(|e| e.kind().is_ok_and(|k| k != EpisodeEventKind::Start)) {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        assert!(killed, "the rollout never reached its third chunk ({} steps)", steps.len());
+        (steps, events)
+    });
+    let end = events.iter().find(|e| e.kind().is_ok_and(|k| k != EpisodeEventKind::Start)).expect("the episode ended");
+    assert_eq!(end.kind().unwrap(), EpisodeEventKind::Failure, "{end:?}");
+    assert!(end.note.contains(&format!("the policy server ({POLICY_ID}) did not answer request")), "{}", end.note);
+    // The arm followed the rows it had and held from the first tick without one: one period
+    // after the last action's time, within the loop's staleness bound; a second (the server
+    // timeout) after the unanswered request, the episode failed.
+    let last = steps.iter().rposition(|s| s.movement_enabled).expect("actions executed");
+    assert!(last + 1 < steps.len(), "no held step recorded after the server died");
+    let t = |s: &Step| labrig_msgs::Nanos::from(s.header.stamp).0;
+    let held_after_ms = (t(&steps[last + 1]) - t(&steps[last])) as f64 / 1e6;
+    assert!(held_after_ms <= 100.0, "held {held_after_ms} ms after the last action");
+    assert!(
+        steps[last + 1..]
+            .iter()
+            .all(|s| !s.movement_enabled && s.chunk_id == 0 && s.action_source == Step::SOURCE_POLICY)
+    );
+    assert_eq!(ctl.wait_exit(Duration::from_secs(60)), Some(0), "the loop finishes its one episode");
+    // The recorder filed it as a failure, the policy named.
+    let recorded: Vec<PathBuf> = walk(&dir.path().join("failure"));
+    assert_eq!(recorded.len(), 1, "{recorded:?}");
+    let meta = labrig_episode::read_episode(&recorded[0]).unwrap().metadata.unwrap();
+    assert_eq!((meta.success, meta.policy.as_deref()), (Some(false), Some(POLICY_ID)));
+}
+
+/// Episode directories (holding an .mcap) under `root`.
+fn walk(root: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let Ok(rd) = std::fs::read_dir(root) else { return out };
+    for e in rd.flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            if std::fs::read_dir(&p).unwrap().flatten().any(|f| f.path().extension().is_some_and(|x| x == "mcap")) {
+                out.push(p);
+            } else {
+                out.extend(walk(&p));
+            }
+        }
+    }
+    out
+}
