@@ -656,6 +656,11 @@ impl ActionSource for PolicySource {
         &self.info.cameras
     }
 
+    /// A policy acts on the episode's own observations: it is ready before its first chunk.
+    fn ready(&mut self, _tick: Nanos, _max_age: Nanos) -> bool {
+        true
+    }
+
     fn stats(&self) -> Option<serde_json::Value> {
         serde_json::to_value(PolicySource::stats(self)).ok()
     }

@@ -405,7 +405,7 @@ impl RigLoop {
             // Not before the source has an action for now (after a scene rebuild it may lag).
             let age_ns = self.max_action_age.0;
             let source_ready = self.cfg.clock == ClockKind::Sim
-                || source.as_mut().is_none_or(|s| s.action(Nanos(tick_ns), Nanos(age_ns)).is_ok());
+                || source.as_mut().is_none_or(|s| s.ready(Nanos(tick_ns), Nanos(age_ns)));
             // Nor while a camera that has been sending lags (after a scene rebuild, say).
             let lagging = self.book.at(Nanos(tick_ns), self.stale_frame).stale;
             if !lagging.is_empty() && self.summary.ticks.is_multiple_of(40) {

@@ -88,6 +88,11 @@ pub trait ActionSource: Send {
     /// The tick as recorded, before [`ActionSource::has`] and [`ActionSource::action`] are
     /// asked (a policy sends its request from here).
     fn observe(&mut self, _view: TickView<'_>) {}
+    /// Whether an episode may start at `tick` (auto_start on the wall clock): by default, when
+    /// the source has an action for it.
+    fn ready(&mut self, tick: Nanos, max_age: Nanos) -> bool {
+        self.action(tick, max_age).is_ok()
+    }
     /// What the source did over the run, for the loop's summary.
     fn stats(&self) -> Option<serde_json::Value> {
         None

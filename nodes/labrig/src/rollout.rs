@@ -123,6 +123,10 @@ pub struct RolloutReport {
     pub inference_ms_p99: f64,
     pub chunks: u64,
     pub held_steps: u64,
+    /// The control loop's figures for the run (`--stats-out`): ticks, missed ticks, jitter
+    /// and tick lateness (us, p50/p99/max), the policy source's requests, chunks, skipped rows
+    /// and round trips.
+    pub control: Option<serde_json::Value>,
     pub summary_png: Option<PathBuf>,
     pub errors: Vec<String>,
 }
@@ -169,6 +173,7 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         if args.realtime {
             set_arg(&mut ctl.args, "--clock", "wall");
         }
+        set_arg(&mut ctl.args, "--stats-out", &out.join("control_stats.json").display().to_string());
         let mut set = |kv: String| ctl.args.extend(["--set".into(), kv]);
         if let Some(b) = args.blend {
             set(format!("policy.blend=\"{}\"", if b == BlendArg::Replace { "replace" } else { "exponential" }));
@@ -253,6 +258,9 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         chunks: lat.len() as u64,
         held_steps: rollouts.iter().map(|r| r.held_steps).sum(),
         rollouts,
+        control: std::fs::read_to_string(out.join("control_stats.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok()),
         summary_png: None,
         errors: Vec::new(),
     };
@@ -299,6 +307,21 @@ fn report_text(r: &RolloutReport) -> String {
         "inference per chunk p50 {:.1} ms / p99 {:.1} ms over {} chunks; {} steps held for lack of an action",
         r.inference_ms_p50, r.inference_ms_p99, r.chunks, r.held_steps
     );
+    if let Some(c) = &r.control {
+        let us = |k: &str, i: usize| c[k][i].as_f64().unwrap_or(f64::NAN);
+        let _ = writeln!(
+            s,
+            "the loop: {} ticks, {} missed; period jitter p50 {:.0} / p99 {:.0} / max {:.0} us; tick lateness p99 {:.0} us; request round trip p50 {:.1} / p99 {:.1} ms",
+            c["ticks"],
+            c["missed_ticks"],
+            us("jitter_us", 0),
+            us("jitter_us", 1),
+            us("jitter_us", 2),
+            us("tick_lateness_us", 1),
+            c["source"]["round_trip_ms"][0].as_f64().unwrap_or(f64::NAN),
+            c["source"]["round_trip_ms"][1].as_f64().unwrap_or(f64::NAN),
+        );
+    }
     let _ = writeln!(s);
     let _ = writeln!(s, "  #  seed  outcome  steps  held  chunks  skipped  reason");
     for (k, o) in r.rollouts.iter().enumerate() {
