@@ -12,14 +12,14 @@ use labrig_episode::{ReadError, read_episode};
 use labrig_msgs::labrig_msgs::{ActionDict, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::topics::CAMERAS_PREFIX;
-use nalgebra::{UnitQuaternion, Vector3};
+use nalgebra::UnitQuaternion;
 use std::collections::BTreeMap;
 use std::hash::{Hash, Hasher};
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
 
 /// Bumped when what a cache file holds changes.
-const CACHE_VERSION: u32 = 1;
+const CACHE_VERSION: u32 = 2;
 
 /// Why an episode cannot be trained on; every variant names it.
 #[derive(Debug, thiserror::Error)]
@@ -71,20 +71,34 @@ fn rotation(p: &[f64; 6]) -> UnitQuaternion<f64> {
     UnitQuaternion::from_euler_angles(p[3], p[4], p[5])
 }
 
-/// The observed state: position + quaternion (x, y, z, w); `prev` keeps the sign continuous
-/// (q and -q are the same rotation).
-pub fn state_of(rs: &RobotState, prev: Option<&[f32; 7]>) -> [f32; 7] {
-    let p = &rs.cartesian_position;
-    let q = rotation(p);
-    let mut v = [q.i, q.j, q.k, q.w];
-    let flip = match prev {
-        Some(prev) => (0..4).map(|k| prev[3 + k] as f64 * v[k]).sum::<f64>() < 0.0,
-        None => q.w < 0.0,
-    };
-    if flip {
-        v = v.map(|x| -x);
+/// A rotation's quaternion on the hemisphere of the top-down grasp (x >= 0; q and -q are the
+/// same rotation), as (x, y, z, w). The same rule everywhere, with no history: training and
+/// the policy server give a pose the same numbers. (A top-down grasp has w near 0, where the
+/// usual `w >= 0` rule flips x between +1 and -1 from one step to the next; this one is
+/// continuous for every orientation within a quarter turn of top-down, the tabletop's.)
+pub fn canonical_quaternion(q: &UnitQuaternion<f64>) -> [f64; 4] {
+    let v = [q.i, q.j, q.k, q.w];
+    if v[0] < 0.0 { v.map(|x| -x) } else { v }
+}
+
+/// The axis-angle vector of a rotation from its [`canonical_quaternion`]: angle in [0, 2 pi)
+/// about the axis on the top-down hemisphere, so a top-down grasp reads about (pi, 0, 0)
+/// whichever way its roll wobbles, never (-pi, 0, 0) on the next step.
+pub fn canonical_axis_angle(q: &UnitQuaternion<f64>) -> [f64; 3] {
+    let [x, y, z, w] = canonical_quaternion(q);
+    let s = (x * x + y * y + z * z).sqrt();
+    if s < 1e-12 {
+        return [0.0; 3];
     }
-    [p[0], p[1], p[2], v[0], v[1], v[2], v[3]].map(|x| x as f32)
+    let angle = 2.0 * s.atan2(w);
+    [x / s * angle, y / s * angle, z / s * angle]
+}
+
+/// The observed pose: position + [`canonical_quaternion`] (x, y, z, w).
+pub fn state_of(rs: &RobotState) -> [f32; 7] {
+    let p = &rs.cartesian_position;
+    let [qx, qy, qz, qw] = canonical_quaternion(&rotation(p));
+    [p[0], p[1], p[2], qx, qy, qz, qw].map(|x| x as f32)
 }
 
 /// A policy's state for one step: the pose (`state_of`), then the gripper's opening
@@ -99,10 +113,9 @@ pub fn state_row(pose: &[f32; 7], rs: &RobotState, cfg: &DiffusionConfig, scene:
     row
 }
 
-/// The recorded action in `space`. An axis-angle vector is kept continuous along the episode:
-/// near a half turn the same rotation has two vectors (angle θ about n, or 2π - θ about -n),
-/// and the one nearer `prev` is taken, so a top-down grasp does not flip sign between steps.
-pub fn action_of(a: &ActionDict, space: ActionSpace, prev: Option<&[f32; 7]>) -> [f32; 7] {
+/// The recorded action in `space`: for `eef_axis_angle`, the target position and its
+/// rotation as a [`canonical_axis_angle`].
+pub fn action_of(a: &ActionDict, space: ActionSpace) -> [f32; 7] {
     let v: [f64; 7] = match space {
         ActionSpace::CartesianVelocity => {
             let c = &a.cartesian_velocity;
@@ -110,18 +123,8 @@ pub fn action_of(a: &ActionDict, space: ActionSpace, prev: Option<&[f32; 7]>) ->
         }
         ActionSpace::EefAxisAngle => {
             let p = &a.cartesian_position;
-            let mut r = rotation(p).scaled_axis();
-            if let Some(prev) = prev {
-                let before = Vector3::new(prev[3] as f64, prev[4] as f64, prev[5] as f64);
-                let angle = r.norm();
-                if angle > 1e-9 {
-                    let other = r * ((angle - 2.0 * std::f64::consts::PI) / angle);
-                    if (other - before).norm() < (r - before).norm() {
-                        r = other;
-                    }
-                }
-            }
-            [p[0], p[1], p[2], r.x, r.y, r.z, a.gripper_position]
+            let [rx, ry, rz] = canonical_axis_angle(&rotation(p));
+            [p[0], p[1], p[2], rx, ry, rz, a.gripper_position]
         }
     };
     v.map(|x| x as f32)
@@ -240,8 +243,8 @@ fn rows(path: &Path, steps: &[Step], space: ActionSpace) -> Result<(Rows, Rows),
         if used.iter().any(|v| !v.is_finite()) {
             return Err(not_finite("action", used));
         }
-        states.push(state_of(rs, states.last()));
-        actions.push(action_of(a, space, actions.last()));
+        states.push(state_of(rs));
+        actions.push(action_of(a, space));
     }
     Ok((states, actions))
 }
@@ -382,37 +385,41 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Vector3;
 
     fn robot_state(p: [f64; 6]) -> RobotState {
         RobotState { cartesian_position: p, ..Default::default() }
     }
 
-    /// The quaternion's sign follows the previous step's; the axis-angle vector does not flip
-    /// across a half turn (a top-down grasp at yaw ± a little).
+    /// A top-down grasp whose roll wobbles across pi (euler +pi, then -pi + a little: the same
+    /// orientation) gives the same state and action numbers either way, with no history.
     #[test]
-    fn orientations_stay_continuous_along_an_episode() {
+    fn top_down_orientations_read_the_same_across_the_half_turn() {
         use std::f64::consts::PI;
-        let a = state_of(&robot_state([0.5, 0.0, 0.3, PI, 0.0, 0.1]), None);
-        assert!((a[3..].iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-6 && a[6] >= 0.0, "{a:?}");
-        let b = state_of(&robot_state([0.5, 0.0, 0.3, -PI + 1e-3, 0.0, 0.1]), Some(&a));
-        let dot: f32 = (0..4).map(|k| a[3 + k] * b[3 + k]).sum();
-        assert!(dot > 0.99, "{a:?} {b:?}");
+        let a = state_of(&robot_state([0.5, 0.0, 0.3, PI - 1e-3, 0.0, 0.1]));
+        let b = state_of(&robot_state([0.5, 0.0, 0.3, -PI + 1e-3, 0.0, 0.1]));
+        assert!((a[3..].iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-6 && a[3] > 0.99, "{a:?}");
+        let dist: f32 = (3..7).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>().sqrt();
+        assert!(dist < 0.01, "{a:?} {b:?}");
 
         let act = |roll: f64| ActionDict { cartesian_position: [0.5, 0.0, 0.3, roll, 0.0, 0.2], ..Default::default() };
-        let first = action_of(&act(PI - 1e-3), ActionSpace::EefAxisAngle, None);
-        let second = action_of(&act(-PI + 1e-3), ActionSpace::EefAxisAngle, Some(&first));
+        let first = action_of(&act(PI - 1e-3), ActionSpace::EefAxisAngle);
+        let second = action_of(&act(-PI + 1e-3), ActionSpace::EefAxisAngle);
         let jump: f32 = (3..6).map(|k| (first[k] - second[k]).powi(2)).sum::<f32>().sqrt();
         assert!(jump < 0.01, "axis-angle jumped {jump}: {first:?} -> {second:?}");
-        // The rotation is still the recorded one.
-        let r = UnitQuaternion::from_scaled_axis(Vector3::new(second[3] as f64, second[4] as f64, second[5] as f64));
-        assert!(r.angle_to(&rotation(&act(-PI + 1e-3).cartesian_position)) < 1e-5);
+        assert!(first[3] > 3.0 && second[3] > 3.0, "both about +x: {first:?} {second:?}");
+        // The rotations are still the recorded ones (an angle past pi included).
+        for (v, roll) in [(first, PI - 1e-3), (second, -PI + 1e-3)] {
+            let r = UnitQuaternion::from_scaled_axis(Vector3::new(v[3] as f64, v[4] as f64, v[5] as f64));
+            assert!(r.angle_to(&rotation(&act(roll).cartesian_position)) < 1e-5, "{v:?}");
+        }
         // DROID's velocity action: 6 + gripper.
         let v = ActionDict {
             cartesian_velocity: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
             gripper_position: 0.7,
             ..Default::default()
         };
-        assert_eq!(action_of(&v, ActionSpace::CartesianVelocity, None), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]);
+        assert_eq!(action_of(&v, ActionSpace::CartesianVelocity), [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]);
     }
 
     /// A step whose pose or action is NaN is named (episode and step), not trained on.

@@ -332,6 +332,8 @@ impl DiffusionConfig {
             keypoints: 8,
             down_dims: vec![16, 32],
             step_embed_dim: 16,
+            state_dim: 7,
+            gripper_state: false,
             ..DiffusionConfig::small()
         }
     }

@@ -104,11 +104,8 @@ impl Server {
             None
         };
         let mut rows: Vec<f32> = Vec::new();
-        let mut prev: Option<[f32; 7]> = None;
         for o in &padded {
-            let s = state_of(&o.robot_state, prev.as_ref());
-            prev = Some(s);
-            rows.extend(state_row(&s, &o.robot_state, c, scene.as_ref()));
+            rows.extend(state_row(&state_of(&o.robot_state), &o.robot_state, c, scene.as_ref()));
         }
         named.insert("observation.state".into(), Tensor::from_slice(&rows).view([1, n_obs as i64, -1]));
         Ok(named)
