@@ -83,7 +83,7 @@ fn train_converges_resumes_cotrains_and_names_bad_input() {
         serde_json::from_str(&std::fs::read_to_string(run.join("checkpoints/step_600/checkpoint.json")).unwrap())
             .unwrap();
     assert_eq!(meta["manifest"].as_array().unwrap().len() as u64, kept, "every episode by uuid: {meta}");
-    assert_eq!(meta["config"]["state_dim"], 13);
+    assert_eq!(meta["config"]["state_dim"], 14, "pose 7 + gripper 1 + scene 6");
 
     // Resumed: from step 600 to 650, the loss log continued without repeats.
     let r = report(&train(&[&common[..], &["--out", run_s, "--steps", "650", "--resume"]].concat()));
