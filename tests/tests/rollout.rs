@@ -171,6 +171,23 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
         "{err}"
     );
 
+    // With the deadman (the real rig's config) and no Quest's grip, the policy's rows are
+    // asked for and timed but the arm holds: every recorded step is a hold.
+    let o = Command::new(&control)
+        .env(NAMESPACE_ENV, frames_namespace())
+        .args(base)
+        .args(["--max-steps", "20", "--set", "policy.deadman=true", "--domain-id", &d, "--json"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stderr));
+    let held: Value = serde_json::from_str(String::from_utf8_lossy(&o.stdout).lines().last().unwrap()).unwrap();
+    assert_eq!(held["episodes"][0]["steps"], 20, "{held}");
+    assert!(held["source"]["rows_executed"].as_u64().unwrap() >= 19, "the rows ran their course: {held}");
+    let (no_grip, no_row) =
+        (held["source"]["deadman_held"].as_u64().unwrap(), held["source"]["ticks_without_action"].as_u64().unwrap());
+    assert_eq!(no_grip + no_row, 20, "every step held: without the grip, or before the first chunk: {held}");
+    assert!(no_grip >= 19, "{held}");
+
     let mut cmd = Command::new(&control);
     cmd.env(NAMESPACE_ENV, frames_namespace());
     cmd.args(base).args(["--max-steps", "400", "--set", "policy.server_timeout_s=1.0", "--domain-id", &d]);
@@ -219,10 +236,15 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
             .all(|s| !s.movement_enabled && s.chunk_id == 0 && s.action_source == Step::SOURCE_POLICY)
     );
     assert_eq!(ctl.wait_exit(Duration::from_secs(60)), Some(0), "the loop finishes its one episode");
-    // The recorder filed it as a failure, the policy named.
-    let recorded: Vec<PathBuf> = walk(&dir.path().join("failure"));
-    assert_eq!(recorded.len(), 1, "{recorded:?}");
-    let meta = labrig_episode::read_episode(&recorded[0]).unwrap().metadata.unwrap();
+    // The recorder filed both as failures: the deadman's, whose steps all held (no action of
+    // the policy executed, so no policy in its metadata), and this one, the policy named.
+    let mut recorded: Vec<PathBuf> = walk(&dir.path().join("failure"));
+    recorded.sort();
+    assert_eq!(recorded.len(), 2, "{recorded:?}");
+    let held = labrig_episode::read_episode(&recorded[0]).unwrap();
+    assert!(held.steps.iter().all(|s| !s.movement_enabled && s.action_source == Step::SOURCE_POLICY));
+    assert_eq!(held.metadata.unwrap().policy, None);
+    let meta = labrig_episode::read_episode(&recorded[1]).unwrap().metadata.unwrap();
     assert_eq!((meta.success, meta.policy.as_deref()), (Some(false), Some(POLICY_ID)));
 }
 

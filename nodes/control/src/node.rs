@@ -718,6 +718,16 @@ mod tests {
     }
 
     #[test]
+    fn the_real_rigs_policy_config_loads() {
+        let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../launch_configs/nodes/control_real_policy.toml");
+        let c: ControlConfig = labrig_runtime::load_config(&p).unwrap();
+        assert_eq!(c.validate(), Ok(()));
+        assert_eq!((c.source, c.clock, c.auto_start), (SourceKind::Policy, ClockKind::Wall, false));
+        assert!(c.policy.deadman && c.policy.action_space == "eef_axis_angle");
+    }
+
+    #[test]
     fn configs_are_checked_by_field() {
         let mut c = ControlConfig::default();
         assert_eq!(c.validate(), Ok(()));

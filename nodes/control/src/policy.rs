@@ -29,7 +29,9 @@ use crate::node::ClockKind;
 use crate::source::{ActionSource, Proposal, RgbFrame, SourceError, TickView, Verdict};
 use crate::step::ChunkRef;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ActionChunk, ArmCommand, ArmCommandMode, PolicyObservation, PolicyRequest, Step};
+use labrig_msgs::labrig_msgs::{
+    ActionChunk, ArmCommand, ArmCommandMode, PolicyObservation, PolicyRequest, Step, TeleopState,
+};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::topics;
@@ -76,6 +78,9 @@ pub struct PolicySourceConfig {
     /// JPEG quality of the observation images: the recorder's, so the policy sees the
     /// compression it was trained on.
     pub jpeg_quality: u8,
+    /// On a real arm: the policy moves it only while the Quest's grip is held (`/teleop/state`
+    /// from `labrig-teleop`, no older than 0.1 s), as teleop does; released, the arm holds.
+    pub deadman: bool,
 }
 
 impl Default for PolicySourceConfig {
@@ -89,6 +94,7 @@ impl Default for PolicySourceConfig {
             server_timeout_s: 1.0,
             action_space: String::new(),
             jpeg_quality: 90,
+            deadman: false,
         }
     }
 }
@@ -189,6 +195,8 @@ pub struct PolicyStats {
     pub ticks_without_action: u64,
     /// Requests not sent for lack of a camera's frame.
     pub requests_without_images: u64,
+    /// Ticks with a row whose movement the deadman withheld (the arm held).
+    pub deadman_held: u64,
     /// Request to chunk, wall time (ms): p50, p99, max.
     pub round_trip_ms: [f64; 3],
     /// The lead (ticks) the last request was sent with.
@@ -250,6 +258,9 @@ pub struct PolicySource {
     period_ns: i64,
     chunks_sub: RosSubscription<ActionChunk>,
     task_sub: RosSubscription<StringMsg>,
+    /// With `deadman`: the Quest's state and when it arrived.
+    deadman_sub: Option<RosSubscription<TeleopState>>,
+    grip: Option<(bool, Instant)>,
     jobs: Option<mpsc::Sender<Job>>,
     encoder: Option<std::thread::JoinHandle<()>>,
     history: VecDeque<Obs>,
@@ -305,6 +316,7 @@ impl PolicySource {
         let chunks_sub = ros.subscription_on(&topics::POLICY_CHUNK, 100)?;
         let task_sub = ros.subscription_on(&topics::SIM_TASK, 100)?;
         let requests: RosPublisher<PolicyRequest> = ros.publisher_on(&topics::POLICY_REQUEST, 10)?;
+        let deadman_sub = if cfg.deadman { Some(ros.subscription_on(&topics::TELEOP_STATE, 100)?) } else { None };
         let until = Instant::now() + Duration::from_secs_f64(cfg.server_wait_s);
         let info: PolicyInfo = loop {
             if let Some(m) = info_sub.try_take()? {
@@ -334,6 +346,8 @@ impl PolicySource {
             period_ns: period.0,
             chunks_sub,
             task_sub,
+            deadman_sub,
+            grip: None,
             jobs: Some(jobs),
             encoder: Some(encoder),
             history: VecDeque::new(),
@@ -561,6 +575,11 @@ impl ActionSource for PolicySource {
         while let Some(c) = self.chunks_sub.try_take()? {
             self.take_chunk(c.msg);
         }
+        if let Some(sub) = &self.deadman_sub {
+            while let Some(t) = sub.try_take()? {
+                self.grip = Some((t.msg.movement_enabled && t.msg.controller_connected, Instant::now()));
+            }
+        }
         while let Some(t) = self.task_sub.try_take()? {
             let Ok(v) = serde_json::from_str::<serde_json::Value>(&t.msg.data) else {
                 tracing::warn!("/sim/task: not JSON: {:?}", t.msg.data);
@@ -619,7 +638,12 @@ impl ActionSource for PolicySource {
             command.cartesian_position.copy_from_slice(&a[..6]);
         }
         command.header.stamp = tick.into();
-        Ok(Proposal { command, movement_enabled: true, chunk: Some(chunk_ref) })
+        // The deadman: held and fresh, or no movement (the row still counts as executed: the
+        // chunk's timing goes on).
+        let enabled =
+            !self.cfg.deadman || self.grip.is_some_and(|(held, at)| held && at.elapsed() <= Duration::from_millis(100));
+        self.stats.deadman_held += u64::from(!enabled);
+        Ok(Proposal { command, movement_enabled: enabled, chunk: Some(chunk_ref) })
     }
 
     /// A request unanswered for `server_timeout_s` fails the episode: wall time (the server
