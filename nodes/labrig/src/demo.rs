@@ -199,26 +199,9 @@ async fn run_rig(
     let events = ros.subscription_on(&topics::RIG_EPISODE, 100)?;
     let steps = ros.subscription_on(&topics::RIG_STEP, 1000)?;
     let status = ros.subscription::<StringMsg>(topics::RECORDER_STATUS.name, qos::reliable(100))?;
-    let bar = ProgressBar::new(args.episodes);
-    bar.set_style(ProgressStyle::with_template("{spinner} demo {bar:25} {pos}/{len} episodes  {msg}  [{elapsed}]")?);
-    if args.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar.enable_steady_tick(Duration::from_millis(200));
+    let bar = progress("demo {bar:25} {pos}/{len} episodes", args.episodes, args.json)?;
     bar.set_message("starting the simulated rig");
-    let watch = Shutdown::new();
-    let stop = Shutdown::new();
-    stop.trigger_on_signals()?;
-    let rig = {
-        let (watch, stop) = (watch.clone(), stop.clone());
-        let domain = args.domain_id;
-        tokio::spawn(async move {
-            let dir = PathBuf::from("launch_configs");
-            let r = crate::launch::supervise_until(cfg, order, dir, domain, None, Output::Quiet, stop).await;
-            watch.trigger();
-            r
-        })
-    };
+    let SimRig { watch, stop, rig } = SimRig::start(cfg, order, args.domain_id)?;
     let mut refusal: Option<String> = None;
     let mut step_count = 0u64;
     let mut episode = 0u64;
@@ -283,6 +266,43 @@ async fn run_rig(
         bail!("the simulated rig stopped with an error (see above)");
     }
     Ok(())
+}
+
+/// A progress bar `{spinner} <template>  {msg}  [{elapsed}]` over `n` (hidden for --json).
+pub(crate) fn progress(template: &str, n: u64, json: bool) -> anyhow::Result<ProgressBar> {
+    let bar = ProgressBar::new(n);
+    bar.set_style(ProgressStyle::with_template(&format!("{{spinner}} {template}  {{msg}}  [{{elapsed}}]"))?);
+    if json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    bar.enable_steady_tick(Duration::from_millis(200));
+    Ok(bar)
+}
+
+/// A simulated rig supervised in the background until its `completes` node is done: `watch`
+/// triggers when it has stopped, `stop` (also set by SIGINT/SIGTERM) stops it.
+pub(crate) struct SimRig {
+    pub watch: Shutdown,
+    pub stop: Shutdown,
+    pub rig: tokio::task::JoinHandle<anyhow::Result<ExitCode>>,
+}
+
+impl SimRig {
+    pub(crate) fn start(cfg: LaunchConfig, order: Vec<usize>, domain: u16) -> anyhow::Result<SimRig> {
+        let watch = Shutdown::new();
+        let stop = Shutdown::new();
+        stop.trigger_on_signals()?;
+        let rig = {
+            let (watch, stop) = (watch.clone(), stop.clone());
+            tokio::spawn(async move {
+                let dir = PathBuf::from("launch_configs");
+                let r = crate::launch::supervise_until(cfg, order, dir, domain, None, Output::Quiet, stop).await;
+                watch.trigger();
+                r
+            })
+        };
+        Ok(SimRig { watch, stop, rig })
+    }
 }
 
 /// One PNG: a row per moment (first, middle, last recorded frame), a column per camera.

@@ -10,16 +10,15 @@
 //! the chunks' inference time (p50/p99) and the ticks the arm held for lack of an action;
 //! it writes `rollouts.json`, a contact sheet per rollout and `summary.png`.
 
-use crate::demo::{contact_sheet, set_arg};
-use crate::launch::{LaunchConfig, Output};
+use crate::demo::{SimRig, contact_sheet, progress, set_arg};
+use crate::launch::LaunchConfig;
 use anyhow::{Context, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use labrig_msgs::labrig_msgs::{EpisodeEventKind, Step};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
+use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, qos};
-use labrig_runtime::{RosConfig, Shutdown};
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -285,17 +284,26 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
     Ok(if report.errors.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(1) })
 }
 
+/// "k of n rollouts succeeded (p%, 95% CI lo-hi%)".
+fn rate_text(r: &RolloutReport) -> String {
+    format!(
+        "{} of {} rollouts succeeded ({:.0}%, 95% CI {:.0}-{:.0}%)",
+        r.successes,
+        r.rollouts.len(),
+        100.0 * r.success_rate,
+        100.0 * r.ci95[0],
+        100.0 * r.ci95[1]
+    )
+}
+
 fn report_text(r: &RolloutReport) -> String {
     use std::fmt::Write;
     let mut s = String::new();
     let n = r.rollouts.len();
     let _ = writeln!(
         s,
-        "labrig rollout: {} of {n} rollouts succeeded ({:.0}%, 95% CI {:.0}-{:.0}%), {} in {}, seeds {}..{}",
-        r.successes,
-        100.0 * r.success_rate,
-        100.0 * r.ci95[0],
-        100.0 * r.ci95[1],
+        "labrig rollout: {}, {} in {}, seeds {}..{}",
+        rate_text(r),
         r.scene,
         r.mode,
         r.first_seed,
@@ -374,26 +382,9 @@ async fn run_rig(args: &RolloutArgs, cfg: LaunchConfig, order: Vec<usize>, seen:
     let chunks = ros.subscription_on(&topics::POLICY_CHUNK, 100)?;
     let scene = ros.subscription_on(&topics::SIM_SCENE, 10)?;
     let status = ros.subscription::<StringMsg>(topics::RECORDER_STATUS.name, qos::reliable(100))?;
-    let bar = ProgressBar::new(args.episodes);
-    bar.set_style(ProgressStyle::with_template("{spinner} rollout {bar:25} {pos}/{len}  {msg}  [{elapsed}]")?);
-    if args.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar.enable_steady_tick(Duration::from_millis(200));
+    let bar = progress("rollout {bar:25} {pos}/{len}", args.episodes, args.json)?;
     bar.set_message("starting the simulated rig and loading the policy");
-    let watch = Shutdown::new();
-    let stop = Shutdown::new();
-    stop.trigger_on_signals()?;
-    let rig = {
-        let (watch, stop) = (watch.clone(), stop.clone());
-        let domain = args.domain_id;
-        tokio::spawn(async move {
-            let dir = PathBuf::from("launch_configs");
-            let r = crate::launch::supervise_until(cfg, order, dir, domain, None, Output::Quiet, stop).await;
-            watch.trigger();
-            r
-        })
-    };
+    let SimRig { watch, stop: _stop, rig } = SimRig::start(cfg, order, args.domain_id)?;
     let mut scene_seed: Option<u64> = None;
     let mut current: Option<String> = None;
     let mut ended = BTreeSet::new();
@@ -491,16 +482,7 @@ fn plot_summary(r: &RolloutReport, path: &Path) -> anyhow::Result<()> {
     let e = |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("{e:?}");
     root.fill(&WHITE).map_err(e)?;
     let name = Path::new(&r.policy).file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
-    let title = format!(
-        "{name}: {}/{n} succeeded ({:.0}%, 95% CI {:.0}-{:.0}%), {} {}, p50 inference {:.0} ms",
-        r.successes,
-        100.0 * r.success_rate,
-        100.0 * r.ci95[0],
-        100.0 * r.ci95[1],
-        r.scene,
-        r.mode,
-        r.inference_ms_p50
-    );
+    let title = format!("{name}: {}, {} {}, p50 inference {:.0} ms", rate_text(r), r.scene, r.mode, r.inference_ms_p50);
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 20))
         .margin(14)
