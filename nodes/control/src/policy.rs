@@ -197,7 +197,7 @@ pub struct PolicyStats {
     pub requests_without_images: u64,
     /// Ticks with a row whose movement the deadman withheld (the arm held).
     pub deadman_held: u64,
-    /// Request to chunk, wall time (ms): p50, p99, max.
+    /// Request to chunk, wall time (ms): p50, p99, max (NaN before any).
     pub round_trip_ms: [f64; 3],
     /// The lead (ticks) the last request was sent with.
     pub lead_steps: u32,
@@ -338,7 +338,8 @@ impl PolicySource {
             .spawn(move || encode_and_send(&rx, &requests, quality))
             .map_err(|e| PolicyStartError::BadInfo(format!("cannot start the request thread: {e}")))?;
         tracing::info!(policy = %info.policy_id, cameras = ?info.cameras, action_space = %info.action_space, "policy source up");
-        let stats = PolicyStats { policy_id: info.policy_id.clone(), ..PolicyStats::default() };
+        let stats =
+            PolicyStats { policy_id: info.policy_id.clone(), round_trip_ms: [f64::NAN; 3], ..PolicyStats::default() };
         Ok(PolicySource {
             cfg,
             info,
@@ -369,9 +370,9 @@ impl PolicySource {
 
     pub fn stats(&self) -> PolicyStats {
         let mut s = self.stats.clone();
-        let mut v: Vec<i64> = self.round_trips_ms.iter().map(|ms| (ms * 1e6) as i64).collect();
-        let us = crate::node::percentiles_us(&mut v);
-        s.round_trip_ms = us.map(|u| u / 1e3);
+        if let Some(p) = labrig_episode::inspect::Percentiles::of(self.round_trips_ms.clone()) {
+            s.round_trip_ms = [p.p50, p.p99, p.max];
+        }
         s
     }
 

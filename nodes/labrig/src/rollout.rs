@@ -241,9 +241,7 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
     }
     let n = rollouts.len() as u64;
     let successes = rollouts.iter().filter(|r| r.success).count() as u64;
-    let mut lat = seen.inference_ms.clone();
-    lat.sort_by(f64::total_cmp);
-    let pct = |q: f64| lat.get(((lat.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(f64::NAN);
+    let lat = labrig_episode::inspect::Percentiles::of(seen.inference_ms.clone());
     let mut report = RolloutReport {
         policy: ckpt.display().to_string(),
         scene: args.scene.clone(),
@@ -252,9 +250,9 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         successes,
         success_rate: if n > 0 { successes as f64 / n as f64 } else { 0.0 },
         ci95: wilson95(successes, n),
-        inference_ms_p50: pct(0.5),
-        inference_ms_p99: pct(0.99),
-        chunks: lat.len() as u64,
+        inference_ms_p50: lat.as_ref().map_or(f64::NAN, |p| p.p50),
+        inference_ms_p99: lat.as_ref().map_or(f64::NAN, |p| p.p99),
+        chunks: seen.inference_ms.len() as u64,
         held_steps: rollouts.iter().map(|r| r.held_steps).sum(),
         rollouts,
         control: std::fs::read_to_string(out.join("control_stats.json"))
