@@ -47,6 +47,9 @@ apt_install fonts-dejavu-core
 apt_install libhdf5-dev pkg-config ffmpeg
 # The Quest teleop node reads the headset's logcat through adb (issue 7).
 apt_install adb
+# The camera node's V4L2 backend (crate v4l) generates its kernel bindings with bindgen, which
+# loads libclang (issue 19); the calibration's opencv crate needs it too.
+apt_install libclang-dev
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.

@@ -149,6 +149,14 @@ pub fn camera_image(camera: &str) -> String {
 }
 /// The type of [`camera_image`] topics.
 pub const CAMERA_IMAGE_TYPE: &str = <CompressedImage as crate::RosMessage>::TYPE_NAME;
+/// `/cameras/<id>/preview/compressed`: the camera node's low-rate JPEG preview of each camera
+/// (for rviz, Foxglove, rclpy; not recorded).
+pub fn camera_preview(camera: &str) -> String {
+    format!("/cameras/{camera}/preview/compressed")
+}
+/// The camera node's status (JSON: per camera its state, since when, why, frames, drops),
+/// latched.
+pub const CAMERAS_STATUS: Topic<StringMsg> = Topic::new("/cameras/status", Latched);
 /// The prefix every camera topic starts with.
 pub const CAMERAS_PREFIX: &str = "/cameras/";
 /// The iceoryx2 publish-subscribe service of a camera's raw frames, `labrig/camera/<id>/frames`,

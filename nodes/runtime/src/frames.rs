@@ -284,6 +284,11 @@ impl std::fmt::Debug for FramePublisher {
 }
 
 impl FramePublisher {
+    /// What this publisher sends.
+    pub fn format(&self) -> &FrameFormat {
+        &self.format
+    }
+
     /// Copies `pixels` into shared memory once and publishes it with a header; returns the
     /// frame's sequence number. Raw encodings must match the format's size exactly.
     pub fn publish(&mut self, pixels: &[u8], capture: Nanos, arrival: Nanos) -> Result<u64, FrameError> {

@@ -1,0 +1,751 @@
+//! The camera node: one thread per camera (a camera never blocks another) reads its source,
+//! makes one eye's RGB8 image at the configured size and hands it to shared memory
+//! (`labrig/camera/<id>/frames`, the interface the sim bridge serves); the node's async side
+//! publishes `/cameras/<id>/camera_info` with each frame, a low-rate JPEG preview per camera,
+//! `/tf_static` from the configured extrinsics and `/cameras/status`.
+//!
+//! Time: a frame's capture time is the device's (V4L2 buffer time, CLOCK_MONOTONIC) mapped
+//! onto the rig's wall clock by the offset between the two clocks read at arrival; sources
+//! without one (HTTP, ffmpeg) use the arrival time, and the status says which.
+//!
+//! Faults: a source that fails to open, ends or errors is reported (`down`, with the reason
+//! and since when) and opened again every `retry_s`; a source that sends nothing for
+//! `stall_s` is reported `stalled` (and reopened after `2 x stall_s` of silence, the read
+//! timeout); the other cameras are not affected.
+
+use crate::convert::{ConvertError, preview_jpeg, to_rgb};
+use crate::intrinsics::{Eye, Intrinsics, IntrinsicsError, ZedCalibration};
+use crate::source::{DeviceKind, FfmpegSource, MjpegSource, Source, SourceError, SourceSpec, Timeouts};
+use labrig_msgs::builtin_interfaces::Time;
+use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3};
+use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
+use labrig_msgs::std_msgs::{Header, StringMsg};
+use labrig_msgs::tf2_msgs::TFMessage;
+use labrig_msgs::{Invalid, Nanos, topics};
+use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode, FramePublisher};
+use labrig_runtime::ros::{Ros, RosPublisher, qos};
+use labrig_runtime::{Clock, RosConfig, Shutdown};
+use nalgebra::{Rotation3, UnitQuaternion};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The node's config (`labrig-cameras run --config F`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CamerasConfig {
+    pub ros: RosConfig,
+    /// The rig's cameras by id (`[cameras.ext1]`).
+    pub cameras: BTreeMap<String, CameraConfig>,
+    /// Preview images per camera and second on `/cameras/<id>/preview/compressed` (0: none).
+    pub preview_hz: f64,
+    /// Previews are shrunk to at most this width.
+    pub preview_width: u32,
+    pub preview_quality: u8,
+    /// A camera that sends nothing for this long is `stalled`; after twice as long its source
+    /// is closed and opened again (s).
+    pub stall_s: f64,
+    /// Pause between attempts to open a source that is down (s).
+    pub retry_s: f64,
+    /// How often `/cameras/status` is published (s); also on every change.
+    pub status_period_s: f64,
+    /// The frame the extrinsics are given in.
+    pub base_frame: String,
+}
+
+impl Default for CamerasConfig {
+    fn default() -> Self {
+        CamerasConfig {
+            ros: RosConfig::default(),
+            cameras: BTreeMap::new(),
+            preview_hz: 2.0,
+            preview_width: 320,
+            preview_quality: 70,
+            stall_s: 1.0,
+            retry_s: 1.0,
+            status_period_s: 1.0,
+            base_frame: "base".into(),
+        }
+    }
+}
+
+/// One camera.
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// `zed:SERIAL`, `realsense:SERIAL`, `v4l2:SERIAL`, `/dev/videoN`, `http://...` (MJPEG),
+    /// `rtsp://...` or a video file (relative to the config file).
+    pub source: String,
+    /// One eye's image size as published (0 x 0: whatever the source sends; a V4L2 device and
+    /// a file or RTSP source need it).
+    #[serde(default)]
+    pub width: u32,
+    #[serde(default)]
+    pub height: u32,
+    /// The frame rate to ask a device for (a file plays at its own).
+    #[serde(default = "default_fps")]
+    pub fps: f64,
+    /// The frames hold a stereo pair side by side (default: true for `zed:`).
+    #[serde(default)]
+    pub side_by_side: Option<bool>,
+    /// Which eye of a side-by-side frame is published (DROID records the left).
+    #[serde(default)]
+    pub eye: Eye,
+    /// A ZED factory file (`SN<serial>.conf`), a labrig intrinsics file (.json/.toml), or the
+    /// values inline; scaled to width x height. None: camera_info carries a zero matrix
+    /// (uncalibrated, the ROS convention).
+    #[serde(default)]
+    pub intrinsics: Option<IntrinsicsSpec>,
+    /// The camera's optical frame (z forward, x right, y down) in the base frame, DROID's way:
+    /// x, y, z (m) and extrinsic x-y-z Euler angles (rad). Published on `/tf_static`.
+    #[serde(default)]
+    pub extrinsics: Option<[f64; 6]>,
+    /// Play a video file again from the start when it ends.
+    #[serde(default = "yes")]
+    pub loop_file: bool,
+}
+
+fn default_fps() -> f64 {
+    30.0
+}
+fn yes() -> bool {
+    true
+}
+
+/// Where a camera's intrinsics come from.
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
+#[serde(untagged)]
+pub enum IntrinsicsSpec {
+    File(PathBuf),
+    Inline(Intrinsics),
+}
+
+impl CameraConfig {
+    pub fn new(source: &str) -> CameraConfig {
+        CameraConfig {
+            source: source.to_owned(),
+            width: 0,
+            height: 0,
+            fps: default_fps(),
+            side_by_side: None,
+            eye: Eye::Left,
+            intrinsics: None,
+            extrinsics: None,
+            loop_file: true,
+        }
+    }
+}
+
+fn is_camera_id(id: &str) -> bool {
+    !id.is_empty() && id.len() <= 32 && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+impl CamerasConfig {
+    pub fn validate(&self) -> Result<(), Invalid> {
+        self.ros.validate(Path::new("cameras config")).map_err(|e| Invalid::new("ros", e.to_string()))?;
+        let bad = |k: &str, why: String| Err(Invalid::new(k, format!("cameras config: `{k}` {why}")));
+        if self.cameras.is_empty() {
+            return bad(
+                "cameras",
+                "is empty: name at least one ([cameras.ext1] source = ..., or --camera ext1=SOURCE)".into(),
+            );
+        }
+        for (k, v, lo, hi) in [
+            ("preview_hz", self.preview_hz, 0.0, 30.0),
+            ("stall_s", self.stall_s, 0.05, 60.0),
+            ("retry_s", self.retry_s, 0.05, 60.0),
+            ("status_period_s", self.status_period_s, 0.05, 60.0),
+        ] {
+            if !(v.is_finite() && (lo..=hi).contains(&v)) {
+                return bad(k, format!("is {v}, must be {lo}..={hi}"));
+            }
+        }
+        if !(16..=4096).contains(&self.preview_width) {
+            return bad("preview_width", format!("is {}, must be 16..=4096", self.preview_width));
+        }
+        if !(1..=100).contains(&self.preview_quality) {
+            return bad("preview_quality", format!("is {}, must be 1..=100", self.preview_quality));
+        }
+        for (id, c) in &self.cameras {
+            let key = |k: &str| format!("cameras.{id}.{k}");
+            if !is_camera_id(id) {
+                return bad(&format!("cameras.{id}"), "is not a camera id (1-32 of [A-Za-z0-9_-])".into());
+            }
+            let spec =
+                SourceSpec::parse(&c.source).map_err(|e| Invalid::new(key("source"), format!("camera {id}: {e}")))?;
+            if (c.width == 0) != (c.height == 0) {
+                return bad(&key("width"), format!("and height are {}x{}: give both or neither", c.width, c.height));
+            }
+            if c.width == 0 && !matches!(spec, SourceSpec::Mjpeg { .. }) {
+                return bad(
+                    &key("width"),
+                    format!("is not set: camera {id}'s source {} needs width and height", c.source),
+                );
+            }
+            if c.width == 0 && c.intrinsics.is_some() {
+                return bad(
+                    &key("intrinsics"),
+                    format!("are set but camera {id} has no width x height to scale them to"),
+                );
+            }
+            if !(c.fps.is_finite() && (1.0..=240.0).contains(&c.fps)) {
+                return bad(&key("fps"), format!("is {}, must be 1..=240", c.fps));
+            }
+            if let Some(e) = c.extrinsics
+                && e.iter().any(|v| !v.is_finite())
+            {
+                return bad(&key("extrinsics"), format!("has a value that is not a number: {e:?}"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Makes relative source and intrinsics paths relative to the config file's directory.
+    pub fn resolve_paths(&mut self, file: &Path) {
+        let dir = file.parent().unwrap_or(Path::new("."));
+        for c in self.cameras.values_mut() {
+            let looks_like_file =
+                !c.source.contains("://") && !c.source.contains(':') && !c.source.starts_with("/dev/");
+            if looks_like_file && Path::new(&c.source).is_relative() {
+                c.source = dir.join(&c.source).display().to_string();
+            }
+            if let Some(IntrinsicsSpec::File(p)) = &mut c.intrinsics
+                && p.is_relative()
+            {
+                *p = dir.join(&*p);
+            }
+        }
+    }
+}
+
+/// A camera ready to run: its source parsed, its intrinsics loaded and scaled.
+#[derive(Debug, Clone)]
+pub struct Camera {
+    pub id: String,
+    pub spec: SourceSpec,
+    pub config: CameraConfig,
+    pub side_by_side: Option<Eye>,
+    pub intrinsics: Option<Intrinsics>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CameraError {
+    #[error("camera {camera}: {source}")]
+    Intrinsics { camera: String, source: IntrinsicsError },
+    #[error("camera {camera}: {source}")]
+    Source { camera: String, source: SourceError },
+}
+
+impl Camera {
+    /// Loads what a camera needs before it starts; a missing or unreadable calibration file,
+    /// a section it lacks, a size it does not scale to: refused, naming the camera.
+    pub fn resolve(id: &str, c: &CameraConfig) -> Result<Camera, CameraError> {
+        let spec = SourceSpec::parse(&c.source).map_err(|source| CameraError::Source { camera: id.into(), source })?;
+        let sbs = c.side_by_side.unwrap_or_else(|| spec.side_by_side_default());
+        let intr = |source| CameraError::Intrinsics { camera: id.into(), source };
+        let intrinsics = match &c.intrinsics {
+            None => None,
+            Some(IntrinsicsSpec::Inline(i)) => Some(i.scaled(c.width, c.height).map_err(intr)?),
+            Some(IntrinsicsSpec::File(p)) if p.extension().is_some_and(|e| e == "conf") => {
+                Some(ZedCalibration::load(p).and_then(|z| z.eye(c.eye, c.width, c.height)).map_err(intr)?)
+            }
+            Some(IntrinsicsSpec::File(p)) => {
+                Some(Intrinsics::load(p).and_then(|i| i.scaled(c.width, c.height)).map_err(intr)?)
+            }
+        };
+        Ok(Camera { id: id.to_owned(), spec, config: c.clone(), side_by_side: sbs.then_some(c.eye), intrinsics })
+    }
+
+    /// The size the source is asked for (both eyes of a side-by-side frame).
+    fn source_size(&self) -> (u32, u32) {
+        let w = if self.side_by_side.is_some() { self.config.width * 2 } else { self.config.width };
+        (w, self.config.height)
+    }
+
+    fn open(&self, t: Timeouts) -> Result<Box<dyn Source>, SourceError> {
+        match &self.spec {
+            SourceSpec::Mjpeg { url } => Ok(Box::new(MjpegSource::open(url, t)?)),
+            SourceSpec::Ffmpeg { input, file } => {
+                Ok(Box::new(FfmpegSource::open(input, *file, self.source_size(), self.config.loop_file)?))
+            }
+            SourceSpec::Device { kind, serial, path } => {
+                let path = match (serial, path) {
+                    (_, Some(p)) => p.clone(),
+                    (Some(s), None) => crate::v4l2::find(*kind, s)?,
+                    (None, None) => unreachable!("a device source has a serial or a path"),
+                };
+                let formats: &[&str] = match kind {
+                    DeviceKind::Zed => &["YUYV"],
+                    _ => &["MJPG", "YUYV"],
+                };
+                Ok(Box::new(crate::v4l2::V4l2Source::open(
+                    &path,
+                    formats,
+                    self.source_size(),
+                    self.config.fps,
+                    t.read,
+                )?))
+            }
+        }
+    }
+
+    /// `/tf_static`'s transform base -> `<id>_optical`, if the camera has extrinsics.
+    pub fn transform(&self, base: &str, stamp: Time) -> Option<TransformStamped> {
+        let [x, y, z, rx, ry, rz] = self.config.extrinsics?;
+        let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_euler_angles(rx, ry, rz));
+        Some(TransformStamped {
+            header: Header { stamp, frame_id: base.to_owned() },
+            child_frame_id: optical_frame(&self.id),
+            transform: Transform {
+                translation: Vector3 { x, y, z },
+                rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+            },
+        })
+    }
+}
+
+/// The camera's optical frame name (as the sim bridge names it).
+pub fn optical_frame(camera: &str) -> String {
+    format!("{camera}_optical")
+}
+
+/// The wall clock minus CLOCK_MONOTONIC, read back to back (ns): maps V4L2 buffer times onto
+/// the rig's clock.
+fn wall_minus_monotonic() -> i64 {
+    let ns = |t: rustix::time::Timespec| t.tv_sec * 1_000_000_000 + t.tv_nsec;
+    let m0 = ns(rustix::time::clock_gettime(rustix::time::ClockId::Monotonic));
+    let w = ns(rustix::time::clock_gettime(rustix::time::ClockId::Realtime));
+    let m1 = ns(rustix::time::clock_gettime(rustix::time::ClockId::Monotonic));
+    w - (m0 + m1) / 2
+}
+
+/// What a camera thread tells the node.
+#[derive(Debug)]
+enum Event {
+    Up { camera: usize, description: String },
+    Down { camera: usize, reason: String },
+    Frame(FrameEvent),
+}
+
+#[derive(Debug)]
+struct FrameEvent {
+    camera: usize,
+    capture: Nanos,
+    width: u32,
+    height: u32,
+    /// Frames the device's sequence skipped since the last one.
+    dropped: u64,
+    device_time: bool,
+    preview: Option<Vec<u8>>,
+}
+
+#[derive(Debug, Clone)]
+struct ThreadCtx {
+    tx: tokio::sync::mpsc::Sender<Event>,
+    shutdown: Shutdown,
+    timeouts: Timeouts,
+    retry: Duration,
+    preview_period: Option<Duration>,
+    preview_width: u32,
+    preview_quality: u8,
+}
+
+fn sleep_unless(shutdown: &Shutdown, d: Duration) {
+    let until = Instant::now() + d;
+    while !shutdown.is_triggered() && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(20).min(until.saturating_duration_since(Instant::now())));
+    }
+}
+
+/// One camera's thread: open, read, convert, publish; reopen after a failure.
+fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
+    let send = |e: Event| {
+        // The node's side never blocks a camera: a full queue drops the report, not a frame.
+        let _ = ctx.tx.try_send(e);
+    };
+    let frames = match FrameNode::new() {
+        Ok(f) => f,
+        Err(e) => {
+            send(Event::Down { camera: index, reason: e.to_string() });
+            return;
+        }
+    };
+    let mut publisher: Option<FramePublisher> = None;
+    let mut last_preview: Option<Instant> = None;
+    while !ctx.shutdown.is_triggered() {
+        let mut source = match cam.open(ctx.timeouts) {
+            Ok(s) => s,
+            Err(e) => {
+                send(Event::Down { camera: index, reason: e.to_string() });
+                sleep_unless(&ctx.shutdown, ctx.retry);
+                continue;
+            }
+        };
+        send(Event::Up { camera: index, description: cam.config.source.clone() });
+        let mut last_seq: Option<u64> = None;
+        while !ctx.shutdown.is_triggered() {
+            let raw = match source.read() {
+                Ok(r) => r,
+                Err(e) => {
+                    send(Event::Down { camera: index, reason: e.to_string() });
+                    break;
+                }
+            };
+            let arrival = Clock::Wall.now();
+            let device_time = raw.device_monotonic_ns.is_some();
+            let capture = raw.device_monotonic_ns.map_or(arrival, |m| Nanos(m + wall_minus_monotonic()));
+            let want = (cam.config.width, cam.config.height);
+            let converted = if want == (0, 0) {
+                // Whatever the source sends: the first frame fixes the size.
+                publisher
+                    .as_ref()
+                    .map(|p| p.format().clone())
+                    .map_or_else(|| first_size(&raw.pixels, raw.size, cam.side_by_side), |f| Ok((f.width, f.height)))
+                    .and_then(|size| to_rgb(raw.pixels, raw.size, cam.side_by_side, size).map(|rgb| (rgb, size)))
+            } else {
+                to_rgb(raw.pixels, raw.size, cam.side_by_side, want).map(|rgb| (rgb, want))
+            };
+            let (rgb, (w, h)) = match converted {
+                Ok(c) => c,
+                Err(e) => {
+                    send(Event::Down { camera: index, reason: format!("{}: {e}", cam.config.source) });
+                    sleep_unless(&ctx.shutdown, ctx.retry);
+                    break;
+                }
+            };
+            if publisher.is_none() {
+                match frames.publisher(&cam.id, FrameFormat { encoding: FrameEncoding::Rgb8, width: w, height: h }) {
+                    Ok(p) => publisher = Some(p),
+                    Err(e) => {
+                        send(Event::Down { camera: index, reason: e.to_string() });
+                        return;
+                    }
+                }
+            }
+            if let Err(e) = publisher.as_mut().expect("publisher").publish(&rgb, capture, arrival) {
+                send(Event::Down { camera: index, reason: e.to_string() });
+                break;
+            }
+            let dropped = match (last_seq, raw.device_sequence) {
+                (Some(prev), Some(seq)) if seq > prev + 1 => seq - prev - 1,
+                _ => 0,
+            };
+            last_seq = raw.device_sequence.or(last_seq);
+            let preview = ctx.preview_period.and_then(|period| {
+                let due = last_preview.is_none_or(|t| t.elapsed() >= period);
+                due.then(|| {
+                    last_preview = Some(Instant::now());
+                    preview_jpeg(&rgb, w, h, ctx.preview_width, ctx.preview_quality)
+                })
+            });
+            send(Event::Frame(FrameEvent {
+                camera: index,
+                capture,
+                width: w,
+                height: h,
+                dropped,
+                device_time,
+                preview,
+            }));
+        }
+    }
+}
+
+/// The published size of a source's first frame (one eye of a side-by-side one).
+fn first_size(pixels: &crate::convert::Pixels, size: (u32, u32), sbs: Option<Eye>) -> Result<(u32, u32), ConvertError> {
+    let (w, h) = match pixels {
+        crate::convert::Pixels::Jpeg(j) => {
+            let mut d = zune_jpeg::JpegDecoder::new(j.as_slice());
+            d.decode_headers().map_err(|e| ConvertError::Jpeg(format!("{e:?}")))?;
+            let (w, h) = d.dimensions().ok_or_else(|| ConvertError::Jpeg("no size in the header".into()))?;
+            (w as u32, h as u32)
+        }
+        _ => size,
+    };
+    Ok(if sbs.is_some() { (w / 2, h) } else { (w, h) })
+}
+
+/// A camera's state as `/cameras/status` reports it.
+#[derive(Debug, Clone, Serialize)]
+pub struct CameraStatus {
+    /// `starting`, `streaming`, `stalled` (no frame for stall_s) or `down`.
+    pub state: &'static str,
+    /// Since when (wall clock, ns).
+    pub since_ns: i64,
+    /// Why it is down (the last error), empty otherwise.
+    pub reason: String,
+    pub source: String,
+    pub frames: u64,
+    pub dropped: u64,
+    /// Times the camera went down.
+    pub outages: u64,
+    pub width: u32,
+    pub height: u32,
+    /// Frames per second over the last status period.
+    pub fps: f64,
+    /// `device` (the camera's capture time) or `arrival` (when the node received the frame).
+    pub time_source: &'static str,
+    #[serde(skip)]
+    last_frame: Option<Instant>,
+    #[serde(skip)]
+    frames_at_last_status: u64,
+}
+
+/// What the node reports when it stops.
+#[derive(Debug, Default, Serialize)]
+pub struct CamerasStats {
+    pub cameras: BTreeMap<String, CameraStatus>,
+}
+
+/// Runs the node until `shutdown`.
+pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<CamerasStats> {
+    let cameras: Vec<Camera> = config.cameras.iter().map(|(id, c)| Camera::resolve(id, c)).collect::<Result<_, _>>()?;
+    let mut ros = Ros::new(&config.ros, "labrig_cameras")?;
+    let info_pubs: Vec<RosPublisher<CameraInfo>> = cameras
+        .iter()
+        .map(|c| ros.publisher(&topics::camera_info(&c.id), qos::reliable(10)))
+        .collect::<Result<_, _>>()?;
+    let preview_pubs: Vec<RosPublisher<CompressedImage>> = cameras
+        .iter()
+        .map(|c| ros.publisher(&topics::camera_preview(&c.id), qos::best_effort(2)))
+        .collect::<Result<_, _>>()?;
+    let status_pub = ros.publisher_on(&topics::CAMERAS_STATUS, 1)?;
+    let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;
+    let now = Clock::Wall.now();
+    let statics: Vec<TransformStamped> =
+        cameras.iter().filter_map(|c| c.transform(&config.base_frame, Time::from(now))).collect();
+    if !statics.is_empty() {
+        tf_static.publish(TFMessage { transforms: statics })?;
+    }
+
+    let (tx, mut rx) = tokio::sync::mpsc::channel::<Event>(1024);
+    let ctx = ThreadCtx {
+        tx,
+        shutdown: shutdown.clone(),
+        timeouts: Timeouts {
+            connect: Duration::from_secs_f64(config.stall_s.max(1.0)),
+            read: Duration::from_secs_f64(2.0 * config.stall_s),
+        },
+        retry: Duration::from_secs_f64(config.retry_s),
+        preview_period: (config.preview_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / config.preview_hz)),
+        preview_width: config.preview_width,
+        preview_quality: config.preview_quality,
+    };
+    let mut status: Vec<CameraStatus> = cameras
+        .iter()
+        .map(|c| CameraStatus {
+            state: "starting",
+            since_ns: now.0,
+            reason: String::new(),
+            source: c.config.source.clone(),
+            frames: 0,
+            dropped: 0,
+            outages: 0,
+            width: c.config.width,
+            height: c.config.height,
+            fps: 0.0,
+            time_source: "arrival",
+            last_frame: None,
+            frames_at_last_status: 0,
+        })
+        .collect();
+    let mut threads = Vec::new();
+    for (i, cam) in cameras.iter().cloned().enumerate() {
+        let ctx = ctx.clone();
+        threads.push(
+            std::thread::Builder::new().name(format!("camera-{}", cam.id)).spawn(move || camera_thread(i, cam, ctx))?,
+        );
+    }
+    drop(ctx);
+    tracing::info!(cameras = cameras.len(), "camera node up");
+
+    let period = Duration::from_secs_f64(config.status_period_s);
+    let mut tick = tokio::time::interval(period);
+    let mut last_tick = Instant::now();
+    let stall = Duration::from_secs_f64(config.stall_s);
+    loop {
+        let mut changed = tokio::select! {
+            _ = shutdown.wait() => break,
+            ev = rx.recv() => {
+                let Some(ev) = ev else { break };
+                handle(ev, &cameras, &mut status, &info_pubs, &preview_pubs)?
+            }
+            _ = tick.tick() => {
+                let dt = last_tick.elapsed().as_secs_f64().max(1e-3);
+                last_tick = Instant::now();
+                for s in status.iter_mut() {
+                    s.fps = (s.frames - s.frames_at_last_status) as f64 / dt;
+                    s.frames_at_last_status = s.frames;
+                }
+                true
+            }
+        };
+        // A camera with no frame for stall_s is stalled (its thread reopens it at 2 x stall_s).
+        for (s, c) in status.iter_mut().zip(&cameras) {
+            if s.state == "streaming" && s.last_frame.is_some_and(|t| t.elapsed() > stall) {
+                s.state = "stalled";
+                s.since_ns = Clock::Wall.now().0;
+                s.reason = format!("no frame for {:.1} s", config.stall_s);
+                tracing::warn!(camera = %c.id, "stalled: no frame for {:.1} s", config.stall_s);
+                changed = true;
+            }
+        }
+        if changed {
+            publish_status(&status_pub, &cameras, &status)?;
+        }
+    }
+    shutdown.trigger();
+    // Each thread notices within its read timeout; the process does not wait longer than that.
+    let deadline = Instant::now() + Duration::from_secs_f64(2.0 * config.stall_s + 0.5);
+    for t in threads {
+        while !t.is_finished() && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if t.is_finished() {
+            let _ = t.join();
+        }
+    }
+    Ok(CamerasStats { cameras: cameras.iter().map(|c| c.id.clone()).zip(status).collect() })
+}
+
+fn handle(
+    ev: Event,
+    cameras: &[Camera],
+    status: &mut [CameraStatus],
+    info: &[RosPublisher<CameraInfo>],
+    preview: &[RosPublisher<CompressedImage>],
+) -> anyhow::Result<bool> {
+    let now = Clock::Wall.now().0;
+    match ev {
+        Event::Up { camera, description } => {
+            tracing::info!(camera = %cameras[camera].id, source = %description, "streaming");
+            Ok(false)
+        }
+        Event::Down { camera, reason } => {
+            let s = &mut status[camera];
+            let changed = s.state != "down" || s.reason != reason;
+            if s.state != "down" {
+                if s.state != "starting" {
+                    s.outages += 1;
+                }
+                s.state = "down";
+                s.since_ns = now;
+                tracing::warn!(camera = %cameras[camera].id, "down: {reason}");
+            }
+            s.reason = reason;
+            Ok(changed)
+        }
+        Event::Frame(f) => {
+            let cam = &cameras[f.camera];
+            let s = &mut status[f.camera];
+            let changed = s.state != "streaming";
+            if changed {
+                s.state = "streaming";
+                s.since_ns = now;
+                s.reason.clear();
+            }
+            s.frames += 1;
+            s.dropped += f.dropped;
+            s.last_frame = Some(Instant::now());
+            (s.width, s.height) = (f.width, f.height);
+            s.time_source = if f.device_time { "device" } else { "arrival" };
+            let stamp = Time::from(f.capture);
+            let frame_id = optical_frame(&cam.id);
+            let msg = match &cam.intrinsics {
+                Some(i) => i.camera_info(stamp, &frame_id),
+                None => CameraInfo {
+                    header: Header { stamp, frame_id: frame_id.clone() },
+                    width: f.width,
+                    height: f.height,
+                    distortion_model: "plumb_bob".into(),
+                    d: vec![0.0; 5],
+                    ..CameraInfo::default()
+                },
+            };
+            info[f.camera].publish(msg)?;
+            if let Some(jpeg) = f.preview {
+                preview[f.camera].publish(CompressedImage {
+                    header: Header { stamp, frame_id },
+                    format: "jpeg".into(),
+                    data: jpeg,
+                })?;
+            }
+            Ok(changed)
+        }
+    }
+}
+
+fn publish_status(
+    publisher: &RosPublisher<StringMsg>,
+    cameras: &[Camera],
+    status: &[CameraStatus],
+) -> anyhow::Result<()> {
+    let map: BTreeMap<&str, &CameraStatus> = cameras.iter().map(|c| c.id.as_str()).zip(status).collect();
+    let json = serde_json::json!({ "stamp_ns": Clock::Wall.now().0, "cameras": map });
+    publisher.publish(StringMsg { data: json.to_string() })?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(toml_text: &str) -> CamerasConfig {
+        toml::from_str(toml_text).unwrap()
+    }
+
+    #[test]
+    fn configs_are_checked_by_key() {
+        let c = config("[cameras.ext1]\nsource = \"http://127.0.0.1:9/cam\"\n");
+        c.validate().unwrap();
+        let e = config("[cameras.ext1]\nsource = \"rtsp://127.0.0.1/x\"\n").validate().unwrap_err();
+        assert!(e.to_string().contains("`cameras.ext1.width` is not set"), "{e}");
+        let e = config("[cameras.ext1]\nsource = \"zed:1\"\nwidth = 1280\n").validate().unwrap_err();
+        assert!(e.to_string().contains("give both or neither"), "{e}");
+        let e = config("[cameras.ext1]\nsource = \"gopher://x\"\n").validate().unwrap_err();
+        assert_eq!(e.key, "cameras.ext1.source");
+        let e = CamerasConfig::default().validate().unwrap_err();
+        assert!(e.to_string().contains("`cameras` is empty"), "{e}");
+        assert!(toml::from_str::<CamerasConfig>("[cameras.ext1]\nsource = \"x\"\nfocal = 3\n").is_err());
+    }
+
+    #[test]
+    fn intrinsics_come_from_a_zed_file_inline_or_nowhere_and_a_missing_file_is_named() {
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/SN000012345.conf");
+        let mut c = CameraConfig::new("zed:000012345");
+        (c.width, c.height) = (640, 360);
+        c.intrinsics = Some(IntrinsicsSpec::File(fixture));
+        let cam = Camera::resolve("ext1", &c).unwrap();
+        assert_eq!(cam.side_by_side, Some(Eye::Left));
+        assert_eq!(cam.source_size(), (1280, 360));
+        assert_eq!(cam.intrinsics.unwrap().fx, 264.75);
+        c.intrinsics = Some(IntrinsicsSpec::File("/nowhere/SN1.conf".into()));
+        let e = Camera::resolve("ext2", &c).unwrap_err().to_string();
+        assert!(e.starts_with("camera ext2: /nowhere/SN1.conf: "), "{e}");
+        let inline: CameraConfig = toml::from_str(
+            "source = \"http://127.0.0.1:9/x\"\nwidth = 320\nheight = 180\n\
+             intrinsics = { width = 1280, height = 720, fx = 600.0, fy = 600.0, cx = 639.5, cy = 359.5 }\n",
+        )
+        .unwrap();
+        let cam = Camera::resolve("rs1", &inline).unwrap();
+        let i = cam.intrinsics.unwrap();
+        assert_eq!((i.fx, i.cx, i.cy), (150.0, 159.5, 89.5));
+        assert_eq!(cam.side_by_side, None);
+    }
+
+    #[test]
+    fn extrinsics_become_a_static_transform_to_the_optical_frame() {
+        let mut c = CameraConfig::new("http://127.0.0.1:9/x");
+        c.extrinsics = Some([0.1, -0.5, 0.6, 0.0, 0.0, std::f64::consts::FRAC_PI_2]);
+        let cam = Camera::resolve("ext1", &c).unwrap();
+        let t = cam.transform("base", Time::default()).unwrap();
+        assert_eq!((t.header.frame_id.as_str(), t.child_frame_id.as_str()), ("base", "ext1_optical"));
+        assert_eq!((t.transform.translation.x, t.transform.translation.y), (0.1, -0.5));
+        let q = t.transform.rotation;
+        assert!(
+            (q.z - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-12
+                && (q.w - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-12
+        );
+    }
+}
