@@ -508,7 +508,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
         .collect::<Result<_, _>>()?;
     let preview_pubs: Vec<RosPublisher<CompressedImage>> = cameras
         .iter()
-        .map(|c| ros.publisher(&topics::camera_preview(&c.id), qos::best_effort(2)))
+        .map(|c| ros.publisher(&topics::camera_preview(&c.id), qos::reliable(2)))
         .collect::<Result<_, _>>()?;
     let status_pub = ros.publisher_on(&topics::CAMERAS_STATUS, 1)?;
     let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;

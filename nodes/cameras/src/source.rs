@@ -155,7 +155,11 @@ impl MjpegSource {
     pub fn open(url: &str, t: Timeouts) -> Result<MjpegSource, SourceError> {
         let http = |reason: String| SourceError::Http { url: url.to_owned(), reason };
         let agent = ureq::AgentBuilder::new().timeout_connect(t.connect).timeout_read(t.read).build();
-        let resp = agent.get(url).call().map_err(|e| http(e.to_string()))?;
+        // ureq's message starts with the URL itself.
+        let resp = agent
+            .get(url)
+            .call()
+            .map_err(|e| http(e.to_string().trim_start_matches(url).trim_start_matches(": ").to_owned()))?;
         let boundary = resp
             .header("content-type")
             .and_then(|ct| ct.split(';').find_map(|p| p.trim().strip_prefix("boundary=")))

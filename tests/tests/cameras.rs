@@ -1,0 +1,224 @@
+//! The camera node (`labrig-cameras run`) against real, independent sources: ffmpeg serving
+//! MJPEG over HTTP on 127.0.0.1 (a 2560x720 side-by-side stream: testsrc2 on the left, solid
+//! blue on the right, as a ZED's two eyes; and a second, plain camera), read back through
+//! shared memory as the loop reads frames, and through DDS by `labrig topic echo` and a real
+//! rclpy peer. Killing one ffmpeg marks that camera down on /cameras/status while the other
+//! goes on; restarting it brings the camera back.
+
+use labrig_msgs::sensor_msgs::CameraInfo;
+use labrig_msgs::std_msgs::StringMsg;
+use labrig_msgs::topics;
+use labrig_runtime::RosConfig;
+use labrig_runtime::frames::{FrameNode, FrameSubscriber};
+use labrig_runtime::ros::{Ros, RosSubscription, qos};
+use labrig_tests::{Proc, domain_for, labrig_bin, rt, workspace_bin};
+
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// ffmpeg serving one MJPEG stream on 127.0.0.1:port/cam (one client, then it exits).
+fn ffmpeg_server(port: u16, filter: &str) -> Child {
+    Command::new("ffmpeg")
+        .args(["-nostdin", "-hide_banner", "-loglevel", "error", "-re", "-f", "lavfi", "-i", filter])
+        .args(["-q:v", "5", "-f", "mpjpeg", "-listen", "1"])
+        .arg(format!("http://127.0.0.1:{port}/cam"))
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("ffmpeg (installed by scripts/setup.sh)")
+}
+
+/// Left eye: testsrc2; right eye: solid blue.
+const STEREO: &str =
+    "testsrc2=size=1280x720:rate=15[l];color=c=blue:size=1280x720:rate=15[r];[l][r]hstack=inputs=2[out0]";
+const PLAIN: &str = "testsrc2=size=640x480:rate=10";
+
+fn next_frame(sub: &FrameSubscriber, timeout: Duration) -> Option<(u64, i64, u32, u32, Vec<u8>)> {
+    let until = Instant::now() + timeout;
+    while Instant::now() < until {
+        if let Some(f) = sub.receive().unwrap() {
+            let h = f.header();
+            return Some((h.sequence, h.capture_ns, h.width, h.height, f.pixels().to_vec()));
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    None
+}
+
+/// The status's view of one camera, waiting up to `timeout` for `state`.
+fn wait_state(status: &RosSubscription<StringMsg>, camera: &str, state: &str, timeout: Duration) -> serde_json::Value {
+    let until = Instant::now() + timeout;
+    let mut last = serde_json::Value::Null;
+    while Instant::now() < until {
+        while let Some(m) = status.try_take().unwrap() {
+            last = serde_json::from_str(&m.msg.data).unwrap();
+            if last["cameras"][camera]["state"] == state {
+                return last;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    panic!("camera {camera} never became {state}; last status: {last}");
+}
+
+#[test]
+fn stream_cameras_from_ffmpeg_reach_shared_memory_ros_and_rclpy_and_survive_a_restart() {
+    let cams = workspace_bin("labrig-cameras", "labrig-cameras");
+    let key = "cameras_stream";
+    let domain = domain_for(key);
+    let ns = format!("cam_{}", std::process::id());
+    let (p1, p2) = (free_port(), free_port());
+    let mut ff1 = ffmpeg_server(p1, STEREO);
+    let mut ff2 = ffmpeg_server(p2, PLAIN);
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("cameras.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "stall_s = 0.5\nretry_s = 0.3\npreview_hz = 4.0\n\
+             [cameras.ext1]\nsource = \"http://127.0.0.1:{p1}/cam\"\nwidth = 1280\nheight = 720\nside_by_side = true\n\
+             intrinsics = {{ width = 2560, height = 1440, fx = 1400.0, fy = 1402.0, cx = 1279.5, cy = 719.5, distortion = [-0.04, 0.01, 0.0, 0.0, 0.0] }}\n\
+             extrinsics = [0.2, -0.55, 0.45, -2.1, 0.0, 0.3]\n\
+             [cameras.ext2]\nsource = \"http://127.0.0.1:{p2}/cam\"\n"
+        ),
+    )
+    .unwrap();
+    let rt = rt();
+    let _in_rt = rt.enter();
+    let ros_cfg = RosConfig { domain_id: domain, ..RosConfig::default() };
+    let mut ros = Ros::new(&ros_cfg, "cameras_test").unwrap();
+    let status: RosSubscription<StringMsg> = ros.subscription_on(&topics::CAMERAS_STATUS, 10).unwrap();
+    let info: RosSubscription<CameraInfo> = ros.subscription(&topics::camera_info("ext1"), qos::reliable(10)).unwrap();
+    let frames = FrameNode::new_in(&ns).unwrap();
+    let (sub1, sub2) = (frames.subscriber("ext1").unwrap(), frames.subscriber("ext2").unwrap());
+
+    let mut cmd = Command::new(&cams);
+    cmd.args(["run", "--config"]).arg(&config).args(["--domain-id", &domain.to_string(), "--json"]);
+    cmd.env(labrig_runtime::frames::NAMESPACE_ENV, &ns);
+    let mut node = Proc::spawn("labrig-cameras", cmd);
+
+    // Frames through shared memory: the left eye at 1280x720, increasing capture times.
+    let mut last: Option<(u64, i64)> = None;
+    for _ in 0..10 {
+        let (seq, t, w, h, px) = next_frame(&sub1, Duration::from_secs(20)).expect("ext1 frames");
+        assert_eq!((w, h), (1280, 720));
+        assert_eq!(px.len(), 1280 * 720 * 3);
+        if let Some((s0, t0)) = last {
+            assert!(seq > s0 && t > t0, "sequence {s0} -> {seq}, capture {t0} -> {t}");
+        }
+        last = Some((seq, t));
+        // The right eye is solid blue; the left (testsrc2) is mostly not.
+        let blue = px.chunks(3).filter(|p| p[2] > 180 && p[0] < 60 && p[1] < 60).count() as f64 / (1280.0 * 720.0);
+        assert!(blue < 0.3, "{:.0}% of the published image is the right eye's blue", blue * 100.0);
+    }
+    let (_, _, w2, h2, _) = next_frame(&sub2, Duration::from_secs(20)).expect("ext2 frames");
+    assert_eq!((w2, h2), (640, 480), "a camera without a size publishes what its source sends");
+
+    // camera_info with each frame: the configured intrinsics scaled from 2560x1440 to 1280x720.
+    let until = Instant::now() + Duration::from_secs(20);
+    let ci = loop {
+        if let Some(m) = info.try_take().unwrap() {
+            break m.msg;
+        }
+        assert!(Instant::now() < until, "no camera_info for ext1");
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert_eq!((ci.width, ci.height, ci.header.frame_id.as_str()), (1280, 720, "ext1_optical"));
+    assert_eq!(ci.k, [700.0, 0.0, 639.5, 0.0, 701.0, 359.5, 0.0, 0.0, 1.0]);
+    assert_eq!(ci.d, vec![-0.04, 0.01, 0.0, 0.0, 0.0]);
+
+    // labrig topic echo and a real rclpy peer see camera_info and the preview.
+    let echo = Command::new(labrig_bin())
+        .args(["topic", "echo", "/cameras/ext1/camera_info", "--count", "1", "--timeout", "20", "--json"])
+        .args(["--domain-id", &domain.to_string()])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&echo.stdout);
+    assert!(echo.status.success() && said.contains("ext1_optical"), "labrig topic echo: {said}");
+    let mut peer = Proc::ros_peer(
+        domain,
+        &[
+            "listen",
+            "--topic",
+            "/cameras/ext1/camera_info",
+            "--type",
+            "sensor_msgs/msg/CameraInfo",
+            "--count",
+            "3",
+            "--timeout",
+            "30",
+        ],
+    );
+    let got = peer.wait_json(Duration::from_secs(40), "camera_info from rclpy", |v| v.get("msg").is_some());
+    assert_eq!((got["msg"]["width"].as_u64(), got["msg"]["k"][0].as_f64()), (Some(1280), Some(700.0)), "{got}");
+    let mut peer = Proc::ros_peer(
+        domain,
+        &[
+            "listen",
+            "--topic",
+            "/cameras/ext1/preview/compressed",
+            "--type",
+            "sensor_msgs/msg/CompressedImage",
+            "--count",
+            "1",
+            "--timeout",
+            "30",
+        ],
+    );
+    let got = peer.wait_json(Duration::from_secs(40), "a preview from rclpy", |v| v.get("msg").is_some());
+    assert_eq!(got["msg"]["format"], "jpeg", "{got}");
+    drop(peer);
+
+    // Kill ext1's source: ext1 goes down, ext2 keeps streaming; restart: ext1 comes back.
+    wait_state(&status, "ext1", "streaming", Duration::from_secs(10));
+    ff1.kill().unwrap();
+    ff1.wait().unwrap();
+    let s = wait_state(&status, "ext1", "down", Duration::from_secs(10));
+    assert!(s["cameras"]["ext1"]["reason"].as_str().unwrap().contains(&format!("127.0.0.1:{p1}")), "{s}");
+    assert_eq!(s["cameras"]["ext2"]["state"], "streaming", "{s}");
+    while sub2.receive().unwrap().is_some() {}
+    assert!(next_frame(&sub2, Duration::from_secs(5)).is_some(), "ext2 stopped when ext1's source died");
+    let before = last.unwrap().0;
+    ff1 = ffmpeg_server(p1, STEREO);
+    let s = wait_state(&status, "ext1", "streaming", Duration::from_secs(20));
+    assert_eq!(s["cameras"]["ext1"]["outages"], 1, "{s}");
+    while sub1.receive().unwrap().is_some() {}
+    let (seq, ..) = next_frame(&sub1, Duration::from_secs(20)).expect("ext1 frames after the restart");
+    assert!(seq > before, "the frame sequence goes on: {before} -> {seq}");
+
+    // A clean stop reports each camera's frames and outages.
+    node.child.kill().ok();
+    let _ = ff1.kill();
+    let _ = ff2.kill();
+    let _ = (ff1.wait(), ff2.wait());
+}
+
+#[test]
+fn a_missing_calibration_file_or_source_is_refused_naming_the_camera() {
+    let cams = workspace_bin("labrig-cameras", "labrig-cameras");
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("c.toml");
+    std::fs::write(
+        &config,
+        "[cameras.wrist]\nsource = \"http://127.0.0.1:9/cam\"\nwidth = 1280\nheight = 720\nintrinsics = \"calib/SN404.conf\"\n",
+    )
+    .unwrap();
+    let o = Command::new(&cams)
+        .args(["run", "--config"])
+        .arg(&config)
+        .args(["--domain-id", &domain_for("cameras_refused").to_string()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("camera wrist: ") && err.contains("calib/SN404.conf"), "{err}");
+
+    let o = Command::new(&cams).args(["run", "--camera", "ext1=/no/such/video.mp4"]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("camera ext1: /no/such/video.mp4: no such video file"), "{err}");
+}
