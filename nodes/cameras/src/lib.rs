@@ -24,7 +24,7 @@ pub struct CamerasNode;
 #[derive(Debug, clap::Args, serde::Serialize)]
 pub struct CamerasFlags {
     /// A camera without a config file, `ID=SOURCE` (repeatable): SOURCE is zed:SERIAL,
-    /// realsense:SERIAL, v4l2:SERIAL, /dev/videoN, http://... (MJPEG), rtsp://... or a video
+    /// realsense:SERIAL, v4l2:SERIAL, /dev/videoN, http://... (MJPEG), rtsp://..., testsrc or a video
     /// file; size and rate as the source sends them (set them with
     /// `--set cameras.ID.width=...`).
     #[arg(long = "camera", value_name = "ID=SOURCE")]

@@ -75,7 +75,7 @@ impl Default for CamerasConfig {
 #[serde(deny_unknown_fields)]
 pub struct CameraConfig {
     /// `zed:SERIAL`, `realsense:SERIAL`, `v4l2:SERIAL`, `/dev/videoN`, `http://...` (MJPEG),
-    /// `rtsp://...` or a video file (relative to the config file).
+    /// `rtsp://...`, a video file (relative to the config file) or `testsrc` (a test pattern).
     pub source: String,
     /// One eye's image size as published (0 x 0: whatever the source sends; a V4L2 device and
     /// a file or RTSP source need it).
@@ -205,8 +205,10 @@ impl CamerasConfig {
     pub fn resolve_paths(&mut self, file: &Path) {
         let dir = file.parent().unwrap_or(Path::new("."));
         for c in self.cameras.values_mut() {
-            let looks_like_file =
-                !c.source.contains("://") && !c.source.contains(':') && !c.source.starts_with("/dev/");
+            let looks_like_file = !c.source.contains("://")
+                && !c.source.contains(':')
+                && !c.source.starts_with("/dev/")
+                && c.source != "testsrc";
             if looks_like_file && Path::new(&c.source).is_relative() {
                 c.source = dir.join(&c.source).display().to_string();
             }
@@ -266,6 +268,7 @@ impl Camera {
     fn open(&self, t: Timeouts) -> Result<Box<dyn Source>, SourceError> {
         match &self.spec {
             SourceSpec::Mjpeg { url } => Ok(Box::new(MjpegSource::open(url, t)?)),
+            SourceSpec::TestPattern => Ok(Box::new(FfmpegSource::test_pattern(self.source_size(), self.config.fps)?)),
             SourceSpec::Ffmpeg { input, file } => {
                 Ok(Box::new(FfmpegSource::open(input, *file, self.source_size(), self.config.loop_file)?))
             }

@@ -6,6 +6,7 @@
 //!   ([`crate::v4l2`]), found by its USB serial (never by its /dev/videoN order);
 //! - `http://host:port/path`: MJPEG over HTTP (multipart, as IP cameras and `ffmpeg -f mpjpeg`
 //!   serve it), read natively: no decoder process, the JPEG goes straight to the decoder;
+//! - `testsrc`: ffmpeg's moving test pattern at the configured size and rate;
 //! - `rtsp://...` or a video file (a recorded DROID MP4, a webcam capture): decoded by an
 //!   `ffmpeg` child process to raw RGB at the configured size, a file at its own frame rate
 //!   (looped unless `loop_file = false`).
@@ -25,6 +26,9 @@ pub enum SourceSpec {
     Mjpeg { url: String },
     /// Anything ffmpeg reads (RTSP, a file), decoded by an ffmpeg child process.
     Ffmpeg { input: String, file: bool },
+    /// ffmpeg's moving test pattern (`testsrc`: lavfi testsrc2) at the configured size and
+    /// rate: a camera with no camera, for bench rigs and demos.
+    TestPattern,
 }
 
 /// What kind of device a V4L2 source is (it decides the defaults: a ZED is side by side).
@@ -83,6 +87,9 @@ impl SourceSpec {
         }
         if let Some(serial) = s.strip_prefix("v4l2:") {
             return device(DeviceKind::Uvc, serial);
+        }
+        if s == "testsrc" {
+            return Ok(SourceSpec::TestPattern);
         }
         if s.starts_with("/dev/video") {
             return Ok(SourceSpec::Device { kind: DeviceKind::Uvc, serial: None, path: Some(PathBuf::from(s)) });
@@ -302,9 +309,26 @@ pub struct FfmpegSource {
 
 impl FfmpegSource {
     pub fn open(input: &str, file: bool, size: (u32, u32), loop_file: bool) -> Result<FfmpegSource, SourceError> {
+        Self::spawn(input, file, size, loop_file, false)
+    }
+
+    /// ffmpeg's testsrc2 pattern at `size` and `fps`, paced in real time.
+    pub fn test_pattern(size: (u32, u32), fps: f64) -> Result<FfmpegSource, SourceError> {
+        Self::spawn(&format!("testsrc2=size={}x{}:rate={fps}", size.0, size.1), true, size, false, true)
+    }
+
+    fn spawn(
+        input: &str,
+        file: bool,
+        size: (u32, u32),
+        loop_file: bool,
+        lavfi: bool,
+    ) -> Result<FfmpegSource, SourceError> {
         let mut cmd = Command::new("ffmpeg");
         cmd.args(["-nostdin", "-hide_banner", "-loglevel", "error"]);
-        if file {
+        if lavfi {
+            cmd.args(["-re", "-f", "lavfi"]);
+        } else if file {
             cmd.arg("-re");
             if loop_file {
                 cmd.args(["-stream_loop", "-1"]);
@@ -359,6 +383,7 @@ mod tests {
         assert_eq!(SourceSpec::parse("/nope.mp4").unwrap_err().to_string(), "/nope.mp4: no such video file");
         assert!(SourceSpec::parse("ftp://x").unwrap_err().to_string().starts_with("`ftp://x` is not a camera source"));
         assert!(SourceSpec::parse("zed:").is_err());
+        assert_eq!(SourceSpec::parse("testsrc").unwrap(), SourceSpec::TestPattern);
     }
 
     fn part(jpeg: &[u8], with_length: bool) -> Vec<u8> {
