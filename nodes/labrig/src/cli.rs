@@ -118,6 +118,15 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The camera node: `labrig cameras run --config <cameras.toml>` or `--camera
+    /// ext1=<zed:SERIAL|realsense:SERIAL|v4l2:SERIAL|/dev/videoN|http://...|rtsp://...|file|testsrc>`;
+    /// `labrig cameras list` names the V4L2 devices found (see `labrig cameras --help`).
+    #[command(disable_help_flag = true)]
+    Cameras {
+        /// Arguments for labrig-cameras.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The episode recorder: `labrig recorder run --root episodes` (see `labrig recorder run --help`).
     #[command(disable_help_flag = true)]
     Recorder {
@@ -275,6 +284,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
         Command::Teleop { args } => node("labrig-teleop", &args),
+        Command::Cameras { args } => node("labrig-cameras", &args),
         Command::Control { args } => node("labrig-control", &args),
         Command::Recorder { args } => node("labrig-recorder", &args),
     }
