@@ -3,6 +3,7 @@
 //! `main()` only parses arguments and calls [`cli::run`], so every command is testable.
 
 pub mod bench;
+pub mod bench_cameras;
 pub mod bench_faults;
 pub mod bench_loop;
 pub mod cli;
