@@ -143,6 +143,7 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
     // Wait until every camera delivers, then measure.
     let up_by = Instant::now() + Duration::from_secs(30);
     let mut seen = vec![false; ids.len()];
+    let mut newest: Vec<Option<i64>> = vec![None; ids.len()];
     while seen.iter().any(|s| !s) {
         if Instant::now() > up_by {
             let _ = node.kill();
@@ -151,8 +152,9 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
             bail!("cameras {silent:?} sent no frame within 30 s; labrig-cameras said:\n{log}");
         }
         for (k, s) in subs.iter().enumerate() {
-            while s.receive()?.is_some() {
+            while let Some(f) = s.receive()? {
                 seen[k] = true;
+                newest[k] = Some(f.header().capture_ns);
             }
         }
         std::thread::sleep(Duration::from_millis(10));
@@ -165,7 +167,6 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
     let period = Duration::from_secs_f64(1.0 / a.observe_hz);
     let n_obs = (a.seconds * a.observe_hz).round() as u64;
     let bar = progress("observing {pos}/{len} ticks", n_obs, a.json)?;
-    let mut newest: Vec<Option<i64>> = vec![None; ids.len()];
     let mut last_seq: Vec<Option<u64>> = vec![None; ids.len()];
     let (mut delivered, mut lost) = (vec![0u64; ids.len()], vec![0u64; ids.len()]);
     let mut first_seq: Vec<Option<u64>> = vec![None; ids.len()];
