@@ -221,6 +221,18 @@ fn a_missing_calibration_file_or_source_is_refused_naming_the_camera() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("camera ext1: /no/such/video.mp4: no such video file"), "{err}");
+
+    // A device by a serial no camera here has (this machine has no V4L2 device at all).
+    std::fs::write(&config, "[cameras.wrist]\nsource = \"zed:SN42\"\nwidth = 1280\nheight = 720\n").unwrap();
+    let o = Command::new(&cams)
+        .args(["run", "--config"])
+        .arg(&config)
+        .args(["--domain-id", &domain_for("cameras_refused").to_string()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("camera wrist: no Zed camera with serial SN42 (V4L2 capture devices: "), "{err}");
 }
 
 /// `labrig launch` of the bench rig (launch_configs/bench_rig.toml): the simulated arm without

@@ -259,6 +259,17 @@ impl Camera {
         Ok(Camera { id: id.to_owned(), spec, config: c.clone(), side_by_side: sbs.then_some(c.eye), intrinsics })
     }
 
+    /// A device camera is checked before the node starts: found by its serial, offering the
+    /// configured mode (opened once and closed). A wrong serial or a mode the device does not
+    /// offer is refused, naming the camera, what was found and the modes offered. Streams and
+    /// files are not: they may come up later, and are retried.
+    pub fn check_device(&self, t: Timeouts) -> Result<(), CameraError> {
+        if matches!(self.spec, SourceSpec::Device { .. }) {
+            self.open(t).map_err(|source| CameraError::Source { camera: self.id.clone(), source })?;
+        }
+        Ok(())
+    }
+
     /// The size the source is asked for (both eyes of a side-by-side frame).
     fn source_size(&self) -> (u32, u32) {
         let w = if self.side_by_side.is_some() { self.config.width * 2 } else { self.config.width };
@@ -504,6 +515,13 @@ pub struct CamerasStats {
 /// Runs the node until `shutdown`.
 pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<CamerasStats> {
     let cameras: Vec<Camera> = config.cameras.iter().map(|(id, c)| Camera::resolve(id, c)).collect::<Result<_, _>>()?;
+    let timeouts = Timeouts {
+        connect: Duration::from_secs_f64(config.stall_s.max(1.0)),
+        read: Duration::from_secs_f64(2.0 * config.stall_s),
+    };
+    for c in &cameras {
+        c.check_device(timeouts)?;
+    }
     let mut ros = Ros::new(&config.ros, "labrig_cameras")?;
     let info_pubs: Vec<RosPublisher<CameraInfo>> = cameras
         .iter()
@@ -526,10 +544,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
     let ctx = ThreadCtx {
         tx,
         shutdown: shutdown.clone(),
-        timeouts: Timeouts {
-            connect: Duration::from_secs_f64(config.stall_s.max(1.0)),
-            read: Duration::from_secs_f64(2.0 * config.stall_s),
-        },
+        timeouts,
         retry: Duration::from_secs_f64(config.retry_s),
         preview_period: (config.preview_hz > 0.0).then(|| Duration::from_secs_f64(1.0 / config.preview_hz)),
         preview_width: config.preview_width,
