@@ -76,6 +76,9 @@ impl Default for CamerasConfig {
 pub struct CameraConfig {
     /// `zed:SERIAL`, `realsense:SERIAL`, `v4l2:SERIAL`, `/dev/videoN`, `http://...` (MJPEG),
     /// `rtsp://...`, a video file (relative to the config file) or `testsrc` (a test pattern).
+    /// (Defaults to none so that `--set cameras.<id>.width=...` and `--camera <id>=...` can
+    /// make a camera together; a camera without one is refused.)
+    #[serde(default)]
     pub source: String,
     /// One eye's image size as published (0 x 0: whatever the source sends; a V4L2 device and
     /// a file or RTSP source need it).

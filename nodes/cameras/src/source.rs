@@ -56,7 +56,7 @@ impl DeviceKind {
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
     #[error(
-        "`{0}` is not a camera source: use zed:SERIAL, realsense:SERIAL, v4l2:SERIAL, /dev/videoN, http://..., rtsp://... or a video file"
+        "`{0}` is not a camera source: use zed:SERIAL, realsense:SERIAL, v4l2:SERIAL, /dev/videoN, http://..., rtsp://..., a video file or testsrc"
     )]
     Unknown(String),
     #[error("{0}: no such video file")]
