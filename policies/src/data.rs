@@ -104,12 +104,12 @@ pub fn state_of(rs: &RobotState) -> [f32; 7] {
 /// A policy's state for one step: the pose (`state_of`), then the gripper's opening
 /// (`gripper_state`), then the scene's positions (`scene_state`). Training and the policy
 /// server build it here alike.
-pub fn state_row(pose: &[f32; 7], rs: &RobotState, cfg: &DiffusionConfig, scene: Option<&[f32; 6]>) -> Vec<f32> {
+pub fn state_row(pose: &[f32; 7], rs: &RobotState, cfg: &DiffusionConfig, scene: Option<&[f32]>) -> Vec<f32> {
     let mut row = pose.to_vec();
     if cfg.gripper_state {
         row.push(rs.gripper_position as f32);
     }
-    row.extend(scene.into_iter().flatten());
+    row.extend(scene.into_iter().flatten().copied());
     row
 }
 
@@ -160,7 +160,7 @@ fn cache_file(cache: &Path, path: &Path, parts: &[PathBuf], cfg: &DiffusionConfi
             (p, m.len(), m.modified().ok()).hash(&mut h);
         }
     }
-    (&cfg.cameras, cfg.image_size, cfg.action_space, cfg.scene_state, cfg.gripper_state).hash(&mut h);
+    (&cfg.cameras, cfg.image_size, cfg.action_space, cfg.scene_state, cfg.gripper_state, cfg.scene_yaw).hash(&mut h);
     cache.join(format!("{:016x}.safetensors", h.finish()))
 }
 
@@ -273,8 +273,9 @@ fn recorded_frames(parts: &[PathBuf], cameras: &[String]) -> Result<Vec<BTreeMap
 }
 
 /// The sim scene's object and receptacle positions (from the episode's `sim_scene` metadata,
-/// or the `/sim/scene` JSON a policy request carries).
-pub fn scene_positions(path: &Path, scene: Option<&str>) -> Result<[f32; 6], DataError> {
+/// or the `/sim/scene` JSON a policy request carries), and with `yaw` the object's yaw as
+/// (cos 4 yaw, sin 4 yaw).
+pub fn scene_positions(path: &Path, scene: Option<&str>, yaw: bool) -> Result<Vec<f32>, DataError> {
     let bad = |reason: String| DataError::Bad { path: path.to_owned(), reason };
     let scene = scene
         .ok_or_else(|| bad("no sim scene in the metadata: scene_state needs episodes of the simulated rig".into()))?;
@@ -287,7 +288,16 @@ pub fn scene_positions(path: &Path, scene: Option<&str>) -> Result<[f32; 6], Dat
             .ok_or_else(|| bad(format!("the sim scene has no `{k}` [x, y, z]")))
     };
     let (o, r) = (xyz("object_position")?, xyz("receptacle_position")?);
-    Ok([o[0], o[1], o[2], r[0], r[1], r[2]])
+    let mut out = vec![o[0], o[1], o[2], r[0], r[1], r[2]];
+    if yaw {
+        let deg = v
+            .get("object_yaw_deg")
+            .and_then(serde_json::Value::as_f64)
+            .ok_or_else(|| bad("the sim scene has no `object_yaw_deg`".into()))?;
+        let a = 4.0 * deg.to_radians();
+        out.extend([a.cos() as f32, a.sin() as f32]);
+    }
+    Ok(out)
 }
 
 /// A decoded RGB frame resized (antialiased bilinear, torchvision's `Resize`) to size x size:
@@ -317,10 +327,16 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
         });
     }
     let (states, actions) = rows(path, &data.steps, cfg.action_space)?;
-    let scene =
-        if cfg.scene_state { Some(scene_positions(path, meta.and_then(|m| m.sim_scene.as_deref()))?) } else { None };
-    let states: Vec<Vec<f32>> =
-        states.iter().zip(&data.steps).map(|(s, step)| state_row(s, &step.robot_state, cfg, scene.as_ref())).collect();
+    let scene = if cfg.scene_state {
+        Some(scene_positions(path, meta.and_then(|m| m.sim_scene.as_deref()), cfg.scene_yaw)?)
+    } else {
+        None
+    };
+    let states: Vec<Vec<f32>> = states
+        .iter()
+        .zip(&data.steps)
+        .map(|(s, step)| state_row(s, &step.robot_state, cfg, scene.as_deref()))
+        .collect();
     let recorded = recorded_frames(parts, &cfg.cameras)?;
     let mut per_camera = Vec::with_capacity(cfg.cameras.len());
     for (camera, frames) in cfg.cameras.iter().zip(&recorded) {
@@ -459,5 +475,29 @@ mod tests {
         let v: Vec<u8> = small.flatten(0, -1).try_into().unwrap();
         assert!(v.iter().all(|&x| (100..=155).contains(&x)), "{v:?}");
         assert_eq!(resize_rgb(&rgb, 4).size(), [3, 4, 4]);
+    }
+
+    /// The scene part of the state: object and receptacle positions, and with `scene_yaw` the
+    /// cube's yaw as (cos 4 yaw, sin 4 yaw), the same for yaws 90 degrees apart.
+    #[test]
+    fn scene_state_with_and_without_the_object_yaw() {
+        let scene = |yaw: f64| {
+            format!(
+                r#"{{"object_position": [0.5, 0.1, 0.025], "receptacle_position": [0.4, -0.2, 0.0], "object_yaw_deg": {yaw}}}"#
+            )
+        };
+        let p = Path::new("ep");
+        assert_eq!(scene_positions(p, Some(&scene(10.0)), false).unwrap(), vec![0.5, 0.1, 0.025, 0.4, -0.2, 0.0]);
+        let a = scene_positions(p, Some(&scene(10.0)), true).unwrap();
+        let b = scene_positions(p, Some(&scene(-80.0)), true).unwrap();
+        assert_eq!(a.len(), 8);
+        assert!((a[6] - 40f32.to_radians().cos()).abs() < 1e-6 && (a[7] - 40f32.to_radians().sin()).abs() < 1e-6);
+        assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-6), "{a:?} vs {b:?}");
+        let e = scene_positions(p, Some(r#"{"object_position": [0, 0, 0], "receptacle_position": [0, 0, 0]}"#), true);
+        assert!(e.unwrap_err().to_string().contains("no `object_yaw_deg`"));
+        let cfg = DiffusionConfig { scene_yaw: true, state_dim: 16, ..DiffusionConfig::small_lowdim() };
+        assert_eq!(cfg.data_state_dim(), 16);
+        let row = state_row(&[0.0; 7], &RobotState::default(), &cfg, Some(&a));
+        assert_eq!(row.len(), 16);
     }
 }

@@ -156,6 +156,7 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
         clip,
         action_space: ActionSpace::default(),
         scene_state: false,
+        scene_yaw: false,
         gripper_state: false,
     })
 }

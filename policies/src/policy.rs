@@ -52,6 +52,11 @@ pub struct DiffusionConfig {
     /// or none, does not show whether it holds the object.
     #[serde(default)]
     pub gripper_state: bool,
+    /// With `scene_state`, also the object's yaw as (cos 4 yaw, sin 4 yaw): the scripted
+    /// expert turns the gripper to the cube's yaw (modulo its 90 degree symmetry), which no
+    /// position shows.
+    #[serde(default)]
+    pub scene_yaw: bool,
 }
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
@@ -93,6 +98,7 @@ impl DiffusionConfig {
             action_space: ActionSpace::EefAxisAngle,
             scene_state: false,
             gripper_state: false,
+            scene_yaw: false,
         }
     }
 
@@ -121,7 +127,7 @@ impl DiffusionConfig {
     /// The state's width the data gives this config (pose 7, + 1 with the gripper, + 6 with
     /// the scene's positions).
     pub fn data_state_dim(&self) -> i64 {
-        7 + i64::from(self.gripper_state) + 6 * i64::from(self.scene_state)
+        7 + i64::from(self.gripper_state) + i64::from(self.scene_state) * (6 + 2 * i64::from(self.scene_yaw))
     }
 
     /// Width of the global conditioning: To x (state + 2 x keypoints per camera).

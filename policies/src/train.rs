@@ -122,7 +122,11 @@ impl Preset {
                 p.model.state_dim,
                 p.model.data_state_dim(),
                 if p.model.gripper_state { " + gripper 1" } else { "" },
-                if p.model.scene_state { " + scene 6" } else { "" }
+                match (p.model.scene_state, p.model.scene_yaw) {
+                    (true, true) => " + scene 6 + object yaw 2",
+                    (true, false) => " + scene 6",
+                    _ => "",
+                }
             )));
         }
         Ok(p)

@@ -99,13 +99,13 @@ impl Server {
         }
         let scene = if c.scene_state {
             let s = (!req.scene.is_empty()).then_some(req.scene.as_str());
-            Some(scene_positions(Path::new("the request"), s).map_err(|e| bad(e.to_string()))?)
+            Some(scene_positions(Path::new("the request"), s, c.scene_yaw).map_err(|e| bad(e.to_string()))?)
         } else {
             None
         };
         let mut rows: Vec<f32> = Vec::new();
         for o in &padded {
-            rows.extend(state_row(&state_of(&o.robot_state), &o.robot_state, c, scene.as_ref()));
+            rows.extend(state_row(&state_of(&o.robot_state), &o.robot_state, c, scene.as_deref()));
         }
         named.insert("observation.state".into(), Tensor::from_slice(&rows).view([1, n_obs as i64, -1]));
         Ok(named)
@@ -124,6 +124,7 @@ impl Server {
             "action_space": c.action_space,
             "action_dim": c.action_dim,
             "scene_state": c.scene_state,
+            "scene_yaw": c.scene_yaw,
             "gripper_state": c.gripper_state,
             "step": self.meta.step,
         })
