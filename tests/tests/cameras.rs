@@ -202,37 +202,31 @@ fn a_missing_calibration_file_or_source_is_refused_naming_the_camera() {
     let cams = workspace_bin("labrig-cameras", "labrig-cameras");
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("c.toml");
-    std::fs::write(
-        &config,
+    // Exit 1 and what the node said, for a config file's text.
+    let refused = |text: &str| {
+        std::fs::write(&config, text).unwrap();
+        let o = Command::new(&cams)
+            .args(["run", "--config"])
+            .arg(&config)
+            .args(["--domain-id", &domain_for("cameras_refused").to_string()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        err
+    };
+    let err = refused(
         "[cameras.wrist]\nsource = \"http://127.0.0.1:9/cam\"\nwidth = 1280\nheight = 720\nintrinsics = \"calib/SN404.conf\"\n",
-    )
-    .unwrap();
-    let o = Command::new(&cams)
-        .args(["run", "--config"])
-        .arg(&config)
-        .args(["--domain-id", &domain_for("cameras_refused").to_string()])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
+    );
     assert!(err.contains("camera wrist: ") && err.contains("calib/SN404.conf"), "{err}");
+    // A device by a serial no camera here has (this machine has no V4L2 device at all).
+    let err = refused("[cameras.wrist]\nsource = \"zed:SN42\"\nwidth = 1280\nheight = 720\n");
+    assert!(err.contains("camera wrist: no Zed camera with serial SN42 (V4L2 capture devices: "), "{err}");
 
     let o = Command::new(&cams).args(["run", "--camera", "ext1=/no/such/video.mp4"]).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("camera ext1: /no/such/video.mp4: no such video file"), "{err}");
-
-    // A device by a serial no camera here has (this machine has no V4L2 device at all).
-    std::fs::write(&config, "[cameras.wrist]\nsource = \"zed:SN42\"\nwidth = 1280\nheight = 720\n").unwrap();
-    let o = Command::new(&cams)
-        .args(["run", "--config"])
-        .arg(&config)
-        .args(["--domain-id", &domain_for("cameras_refused").to_string()])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("camera wrist: no Zed camera with serial SN42 (V4L2 capture devices: "), "{err}");
 }
 
 /// `labrig launch` of the bench rig (launch_configs/bench_rig.toml): the simulated arm without
