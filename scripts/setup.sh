@@ -258,6 +258,10 @@ FS_VENV="$LABRIG_CACHE/venv-franka-sim"
 tool_venv readers "mcap_ros2, rosbags" mcap==1.6.0 mcap-ros2-support==0.6.0 rosbags==0.11.9
 # h5py: the reference reader the DROID export is checked with (issue 6).
 tool_venv droid h5py h5py==3.16.0
+# librealsense for the camera node's RealSense source (issue 19): Debian has no package; the
+# PyPI wheel carries it inside pyrealsense2, which the node runs in a child process (the
+# extension cannot be loaded into a non-Python process). numpy: the tests' synthetic recordings.
+tool_venv realsense "pyrealsense2, numpy" pyrealsense2==2.59.1.11053 numpy==2.4.6
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
@@ -282,6 +286,7 @@ export LABRIG_FRANKA_SIM_PYTHON=\"$FS_VENV/bin/python\"
 export FR3_MJCF=\"$FS_MJCF\"
 export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
 export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
+export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
 # SYSTEM_DEFAULT: rmw_fastrtps uses the XML profile as is (unset/SUBNET would add
 # the 239.255.0.1 multicast SPDP peer; LOCALHOST would bind the LAN address too)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT

@@ -15,7 +15,9 @@
 
 use crate::convert::{ConvertError, preview_jpeg, to_rgb};
 use crate::intrinsics::{Eye, Intrinsics, IntrinsicsError, ZedCalibration};
-use crate::source::{DeviceKind, FfmpegSource, MjpegSource, Source, SourceError, SourceSpec, Timeouts};
+use crate::source::{
+    DeviceKind, FfmpegSource, MjpegSource, RealSenseSource, Source, SourceError, SourceSpec, Timeouts,
+};
 use labrig_msgs::builtin_interfaces::Time;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3};
 use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
@@ -267,7 +269,7 @@ impl Camera {
     /// offer is refused, naming the camera, what was found and the modes offered. Streams and
     /// files are not: they may come up later, and are retried.
     pub fn check_device(&self, t: Timeouts) -> Result<(), CameraError> {
-        if matches!(self.spec, SourceSpec::Device { .. }) {
+        if matches!(self.spec, SourceSpec::Device { .. } | SourceSpec::RealSense { serial: Some(_), .. }) {
             self.open(t).map_err(|source| CameraError::Source { camera: self.id.clone(), source })?;
         }
         Ok(())
@@ -283,6 +285,13 @@ impl Camera {
         match &self.spec {
             SourceSpec::Mjpeg { url } => Ok(Box::new(MjpegSource::open(url, t)?)),
             SourceSpec::TestPattern => Ok(Box::new(FfmpegSource::test_pattern(self.source_size(), self.config.fps)?)),
+            SourceSpec::RealSense { serial, file } => Ok(Box::new(RealSenseSource::open(
+                serial.as_deref(),
+                file.as_deref(),
+                self.source_size(),
+                self.config.fps,
+                self.config.loop_file,
+            )?)),
             SourceSpec::Ffmpeg { input, file } => {
                 Ok(Box::new(FfmpegSource::open(input, *file, self.source_size(), self.config.loop_file)?))
             }
@@ -340,7 +349,7 @@ fn wall_minus_monotonic() -> i64 {
 /// What a camera thread tells the node.
 #[derive(Debug)]
 enum Event {
-    Up { camera: usize, description: String },
+    Up { camera: usize, description: String, intrinsics: Option<Intrinsics> },
     Down { camera: usize, reason: String },
     Frame(FrameEvent),
 }
@@ -399,7 +408,7 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                 continue;
             }
         };
-        send(Event::Up { camera: index, description: cam.config.source.clone() });
+        send(Event::Up { camera: index, description: cam.config.source.clone(), intrinsics: source.intrinsics() });
         let mut last_seq: Option<u64> = None;
         while !ctx.shutdown.is_triggered() {
             let raw = match source.read() {
@@ -410,8 +419,12 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                 }
             };
             let arrival = Clock::Wall.now();
-            let device_time = raw.device_monotonic_ns.is_some();
-            let capture = raw.device_monotonic_ns.map_or(arrival, |m| Nanos(m + wall_minus_monotonic()));
+            let device_time = raw.device_monotonic_ns.is_some() || raw.capture_wall_ns.is_some();
+            let capture = match (raw.capture_wall_ns, raw.device_monotonic_ns) {
+                (Some(w), _) => Nanos(w),
+                (None, Some(m)) => Nanos(m + wall_minus_monotonic()),
+                (None, None) => arrival,
+            };
             let want = (cam.config.width, cam.config.height);
             let converted = if want == (0, 0) {
                 // Whatever the source sends: the first frame fixes the size.
@@ -581,6 +594,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
     drop(ctx);
     tracing::info!(cameras = cameras.len(), "camera node up");
 
+    let mut device_intrinsics: Vec<Option<Intrinsics>> = vec![None; cameras.len()];
     let period = Duration::from_secs_f64(config.status_period_s);
     let mut tick = tokio::time::interval(period);
     let mut last_tick = Instant::now();
@@ -590,7 +604,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
             _ = shutdown.wait() => break,
             ev = rx.recv() => {
                 let Some(ev) = ev else { break };
-                handle(ev, &cameras, &mut status, &info_pubs, &preview_pubs)?
+                handle(ev, &cameras, &mut device_intrinsics, &mut status, &info_pubs, &preview_pubs)?
             }
             _ = tick.tick() => {
                 let dt = last_tick.elapsed().as_secs_f64().max(1e-3);
@@ -633,14 +647,19 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
 fn handle(
     ev: Event,
     cameras: &[Camera],
+    device_intrinsics: &mut [Option<Intrinsics>],
     status: &mut [CameraStatus],
     info: &[RosPublisher<CameraInfo>],
     preview: &[RosPublisher<CompressedImage>],
 ) -> anyhow::Result<bool> {
     let now = Clock::Wall.now().0;
     match ev {
-        Event::Up { camera, description } => {
+        Event::Up { camera, description, intrinsics } => {
             tracing::info!(camera = %cameras[camera].id, source = %description, "streaming");
+            // The device's own intrinsics where the config gives none (a RealSense's).
+            if cameras[camera].intrinsics.is_none() {
+                device_intrinsics[camera] = intrinsics;
+            }
             Ok(false)
         }
         Event::Down { camera, reason } => {
@@ -673,7 +692,7 @@ fn handle(
             s.time_source = if f.device_time { "device" } else { "arrival" };
             let stamp = Time::from(f.capture);
             let frame_id = optical_frame(&cam.id);
-            let msg = match &cam.intrinsics {
+            let msg = match cam.intrinsics.as_ref().or(device_intrinsics[f.camera].as_ref()) {
                 Some(i) => i.camera_info(stamp, &frame_id),
                 None => CameraInfo {
                     header: Header { stamp, frame_id: frame_id.clone() },

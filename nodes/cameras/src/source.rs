@@ -2,8 +2,10 @@
 //! the camera's own thread and read there (blocking); a read error closes it and the node
 //! opens it again after a pause, so an unplugged camera or a restarted stream comes back.
 //!
-//! - `zed:SERIAL`, `v4l2:SERIAL`, `realsense:SERIAL`, `/dev/videoN`: a V4L2 device
-//!   ([`crate::v4l2`]), found by its USB serial (never by its /dev/videoN order);
+//! - `zed:SERIAL`, `v4l2:SERIAL`, `/dev/videoN`: a V4L2 device ([`crate::v4l2`]), found by its
+//!   USB serial (never by its /dev/videoN order);
+//! - `realsense:SERIAL`, or a RealSense recording (`.db3`/`.bag`): librealsense through
+//!   pyrealsense2 in a child process ([`RealSenseSource`]);
 //! - `http://host:port/path`: MJPEG over HTTP (multipart, as IP cameras and `ffmpeg -f mpjpeg`
 //!   serve it), read natively: no decoder process, the JPEG goes straight to the decoder;
 //! - `testsrc`: ffmpeg's moving test pattern at the configured size and rate;
@@ -22,6 +24,8 @@ use std::time::Duration;
 pub enum SourceSpec {
     /// A V4L2 device: by USB serial, or by path (quick checks).
     Device { kind: DeviceKind, serial: Option<String>, path: Option<PathBuf> },
+    /// A RealSense through librealsense: a device by serial, or a recording played back.
+    RealSense { serial: Option<String>, file: Option<PathBuf> },
     /// MJPEG over HTTP.
     Mjpeg { url: String },
     /// Anything ffmpeg reads (RTSP, a file), decoded by an ffmpeg child process.
@@ -36,8 +40,8 @@ pub enum SourceSpec {
 pub enum DeviceKind {
     /// ZED 2 / ZED Mini (USB vendor 0x2b03): YUYV, both eyes side by side.
     Zed,
-    /// RealSense D435's colour stream as a UVC device (no librealsense: no depth, no
-    /// device intrinsics).
+    /// A RealSense (USB vendor 0x8086), seen as V4L2 devices; `realsense:SERIAL` reads it
+    /// through librealsense instead, `v4l2:SERIAL` through its colour node.
     RealSense,
     /// Any UVC camera.
     Uvc,
@@ -83,7 +87,10 @@ impl SourceSpec {
             return device(DeviceKind::Zed, serial);
         }
         if let Some(serial) = s.strip_prefix("realsense:") {
-            return device(DeviceKind::RealSense, serial);
+            if serial.is_empty() {
+                return Err(SourceError::Unknown(s.to_owned()));
+            }
+            return Ok(SourceSpec::RealSense { serial: Some(serial.to_owned()), file: None });
         }
         if let Some(serial) = s.strip_prefix("v4l2:") {
             return device(DeviceKind::Uvc, serial);
@@ -106,6 +113,9 @@ impl SourceSpec {
         if !std::path::Path::new(s).is_file() {
             return Err(SourceError::NoFile(s.to_owned()));
         }
+        if s.ends_with(".db3") || s.ends_with(".bag") {
+            return Ok(SourceSpec::RealSense { serial: None, file: Some(PathBuf::from(s)) });
+        }
         Ok(SourceSpec::Ffmpeg { input: s.to_owned(), file: true })
     }
 
@@ -125,12 +135,20 @@ pub struct RawFrame {
     pub device_monotonic_ns: Option<i64>,
     /// The device's frame counter, if it has one (gaps are drops).
     pub device_sequence: Option<u64>,
+    /// The device's capture time already on the wall clock (librealsense's global or system
+    /// time domain), ns.
+    pub capture_wall_ns: Option<i64>,
 }
 
 /// A source opened and streaming.
 pub trait Source {
     /// The next frame (blocking, bounded by the source's read timeout).
     fn read(&mut self) -> Result<RawFrame, SourceError>;
+
+    /// The intrinsics the device itself reports (a RealSense's), if any.
+    fn intrinsics(&self) -> Option<crate::intrinsics::Intrinsics> {
+        None
+    }
 }
 
 /// How long a read may block before the source is closed and opened again.
@@ -291,7 +309,13 @@ fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
 impl Source for MjpegSource {
     fn read(&mut self) -> Result<RawFrame, SourceError> {
         let jpeg = self.next_part()?;
-        Ok(RawFrame { pixels: Pixels::Jpeg(jpeg), size: (0, 0), device_monotonic_ns: None, device_sequence: None })
+        Ok(RawFrame {
+            pixels: Pixels::Jpeg(jpeg),
+            size: (0, 0),
+            device_monotonic_ns: None,
+            device_sequence: None,
+            capture_wall_ns: None,
+        })
     }
 }
 
@@ -362,7 +386,189 @@ impl Source for FfmpegSource {
             std::io::ErrorKind::UnexpectedEof => SourceError::Ended { source_name: self.input.clone() },
             _ => SourceError::Io { source_name: self.input.clone(), reason: e.to_string() },
         })?;
-        Ok(RawFrame { pixels: Pixels::Rgb8(rgb), size: self.size, device_monotonic_ns: None, device_sequence: None })
+        Ok(RawFrame {
+            pixels: Pixels::Rgb8(rgb),
+            size: self.size,
+            device_monotonic_ns: None,
+            device_sequence: None,
+            capture_wall_ns: None,
+        })
+    }
+}
+
+// ------------------------------------------------------------------ RealSense (librealsense)
+
+/// The child process's script (`python/realsense_source.py`), run with `python -c`.
+const REALSENSE_SCRIPT: &str = include_str!("../python/realsense_source.py");
+
+/// The Python with pyrealsense2 that scripts/setup.sh installs.
+pub const REALSENSE_PYTHON_ENV: &str = "LABRIG_REALSENSE_PYTHON";
+
+/// A RealSense's colour stream through librealsense (pyrealsense2) in a child process: the
+/// device's own intrinsics, frame numbers and timestamps (global/system time domains are on
+/// the wall clock; the hardware clock is not, and arrival is used). pyrealsense2 cannot be
+/// loaded into this process (it leaves CPython's symbols unresolved), hence the child.
+#[derive(Debug)]
+pub struct RealSenseSource {
+    name: String,
+    child: Child,
+    out: BufReader<ChildStdout>,
+    stderr: std::sync::Arc<std::sync::Mutex<String>>,
+    intrinsics: crate::intrinsics::Intrinsics,
+    size: (u32, u32),
+}
+
+#[derive(serde::Deserialize)]
+struct RealSenseHead {
+    serial: String,
+    intrinsics: crate::intrinsics::Intrinsics,
+}
+
+#[derive(serde::Deserialize)]
+struct RealSenseFrame {
+    seq: u64,
+    ts_ms: f64,
+    domain: String,
+    bytes: usize,
+}
+
+impl RealSenseSource {
+    pub fn open(
+        serial: Option<&str>,
+        file: Option<&std::path::Path>,
+        size: (u32, u32),
+        fps: f64,
+        loop_file: bool,
+    ) -> Result<RealSenseSource, SourceError> {
+        let name = match (serial, file) {
+            (Some(s), _) => format!("realsense:{s}"),
+            (None, Some(f)) => f.display().to_string(),
+            (None, None) => unreachable!("a RealSense source has a serial or a file"),
+        };
+        let python = std::env::var_os(REALSENSE_PYTHON_ENV).ok_or_else(|| SourceError::Io {
+            source_name: name.clone(),
+            reason: format!(
+                "the RealSense source needs pyrealsense2: scripts/setup.sh installs it and sets {REALSENSE_PYTHON_ENV}"
+            ),
+        })?;
+        let mut cmd = Command::new(python);
+        cmd.args(["-c", REALSENSE_SCRIPT]);
+        match (serial, file) {
+            (Some(s), _) => cmd.args(["--serial", s]),
+            (None, Some(f)) => cmd.arg("--file").arg(f),
+            (None, None) => unreachable!(),
+        };
+        if loop_file {
+            cmd.arg("--loop");
+        }
+        cmd.args(["--width", &size.0.to_string(), "--height", &size.1.to_string()]);
+        cmd.args(["--fps", &(fps.round() as u32).to_string()]);
+        cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
+        let mut child = cmd.spawn().map_err(|e| SourceError::Io {
+            source_name: name.clone(),
+            reason: format!("cannot run the RealSense Python: {e}"),
+        })?;
+        // The child's complaints, kept for the error that ends it.
+        let stderr = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+        let mut err_pipe = child.stderr.take().expect("piped stderr");
+        let sink = stderr.clone();
+        std::thread::spawn(move || {
+            let mut text = String::new();
+            let _ = err_pipe.read_to_string(&mut text);
+            *sink.lock().expect("stderr buffer") = text;
+        });
+        let mut out = BufReader::new(child.stdout.take().expect("piped stdout"));
+        let mut line = String::new();
+        let n = out.read_line(&mut line).unwrap_or(0);
+        let mut src = RealSenseSource {
+            name,
+            child,
+            out,
+            stderr,
+            intrinsics: crate::intrinsics::Intrinsics {
+                width: size.0,
+                height: size.1,
+                fx: 0.0,
+                fy: 0.0,
+                cx: 0.0,
+                cy: 0.0,
+                distortion: vec![],
+            },
+            size,
+        };
+        if n == 0 {
+            return Err(src.died());
+        }
+        let head: RealSenseHead = serde_json::from_str(&line).map_err(|e| SourceError::Io {
+            source_name: src.name.clone(),
+            reason: format!("the RealSense child's first line is not its header: {e}"),
+        })?;
+        tracing::info!(source = %src.name, serial = %head.serial, "RealSense streaming");
+        src.intrinsics = head.intrinsics;
+        Ok(src)
+    }
+
+    /// The error of a child that stopped: what it said, or its exit.
+    fn died(&mut self) -> SourceError {
+        let status = self.child.wait().ok();
+        // Give the stderr reader a moment to collect the last words.
+        let mut said = String::new();
+        for _ in 0..50 {
+            said = self.stderr.lock().expect("stderr buffer").trim().to_owned();
+            if !said.is_empty() {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        let last = said.lines().last().unwrap_or("").to_owned();
+        match (status.and_then(|s| s.code()), last.is_empty()) {
+            (Some(0), _) => SourceError::Ended { source_name: self.name.clone() },
+            (_, false) => SourceError::Device(format!("{}: {last}", self.name)),
+            (code, true) => SourceError::Io {
+                source_name: self.name.clone(),
+                reason: format!("the RealSense child exited ({code:?})"),
+            },
+        }
+    }
+}
+
+impl Drop for RealSenseSource {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Source for RealSenseSource {
+    fn read(&mut self) -> Result<RawFrame, SourceError> {
+        let mut line = String::new();
+        if self.out.read_line(&mut line).unwrap_or(0) == 0 {
+            return Err(self.died());
+        }
+        let bad = |reason: String| SourceError::Io { source_name: self.name.clone(), reason };
+        let meta: RealSenseFrame = serde_json::from_str(&line).map_err(|e| bad(format!("a frame header: {e}")))?;
+        let expected = self.size.0 as usize * self.size.1 as usize * 3;
+        if meta.bytes != expected {
+            return Err(bad(format!("a frame of {} bytes, expected {expected}", meta.bytes)));
+        }
+        let mut rgb = vec![0u8; meta.bytes];
+        if self.out.read_exact(&mut rgb).is_err() {
+            return Err(self.died());
+        }
+        // Global time and system time are the host's wall clock (ms); the hardware clock is the
+        // camera's own, with no offset known here: arrival time is used instead.
+        let wall = matches!(meta.domain.as_str(), "global_time" | "system_time");
+        Ok(RawFrame {
+            pixels: Pixels::Rgb8(rgb),
+            size: self.size,
+            device_monotonic_ns: None,
+            device_sequence: Some(meta.seq),
+            capture_wall_ns: wall.then(|| (meta.ts_ms * 1e6).round() as i64),
+        })
+    }
+
+    fn intrinsics(&self) -> Option<crate::intrinsics::Intrinsics> {
+        Some(self.intrinsics.clone())
     }
 }
 
@@ -384,6 +590,13 @@ mod tests {
         assert!(SourceSpec::parse("ftp://x").unwrap_err().to_string().starts_with("`ftp://x` is not a camera source"));
         assert!(SourceSpec::parse("zed:").is_err());
         assert_eq!(SourceSpec::parse("testsrc").unwrap(), SourceSpec::TestPattern);
+        assert_eq!(
+            SourceSpec::parse("realsense:D435-1").unwrap(),
+            SourceSpec::RealSense { serial: Some("D435-1".into()), file: None }
+        );
+        let rec = tempfile::NamedTempFile::with_suffix(".db3").unwrap();
+        let path = rec.path().to_str().unwrap();
+        assert_eq!(SourceSpec::parse(path).unwrap(), SourceSpec::RealSense { serial: None, file: Some(path.into()) });
     }
 
     fn part(jpeg: &[u8], with_length: bool) -> Vec<u8> {

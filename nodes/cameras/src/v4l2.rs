@@ -235,6 +235,7 @@ impl Source for V4l2Source {
             size: self.size,
             device_monotonic_ns: monotonic.then_some(ns),
             device_sequence: Some(u64::from(meta.sequence)),
+            capture_wall_ns: None,
         })
     }
 }
