@@ -133,7 +133,7 @@ pub fn preview_jpeg(rgb: &[u8], width: u32, height: u32, max_width: u32, quality
     let k = width.div_ceil(max_width.max(1)).max(1);
     let (w, h) = ((width / k).max(1), (height / k).max(1));
     let mut small = Vec::with_capacity(w as usize * h as usize * 3);
-    let n = (k * k) as u32;
+    let n = k * k;
     for y in 0..h {
         for x in 0..w {
             let mut acc = [0u32; 3];

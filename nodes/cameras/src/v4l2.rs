@@ -229,7 +229,7 @@ impl Source for V4l2Source {
             _ => Pixels::Yuyv(data),
         };
         let monotonic = meta.flags.contains(Flags::TIMESTAMP_MONOTONIC);
-        let ns = meta.timestamp.sec as i64 * 1_000_000_000 + meta.timestamp.usec as i64 * 1000;
+        let ns = meta.timestamp.sec * 1_000_000_000 + meta.timestamp.usec * 1000;
         Ok(RawFrame {
             pixels,
             size: self.size,

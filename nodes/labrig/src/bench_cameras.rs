@@ -96,7 +96,7 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
     if a.cameras == 0 || a.cameras > 16 {
         bail!("--cameras {} must be 1..=16", a.cameras);
     }
-    if !(a.fps > 0.0 && a.fps <= 120.0) || !(a.seconds > 0.0 && a.seconds <= 600.0) {
+    if !(a.fps > 0.0 && a.fps <= 120.0 && a.seconds > 0.0 && a.seconds <= 600.0) {
         bail!("--fps must be in (0, 120] and --seconds in (0, 600]");
     }
     let exe = crate::programs::sibling_binary("labrig-cameras")?;
