@@ -109,7 +109,13 @@ pub fn state_row(pose: &[f32; 7], rs: &RobotState, cfg: &DiffusionConfig, scene:
     if cfg.gripper_state {
         row.push(rs.gripper_position as f32);
     }
+    let at = row.len();
     row.extend(scene.into_iter().flatten().copied());
+    if cfg.scene_relative && scene.is_some() {
+        for k in 0..6 {
+            row[at + k] -= pose[k % 3];
+        }
+    }
     row
 }
 
@@ -160,7 +166,16 @@ fn cache_file(cache: &Path, path: &Path, parts: &[PathBuf], cfg: &DiffusionConfi
             (p, m.len(), m.modified().ok()).hash(&mut h);
         }
     }
-    (&cfg.cameras, cfg.image_size, cfg.action_space, cfg.scene_state, cfg.gripper_state, cfg.scene_yaw).hash(&mut h);
+    (
+        &cfg.cameras,
+        cfg.image_size,
+        cfg.action_space,
+        cfg.scene_state,
+        cfg.gripper_state,
+        cfg.scene_yaw,
+        cfg.scene_relative,
+    )
+        .hash(&mut h);
     cache.join(format!("{:016x}.safetensors", h.finish()))
 }
 
@@ -499,5 +514,11 @@ mod tests {
         assert_eq!(cfg.data_state_dim(), 16);
         let row = state_row(&[0.0; 7], &RobotState::default(), &cfg, Some(&a));
         assert_eq!(row.len(), 16);
+        // Relative: the positions seen from the TCP (here at 0.5, 0.1, 0.2); the yaw unchanged.
+        let rel = DiffusionConfig { scene_relative: true, ..cfg };
+        let row = state_row(&[0.5, 0.1, 0.2, 1.0, 0.0, 0.0, 0.0], &RobotState::default(), &rel, Some(&a));
+        let want = [0.0, 0.0, -0.175, -0.1, -0.3, -0.2];
+        assert!(row[8..14].iter().zip(want).all(|(x, w)| (x - w).abs() < 1e-6), "{:?}", &row[8..14]);
+        assert_eq!(row[14..], a[6..]);
     }
 }

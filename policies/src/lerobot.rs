@@ -157,6 +157,7 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
         action_space: ActionSpace::default(),
         scene_state: false,
         scene_yaw: false,
+        scene_relative: false,
         gripper_state: false,
     })
 }

@@ -57,6 +57,12 @@ pub struct DiffusionConfig {
     /// position shows.
     #[serde(default)]
     pub scene_yaw: bool,
+    /// With `scene_state`, the object's and the receptacle's positions relative to the
+    /// gripper (position - TCP) instead of in the base frame: "where is it from here" is the
+    /// same function everywhere on the table, where absolute positions let a small data set
+    /// be memorised trajectory by trajectory (seen: held-out scenes reached 5 cm off).
+    #[serde(default)]
+    pub scene_relative: bool,
 }
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
@@ -99,6 +105,7 @@ impl DiffusionConfig {
             scene_state: false,
             gripper_state: false,
             scene_yaw: false,
+            scene_relative: false,
         }
     }
 

@@ -125,6 +125,7 @@ impl Server {
             "action_dim": c.action_dim,
             "scene_state": c.scene_state,
             "scene_yaw": c.scene_yaw,
+            "scene_relative": c.scene_relative,
             "gripper_state": c.gripper_state,
             "step": self.meta.step,
         })
