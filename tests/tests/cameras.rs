@@ -208,7 +208,7 @@ fn a_missing_calibration_file_or_source_is_refused_naming_the_camera() {
         let o = Command::new(&cams)
             .args(["run", "--config"])
             .arg(&config)
-            .args(["--domain-id", &domain_for("cameras_refused").to_string()])
+            .args(["--domain-id", &domain_for("cameras_refusals").to_string()])
             .output()
             .unwrap();
         let err = String::from_utf8_lossy(&o.stderr).into_owned();
@@ -334,8 +334,9 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
         reds.push((seq, px[0]));
     }
     assert!(reds.len() >= 20, "{} frames from the recording", reds.len());
-    // Played in real time, a slow reader may miss some: the red channel only ever increases.
-    assert!(reds.windows(2).all(|w| w[1].1 > w[0].1), "frames out of order: {reds:?}");
+    // Played in real time a busy machine skips frames, and at the end of the recording the
+    // node opens it again: the red channel increases, except when a pass starts over.
+    assert!(reds.windows(2).all(|w| w[1].1 > w[0].1 || w[1].1 < 10), "frames out of order within a pass: {reds:?}");
     let until = Instant::now() + Duration::from_secs(10);
     let ci = loop {
         if let Some(m) = info.try_take().unwrap() {
