@@ -290,7 +290,14 @@ fn the_recorder_node_records_the_sim_rig() {
         let status = ros.subscription::<StringMsg>("/recorder/status", qos::latched(1)).unwrap();
         assert!(ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(60)).await, "no recorder");
         assert!(ros.wait_for_subscribers("/rig/step", 1, Duration::from_secs(60)).await);
-        // Let the recorder see the bridge's latched scene and /tf_static.
+        // The bridge is up once its latched scene arrives (on a loaded machine it comes up
+        // after the recorder); then let the recorder see the scene, /tf_static and frames.
+        let scene = ros.subscription_on(&labrig_msgs::topics::SIM_SCENE, 1).unwrap();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while scene.try_take().unwrap().is_none() {
+            assert!(Instant::now() < deadline, "the sim bridge never published its scene");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
         tokio::time::sleep(Duration::from_secs(2)).await;
         let wait_status = |want: &'static str| {
             let status = &status;
