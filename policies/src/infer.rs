@@ -76,7 +76,14 @@ pub fn infer(
 ) -> Result<Inference, InferError> {
     let (images, state) = observation(meta, named)?;
     let trace = tch::no_grad(|| policy.sample_traced(&images, &state, noise))?;
-    let action = meta.action_stats.unnormalize(&trace.chunk)?;
+    let mut action = meta.action_stats.unnormalize(&trace.chunk)?;
+    if meta.config.action_relative {
+        // Relative target positions + the TCP's position at the newest observation.
+        let raw = take(named, "observation.state")?;
+        let tcp = raw.select(1, -1).narrow(1, 0, 3).to_kind(action.kind());
+        let rest = tch::Tensor::zeros([tcp.size()[0], action.size()[2] - 3], (action.kind(), action.device()));
+        action = action + tch::Tensor::cat(&[tcp, rest], 1).unsqueeze(1);
+    }
     let executed = policy.executed(&action);
     Ok(Inference { trace, action, executed, images, state })
 }

@@ -68,7 +68,7 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
     want("use_separate_rgb_encoder_per_camera", &|v| v == true, "one encoder shared by the cameras")?;
     want("noise_scheduler_type", &|v| v == "DDIM", "sampling other than DDIM")?;
     want("beta_schedule", &|v| v == "squaredcos_cap_v2", "a beta schedule other than squared cosine")?;
-    want("prediction_type", &|v| v == "epsilon", "a prediction type other than epsilon")?;
+    want("prediction_type", &|v| v == "epsilon" || v == "sample", "a prediction type other than epsilon or sample")?;
     want("resize_shape", &|v| v.is_null(), "resizing inputs inside the policy")?;
     want(
         "spatial_softmax_num_keypoints",
@@ -158,6 +158,12 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
         scene_state: false,
         scene_yaw: false,
         scene_relative: false,
+        action_relative: false,
+        prediction: if c.get("prediction_type").and_then(Value::as_str) == Some("sample") {
+            crate::schedule::Prediction::Sample
+        } else {
+            crate::schedule::Prediction::Epsilon
+        },
         gripper_state: false,
     })
 }

@@ -8,7 +8,7 @@
 //! [`crate::normalize`]).
 
 use crate::encoder::RgbEncoder;
-use crate::schedule::{Ddim, NoiseSchedule, ScheduleError};
+use crate::schedule::{Ddim, NoiseSchedule, Prediction, ScheduleError};
 use crate::unet::{ConditionalUnet1d, UnetConfig};
 use tch::nn::{self, Module};
 use tch::{Kind, Tensor};
@@ -63,6 +63,16 @@ pub struct DiffusionConfig {
     /// be memorised trajectory by trajectory (seen: held-out scenes reached 5 cm off).
     #[serde(default)]
     pub scene_relative: bool,
+    /// With `eef_axis_angle`, the chunk's target positions relative to the TCP's position at
+    /// the newest observation (target - TCP), added back at inference: an approach is then the
+    /// same chunk wherever on the table it starts, where absolute targets tie each chunk to
+    /// the positions the demos happened to visit. Orientation and gripper stay absolute.
+    #[serde(default)]
+    pub action_relative: bool,
+    /// What the U-Net is trained to predict: the added noise (`epsilon`, the paper's) or the
+    /// clean chunk (`sample`, LeRobot's other `prediction_type`).
+    #[serde(default)]
+    pub prediction: Prediction,
 }
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
@@ -106,6 +116,8 @@ impl DiffusionConfig {
             gripper_state: false,
             scene_yaw: false,
             scene_relative: false,
+            action_relative: false,
+            prediction: Prediction::Epsilon,
         }
     }
 
@@ -205,7 +217,7 @@ impl DiffusionPolicy {
             .collect();
         let unet = ConditionalUnet1d::new(&vs / "unet", &cfg.unet());
         let schedule = NoiseSchedule::squared_cosine(cfg.train_steps)?;
-        let ddim = Ddim::new(schedule.clone(), cfg.inference_steps, cfg.clip)?;
+        let ddim = Ddim::new(schedule.clone(), cfg.inference_steps, cfg.clip)?.predicting(cfg.prediction);
         Ok(DiffusionPolicy { cfg, encoders, unet, schedule, ddim })
     }
 
@@ -277,7 +289,8 @@ impl DiffusionPolicy {
     }
 
     /// Training's loss for a batch: the noise added at timesteps `t` (B) to the action chunk
-    /// (B, Tp, action_dim), predicted by the U-Net; mean squared error. `train`: random crops
+    /// (B, Tp, action_dim), or with `prediction = "sample"` the chunk itself, predicted by the
+    /// U-Net from the noisy chunk; mean squared error. `train`: random crops
     /// (validation takes the centre ones).
     pub fn loss(
         &self,
@@ -293,7 +306,11 @@ impl DiffusionPolicy {
         let cond = self.global_cond(images, state, train)?;
         let noisy = self.schedule.add_noise(actions, noise, t)?;
         let pred = self.unet.forward(&noisy, &Tensor::from_slice(t).to_device(actions.device()), &cond);
-        Ok(pred.mse_loss(noise, tch::Reduction::Mean))
+        let target = match c.prediction {
+            Prediction::Epsilon => noise,
+            Prediction::Sample => actions,
+        };
+        Ok(pred.mse_loss(target, tch::Reduction::Mean))
     }
 
     /// One action chunk (B, Tp, action_dim), normalised, from the initial `noise` (DDIM,

@@ -1,6 +1,7 @@
 //! The diffusion noise schedule and the DDIM sampler, with the semantics of diffusers'
 //! `DDPMScheduler` (training) and `DDIMScheduler` (inference) as LeRobot's Diffusion Policy
-//! configures them: `squaredcos_cap_v2` betas, epsilon prediction, samples clipped to [-1, 1],
+//! configures them: `squaredcos_cap_v2` betas, epsilon prediction (or `sample`, its
+//! `prediction_type` alternative), samples clipped to [-1, 1],
 //! `set_alpha_to_one`, eta 0, "leading" timestep spacing, no offset.
 //!
 //! The schedule is computed as diffusers computes it (betas in f64, then float32 from there on:
@@ -77,6 +78,17 @@ impl NoiseSchedule {
     }
 }
 
+/// What the network predicts (LeRobot's `prediction_type`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Prediction {
+    /// The noise that was added (Diffusion Policy's choice).
+    #[default]
+    Epsilon,
+    /// The clean chunk itself.
+    Sample,
+}
+
 /// DDIM sampling (eta 0, deterministic given the initial noise) over a [`NoiseSchedule`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Ddim {
@@ -85,6 +97,7 @@ pub struct Ddim {
     step_ratio: i64,
     /// Predicted clean samples are clamped to [-clip, clip] (diffusers' `clip_sample_range`).
     clip: Option<f64>,
+    prediction: Prediction,
 }
 
 impl Ddim {
@@ -97,7 +110,12 @@ impl Ddim {
         }
         let step_ratio = (train / inference_steps) as i64;
         let timesteps = (0..inference_steps as i64).rev().map(|k| k * step_ratio).collect();
-        Ok(Ddim { schedule, timesteps, step_ratio, clip })
+        Ok(Ddim { schedule, timesteps, step_ratio, clip, prediction: Prediction::Epsilon })
+    }
+
+    /// The same sampler for a network that predicts `prediction`.
+    pub fn predicting(self, prediction: Prediction) -> Ddim {
+        Ddim { prediction, ..self }
     }
 
     /// The timesteps the sampler visits, first to last.
@@ -105,20 +123,27 @@ impl Ddim {
         &self.timesteps
     }
 
-    /// One DDIM step from `sample` at timestep `t` given the predicted noise `eps`:
-    /// x0 = (x - sqrt(1 - abar_t) eps) / sqrt(abar_t), clipped; then
+    /// One DDIM step from `sample` at timestep `t` given the network's output `out`: with
+    /// epsilon prediction eps = out and x0 = (x - sqrt(1 - abar_t) eps) / sqrt(abar_t); with
+    /// sample prediction x0 = out and eps = (x - sqrt(abar_t) x0) / sqrt(1 - abar_t); x0
+    /// clipped (after eps is derived, as diffusers does); then
     /// x_prev = sqrt(abar_prev) x0 + sqrt(1 - abar_prev) eps (abar_prev = 1 past the start).
-    pub fn step(&self, eps: &Tensor, t: i64, sample: &Tensor) -> Result<Tensor, ScheduleError> {
+    pub fn step(&self, out: &Tensor, t: i64, sample: &Tensor) -> Result<Tensor, ScheduleError> {
         let a_t = self.schedule.alpha_cumprod(t)?;
         let prev = t - self.step_ratio;
         let a_prev = if prev >= 0 { self.schedule.alpha_cumprod(prev)? } else { 1.0 };
         let (b_t, b_prev) = (1.0 - a_t, 1.0 - a_prev);
-        let x0 = (sample - eps * f64::from(b_t.sqrt())) / f64::from(a_t.sqrt());
+        let (x0, eps) = match self.prediction {
+            Prediction::Epsilon => {
+                ((sample - out * f64::from(b_t.sqrt())) / f64::from(a_t.sqrt()), out.shallow_clone())
+            }
+            Prediction::Sample => (out.shallow_clone(), (sample - out * f64::from(a_t.sqrt())) / f64::from(b_t.sqrt())),
+        };
         let x0 = match self.clip {
             Some(c) => x0.clamp(-c, c),
             None => x0,
         };
-        Ok(x0 * f64::from(a_prev.sqrt()) + eps * f64::from(b_prev.sqrt()))
+        Ok(x0 * f64::from(a_prev.sqrt()) + &eps * f64::from(b_prev.sqrt()))
     }
 
     /// The whole chunk: from `noise` through every timestep, `predict(sample, t)` giving the
@@ -195,6 +220,31 @@ mod tests {
             let err = (&x - &want).abs().max().double_value(&[]);
             assert!(err < 1e-4, "t {t}: max error {err}");
         }
+    }
+
+    /// The same with a network that predicts the clean sample: given the true x0 every step
+    /// lands on the forward process too, and the two predictions agree step by step.
+    #[test]
+    fn a_ddim_step_with_the_true_clean_sample_follows_the_forward_process() {
+        tch::manual_seed(8);
+        let s = NoiseSchedule::squared_cosine(100).unwrap();
+        let by_eps = Ddim::new(s.clone(), 16, None).unwrap();
+        let by_x0 = by_eps.clone().predicting(Prediction::Sample);
+        let x0 = Tensor::rand([3, 16, 7], (Kind::Float, tch::Device::Cpu)) * 1.6 - 0.8;
+        let eps = Tensor::randn([3, 16, 7], (Kind::Float, tch::Device::Cpu));
+        let mut x = s.add_noise(&x0, &eps, &[90, 90, 90]).unwrap();
+        for &t in by_x0.timesteps() {
+            let other = by_eps.step(&eps, t, &x).unwrap();
+            x = by_x0.step(&x0, t, &x).unwrap();
+            let prev = t - 6;
+            let want = if prev >= 0 { s.add_noise(&x0, &eps, &[prev; 3]).unwrap() } else { x0.shallow_clone() };
+            let err = (&x - &want).abs().max().double_value(&[]);
+            assert!(err < 1e-3, "t {t}: max error {err}");
+            assert!((&x - &other).abs().max().double_value(&[]) < 1e-3, "t {t}");
+        }
+        // A wrong clean sample does not: the step follows what the network says.
+        let wrong = by_x0.step(&(&x0 + 0.5), 12, &s.add_noise(&x0, &eps, &[12; 3]).unwrap()).unwrap();
+        assert!((&wrong - s.add_noise(&x0, &eps, &[6; 3]).unwrap()).abs().max().double_value(&[]) > 0.1);
     }
 
     #[test]

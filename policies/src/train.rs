@@ -129,6 +129,12 @@ impl Preset {
                 }
             )));
         }
+        if p.model.action_relative && p.model.action_space != crate::policy::ActionSpace::EefAxisAngle {
+            return Err(bad(format!(
+                "action_relative applies to eef_axis_angle targets; {:?} actions are velocities already",
+                p.model.action_space
+            )));
+        }
         Ok(p)
     }
 }
@@ -180,6 +186,7 @@ pub struct SampleSet {
     episode_of: Vec<usize>,
     n_obs: usize,
     horizon: usize,
+    action_relative: bool,
 }
 
 /// A batch ready for the model: normalised, images in [0, 1] per camera.
@@ -226,7 +233,35 @@ impl SampleSet {
             episode_of,
             n_obs,
             horizon,
+            action_relative: cfg.action_relative,
         }
+    }
+
+    /// The windows' actions (B, Tp, action_dim), unnormalised, in the policy's terms: with
+    /// `action_relative`, the target positions minus the TCP position at the window's newest
+    /// observation (the state's first three values).
+    fn actions(&self, idx: &[usize]) -> Tensor {
+        let b = idx.len() as i64;
+        let act = Self::rows(&self.action_rows, self.horizon, idx);
+        let a = self.action.index_select(0, &act).view([b, self.horizon as i64, -1]);
+        if !self.action_relative {
+            return a;
+        }
+        let newest: Vec<i64> = idx.iter().map(|&i| self.obs_rows[(i + 1) * self.n_obs - 1]).collect();
+        let tcp = self.state.index_select(0, &Tensor::from_slice(&newest)).narrow(1, 0, 3);
+        let rest = Tensor::zeros([b, a.size()[2] - 3], (a.kind(), Device::Cpu));
+        let shift = Tensor::cat(&[tcp.to_kind(a.kind()), rest], 1).unsqueeze(1);
+        a - shift
+    }
+
+    /// The action rows the normaliser is fitted on: every step's action, or with
+    /// `action_relative` every window's relative chunk (the values the model is trained on).
+    fn action_rows_for_stats(&self) -> Vec<Vec<f32>> {
+        if !self.action_relative {
+            return Self::rows_of(&self.action);
+        }
+        let idx: Vec<usize> = (0..self.len()).collect();
+        idx.chunks(4096).flat_map(|c| Self::rows_of(&self.actions(c).flatten(0, 1))).collect()
     }
 
     pub fn len(&self) -> usize {
@@ -247,7 +282,6 @@ impl SampleSet {
     pub fn batch(&self, idx: &[usize], stats: (&MinMax, &MinMax)) -> Result<Batch, NormalizeError> {
         let b = idx.len() as i64;
         let obs = Self::rows(&self.obs_rows, self.n_obs, idx);
-        let act = Self::rows(&self.action_rows, self.horizon, idx);
         let frames = self.frames.index_select(0, &obs);
         let cams = frames.size()[1];
         let frames = frames.to_kind(Kind::Float) / 255.0;
@@ -255,7 +289,7 @@ impl SampleSet {
         let frames = frames.view([b, self.n_obs as i64, cams, 3, s[3], s[4]]);
         let images = (0..cams).map(|k| frames.select(2, k)).collect();
         let state = stats.0.normalize(&self.state.index_select(0, &obs).view([b, self.n_obs as i64, -1]))?;
-        let action = stats.1.normalize(&self.action.index_select(0, &act).view([b, self.horizon as i64, -1]))?;
+        let action = stats.1.normalize(&self.actions(idx))?;
         let mut episodes: Vec<String> = idx.iter().map(|&i| self.uuids[self.episode_of[i]].clone()).collect();
         episodes.sort();
         episodes.dedup();
@@ -647,6 +681,9 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     if opts.resume && last.is_none() {
         eprintln!("--resume: no checkpoint in {} yet; starting from step 0", opts.out.display());
     }
+    let train_set = SampleSet::new(&train_eps, model);
+    let val_set = SampleSet::new(&val_eps, model);
+    let co_set = SampleSet::new(&cotrain, model);
     let (state_stats, action_stats, resumed_from) = match &last {
         Some(dir) => {
             let meta = trainer.restore(dir)?;
@@ -666,14 +703,12 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
                 train_eps.iter().chain(&cotrain).flat_map(|e| SampleSet::rows_of(f(e))).collect()
             };
             let s = rows(&|e| &e.state);
-            let a = rows(&|e| &e.action);
+            let a: Vec<Vec<f32>> =
+                train_set.action_rows_for_stats().into_iter().chain(co_set.action_rows_for_stats()).collect();
             (MinMax::fit(s.iter().map(Vec::as_slice))?, MinMax::fit(a.iter().map(Vec::as_slice))?, None)
         }
     };
     let manifest: Vec<String> = train_eps.iter().chain(&val_eps).chain(&cotrain).map(|e| e.uuid.clone()).collect();
-    let train_set = SampleSet::new(&train_eps, model);
-    let val_set = SampleSet::new(&val_eps, model);
-    let co_set = SampleSet::new(&cotrain, model);
     drop((train_eps, val_eps, cotrain));
     let stats = (&state_stats, &action_stats);
     let w = if co_set.is_empty() { 1.0 } else { opts.w };
@@ -879,9 +914,47 @@ mod tests {
         assert!(e.contains("image_sise"), "{e}");
         let e = Preset::resolve("big").unwrap_err().to_string();
         assert!(e.contains("neither a preset (paper_dp, small, small_lowdim) nor a TOML file"), "{e}");
+        std::fs::write(
+            &f,
+            "preset = \"small_lowdim\"\n[model]\naction_relative = true\naction_space = \"cartesian_velocity\"\n",
+        )
+        .unwrap();
+        let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
+        assert!(e.contains("action_relative applies to eef_axis_angle"), "{e}");
     }
 
     /// A batch holding NaN is refused: the weights are untouched and the episodes named.
+    #[test]
+    fn relative_actions_are_targets_minus_the_newest_observed_tcp() {
+        // One 5-step episode: the TCP at x = k, the target at x = k + 0.5 (y, z likewise).
+        let t = 5;
+        let state = Tensor::arange(t, (Kind::Float, Device::Cpu)).unsqueeze(1).repeat([1, 7]);
+        let action = &state + 0.5;
+        let ep = EpisodeTensors {
+            path: "ep".into(),
+            uuid: "ep".into(),
+            success: Some(true),
+            state,
+            action,
+            frames: Tensor::zeros([t, 0, 3, 1, 1], (Kind::Uint8, Device::Cpu)),
+        };
+        let cfg = DiffusionConfig { horizon: 4, n_action_steps: 2, ..DiffusionConfig::tiny() };
+        let abs = SampleSet::new(std::slice::from_ref(&ep), &cfg);
+        let rel = SampleSet::new(&[ep], &DiffusionConfig { action_relative: true, ..cfg });
+        // Window t = 2: observations 1, 2; actions 1..=4.
+        let a = Vec::<f32>::try_from(abs.actions(&[2]).get(0).select(1, 0)).unwrap();
+        let r: Vec<Vec<f32>> = SampleSet::rows_of(&rel.actions(&[2]).get(0));
+        assert_eq!(a, [1.5, 2.5, 3.5, 4.5]);
+        // Positions relative to the TCP at step 2; orientation and gripper absolute.
+        assert_eq!(r.iter().map(|row| row[0]).collect::<Vec<_>>(), [-0.5, 0.5, 1.5, 2.5]);
+        assert_eq!(r[0][2], -0.5);
+        assert_eq!(r[0][3..], [1.5; 4]);
+        // The normaliser sees what the model is trained on.
+        let rows = rel.action_rows_for_stats();
+        assert_eq!(rows.len(), rel.len() * 4);
+        assert!(rows.iter().all(|row| row[0] >= -1.0 && row[0] <= 3.5), "{rows:?}");
+    }
+
     #[test]
     fn a_batch_with_nan_is_refused_and_named() {
         tch::manual_seed(1);

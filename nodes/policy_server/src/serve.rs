@@ -126,6 +126,8 @@ impl Server {
             "scene_state": c.scene_state,
             "scene_yaw": c.scene_yaw,
             "scene_relative": c.scene_relative,
+            "action_relative": c.action_relative,
+            "prediction": c.prediction,
             "gripper_state": c.gripper_state,
             "step": self.meta.step,
         })
