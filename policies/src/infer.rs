@@ -82,7 +82,7 @@ pub fn infer(
         let raw = take(named, "observation.state")?;
         let tcp = raw.select(1, -1).narrow(1, 0, 3).to_kind(action.kind());
         let rest = tch::Tensor::zeros([tcp.size()[0], action.size()[2] - 3], (action.kind(), action.device()));
-        action = action + tch::Tensor::cat(&[tcp, rest], 1).unsqueeze(1);
+        action += tch::Tensor::cat(&[tcp, rest], 1).unsqueeze(1);
     }
     let executed = policy.executed(&action);
     Ok(Inference { trace, action, executed, images, state })
