@@ -396,7 +396,9 @@ fn the_sim_backend_drives_the_sim_bridge_through_the_node() {
             })
             .await;
         let drift = (0..7).map(|i| (after.joint_positions[i] - held.joint_positions[i]).abs()).fold(0.0, f64::max);
-        assert!(drift < 2e-3, "the refused command moved the arm {drift:.4} rad");
+        // Executed, the command would take joint 1 back 0.3 rad; what remains is the hold's
+        // settling from the motion it stopped (CI under load: 2.1 mrad).
+        assert!(drift < 0.01, "the refused command moved the arm {drift:.4} rad");
         eprintln!("sim backend: joint 1 moved {moved:.3} rad; {}; {}", held.fault, stale.fault);
     });
 }
