@@ -119,6 +119,15 @@ pub fn state_row(pose: &[f32; 7], rs: &RobotState, cfg: &DiffusionConfig, scene:
     row
 }
 
+/// The offset that makes `action_relative` chunks absolute: (B, 1, action_dim) holding each
+/// row's TCP position (`state`'s first three values, (B, >=3)) then zeros. Training subtracts
+/// it from the recorded chunk, inference adds it to the sampled one.
+pub fn tcp_offset(state: &Tensor, action_dim: i64, kind: tch::Kind) -> Tensor {
+    let tcp = state.narrow(1, 0, 3).to_kind(kind);
+    let rest = Tensor::zeros([tcp.size()[0], action_dim - 3], (kind, tcp.device()));
+    Tensor::cat(&[tcp, rest], 1).unsqueeze(1)
+}
+
 /// The recorded action in `space`: for `eef_axis_angle`, the target position and its
 /// rotation as a [`canonical_axis_angle`].
 pub fn action_of(a: &ActionDict, space: ActionSpace) -> [f32; 7] {

@@ -80,9 +80,7 @@ pub fn infer(
     if meta.config.action_relative {
         // Relative target positions + the TCP's position at the newest observation.
         let raw = take(named, "observation.state")?;
-        let tcp = raw.select(1, -1).narrow(1, 0, 3).to_kind(action.kind());
-        let rest = tch::Tensor::zeros([tcp.size()[0], action.size()[2] - 3], (action.kind(), action.device()));
-        action += tch::Tensor::cat(&[tcp, rest], 1).unsqueeze(1);
+        action += crate::data::tcp_offset(&raw.select(1, -1), action.size()[2], action.kind());
     }
     let executed = policy.executed(&action);
     Ok(Inference { trace, action, executed, images, state })

@@ -248,9 +248,8 @@ impl SampleSet {
             return a;
         }
         let newest: Vec<i64> = idx.iter().map(|&i| self.obs_rows[(i + 1) * self.n_obs - 1]).collect();
-        let tcp = self.state.index_select(0, &Tensor::from_slice(&newest)).narrow(1, 0, 3);
-        let rest = Tensor::zeros([b, a.size()[2] - 3], (a.kind(), Device::Cpu));
-        let shift = Tensor::cat(&[tcp.to_kind(a.kind()), rest], 1).unsqueeze(1);
+        let newest = self.state.index_select(0, &Tensor::from_slice(&newest));
+        let shift = crate::data::tcp_offset(&newest, a.size()[2], a.kind());
         a - shift
     }
 

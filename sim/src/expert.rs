@@ -78,8 +78,10 @@ fn lead(
     (next_p, next_r)
 }
 
-/// A closing grasp is done once the fingers have had [`GRIP_TICKS`] and stopped moving (on the
-/// object, or on nothing: the next phase checks).
+/// A grasp (or a release) is done as soon as the fingers, commanded for at least
+/// [`GRIP_TICKS`], stop moving (closed on the object, on nothing: the next phase checks, or
+/// open). No wait after that: a policy learning from these demos sees the fingers stop and
+/// then the arm move, never a pause it has no observation to time.
 fn grip_settled(ticks_in_phase: u32, gripper: f64, last_gripper: f64) -> bool {
     ticks_in_phase >= GRIP_TICKS && (gripper - last_gripper).abs() < 2e-3
 }
@@ -116,7 +118,8 @@ pub struct PickPlaceExpert {
 const HOVER_Z: f64 = 0.12;
 const CARRY_Z: f64 = 0.18;
 const RELEASE_Z: f64 = 0.11;
-const GRIP_TICKS: u32 = 12;
+/// The fingers take a tick to start moving, so stillness before this is not the end of a grasp.
+const GRIP_TICKS: u32 = 3;
 /// The pinch point sits this far above the cube's centre, so the finger tips clear the table.
 const GRASP_ABOVE_CENTRE: f64 = 0.008;
 /// Grasp attempts before the expert gives up (a missed grasp is retried from the approach).
@@ -194,7 +197,7 @@ impl PickPlaceExpert {
         let done = match self.phase {
             // Closed once the fingers stop moving (on the cube, or on nothing: Lift checks).
             Phase::Grasp => grip_settled(self.ticks_in_phase, sim.gripper_position(), self.last_gripper),
-            Phase::Release => self.ticks_in_phase >= GRIP_TICKS,
+            Phase::Release => grip_settled(self.ticks_in_phase, sim.gripper_position(), self.last_gripper),
             Phase::Done => false,
             _ => reached,
         };
@@ -305,7 +308,7 @@ impl DrawerExpert {
             Phase::Grasp => grip_settled(self.ticks_in_phase, sim.gripper_position(), self.last_gripper),
             Phase::Pull => reached || opening >= DRAWER_TRAVEL - PULL_SHORT_OF_END,
             Phase::Push => reached || opening <= 0.002,
-            Phase::Release => self.ticks_in_phase >= GRIP_TICKS,
+            Phase::Release => grip_settled(self.ticks_in_phase, sim.gripper_position(), self.last_gripper),
             Phase::Done => false,
             _ => reached,
         };
