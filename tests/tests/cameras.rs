@@ -83,7 +83,7 @@ fn stream_cameras_from_ffmpeg_reach_shared_memory_ros_and_rclpy_and_survive_a_re
              [cameras.ext1]\nsource = \"http://127.0.0.1:{p1}/cam\"\nwidth = 1280\nheight = 720\nside_by_side = true\n\
              intrinsics = {{ width = 2560, height = 1440, fx = 1400.0, fy = 1402.0, cx = 1279.5, cy = 719.5, distortion = [-0.04, 0.01, 0.0, 0.0, 0.0] }}\n\
              extrinsics = [0.2, -0.55, 0.45, -2.1, 0.0, 0.3]\n\
-             [cameras.ext2]\nsource = \"http://127.0.0.1:{p2}/cam\"\n"
+             [cameras.ext2]\nsource = \"http://127.0.0.1:{p2}/cam\"\njpeg_passthrough = true\n"
         ),
     )
     .unwrap();
@@ -115,8 +115,21 @@ fn stream_cameras_from_ffmpeg_reach_shared_memory_ros_and_rclpy_and_survive_a_re
         let blue = px.chunks(3).filter(|p| p[2] > 180 && p[0] < 60 && p[1] < 60).count() as f64 / (1280.0 * 720.0);
         assert!(blue < 0.3, "{:.0}% of the published image is the right eye's blue", blue * 100.0);
     }
-    let (_, _, w2, h2, _) = next_frame(&sub2, Duration::from_secs(20)).expect("ext2 frames");
-    assert_eq!((w2, h2), (640, 480), "a camera without a size publishes what its source sends");
+    // ext2 passes its source's JPEGs through: encoding jpeg, the size from the JPEG's header.
+    let until = Instant::now() + Duration::from_secs(20);
+    let f2 = loop {
+        if let Some(f) = sub2.receive().unwrap() {
+            break f;
+        }
+        assert!(Instant::now() < until, "no ext2 frame");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    let h2 = *f2.header();
+    assert_eq!((h2.width, h2.height), (640, 480), "a camera without a size publishes what its source sends");
+    assert_eq!(h2.encoding(), Some(labrig_runtime::frames::FrameEncoding::Jpeg));
+    let rgb = labrig_episode::jpeg::decode_rgb(f2.pixels()).expect("a passed-through frame is the server's JPEG");
+    assert_eq!((rgb.width, rgb.height), (640, 480));
+    drop(f2);
 
     // camera_info with each frame: the configured intrinsics scaled from 2560x1440 to 1280x720.
     let until = Instant::now() + Duration::from_secs(20);
@@ -287,7 +300,8 @@ fn the_bench_rig_records_five_stream_cameras_through_the_camera_node() {
 /// The RealSense source: a recording made by librealsense's own recorder from its software
 /// device (synthetic frames, no camera; `nodes/cameras/python/realsense_bag.py`), played back
 /// through the node's librealsense child: the frames in order (frame k's red channel is k),
-/// the device's intrinsics on camera_info; a serial no RealSense has is refused at start.
+/// the device's intrinsics on camera_info, and the depth aligned to the colour image by
+/// librealsense on `rs1_depth`; a serial no RealSense has is refused at start.
 #[test]
 fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
     let cams = workspace_bin("labrig-cameras", "labrig-cameras");
@@ -299,7 +313,7 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
     let o = Command::new(&python)
         .arg(labrig_tests::repo_root().join("nodes/cameras/python/realsense_bag.py"))
         .arg(&rec)
-        .args(["--frames", "40", "--width", "640", "--height", "480", "--fx", "612.25", "--fy", "611.75"])
+        .args(["--frames", "40", "--width", "640", "--height", "480", "--fx", "612.25", "--fy", "611.75", "--depth"])
         .output()
         .unwrap();
     assert!(o.status.success(), "recording: {}", String::from_utf8_lossy(&o.stderr));
@@ -312,6 +326,7 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
     let info: RosSubscription<CameraInfo> = ros.subscription(&topics::camera_info("rs1"), qos::reliable(10)).unwrap();
     let frames = FrameNode::new_in(&ns).unwrap();
     let sub = frames.subscriber("rs1").unwrap();
+    let depth_sub = frames.subscriber("rs1_depth").unwrap();
     let mut cmd = Command::new(&cams);
     cmd.args(["run", "--camera"])
         .arg(format!("rs1={}", rec.display()))
@@ -322,6 +337,8 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
             "cameras.rs1.height=480",
             "--set",
             "cameras.rs1.loop_file=false",
+            "--set",
+            "cameras.rs1.depth=true",
         ])
         .args(["--domain-id", &domain.to_string()])
         .env(labrig_runtime::frames::NAMESPACE_ENV, &ns)
@@ -346,6 +363,22 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
         std::thread::sleep(Duration::from_millis(10));
     };
     assert_eq!((ci.k[0], ci.k[4], ci.k[2], ci.k[5]), (612.25, 611.75, 319.5, 239.5), "the device's intrinsics");
+
+    // Depth, aligned: the recording's depth camera (fx x 0.8, 15 mm along x) sees a wall at
+    // 1000 mm with a 900 mm block in its columns [400, 480); in the colour image that block
+    // lands at u = cx + fx_c (X + 0.015) / Z with X = (u_d - cx) Z / fx_d: columns ~430..530.
+    let until = Instant::now() + Duration::from_secs(20);
+    let (dh, depth) = loop {
+        if let Some(f) = depth_sub.receive().unwrap() {
+            break (*f.header(), f.pixels().to_vec());
+        }
+        assert!(Instant::now() < until, "no rs1_depth frame");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    assert_eq!((dh.width, dh.height, dh.encoding()), (640, 480, Some(labrig_runtime::frames::FrameEncoding::Depth16)));
+    let mm = |u: usize, v: usize| u16::from_le_bytes([depth[(v * 640 + u) * 2], depth[(v * 640 + u) * 2 + 1]]);
+    let row: Vec<u16> = [100, 410, 425, 435, 470, 500, 525, 535, 600].iter().map(|&u| mm(u, 240)).collect();
+    assert_eq!(row, [1000, 1000, 1000, 900, 900, 900, 900, 1000, 1000], "row 240 of the aligned depth");
 
     let o = Command::new(&cams)
         .args([

@@ -2,7 +2,13 @@
 device fed by this script, recorded by librealsense's own recorder (pyrealsense2). labrig's
 tests play such a file back through the camera node's RealSense source.
 
-    python realsense_bag.py OUT.db3 [--frames 30] [--width 640] [--height 480] [--fps 30]
+With --depth the device has a second sensor, as a D435's stereo module: z16 depth (depth
+units 1 mm) of a wall at 1000 mm with a block at 900 mm in columns [5/8 W, 6/8 W), seen with
+other intrinsics (fx, fy x 0.8) from 15 mm along x of the colour camera (the extrinsics
+registered depth -> colour), so depth aligned to colour differs from the raw depth by a
+computable shift.
+
+    python realsense_bag.py OUT.db3 [--frames 30] [--width 640] [--height 480] [--fps 30] [--depth]
 """
 import argparse
 
@@ -19,6 +25,7 @@ def main():
     p.add_argument("--fps", type=int, default=30)
     p.add_argument("--fx", type=float, default=615.0)
     p.add_argument("--fy", type=float, default=614.5)
+    p.add_argument("--depth", action="store_true")
     a = p.parse_args()
 
     dev = rs.software_device()
@@ -35,10 +42,34 @@ def main():
     vs.fmt = rs.format.rgb8
     vs.intrinsics = intr
     profile = sensor.add_video_stream(vs)
+    if a.depth:
+        stereo = dev.add_sensor("Stereo Module")
+        di = rs.intrinsics()
+        di.width, di.height = a.width, a.height
+        di.fx, di.fy = a.fx * 0.8, a.fy * 0.8
+        di.ppx, di.ppy = (a.width - 1) / 2.0, (a.height - 1) / 2.0
+        di.model = rs.distortion.brown_conrady
+        di.coeffs = [0.0, 0.0, 0.0, 0.0, 0.0]
+        ds = rs.video_stream()
+        ds.type, ds.index, ds.uid = rs.stream.depth, 0, 1
+        ds.width, ds.height, ds.fps, ds.bpp = a.width, a.height, a.fps, 2
+        ds.fmt = rs.format.z16
+        ds.intrinsics = di
+        depth_profile = stereo.add_video_stream(ds)
+        stereo.add_read_only_option(rs.option.depth_units, 0.001)
+        ext = rs.extrinsics()
+        ext.rotation = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        ext.translation = [0.015, 0.0, 0.0]
+        depth_profile.register_extrinsics_to(profile, ext)
+        wall = np.full((a.height, a.width), 1000, np.uint16)
+        wall[:, a.width * 5 // 8 : a.width * 6 // 8] = 900
     dev.register_info(rs.camera_info.serial_number, "BAG-000000001")
     recorder = rs.recorder(a.out, dev)
     sensor.open(profile)
     sensor.start(lambda f: None)
+    if a.depth:
+        stereo.open(depth_profile)
+        stereo.start(lambda f: None)
     # Frame k: a horizontal ramp whose red channel is k, so a reader can tell frames apart.
     ramp = np.tile(np.linspace(0, 255, a.width, dtype=np.uint8), (a.height, 1))
     for k in range(a.frames):
@@ -51,8 +82,21 @@ def main():
         f.frame_number = k
         f.profile = profile.as_video_stream_profile()
         sensor.on_video_frame(f)
+        if a.depth:
+            d = rs.software_video_frame()
+            d.pixels = wall.tobytes()
+            d.bpp, d.stride = 2, a.width * 2
+            d.timestamp = f.timestamp
+            d.domain = rs.timestamp_domain.hardware_clock
+            d.frame_number = k
+            d.depth_units = 0.001
+            d.profile = depth_profile.as_video_stream_profile()
+            stereo.on_video_frame(d)
     sensor.stop()
     sensor.close()
+    if a.depth:
+        stereo.stop()
+        stereo.close()
     del recorder
 
 

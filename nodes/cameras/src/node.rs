@@ -109,6 +109,17 @@ pub struct CameraConfig {
     /// Play a video file again from the start when it ends.
     #[serde(default = "yes")]
     pub loop_file: bool,
+    /// Publish an MJPEG source's JPEGs as they arrive (encoding `jpeg` on shared memory)
+    /// instead of decoding them to RGB: the recorder stores them unchanged, saving a decode
+    /// and a re-encode. Only for MJPEG sources (`http://`, a V4L2 device's MJPG mode) sending
+    /// the configured size; the loop decodes them only where a policy observes the camera.
+    #[serde(default)]
+    pub jpeg_passthrough: bool,
+    /// A RealSense's depth too, aligned to the colour image by librealsense (same size, same
+    /// intrinsics: pixel (u, v) of both is one ray), on shared memory as camera `<id>_depth`
+    /// (`depth16`: uint16 millimetres, 0 = no depth).
+    #[serde(default)]
+    pub depth: bool,
 }
 
 fn default_fps() -> f64 {
@@ -138,8 +149,15 @@ impl CameraConfig {
             intrinsics: None,
             extrinsics: None,
             loop_file: true,
+            jpeg_passthrough: false,
+            depth: false,
         }
     }
+}
+
+/// The shared-memory camera id of camera `id`'s aligned depth.
+pub fn depth_id(id: &str) -> String {
+    format!("{id}_depth")
 }
 
 fn is_camera_id(id: &str) -> bool {
@@ -193,6 +211,44 @@ impl CamerasConfig {
                     &key("intrinsics"),
                     format!("are set but camera {id} has no width x height to scale them to"),
                 );
+            }
+            if c.jpeg_passthrough {
+                let mjpeg = match &spec {
+                    SourceSpec::Mjpeg { .. } => true,
+                    SourceSpec::Device { kind, .. } => *kind != DeviceKind::Zed,
+                    _ => false,
+                };
+                if !mjpeg || c.side_by_side == Some(true) {
+                    return bad(
+                        &key("jpeg_passthrough"),
+                        format!(
+                            "needs an MJPEG source sending one image (http://, v4l2:, /dev/videoN); camera {id}'s is {}{}",
+                            c.source,
+                            if c.side_by_side == Some(true) {
+                                " with side_by_side (the eye must be cut out)"
+                            } else {
+                                ""
+                            }
+                        ),
+                    );
+                }
+            }
+            if c.depth {
+                if !matches!(spec, SourceSpec::RealSense { .. }) {
+                    return bad(
+                        &key("depth"),
+                        format!(
+                            "is for a RealSense (realsense:SERIAL or a recording); camera {id}'s source is {}",
+                            c.source
+                        ),
+                    );
+                }
+                if !is_camera_id(&depth_id(id)) {
+                    return bad(
+                        &key("depth"),
+                        format!("needs a camera id of at most 26 characters (its depth is `{}`)", depth_id(id)),
+                    );
+                }
             }
             if !(c.fps.is_finite() && (1.0..=240.0).contains(&c.fps)) {
                 return bad(&key("fps"), format!("is {}, must be 1..=240", c.fps));
@@ -291,6 +347,7 @@ impl Camera {
                 self.source_size(),
                 self.config.fps,
                 self.config.loop_file,
+                self.config.depth,
             )?)),
             SourceSpec::Ffmpeg { input, file } => {
                 Ok(Box::new(FfmpegSource::open(input, *file, self.source_size(), self.config.loop_file)?))
@@ -303,6 +360,7 @@ impl Camera {
                 };
                 let formats: &[&str] = match kind {
                     DeviceKind::Zed => &["YUYV"],
+                    _ if self.config.jpeg_passthrough => &["MJPG"],
                     _ => &["MJPG", "YUYV"],
                 };
                 Ok(Box::new(crate::v4l2::V4l2Source::open(
@@ -398,6 +456,7 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
         }
     };
     let mut publisher: Option<FramePublisher> = None;
+    let mut depth_publisher: Option<FramePublisher> = None;
     let mut last_preview: Option<Instant> = None;
     while !ctx.shutdown.is_triggered() {
         let mut source = match cam.open(ctx.timeouts) {
@@ -411,7 +470,7 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
         send(Event::Up { camera: index, description: cam.config.source.clone(), intrinsics: source.intrinsics() });
         let mut last_seq: Option<u64> = None;
         while !ctx.shutdown.is_triggered() {
-            let raw = match source.read() {
+            let mut raw = match source.read() {
                 Ok(r) => r,
                 Err(e) => {
                     send(Event::Down { camera: index, reason: e.to_string() });
@@ -419,6 +478,7 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                 }
             };
             let arrival = Clock::Wall.now();
+            let depth = raw.depth.take();
             let device_time = raw.device_monotonic_ns.is_some() || raw.capture_wall_ns.is_some();
             let capture = match (raw.capture_wall_ns, raw.device_monotonic_ns) {
                 (Some(w), _) => Nanos(w),
@@ -426,17 +486,21 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                 (None, None) => arrival,
             };
             let want = (cam.config.width, cam.config.height);
-            let converted = if want == (0, 0) {
+            let converted = if cam.config.jpeg_passthrough {
+                passthrough(raw.pixels, want).map(|(jpeg, size)| (Published::Jpeg(jpeg), size))
+            } else if want == (0, 0) {
                 // Whatever the source sends: the first frame fixes the size.
                 publisher
                     .as_ref()
                     .map(|p| p.format().clone())
                     .map_or_else(|| first_size(&raw.pixels, raw.size, cam.side_by_side), |f| Ok((f.width, f.height)))
-                    .and_then(|size| to_rgb(raw.pixels, raw.size, cam.side_by_side, size).map(|rgb| (rgb, size)))
+                    .and_then(|size| {
+                        to_rgb(raw.pixels, raw.size, cam.side_by_side, size).map(|rgb| (Published::Rgb(rgb), size))
+                    })
             } else {
-                to_rgb(raw.pixels, raw.size, cam.side_by_side, want).map(|rgb| (rgb, want))
+                to_rgb(raw.pixels, raw.size, cam.side_by_side, want).map(|rgb| (Published::Rgb(rgb), want))
             };
-            let (rgb, (w, h)) = match converted {
+            let (out, (w, h)) = match converted {
                 Ok(c) => c,
                 Err(e) => {
                     send(Event::Down { camera: index, reason: format!("{}: {e}", cam.config.source) });
@@ -444,8 +508,25 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                     break;
                 }
             };
+            if publisher.as_ref().is_some_and(|p| (p.format().width, p.format().height) != (w, h)) {
+                send(Event::Down {
+                    camera: index,
+                    reason: format!(
+                        "{}: the frames changed size to {w}x{h} from {}x{}",
+                        cam.config.source,
+                        publisher.as_ref().map_or(0, |p| p.format().width),
+                        publisher.as_ref().map_or(0, |p| p.format().height)
+                    ),
+                });
+                sleep_unless(&ctx.shutdown, ctx.retry);
+                break;
+            }
             if publisher.is_none() {
-                match frames.publisher(&cam.id, FrameFormat { encoding: FrameEncoding::Rgb8, width: w, height: h }) {
+                let encoding = match out {
+                    Published::Rgb(_) => FrameEncoding::Rgb8,
+                    Published::Jpeg(_) => FrameEncoding::Jpeg,
+                };
+                match frames.publisher(&cam.id, FrameFormat { encoding, width: w, height: h }) {
                     Ok(p) => publisher = Some(p),
                     Err(e) => {
                         send(Event::Down { camera: index, reason: e.to_string() });
@@ -453,9 +534,29 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                     }
                 }
             }
-            if let Err(e) = publisher.as_mut().expect("publisher").publish(&rgb, capture, arrival) {
+            let bytes = match &out {
+                Published::Rgb(b) | Published::Jpeg(b) => b,
+            };
+            if let Err(e) = publisher.as_mut().expect("publisher").publish(bytes, capture, arrival) {
                 send(Event::Down { camera: index, reason: e.to_string() });
                 break;
+            }
+            // Aligned depth: the colour frame's size, times and sequence.
+            if let Some(depth) = depth {
+                if depth_publisher.is_none() {
+                    let format = FrameFormat { encoding: FrameEncoding::Depth16, width: w, height: h };
+                    match frames.publisher(&depth_id(&cam.id), format) {
+                        Ok(p) => depth_publisher = Some(p),
+                        Err(e) => {
+                            send(Event::Down { camera: index, reason: e.to_string() });
+                            return;
+                        }
+                    }
+                }
+                if let Err(e) = depth_publisher.as_mut().expect("depth publisher").publish(&depth, capture, arrival) {
+                    send(Event::Down { camera: index, reason: format!("depth: {e}") });
+                    break;
+                }
             }
             let dropped = match (last_seq, raw.device_sequence) {
                 (Some(prev), Some(seq)) if seq > prev + 1 => seq - prev - 1,
@@ -466,8 +567,15 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                 let due = last_preview.is_none_or(|t| t.elapsed() >= period);
                 due.then(|| {
                     last_preview = Some(Instant::now());
-                    preview_jpeg(&rgb, w, h, ctx.preview_width, ctx.preview_quality)
+                    match &out {
+                        Published::Rgb(rgb) => Some(preview_jpeg(rgb, w, h, ctx.preview_width, ctx.preview_quality)),
+                        // Decoded only for the preview, at its low rate.
+                        Published::Jpeg(jpeg) => crate::convert::decode_jpeg(jpeg)
+                            .ok()
+                            .map(|(rgb, w, h)| preview_jpeg(&rgb, w, h, ctx.preview_width, ctx.preview_quality)),
+                    }
                 })
+                .flatten()
             });
             send(Event::Frame(FrameEvent {
                 camera: index,
@@ -480,6 +588,29 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
             }));
         }
     }
+}
+
+/// A frame as it leaves for shared memory.
+enum Published {
+    Rgb(Vec<u8>),
+    /// An MJPEG source's JPEG, unchanged (`jpeg_passthrough`).
+    Jpeg(Vec<u8>),
+}
+
+/// `jpeg_passthrough`: the source's JPEG as it came, with its size from the header; refused
+/// when the source sends something else or another size than `want` (0 x 0: any).
+fn passthrough(pixels: crate::convert::Pixels, want: (u32, u32)) -> Result<(Vec<u8>, (u32, u32)), ConvertError> {
+    let size = first_size(&pixels, (0, 0), None)?;
+    let crate::convert::Pixels::Jpeg(jpeg) = pixels else {
+        return Err(ConvertError::Jpeg("jpeg_passthrough: the source sends raw frames, not JPEG".into()));
+    };
+    if want != (0, 0) && size != want {
+        return Err(ConvertError::Jpeg(format!(
+            "jpeg_passthrough: the source sends {}x{} JPEGs, the config asks for {}x{} (passthrough cannot resize: set width/height to the source's or turn it off)",
+            size.0, size.1, want.0, want.1
+        )));
+    }
+    Ok((jpeg, size))
 }
 
 /// The published size of a source's first frame (one eye of a side-by-side one).
@@ -787,5 +918,37 @@ mod tests {
             (q.z - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-12
                 && (q.w - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-12
         );
+    }
+
+    #[test]
+    fn jpeg_passthrough_is_for_mjpeg_sources_of_the_configured_size() {
+        let ok = config("[cameras.ext1]\nsource = \"http://127.0.0.1:9/cam\"\njpeg_passthrough = true\n");
+        assert!(ok.validate().is_ok());
+        for (source, sbs) in [
+            ("testsrc", ""),
+            ("zed:SN1", ""),
+            ("rtsp://127.0.0.1/x", ""),
+            ("http://127.0.0.1:9/c", "side_by_side = true\n"),
+        ] {
+            let c = config(&format!(
+                "[cameras.ext1]\nsource = \"{source}\"\nwidth = 64\nheight = 48\njpeg_passthrough = true\n{sbs}"
+            ));
+            let e = c.validate().unwrap_err().to_string();
+            assert!(
+                e.contains("cameras.ext1.jpeg_passthrough") && e.contains("needs an MJPEG source"),
+                "{source}: {e}"
+            );
+        }
+        let rgb = vec![90u8; 16 * 8 * 3];
+        let mut jpeg = Vec::new();
+        jpeg_encoder::Encoder::new(&mut jpeg, 80).encode(&rgb, 16, 8, jpeg_encoder::ColorType::Rgb).unwrap();
+        // The JPEG leaves unchanged, its size from its header.
+        let (out, size) = passthrough(crate::convert::Pixels::Jpeg(jpeg.clone()), (0, 0)).unwrap();
+        assert_eq!((out, size), (jpeg.clone(), (16, 8)));
+        assert!(passthrough(crate::convert::Pixels::Jpeg(jpeg.clone()), (16, 8)).is_ok());
+        let e = passthrough(crate::convert::Pixels::Jpeg(jpeg), (32, 16)).unwrap_err().to_string();
+        assert!(e.contains("sends 16x8 JPEGs, the config asks for 32x16"), "{e}");
+        let e = passthrough(crate::convert::Pixels::Yuyv(vec![0; 16 * 8 * 2]), (16, 8)).unwrap_err().to_string();
+        assert!(e.contains("not JPEG"), "{e}");
     }
 }

@@ -138,6 +138,9 @@ pub struct RawFrame {
     /// The device's capture time already on the wall clock (librealsense's global or system
     /// time domain), ns.
     pub capture_wall_ns: Option<i64>,
+    /// Depth aligned to this frame's (colour) image, same size: uint16 little endian,
+    /// millimetres, 0 = none (a RealSense with `depth = true`).
+    pub depth: Option<Vec<u8>>,
 }
 
 /// A source opened and streaming.
@@ -315,6 +318,7 @@ impl Source for MjpegSource {
             device_monotonic_ns: None,
             device_sequence: None,
             capture_wall_ns: None,
+            depth: None,
         })
     }
 }
@@ -392,6 +396,7 @@ impl Source for FfmpegSource {
             device_monotonic_ns: None,
             device_sequence: None,
             capture_wall_ns: None,
+            depth: None,
         })
     }
 }
@@ -416,6 +421,7 @@ pub struct RealSenseSource {
     stderr: std::sync::Arc<std::sync::Mutex<String>>,
     intrinsics: crate::intrinsics::Intrinsics,
     size: (u32, u32),
+    depth: bool,
 }
 
 #[derive(serde::Deserialize)]
@@ -430,6 +436,8 @@ struct RealSenseFrame {
     ts_ms: f64,
     domain: String,
     bytes: usize,
+    #[serde(default)]
+    depth_bytes: usize,
 }
 
 impl RealSenseSource {
@@ -439,6 +447,7 @@ impl RealSenseSource {
         size: (u32, u32),
         fps: f64,
         loop_file: bool,
+        depth: bool,
     ) -> Result<RealSenseSource, SourceError> {
         let name = match (serial, file) {
             (Some(s), _) => format!("realsense:{s}"),
@@ -460,6 +469,9 @@ impl RealSenseSource {
         };
         if loop_file {
             cmd.arg("--loop");
+        }
+        if depth {
+            cmd.arg("--depth");
         }
         cmd.args(["--width", &size.0.to_string(), "--height", &size.1.to_string()]);
         cmd.args(["--fps", &(fps.round() as u32).to_string()]);
@@ -495,6 +507,7 @@ impl RealSenseSource {
                 distortion: vec![],
             },
             size,
+            depth,
         };
         if n == 0 {
             return Err(src.died());
@@ -551,8 +564,18 @@ impl Source for RealSenseSource {
         if meta.bytes != expected {
             return Err(bad(format!("a frame of {} bytes, expected {expected}", meta.bytes)));
         }
+        let depth_expected = if self.depth { self.size.0 as usize * self.size.1 as usize * 2 } else { 0 };
+        if meta.depth_bytes != depth_expected {
+            return Err(bad(format!("a depth frame of {} bytes, expected {depth_expected}", meta.depth_bytes)));
+        }
         let mut rgb = vec![0u8; meta.bytes];
         if self.out.read_exact(&mut rgb).is_err() {
+            return Err(self.died());
+        }
+        let mut depth = self.depth.then(|| vec![0u8; depth_expected]);
+        if let Some(d) = depth.as_mut()
+            && self.out.read_exact(d).is_err()
+        {
             return Err(self.died());
         }
         // Global time and system time are the host's wall clock (ms); the hardware clock is the
@@ -564,6 +587,7 @@ impl Source for RealSenseSource {
             device_monotonic_ns: None,
             device_sequence: Some(meta.seq),
             capture_wall_ns: wall.then(|| (meta.ts_ms * 1e6).round() as i64),
+            depth,
         })
     }
 

@@ -236,6 +236,7 @@ impl Source for V4l2Source {
             device_monotonic_ns: monotonic.then_some(ns),
             device_sequence: Some(u64::from(meta.sequence)),
             capture_wall_ns: None,
+            depth: None,
         })
     }
 }

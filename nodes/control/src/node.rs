@@ -563,6 +563,19 @@ impl PixelRing {
 
     fn push(&mut self, f: &labrig_runtime::frames::Frame) {
         let h = *f.header();
+        if h.encoding() == Some(FrameEncoding::Jpeg) {
+            // A camera's `jpeg_passthrough`: decoded here, only because a policy observes it.
+            match labrig_episode::jpeg::decode_rgb(f.pixels()) {
+                Ok(rgb) => self.keep(RgbFrame {
+                    width: rgb.width as u32,
+                    height: rgb.height as u32,
+                    pixels: rgb.pixels,
+                    capture_ns: h.capture_ns,
+                }),
+                Err(e) => tracing::warn!(camera = %self.camera, "a JPEG frame that does not decode: {e}"),
+            }
+            return;
+        }
         if h.encoding() != Some(FrameEncoding::Rgb8) {
             return;
         }
@@ -577,12 +590,11 @@ impl PixelRing {
                 .map(|r| r.concat())
         };
         let Some(pixels) = pixels else { return };
-        self.frames.push_back(Arc::new(RgbFrame {
-            width: h.width,
-            height: h.height,
-            pixels,
-            capture_ns: h.capture_ns,
-        }));
+        self.keep(RgbFrame { width: h.width, height: h.height, pixels, capture_ns: h.capture_ns });
+    }
+
+    fn keep(&mut self, frame: RgbFrame) {
+        self.frames.push_back(Arc::new(frame));
         while self.frames.len() > Self::DEPTH {
             self.frames.pop_front();
         }

@@ -40,6 +40,13 @@ pub struct CamerasBenchArgs {
     /// JPEG quality scale of the servers (ffmpeg -q:v, 2 best .. 31).
     #[arg(long, default_value_t = 5)]
     pub jpeg_q: u32,
+    /// The cameras publish the servers' JPEGs unchanged (`jpeg_passthrough`) instead of
+    /// decoding them to RGB; the recorder then stores them without re-encoding.
+    #[arg(long)]
+    pub jpeg_passthrough: bool,
+    /// JPEG quality the recorder encodes RGB frames at (its `jpeg_quality`).
+    #[arg(long, default_value_t = 90)]
+    pub record_quality: u8,
     #[arg(long, default_value_t = 44)]
     pub domain_id: u16,
     #[arg(long)]
@@ -75,6 +82,16 @@ struct Report {
     latency_ms: Option<Percentiles>,
     node_cpu_percent: f64,
     servers_cpu_percent: f64,
+    jpeg_passthrough: bool,
+    /// What the recorder does to one of these frames to store it (JPEG-encode an RGB frame at
+    /// `record_quality`, or copy a passed-through JPEG), timed here on one frame per camera
+    /// taken at the end, after the node and the servers stopped (ms per frame, median of the
+    /// repetitions), and that cost at the delivered rate (% of a core): the recorder's share,
+    /// measured outside the recorder.
+    record_ms_per_frame: f64,
+    record_cpu_percent: f64,
+    /// Bytes per recorded frame (mean over the timed frames).
+    recorded_bytes_per_frame: f64,
 }
 
 struct Servers(Vec<Child>);
@@ -120,8 +137,8 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
             .context("ffmpeg (scripts/setup.sh installs it)")?;
         servers.0.push(child);
         config += &format!(
-            "[cameras.{id}]\nsource = \"http://127.0.0.1:{port}/cam\"\nwidth = {}\nheight = {}\nfps = {}\n",
-            a.width, a.height, a.fps
+            "[cameras.{id}]\nsource = \"http://127.0.0.1:{port}/cam\"\nwidth = {}\nheight = {}\nfps = {}\njpeg_passthrough = {}\n",
+            a.width, a.height, a.fps, a.jpeg_passthrough
         );
     }
     let cfg_path = dir.path().join("cameras.toml");
@@ -212,9 +229,12 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
     let wall = started.elapsed().as_secs_f64();
     let node_cpu = cpu(std::slice::from_ref(&pid)) - node_cpu0;
     let servers_cpu = cpu(&server_pids) - servers_cpu0;
+    let samples = frame_samples(&subs)?;
     let _ = Command::new("kill").args(["-TERM", &pid]).status();
     let _ = node.wait();
     drop(servers);
+    // Timed with the node and the servers stopped: the recorder's cost, not the contention's.
+    let (record_ms, record_bytes) = record_cost(&samples, a.record_quality)?;
 
     let expected = (a.fps * wall).round() as i64;
     let per_camera: Vec<CameraFigures> = ids
@@ -248,6 +268,10 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
         per_camera,
         node_cpu_percent: 100.0 * node_cpu / wall,
         servers_cpu_percent: 100.0 * servers_cpu / wall,
+        jpeg_passthrough: a.jpeg_passthrough,
+        record_ms_per_frame: record_ms,
+        record_cpu_percent: record_ms * delivered.iter().sum::<u64>() as f64 / wall / 10.0,
+        recorded_bytes_per_frame: record_bytes,
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -255,6 +279,50 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
         print(&report);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A frame copied out of shared memory: (encoding, width, height, bytes).
+type Sample = (Option<labrig_runtime::frames::FrameEncoding>, u32, u32, Vec<u8>);
+
+/// One frame of each camera (the next to arrive), copied out.
+fn frame_samples(subs: &[labrig_runtime::frames::FrameSubscriber]) -> anyhow::Result<Vec<Sample>> {
+    let mut out = Vec::new();
+    for s in subs {
+        let until = Instant::now() + Duration::from_secs(5);
+        let frame = loop {
+            if let Some(f) = s.receive()? {
+                break f;
+            }
+            if Instant::now() > until {
+                bail!("a camera sent no frame for the recorder's timing");
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        };
+        let h = *frame.header();
+        out.push((h.encoding(), h.width, h.height, frame.pixels().to_vec()));
+    }
+    Ok(out)
+}
+
+/// The recorder's work on each sampled frame: JPEG-encode an RGB frame, or copy a JPEG one,
+/// repeated; (median ms per frame, mean bytes per frame).
+fn record_cost(samples: &[Sample], quality: u8) -> anyhow::Result<(f64, f64)> {
+    use labrig_runtime::frames::FrameEncoding;
+    let mut times = Vec::new();
+    let mut bytes = Vec::new();
+    for (encoding, w, h, pixels) in samples {
+        for _ in 0..5 {
+            let t = Instant::now();
+            let stored = match encoding {
+                Some(FrameEncoding::Jpeg) => pixels.clone(),
+                _ => labrig_episode::jpeg::encode_rgb(pixels, *w as u16, *h as u16, quality)?,
+            };
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            bytes.push(stored.len() as f64);
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    Ok((times[times.len() / 2], bytes.iter().sum::<f64>() / bytes.len().max(1) as f64))
 }
 
 fn pct(p: &Option<Percentiles>) -> String {
@@ -283,5 +351,12 @@ fn print(r: &Report) {
     println!(
         "  CPU: labrig-cameras {:.0}% of a core; the ffmpeg servers (the cameras' side) {:.0}%",
         r.node_cpu_percent, r.servers_cpu_percent
+    );
+    println!(
+        "  recording them ({}): {:.2} ms per frame, {:.0}% of a core at the delivered rate, {:.0} kB per frame",
+        if r.jpeg_passthrough { "JPEG passed through, copied" } else { "RGB encoded to JPEG" },
+        r.record_ms_per_frame,
+        r.record_cpu_percent,
+        r.recorded_bytes_per_frame / 1e3
     );
 }

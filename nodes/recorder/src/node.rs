@@ -953,26 +953,58 @@ pub fn free_bytes(path: &Path) -> std::io::Result<u64> {
     Ok(stat.blocks_available() as u64 * stat.fragment_size() as u64)
 }
 
-/// One camera frame as JPEG (rgb8 frames only; anything else is logged and skipped).
+/// One camera frame as the episode stores it: rgb8 frames encoded to JPEG, JPEG frames (a
+/// camera's `jpeg_passthrough`) as they came, depth16 frames (a RealSense's aligned depth,
+/// camera `<id>_depth`) as a 16-bit greyscale PNG of millimetres, lossless; anything else is
+/// logged and skipped.
 fn encode_frame(camera: &str, frame: &labrig_runtime::frames::Frame, quality: u8) -> Option<Encoded> {
     let h = *frame.header();
-    if h.encoding() != Some(FrameEncoding::Rgb8) {
-        tracing::warn!("camera {camera}: only rgb8 frames are recorded, got {:?}", h.encoding());
-        return None;
-    }
-    let data = match labrig_episode::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality) {
+    let (encoded, format) = match h.encoding() {
+        Some(FrameEncoding::Rgb8) => (
+            labrig_episode::jpeg::encode_rgb(frame.pixels(), h.width as u16, h.height as u16, quality)
+                .map_err(|e| e.to_string()),
+            "jpeg",
+        ),
+        Some(FrameEncoding::Jpeg) => (Ok(frame.pixels().to_vec()), "jpeg"),
+        Some(FrameEncoding::Depth16) => (depth_png(frame.pixels(), h.width, h.height), "png"),
+        other => {
+            tracing::warn!("camera {camera}: only rgb8, jpeg and depth16 frames are recorded, got {other:?}");
+            return None;
+        }
+    };
+    let data = match encoded {
         Ok(d) => d,
         Err(e) => {
             tracing::warn!("camera {camera}: {e}");
             return None;
         }
     };
+    // A depth camera `<id>_depth` shares `<id>`'s optical frame (it is aligned to it).
+    let optical = camera.strip_suffix("_depth").filter(|_| format == "png").unwrap_or(camera);
     let image = CompressedImage {
-        header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{camera}_optical") },
-        format: "jpeg".into(),
+        header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{optical}_optical") },
+        format: format.into(),
         data,
     };
     Some(Encoded { camera: camera.to_owned(), image, capture_ns: h.capture_ns, publish_ns: h.publish_ns })
+}
+
+/// Little-endian uint16 depth (mm) as a 16-bit greyscale PNG (PNG is big endian).
+fn depth_png(le: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
+    let n = width as usize * height as usize * 2;
+    let Some(le) = le.get(..n) else {
+        return Err(format!("a {width}x{height} depth frame of {} bytes, expected {n}", le.len()));
+    };
+    let be: Vec<u8> = le.chunks_exact(2).flat_map(|p| [p[1], p[0]]).collect();
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, width, height);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Sixteen);
+    enc.set_compression(png::Compression::Fast);
+    let mut w = enc.write_header().map_err(|e| e.to_string())?;
+    w.write_image_data(&be).map_err(|e| e.to_string())?;
+    w.finish().map_err(|e| e.to_string())?;
+    Ok(out)
 }
 
 /// A camera frame encoded, with its times.
@@ -1090,4 +1122,54 @@ fn extrinsics(tf: &TFMessage) -> BTreeMap<String, [f64; 6]> {
 
 fn sanitize(uuid: &str) -> String {
     uuid.chars().map(|c| if c.is_ascii_alphanumeric() || "+-_.".contains(c) { c } else { '_' }).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use labrig_runtime::frames::FrameFormat;
+
+    /// One frame of `encoding` through shared memory, as the recorder stores it.
+    fn stored(encoding: FrameEncoding, width: u32, height: u32, bytes: &[u8]) -> Option<Encoded> {
+        let node = FrameNode::new_in(&format!("recorder_unit_{}", std::process::id())).unwrap();
+        let cam = format!("enc{}", encoding as u16);
+        let mut publisher = node.publisher(&cam, FrameFormat { encoding, width, height }).unwrap();
+        let subscriber = node.subscriber(&cam).unwrap();
+        publisher.publish(bytes, Nanos(5), Nanos(6)).unwrap();
+        let frame = subscriber.receive().unwrap().expect("frame");
+        encode_frame("ext1", &frame, 90)
+    }
+
+    #[test]
+    fn rgb_frames_are_encoded_jpeg_frames_stored_as_they_came_others_skipped() {
+        let rgb: Vec<u8> = (0..16 * 8 * 3).map(|i| (i % 251) as u8).collect();
+        let e = stored(FrameEncoding::Rgb8, 16, 8, &rgb).expect("an rgb8 frame is recorded");
+        let back = labrig_episode::jpeg::decode_rgb(&e.image.data).unwrap();
+        assert_eq!((back.width, back.height, e.image.format.as_str(), e.capture_ns), (16, 8, "jpeg", 5));
+
+        let jpeg = labrig_episode::jpeg::encode_rgb(&rgb, 16, 8, 40).unwrap();
+        let e = stored(FrameEncoding::Jpeg, 16, 8, &jpeg).expect("a jpeg frame is recorded");
+        assert_eq!(e.image.data, jpeg, "a passed-through JPEG is stored byte for byte");
+        assert_eq!(e.image.header.frame_id, "ext1_optical");
+
+        // Depth: a lossless 16-bit PNG of the millimetres, in the colour camera's optical frame.
+        let mm: Vec<u16> = vec![0, 1, 900, 1000, 65535, 300, 301, 4242];
+        let le: Vec<u8> = mm.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let node = FrameNode::new_in(&format!("recorder_unit_{}", std::process::id())).unwrap();
+        let mut publisher =
+            node.publisher("rs1_depth", FrameFormat { encoding: FrameEncoding::Depth16, width: 4, height: 2 }).unwrap();
+        let subscriber = node.subscriber("rs1_depth").unwrap();
+        publisher.publish(&le, Nanos(5), Nanos(6)).unwrap();
+        let e = encode_frame("rs1_depth", &subscriber.receive().unwrap().unwrap(), 90).expect("depth is recorded");
+        assert_eq!((e.image.format.as_str(), e.image.header.frame_id.as_str()), ("png", "rs1_optical"));
+        let mut reader = png::Decoder::new(std::io::Cursor::new(e.image.data)).read_info().unwrap();
+        let mut buf = vec![0u8; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        assert_eq!((info.width, info.height, info.bit_depth), (4, 2, png::BitDepth::Sixteen));
+        let back: Vec<u16> =
+            buf[..info.buffer_size()].chunks_exact(2).map(|p| u16::from_be_bytes([p[0], p[1]])).collect();
+        assert_eq!(back, mm);
+
+        assert!(stored(FrameEncoding::Mono8, 4, 2, &[0u8; 8]).is_none());
+    }
 }
