@@ -16,6 +16,22 @@ import numpy as np
 import pyrealsense2 as rs
 
 
+def add_stream(sensor, kind, uid, fmt, bpp, a, fx, fy):
+    """A video stream of the args' size and rate on a software sensor, pinhole (fx, fy), centred."""
+    intr = rs.intrinsics()
+    intr.width, intr.height = a.width, a.height
+    intr.fx, intr.fy = fx, fy
+    intr.ppx, intr.ppy = (a.width - 1) / 2.0, (a.height - 1) / 2.0
+    intr.model = rs.distortion.brown_conrady
+    intr.coeffs = [0.0, 0.0, 0.0, 0.0, 0.0]
+    vs = rs.video_stream()
+    vs.type, vs.index, vs.uid = kind, 0, uid
+    vs.width, vs.height, vs.fps, vs.bpp = a.width, a.height, a.fps, bpp
+    vs.fmt = fmt
+    vs.intrinsics = intr
+    return sensor.add_video_stream(vs)
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("out")
@@ -30,32 +46,10 @@ def main():
 
     dev = rs.software_device()
     sensor = dev.add_sensor("RGB Camera")
-    intr = rs.intrinsics()
-    intr.width, intr.height = a.width, a.height
-    intr.fx, intr.fy = a.fx, a.fy
-    intr.ppx, intr.ppy = (a.width - 1) / 2.0, (a.height - 1) / 2.0
-    intr.model = rs.distortion.brown_conrady
-    intr.coeffs = [0.0, 0.0, 0.0, 0.0, 0.0]
-    vs = rs.video_stream()
-    vs.type, vs.index, vs.uid = rs.stream.color, 0, 0
-    vs.width, vs.height, vs.fps, vs.bpp = a.width, a.height, a.fps, 3
-    vs.fmt = rs.format.rgb8
-    vs.intrinsics = intr
-    profile = sensor.add_video_stream(vs)
+    profile = add_stream(sensor, rs.stream.color, 0, rs.format.rgb8, 3, a, a.fx, a.fy)
     if a.depth:
         stereo = dev.add_sensor("Stereo Module")
-        di = rs.intrinsics()
-        di.width, di.height = a.width, a.height
-        di.fx, di.fy = a.fx * 0.8, a.fy * 0.8
-        di.ppx, di.ppy = (a.width - 1) / 2.0, (a.height - 1) / 2.0
-        di.model = rs.distortion.brown_conrady
-        di.coeffs = [0.0, 0.0, 0.0, 0.0, 0.0]
-        ds = rs.video_stream()
-        ds.type, ds.index, ds.uid = rs.stream.depth, 0, 1
-        ds.width, ds.height, ds.fps, ds.bpp = a.width, a.height, a.fps, 2
-        ds.fmt = rs.format.z16
-        ds.intrinsics = di
-        depth_profile = stereo.add_video_stream(ds)
+        depth_profile = add_stream(stereo, rs.stream.depth, 1, rs.format.z16, 2, a, a.fx * 0.8, a.fy * 0.8)
         stereo.add_read_only_option(rs.option.depth_units, 0.001)
         ext = rs.extrinsics()
         ext.rotation = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
