@@ -50,6 +50,9 @@ apt_install adb
 # The camera node's V4L2 backend (crate v4l) generates its kernel bindings with bindgen, which
 # loads libclang (issue 19); the calibration's opencv crate needs it too.
 apt_install libclang-dev
+# Camera calibration (issue 20): Debian's OpenCV 4.6 (aruco is in contrib in 4.6); the opencv
+# crate's binding generator needs clang itself beside libclang. ~1 GB installed.
+apt_install libopencv-dev libopencv-contrib-dev clang
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.

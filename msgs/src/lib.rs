@@ -10,6 +10,7 @@
 //! only. It must never depend on tokio, a DDS implementation, iceoryx2, tch, mujoco or opencv
 //! (checked by `tests/tests/layering.rs`).
 
+pub mod calibration;
 mod codec;
 pub mod geometry_msgs;
 mod invalid;

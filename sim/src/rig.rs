@@ -75,9 +75,93 @@ fn drop_lines(xml: &str, needles: &[&str]) -> String {
     xml.lines().filter(|l| !needles.iter().all(|n| l.contains(n))).collect::<Vec<_>>().join("\n")
 }
 
+/// A calibration board in the scene (`labrig calibrate --sim`): its print, its size, where it is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Board {
+    /// The print (a PNG of the whole board, as `labrig calibrate board` writes it), mapped
+    /// edge to edge onto the board's face.
+    pub texture: PathBuf,
+    /// The print's width (along the board's x) and height (along its y), m.
+    pub size_m: [f64; 2],
+    pub mount: BoardMount,
+}
+
+/// What calibration adds to a scene.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Extras {
+    pub board: Option<Board>,
+    /// An external camera moved by (dx, dy, dz) m in the base frame from where the scene puts
+    /// it (it still aims at the table centre): a camera knocked after calibration.
+    pub move_camera: Option<(String, [f64; 3])>,
+}
+
+/// Where the board is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BoardMount {
+    /// Held by the gripper for the external cameras (eye-to-hand): fixed to the flange below
+    /// the fingers, its face tilted 45 deg up from the fingers' opening direction, so that with
+    /// the gripper pointing down it faces a camera above the table.
+    Gripper,
+    /// Lying face up on the table for the wrist camera (eye-in-hand): its centre at (x, y) in
+    /// the base frame, turned `yaw_deg` about z.
+    Table { centre: [f64; 2], yaw_deg: f64 },
+}
+
+/// The body whose frame is the board's (OpenCV's ChArUco frame: origin at the print's top-left
+/// corner, x right, y down, z into the board).
+pub const BOARD_BODY: &str = "calib_board";
+/// Where the gripper mount puts the board's top edge: this far along the flange's z (the
+/// approach axis), past the 2F-85's fingertips.
+pub const BOARD_GRIPPER_OFFSET_M: f64 = 0.17;
+const BOARD_THICKNESS_M: f64 = 0.003;
+/// The gripper mount's tilt (deg): 0 hangs the board in the plane of the approach axis.
+pub const BOARD_TILT_DEG: f64 = 0.0;
+
+/// The board's body (the frame) with its face: a thin box behind the frame's z = 0 plane whose
+/// -z face carries the print.
+fn board_body(board: &Board, pos: [f64; 3], xyaxes: [f64; 6]) -> String {
+    let [w, h] = board.size_m;
+    let t = BOARD_THICKNESS_M / 2.0;
+    format!(
+        r#"
+              <body name="{BOARD_BODY}" pos="{}" xyaxes="{}">
+                <geom name="calib_board" type="box" pos="{} {} {t}" size="{} {} {t}" material="board_mat" contype="0" conaffinity="0" mass="0.001"/>
+              </body>"#,
+        v3(pos),
+        xyaxes.map(|v| v.to_string()).join(" "),
+        w / 2.0,
+        h / 2.0,
+        w / 2.0,
+        h / 2.0,
+    )
+}
+
+/// The gripper mount in the flange's frame: the print's x along the flange's -x, its face
+/// normal (out of the print) `-(cos t y_f + sin t z_f)` with t = [`BOARD_TILT_DEG`], its y
+/// running down the approach axis.
+fn gripper_board(board: &Board) -> String {
+    let (st, ct) = BOARD_TILT_DEG.to_radians().sin_cos();
+    let [w, _] = board.size_m;
+    // Board axes in the flange frame: x = -x_f, y = -sin t y_f + cos t z_f, z = cos t y_f + sin t z_f.
+    board_body(board, [w / 2.0, 0.0, BOARD_GRIPPER_OFFSET_M], [-1.0, 0.0, 0.0, 0.0, -st, ct])
+}
+
+fn table_board(board: &Board, centre: [f64; 2], yaw_deg: f64) -> String {
+    let (s, c) = yaw_deg.to_radians().sin_cos();
+    let [w, h] = board.size_m;
+    // z = down (into the table); x = (c, s, 0); y = z x x = (s, -c, 0).
+    let origin = [centre[0] - c * w / 2.0 - s * h / 2.0, centre[1] - s * w / 2.0 + c * h / 2.0, 0.0005];
+    board_body(board, origin, [c, s, 0.0, s, -c, 0.0])
+}
+
 /// Composes the rig's MJCF for one scene from the assets folder (absolute paths inside, so the
 /// text loads from anywhere). Textures are declared flat here and filled by [`crate::Sim`].
 pub fn compose(assets: &Path, scene: &SceneValues) -> Result<String, RigError> {
+    compose_with_board(assets, scene, None)
+}
+
+/// [`compose`] with a calibration board in the scene.
+pub fn compose_with_board(assets: &Path, scene: &SceneValues, board: Option<&Board>) -> Result<String, RigError> {
     let fr3_path = assets.join("fr3/fr3.xml");
     let gripper = assets.join("robotiq_2f85/2f85.xml");
     let fr3 =
@@ -96,7 +180,14 @@ pub fn compose(assets: &Path, scene: &SceneValues) -> Result<String, RigError> {
     // The Franka Hand comes off; a flange with the 2F-85 and the wrist camera goes on.
     let hand = xml.find(r#"<body name="hand""#).ok_or_else(|| unexpected("no body `hand`"))?;
     let end = body_span(&xml, hand).ok_or_else(|| unexpected("unbalanced <body> tags"))?;
-    xml.replace_range(hand..end, FLANGE);
+    let flange = match board {
+        Some(b @ Board { mount: BoardMount::Gripper, .. }) => {
+            let close = FLANGE.rfind("</body>").expect("FLANGE ends its body");
+            format!("{}{}\n            {}", &FLANGE[..close], gripper_board(b), &FLANGE[close..])
+        }
+        _ => FLANGE.to_owned(),
+    };
+    xml.replace_range(hand..end, &flange);
     xml = drop_blocks(&xml, "tendon");
     xml = drop_blocks(&xml, "equality");
     xml = drop_blocks(&xml, "keyframe");
@@ -108,10 +199,30 @@ pub fn compose(assets: &Path, scene: &SceneValues) -> Result<String, RigError> {
     xml.replace_range(option_end..option_end, VISUAL);
     xml.replace_range(option..option_end, OPTION);
     let asset_tag = xml.find("<asset>").ok_or_else(|| unexpected("no <asset>"))?;
-    let gripper_model = format!("\n    <model name=\"robotiq_2f85\" file=\"{}\"/>{SCENE_ASSETS}", gripper.display());
+    let mut gripper_model =
+        format!("\n    <model name=\"robotiq_2f85\" file=\"{}\"/>{SCENE_ASSETS}", gripper.display());
+    if let Some(b) = board {
+        if !b.texture.exists() {
+            return Err(RigError::Missing {
+                path: b.texture.clone(),
+                error: std::io::Error::new(std::io::ErrorKind::NotFound, "the board's print is not there"),
+            });
+        }
+        gripper_model.push_str(&format!(
+            r#"
+    <texture name="board_tex" type="2d" file="{}" vflip="true"/>
+    <material name="board_mat" texture="board_tex" specular="0" shininess="0"/>"#,
+            b.texture.display()
+        ));
+    }
     xml.insert_str(asset_tag + "<asset>".len(), &gripper_model);
     let wb_end = xml.rfind("</worldbody>").ok_or_else(|| unexpected("no </worldbody>"))?;
-    xml.insert_str(wb_end, &scene_bodies(scene));
+    let mut bodies = scene_bodies(scene);
+    if let Some(b @ Board { mount: BoardMount::Table { centre, yaw_deg }, .. }) = board {
+        bodies.push_str(&table_board(b, *centre, *yaw_deg));
+        bodies.push_str("\n  ");
+    }
+    xml.insert_str(wb_end, &bodies);
     let end = xml.rfind("</mujoco>").ok_or_else(|| unexpected("no </mujoco>"))?;
     xml.insert_str(end, &tail(scene));
     Ok(xml)

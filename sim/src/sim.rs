@@ -89,9 +89,38 @@ impl Sim {
     /// say, and resets it to DROID's reset pose. `period` is the control period each
     /// [`Sim::step`] advances.
     pub fn new(assets: &Path, spec: &SceneSpec, seed: u64, period: Nanos) -> Result<Sim, SimError> {
+        Sim::build(assets, spec, seed, period, None)
+    }
+
+    /// [`Sim::new`] with what calibration adds: a board in the scene (its frame is body
+    /// [`rig::BOARD_BODY`], see [`Sim::body_pose`]), a camera moved from where the scene put it.
+    pub fn with_extras(
+        assets: &Path,
+        spec: &SceneSpec,
+        seed: u64,
+        period: Nanos,
+        extras: &rig::Extras,
+    ) -> Result<Sim, SimError> {
+        Sim::build(assets, spec, seed, period, Some(extras))
+    }
+
+    fn build(
+        assets: &Path,
+        spec: &SceneSpec,
+        seed: u64,
+        period: Nanos,
+        extras: Option<&rig::Extras>,
+    ) -> Result<Sim, SimError> {
         route_mujoco_log();
-        let scene = spec.sample(seed)?;
-        let xml = rig::compose(assets, &scene)?;
+        let mut scene = spec.sample(seed)?;
+        if let Some((camera, shift)) = extras.and_then(|e| e.move_camera.as_ref())
+            && let Some(pose) = scene.cameras.get_mut(camera)
+        {
+            for (p, d) in pose.position.iter_mut().zip(shift) {
+                *p += d;
+            }
+        }
+        let xml = rig::compose_with_board(assets, &scene, extras.and_then(|e| e.board.as_ref()))?;
         let mut model = MjModel::from_xml_string(&xml).map_err(|e| SimError::Load(format!("{e:?}")))?;
         fill_texture(&mut model, rig::OBJECT_TEXTURE, &scene::object_texture(&scene, spec.object.noise_octaves))?;
         fill_texture(&mut model, rig::TABLE_TEXTURE, &scene::table_texture(&scene, spec.table.jitter))?;

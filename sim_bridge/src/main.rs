@@ -21,6 +21,52 @@ enum Tool {
     Bench(labrig_sim_bridge::bench::BenchArgs),
     /// Replay a recorded episode's actions against its rebuilt scene; compare the states (exit 5 beyond tolerances).
     Replay(ReplayArgs),
+    /// Take a camera's calibration views: the board in the scene, the arm through the safety
+    /// layer over DROID's pose set (what `labrig calibrate --sim` runs).
+    CalibCapture(CalibCaptureArgs),
+}
+
+#[derive(Debug, Args)]
+struct CalibCaptureArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// ext1, ext2, wrist, rs1 or rs2.
+    #[arg(long)]
+    camera: String,
+    /// The board's print (PNG, edge to edge).
+    #[arg(long)]
+    print: PathBuf,
+    /// The board's spec (JSON, labrig_msgs::calibration::BoardSpec).
+    #[arg(long)]
+    board: PathBuf,
+    #[arg(long, default_value_t = 60)]
+    views: usize,
+    /// Views are rendered at the real cameras' resolution.
+    #[arg(long, default_value_t = 1280)]
+    width: usize,
+    #[arg(long, default_value_t = 720)]
+    height: usize,
+    #[arg(long, default_value_t = 0.10)]
+    amplitude_m: f64,
+    #[arg(long, default_value_t = 0.2)]
+    amplitude_rad: f64,
+    /// Move the camera by dx,dy,dz (m, base frame) from where the scene puts it.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    move_camera: Option<Vec<f64>>,
+    /// The print's width,height (m) when it is not the board `--board` describes (default:
+    /// the board's own size).
+    #[arg(long, value_delimiter = ',')]
+    print_size_m: Option<Vec<f64>>,
+    #[arg(long, default_value = "sim")]
+    rig: String,
+    /// Output folder (capture.json + view_NNN.pgm).
+    #[arg(long)]
+    out: PathBuf,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
 }
 
 /// Which scene: a spec file (default: the built-in pick-and-place scene) and a seed.
@@ -120,6 +166,7 @@ fn main() -> ExitCode {
         Tool::Eval(a) => eval(a),
         Tool::Bench(a) => labrig_sim_bridge::bench::run(a),
         Tool::Replay(a) => replay(a),
+        Tool::CalibCapture(a) => calib_capture(a),
     })
 }
 
@@ -231,4 +278,60 @@ fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
         print!("{}", labrig_sim::replay::text(&r));
     }
     Ok(if r.exceeded.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(EXIT_DEVIATION) })
+}
+
+fn calib_capture(a: CalibCaptureArgs) -> anyhow::Result<ExitCode> {
+    let (spec, assets) = labrig_sim::resolve_scene(a.scene.scene.as_deref(), a.scene.assets.as_deref())?;
+    let camera = labrig_sim::rig::CAMERAS.iter().copied().find(|c| *c == a.camera).with_context(|| {
+        format!("unknown camera `{}` (the rig's: {})", a.camera, labrig_sim::rig::CAMERAS.join(", "))
+    })?;
+    let text = std::fs::read_to_string(&a.board).with_context(|| format!("reading {}", a.board.display()))?;
+    let board: labrig_msgs::calibration::BoardSpec =
+        serde_json::from_str(&text).with_context(|| format!("{} is not a board spec", a.board.display()))?;
+    let shift = match a.move_camera.as_deref() {
+        None => [0.0; 3],
+        Some(&[x, y, z]) => [x, y, z],
+        Some(other) => anyhow::bail!("--move-camera takes dx,dy,dz (3 numbers), not {other:?}"),
+    };
+    let print_size_m = match a.print_size_m.as_deref() {
+        None => board.size_m(),
+        Some(&[w, h]) if w > 0.0 && h > 0.0 => [w, h],
+        Some(other) => anyhow::bail!("--print-size-m takes width,height (2 positive numbers), not {other:?}"),
+    };
+    let opts = labrig_sim_bridge::calib::CaptureOptions {
+        assets,
+        spec,
+        seed: a.seed,
+        print: a.print,
+        board,
+        print_size_m,
+        camera,
+        views: a.views,
+        width: a.width,
+        height: a.height,
+        amplitude_m: a.amplitude_m,
+        amplitude_rad: a.amplitude_rad,
+        camera_shift_m: shift,
+        out: a.out,
+        rig: a.rig,
+    };
+    let bar = indicatif::ProgressBar::new(a.views as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(&format!("{{bar:30}} {{pos}}/{{len}} {camera} views [{{elapsed}}]"))
+            .expect("static template"),
+    );
+    if a.quiet {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let report = labrig_sim_bridge::calib::capture(&opts, &bar)?;
+    bar.finish_and_clear();
+    if !a.quiet {
+        eprintln!(
+            "{camera}: {} views, {} poses unreachable -> {}",
+            report.views,
+            report.unreachable,
+            report.capture.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }

@@ -42,6 +42,15 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Camera calibration (ChArUco + hand-eye): `labrig calibrate --sim --camera all [--json]`,
+    /// `labrig calibrate board --out board.png`, `labrig calibrate solve <capture>`,
+    /// `labrig calibrate check --sim --camera ext1` (see `labrig calibrate --help`).
+    #[command(disable_help_flag = true)]
+    Calibrate {
+        /// Arguments for labrig-calibrate.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Replay a recorded episode against the simulated rig: `labrig replay <episode> --sim
     /// [--json] [--max-tcp-error-m 0.005 ...]` (exit 5 when it deviates beyond the tolerances).
     #[command(disable_help_flag = true)]
@@ -285,6 +294,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             node("labrig-droid", &forwarded)
         }
         Command::Sim { args } => sim(&args),
+        Command::Calibrate { args } => node("labrig-calibrate", &args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
         Command::Teleop { args } => node("labrig-teleop", &args),

@@ -1,0 +1,359 @@
+//! `labrig-sim calib-capture`: the simulated rig takes a calibration's views the way DROID's
+//! rig does. The board (its print, a PNG at true scale) is in the scene: carried by the
+//! gripper for an external camera, lying on the table for the wrist camera. The arm is driven
+//! through the franka node's safety layer ([`SimHardware`], cartesian position commands) over
+//! a pose set around a start pose facing the camera (a smooth sinusoid, +-10 cm and
+//! +-0.2 rad; the angles / 1.5 for the wrist camera), pausing 0.5 s before each view. Each view
+//! is rendered at the real cameras' resolution and written as a greyscale PGM with the TCP
+//! pose the arm reports, plus the ground truth only a sim has (`capture.json`,
+//! [`labrig_msgs::calibration::CaptureFile`]). labrig-calibration solves it.
+
+use crate::hardware::SimHardware;
+use anyhow::Context;
+use labrig_arm::ik::Ik;
+use labrig_msgs::Nanos;
+use labrig_msgs::calibration::{
+    BoardSpec, CAPTURE_VERSION, CaptureFile, CaptureTruth, CapturedView, Intrinsics, Mount, Pose,
+};
+use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_sim::rig::{BOARD_BODY, Board, BoardMount, Extras};
+use labrig_sim::scene::{EXTERNAL_CAMERAS, SceneSpec, TABLE_CENTRE};
+use labrig_sim::{Meshes, Sim};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// What to capture.
+#[derive(Debug, Clone)]
+pub struct CaptureOptions {
+    pub assets: PathBuf,
+    pub spec: SceneSpec,
+    pub seed: u64,
+    /// The board's print (PNG) and its size (width, height; m), and the board spec the capture
+    /// records (what the operator says is printed; normally the print's own).
+    pub print: PathBuf,
+    pub print_size_m: [f64; 2],
+    pub board: BoardSpec,
+    pub camera: &'static str,
+    pub views: usize,
+    pub width: usize,
+    pub height: usize,
+    /// Translation amplitude of the pose set (m) and rotation amplitude (rad).
+    pub amplitude_m: f64,
+    pub amplitude_rad: f64,
+    /// Move the camera by this much (m, base frame) from where the scene puts it: a camera
+    /// knocked after calibration, for `calibrate check`.
+    pub camera_shift_m: [f64; 3],
+    pub out: PathBuf,
+    pub rig: String,
+}
+
+/// One control period of the capture's motion.
+const PERIOD: Nanos = Nanos(50_000_000);
+/// Ticks at rest before a view (DROID pauses 0.5 s).
+const SETTLE_TICKS: usize = 10;
+/// Ticks allowed to reach a pose of the set.
+const REACH_TICKS: usize = 80;
+/// A pose counts as reached when every joint is this close to its target (rad).
+const REACH_RAD: f64 = 0.002;
+
+/// The board's centre is put no closer to the camera than this...
+const MIN_CAMERA_DISTANCE_M: f64 = 0.42;
+/// The start is chosen where the arm reaches this share of a coarse pose set.
+const PROBE_POSES: usize = 20;
+const PROBE_REACHED: f64 = 0.9;
+
+/// The rig's mount of a camera: the wrist camera is eye-in-hand, the rest eye-to-hand.
+pub fn mount_of(camera: &str) -> Mount {
+    if EXTERNAL_CAMERAS.contains(&camera) { Mount::EyeToHand } else { Mount::EyeInHand }
+}
+
+fn pose_of(iso: &Isometry3<f64>) -> Pose {
+    let q = iso.rotation.quaternion();
+    Pose { position: iso.translation.vector.into(), quaternion_wxyz: [q.w, q.i, q.j, q.k] }
+}
+
+fn iso((p, r): ([f64; 3], [f64; 9])) -> Isometry3<f64> {
+    let rot = Rotation3::from_matrix_unchecked(Matrix3::from_row_slice(&r));
+    Isometry3::from_parts(Translation3::from(Vector3::from(p)), UnitQuaternion::from_rotation_matrix(&rot))
+}
+
+/// A MuJoCo camera looks along -z with y up; the optical frame looks along +z with y down.
+fn optical(sim: &Sim, camera: &str) -> anyhow::Result<Isometry3<f64>> {
+    let (p, r) = sim.camera_pose(camera).with_context(|| format!("the sim has no camera `{camera}`"))?;
+    let flip = Matrix3::new(1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0);
+    let rot = Rotation3::from_matrix_unchecked(r * flip);
+    Ok(Isometry3::from_parts(Translation3::from(Vector3::from(p)), UnitQuaternion::from_rotation_matrix(&rot)))
+}
+
+/// The sim camera's intrinsics at `width` x `height`: square pixels, the principal point at
+/// the image centre (OpenGL's pixel centres are at +0.5; OpenCV's at integers).
+pub fn sim_intrinsics(fovy_deg: f64, width: usize, height: usize) -> Intrinsics {
+    let f = height as f64 / 2.0 / (fovy_deg.to_radians() / 2.0).tan();
+    Intrinsics {
+        width: width as u32,
+        height: height as u32,
+        fx: f,
+        fy: f,
+        cx: width as f64 / 2.0 - 0.5,
+        cy: height as f64 / 2.0 - 0.5,
+        distortion: vec![0.0; 5],
+        source: "sim".into(),
+    }
+}
+
+/// The pose set: `n` poses on a smooth closed path around `start` (the angles rotate about
+/// `pivot`, a point fixed to the gripper, so the board stays in view).
+fn pose_set(start: &Isometry3<f64>, pivot: &Vector3<f64>, n: usize, amp_m: f64, amp_rad: f64) -> Vec<Isometry3<f64>> {
+    (0..n)
+        .map(|k| {
+            let t = std::f64::consts::TAU * k as f64 / n as f64;
+            let dp = Vector3::new(t.sin(), (2.0 * t + 0.7).sin(), 0.6 * (3.0 * t + 1.3).sin()) * amp_m;
+            let dr = Vector3::new((2.0 * t + 0.3).sin(), (t + 1.1).sin(), 0.8 * (3.0 * t + 0.5).sin()) * amp_rad;
+            let turn = UnitQuaternion::from_scaled_axis(dr);
+            // Turn the gripper about the pivot (in the base frame), then shift.
+            let p = start.translation.vector;
+            let p_new = pivot + turn * (p - pivot) + dp;
+            Isometry3::from_parts(Translation3::from(p_new), turn * start.rotation)
+        })
+        .collect()
+}
+
+/// The start pose (base -> tcp) and the pivot for `camera`, and the board's mount.
+fn start_pose(
+    sim: &Sim,
+    ik: &Ik,
+    camera: &str,
+    board: &Board,
+    amplitude: (f64, f64),
+) -> anyhow::Result<(Isometry3<f64>, Vector3<f64>)> {
+    let tcp = iso(sim.tcp_pose());
+    let board_pose = iso(sim.body_pose(BOARD_BODY).context("the scene has no board")?);
+    let [w, h] = board.size_m;
+    let centre_in_board = Vector3::new(w / 2.0, h / 2.0, 0.0);
+    match board.mount {
+        BoardMount::Gripper => {
+            // The board's centre on the camera's optical axis (it looks at the table centre),
+            // as close to the camera as the arm reaches (a sim camera is 0.9-1.2 m from the
+            // table centre; DROID's 20 mm squares want it within ~0.6 m), its face toward the
+            // camera, its y as close to down as the face allows.
+            let tcp_board = tcp.inverse() * board_pose;
+            let cam = optical(sim, camera)?.translation.vector;
+            let aim = Vector3::from(TABLE_CENTRE);
+            let toward = (cam - aim).normalize();
+            let span = (cam - aim).norm();
+            let down = Vector3::new(0.0, 0.0, -1.0);
+            let z = -toward;
+            let y = (down - z * down.dot(&z)).normalize();
+            let x = y.cross(&z);
+            let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+            let rot = UnitQuaternion::from_rotation_matrix(&rot);
+            let tcp_for = |centre: &Vector3<f64>| {
+                let origin = centre - rot * centre_in_board;
+                Isometry3::from_parts(Translation3::from(origin), rot) * tcp_board.inverse()
+            };
+            let reset = sim.joint_positions();
+            // From the camera back toward the table centre: the first centre from which the
+            // arm reaches nearly all of the pose set.
+            for k in 0..=60 {
+                let centre = cam - toward * (MIN_CAMERA_DISTANCE_M + (span - MIN_CAMERA_DISTANCE_M) * k as f64 / 60.0);
+                if centre.z > 0.6 || centre.z < 0.2 {
+                    continue;
+                }
+                let start = tcp_for(&centre);
+                let Some(mut q) = joints_for(ik, &reset, &start) else { continue };
+                let probe = pose_set(&start, &centre, PROBE_POSES, amplitude.0, amplitude.1);
+                let mut reached = 0;
+                for p in &probe {
+                    if let Some(next) = joints_for(ik, &q, p) {
+                        q = next;
+                        reached += 1;
+                    }
+                }
+                if reached as f64 >= PROBE_REACHED * PROBE_POSES as f64 {
+                    return Ok((start, centre));
+                }
+            }
+            anyhow::bail!(
+                "the arm cannot hold the board toward `{camera}` anywhere on its line of sight to the table \
+                 (camera at [{:.2}, {:.2}, {:.2}])",
+                cam.x,
+                cam.y,
+                cam.z
+            )
+        }
+        BoardMount::Table { .. } => {
+            // Keep the reset orientation; put the TCP where the wrist camera's axis meets the
+            // board's centre 0.38 m away.
+            let cam = optical(sim, camera)?;
+            let tcp_cam = tcp.inverse() * cam;
+            let centre = board_pose * nalgebra::Point3::from(centre_in_board);
+            let axis = tcp.rotation * (tcp_cam.rotation * Vector3::z());
+            let cam_pos = centre.coords - axis * 0.38;
+            let p = cam_pos - tcp.rotation * tcp_cam.translation.vector;
+            Ok((Isometry3::from_parts(Translation3::from(p), tcp.rotation), centre.coords))
+        }
+    }
+}
+
+fn joint_command(q: &[f64; 7], seq: u64) -> ArmCommand {
+    ArmCommand {
+        mode: ArmCommandMode::JointPosition as u8,
+        joint_position: *q,
+        gripper_position: 0.0,
+        seq,
+        ..ArmCommand::default()
+    }
+}
+
+/// Joints that put the TCP at `want`: the IK from `seed`, else followed along the straight
+/// path (position lerp, rotation slerp) from `seed`'s pose in small steps, each seeded by the
+/// last (the IK is local; a far target from a far seed lands on a joint limit).
+fn joints_for(ik: &Ik, seed: &[f64; 7], want: &Isometry3<f64>) -> Option<[f64; 7]> {
+    let ok = |s: &labrig_arm::ik::IkSolution| s.position_error_m < 5e-4 && s.rotation_error_rad < 2e-3;
+    let first = ik.solve(seed, want);
+    if ok(&first) {
+        return Some(first.joints);
+    }
+    let from = ik.kinematics().tcp_pose(seed);
+    let steps = 40;
+    let mut q = *seed;
+    for k in 1..=steps {
+        let t = k as f64 / steps as f64;
+        let p = from.translation.vector.lerp(&want.translation.vector, t);
+        let r = from.rotation.slerp(&want.rotation, t);
+        let sol = ik.solve(&q, &Isometry3::from_parts(Translation3::from(p), r));
+        if sol.position_error_m > 0.01 || sol.rotation_error_rad > 0.05 {
+            return None;
+        }
+        q = sol.joints;
+    }
+    let last = ik.solve(&q, want);
+    ok(&last).then_some(last.joints)
+}
+
+/// Writes an RGB8 frame as 8-bit greyscale PGM (BT.601 luma).
+fn write_pgm(path: &Path, rgb: &[u8], width: usize, height: usize) -> anyhow::Result<()> {
+    let mut out = Vec::with_capacity(width * height + 32);
+    write!(out, "P5\n{width} {height}\n255\n")?;
+    out.extend(
+        rgb.chunks_exact(3)
+            .map(|p| ((299 * p[0] as u32 + 587 * p[1] as u32 + 114 * p[2] as u32 + 500) / 1000).min(255) as u8),
+    );
+    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+}
+
+/// The capture's outcome.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CaptureReport {
+    pub camera: String,
+    pub views: usize,
+    pub unreachable: usize,
+    pub capture: PathBuf,
+}
+
+/// Takes the views of one camera into `opts.out` (created) and writes `capture.json` there.
+pub fn capture(opts: &CaptureOptions, progress: &indicatif::ProgressBar) -> anyhow::Result<CaptureReport> {
+    let camera = opts.camera;
+    let mount = mount_of(camera);
+    let size_m = opts.print_size_m;
+    let board = Board {
+        texture: opts.print.clone(),
+        size_m,
+        mount: match mount {
+            Mount::EyeToHand => BoardMount::Gripper,
+            Mount::EyeInHand => {
+                // Lying across the table in front of the robot, its long side along y.
+                BoardMount::Table { centre: [TABLE_CENTRE[0] - 0.05, TABLE_CENTRE[1]], yaw_deg: 90.0 }
+            }
+        },
+    };
+    let extras = Extras { board: Some(board.clone()), move_camera: Some((camera.to_owned(), opts.camera_shift_m)) };
+    let mut sim = Sim::with_extras(&opts.assets, &opts.spec, opts.seed, PERIOD, &extras)?;
+    sim.enable_cameras(opts.width, opts.height, Meshes::Collision)?;
+    let fovy = sim.model().cam_fovy()[sim.camera_id(camera).context("camera")?];
+    let intrinsics = sim_intrinsics(fovy, opts.width, opts.height);
+    let safety = labrig_sim::safety_filter(PERIOD, None)?;
+    let ik = safety.ik().clone();
+    let amp_rad = match mount {
+        Mount::EyeToHand => opts.amplitude_rad,
+        Mount::EyeInHand => opts.amplitude_rad / 1.5,
+    };
+    let (start, pivot) = start_pose(&sim, &ik, camera, &board, (opts.amplitude_m, amp_rad))?;
+    tracing::debug!(?start, ?pivot, camera_distance = ?optical(&sim, camera).map(|c| (c.translation.vector - pivot).norm()), "pose set");
+    let poses = pose_set(&start, &pivot, opts.views, opts.amplitude_m, amp_rad);
+    let mut hw = SimHardware::new(sim, safety, true);
+    std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
+    let truth_board = iso(hw.sim().body_pose(BOARD_BODY).context("board")?);
+    let truth = match mount {
+        Mount::EyeToHand => CaptureTruth {
+            camera: pose_of(&optical(hw.sim(), camera)?),
+            board: pose_of(&(iso(hw.sim().tcp_pose()).inverse() * truth_board)),
+        },
+        Mount::EyeInHand => CaptureTruth {
+            camera: pose_of(&(iso(hw.sim().tcp_pose()).inverse() * optical(hw.sim(), camera)?)),
+            board: pose_of(&truth_board),
+        },
+    };
+    let mut seq = 0u64;
+    let mut views = Vec::new();
+    let mut unreachable = 0;
+    let mut rgb = Vec::new();
+    let mut last = hw.sim().joint_positions();
+    for (i, want) in poses.iter().enumerate() {
+        // Joints for the pose (IK from the last pose's joints, else from a family of seeds),
+        // then joint targets through the safety layer until the arm is there.
+        let Some(q) = joints_for(&ik, &last, want) else {
+            tracing::debug!(view = i, "no IK solution");
+            unreachable += 1;
+            progress.inc(1);
+            continue;
+        };
+        let mut reached = false;
+        for _ in 0..REACH_TICKS {
+            seq += 1;
+            let t = hw.sim().time();
+            hw.arm_command(&joint_command(&q, seq), t);
+            hw.step()?;
+            let here = hw.sim().joint_positions();
+            if here.iter().zip(&q).all(|(a, b)| (a - b).abs() < REACH_RAD) {
+                reached = true;
+                break;
+            }
+        }
+        if !reached {
+            tracing::debug!(view = i, fault = %hw.state().fault, "pose not reached");
+            unreachable += 1;
+            progress.inc(1);
+            continue;
+        }
+        last = q;
+        for _ in 0..SETTLE_TICKS {
+            seq += 1;
+            let t = hw.sim().time();
+            hw.arm_command(&joint_command(&q, seq), t);
+            hw.step()?;
+        }
+        let tcp = iso(hw.sim().tcp_pose());
+        hw.sim_mut().render_into(camera, &mut rgb)?;
+        let image = format!("view_{i:03}.pgm");
+        write_pgm(&opts.out.join(&image), &rgb, opts.width, opts.height)?;
+        views.push(CapturedView { image, tcp: pose_of(&tcp) });
+        progress.inc(1);
+    }
+    let file = CaptureFile {
+        version: CAPTURE_VERSION,
+        rig: opts.rig.clone(),
+        camera: camera.to_owned(),
+        mount,
+        board: opts.board.clone(),
+        intrinsics: Some(intrinsics),
+        views,
+        unreachable,
+        truth: Some(truth),
+    };
+    let path = opts.out.join("capture.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&file)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(CaptureReport { camera: camera.to_owned(), views: file.views.len(), unreachable, capture: path })
+}

@@ -1,0 +1,161 @@
+//! `labrig calibrate --sim`: the simulated rig calibrates its five cameras end to end (the board
+//! rendered in the sim at true scale, the arm driven through the safety layer, OpenCV's ChArUco
+//! detection and hand-eye, the joint refinement), and the recovered poses are held against the
+//! sim's ground truth: <= 1 mm / 0.1 deg for the wrist camera, <= 2 mm / 0.2 deg for the
+//! external ones (the acceptance figure of the README). `calibrate check` catches a camera
+//! moved 3 cm; bad input (a print that is not the board spec, too few views, a board that moved
+//! in the gripper, an unknown camera, an impossible board) fails with the reason.
+
+use labrig_tests::{labrig_bin, workspace_bin};
+use serde_json::Value;
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn labrig(args: &[&str]) -> Output {
+    workspace_bin("labrig-calibrate", "labrig-calibration");
+    workspace_bin("labrig-sim", "labrig-sim-bridge");
+    Command::new(labrig_bin()).args(args).output().unwrap()
+}
+
+fn text(out: &Output) -> String {
+    format!(
+        "exit {:?}\nstdout: {}\nstderr: {}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+fn json(out: &Output) -> Value {
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("not JSON ({e}): {}", text(out)))
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn the_simulated_rig_calibrates_its_five_cameras_to_the_goals_and_check_catches_a_moved_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("calibration/sim");
+    let out = labrig(&["calibrate", "--sim", "--camera", "all", "--seed", "0", "--json", "--out-dir", s(&out_dir)]);
+    assert!(out.status.success(), "{}", text(&out));
+    let r = json(&out);
+    let cams = r["cameras"].as_array().unwrap();
+    assert_eq!(cams.len(), 5, "{r}");
+    let mut table = String::new();
+    for c in cams {
+        let id = c["camera"].as_str().unwrap();
+        assert!(c["ok"].as_bool().unwrap(), "{id}: {c}");
+        let rep = &c["report"];
+        let (mm, deg) = (rep["position_error_mm"].as_f64().unwrap(), rep["rotation_error_deg"].as_f64().unwrap());
+        let (max_mm, max_deg) = if id == "wrist" { (1.0, 0.1) } else { (2.0, 0.2) };
+        table += &format!("{id}: {mm:.3} mm {deg:.4} deg, {} views, {:.3} px\n", rep["views_used"], rep["rms_px"]);
+        assert!(mm <= max_mm && deg <= max_deg, "{id}: {mm:.3} mm / {deg:.4} deg against the truth\n{c}");
+        assert!(rep["views_used"].as_u64().unwrap() >= 10, "{c}");
+        assert!(c["check"]["pass"].as_bool().unwrap(), "{c}");
+        // Every hand-eye method was run; refinement is what reaches the goal.
+        let methods = rep["methods"].as_array().unwrap();
+        assert_eq!(methods.len(), 5, "{c}");
+        // The file is written where it was asked, readable, dated, with the views' residuals.
+        let file = out_dir.join(format!("{id}.json"));
+        let cal: labrig_msgs::calibration::CalibrationFile =
+            serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+        assert_eq!(cal.camera, id);
+        assert_eq!(cal.parent_frame, if id == "wrist" { "tcp" } else { "base" });
+        assert!(cal.unix_time_s > 1_700_000_000 && cal.date.ends_with('Z'), "{}", cal.date);
+        assert_eq!(cal.views.len(), rep["views_captured"].as_u64().unwrap() as usize);
+        for fig in ["views", "residuals"] {
+            let png = out_dir.join(format!("{id}_{fig}.png"));
+            assert!(std::fs::metadata(&png).map(|m| m.len() > 10_000).unwrap_or(false), "{}", png.display());
+        }
+    }
+    eprintln!("{table}");
+
+    // The camera where it was: no drift. Moved 3 cm: caught (exit 3), drift ~30 mm.
+    let cal = out_dir.join("ext1.json");
+    let still =
+        labrig(&["calibrate", "check", "--sim", "--camera", "ext1", "--seed", "0", "--json", "--calibration", s(&cal)]);
+    assert!(still.status.success(), "{}", text(&still));
+    let still = json(&still);
+    assert!(still["drift_mm"].as_f64().unwrap() < 2.0 && !still["moved"].as_bool().unwrap(), "{still}");
+    let moved = labrig(&[
+        "calibrate",
+        "check",
+        "--sim",
+        "--camera",
+        "ext1",
+        "--seed",
+        "0",
+        "--json",
+        "--calibration",
+        s(&cal),
+        "--move-camera",
+        "0.03,0,0",
+    ]);
+    assert_eq!(moved.status.code(), Some(3), "{}", text(&moved));
+    let moved = json(&moved);
+    let drift = moved["drift_mm"].as_f64().unwrap();
+    assert!(moved["moved"].as_bool().unwrap() && (20.0..40.0).contains(&drift), "{moved}");
+}
+
+#[test]
+fn bad_input_is_refused_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("out");
+    let sim = |extra: &[&str]| {
+        let mut args = vec!["calibrate", "--sim", "--camera", "ext1", "--seed", "0", "--out-dir", s(&out_dir)];
+        args.extend_from_slice(extra);
+        labrig(&args)
+    };
+
+    // A print that is not the board the solver is told about: no marker of it is found.
+    let other = dir.path().join("other.toml");
+    std::fs::write(
+        &other,
+        "squares_x = 5\nsquares_y = 7\nsquare_m = 0.04\nmarker_m = 0.03\ndictionary = \"DICT_4X4_50\"\n",
+    )
+    .unwrap();
+    let out = sim(&["--views", "12", "--printed-board", s(&other)]);
+    assert_eq!(out.status.code(), Some(4), "{}", text(&out));
+    let t = text(&out);
+    assert!(t.contains("board not seen") && t.contains("the board spec the one printed"), "{t}");
+    assert!(!out_dir.join("ext1.json").exists(), "a failed calibration is written nowhere");
+
+    // Too few views.
+    let out = sim(&["--views", "8"]);
+    assert_eq!(out.status.code(), Some(4), "{}", text(&out));
+    let t = text(&out);
+    assert!(t.contains("usable views of") && t.contains("at least 10 needed"), "{t}");
+
+    // A board that moved in the gripper: a good capture, then its TCP poses drift by up to 2 cm.
+    let work = dir.path().join("work");
+    let out = sim(&["--views", "16", "--work", s(&work)]);
+    assert!(out.status.success(), "{}", text(&out));
+    let capture = work.join("ext1");
+    let path = capture.join("capture.json");
+    let mut cap: Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let views = cap["views"].as_array_mut().unwrap();
+    let n = views.len() as f64;
+    for (i, v) in views.iter_mut().enumerate() {
+        let x = v["tcp"]["position"][0].as_f64().unwrap();
+        v["tcp"]["position"][0] = Value::from(x + 0.02 * i as f64 / n);
+    }
+    std::fs::write(&path, serde_json::to_string(&cap).unwrap()).unwrap();
+    let out = labrig(&["calibrate", "solve", s(&capture), "--out", s(&dir.path().join("slipped.json"))]);
+    assert_eq!(out.status.code(), Some(4), "{}", text(&out));
+    let t = text(&out);
+    assert!(t.contains("views disagree with one rigid board") || t.contains("70/30 check failed"), "{t}");
+
+    // An unknown camera; a board with more markers than its dictionary holds.
+    let out = labrig(&["calibrate", "--sim", "--camera", "ext9"]);
+    assert!(!out.status.success() && text(&out).contains("unknown camera `ext9`"), "{}", text(&out));
+    let big = dir.path().join("big.toml");
+    std::fs::write(
+        &big,
+        "squares_x = 20\nsquares_y = 20\nsquare_m = 0.02\nmarker_m = 0.015\ndictionary = \"DICT_4X4_50\"\n",
+    )
+    .unwrap();
+    let out = labrig(&["calibrate", "board", "--out", s(&dir.path().join("b.png")), "--board", s(&big)]);
+    assert!(!out.status.success() && text(&out).contains("holds only 50"), "{}", text(&out));
+}
