@@ -325,6 +325,7 @@ pub fn solve_capture(
         check,
         date: now.to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
         unix_time_s: now.timestamp(),
+        sim_scene: cap.sim_scene.clone(),
     };
     let report = SolveReport {
         camera,

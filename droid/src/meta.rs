@@ -105,6 +105,7 @@ pub fn to_json(i: &JsonInput<'_>) -> Value {
             "sim_scene": m.sim_scene,
             "recovered": m.recovered,
             "policy": m.policy,
+            "calibration": m.calibration,
         }),
     );
     v
@@ -208,6 +209,7 @@ pub fn parse(v: &Value) -> Result<Parsed, Invalid> {
         sim_scene: labrig.and_then(|l| l.get("sim_scene")).and_then(Value::as_str).map(str::to_owned),
         recovered: labrig.and_then(|l| l.get("recovered")).and_then(Value::as_str).map(str::to_owned),
         policy: labrig.and_then(|l| l.get("policy")).and_then(Value::as_str).map(str::to_owned),
+        calibration: labrig.and_then(|l| l.get("calibration")).and_then(Value::as_str).map(str::to_owned),
     };
     let action_source =
         labrig.and_then(|l| l.get("action_source")).and_then(Value::as_str).map_or(Step::SOURCE_TELEOP, source_of);

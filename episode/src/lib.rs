@@ -12,6 +12,7 @@
 //! dataset tools read thousands of episodes with it.
 
 pub mod bag;
+pub mod calibration;
 mod chunk;
 pub mod episode;
 pub mod font;

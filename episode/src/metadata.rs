@@ -79,6 +79,9 @@ pub struct EpisodeMetadata {
     pub recovered: Option<String>,
     /// A policy's rollout: the checkpoint whose actions the steps executed (`<dir>@<step>`).
     pub policy: Option<String>,
+    /// The rig's camera calibrations in force (JSON from `/calibration`: per camera its date,
+    /// method and extrinsics; [`crate::calibration::Calibrations::summary`]).
+    pub calibration: Option<String>,
 }
 
 impl EpisodeMetadata {
@@ -100,6 +103,7 @@ impl EpisodeMetadata {
             sim_scene: None,
             recovered: None,
             policy: None,
+            calibration: None,
         }
     }
 
@@ -131,6 +135,9 @@ impl EpisodeMetadata {
         if let Some(p) = &self.policy {
             m.insert("policy".into(), p.clone());
         }
+        if let Some(c) = &self.calibration {
+            m.insert("calibration".into(), c.clone());
+        }
         m
     }
 
@@ -160,6 +167,7 @@ impl EpisodeMetadata {
             sim_scene: m.get("sim_scene").cloned(),
             recovered: m.get("recovered").cloned(),
             policy: m.get("policy").cloned(),
+            calibration: m.get("calibration").cloned(),
         })
     }
 }
@@ -225,6 +233,7 @@ mod tests {
         m.sim_scene = Some("{\"seed\":3}".into());
         m.recovered = Some("recorder restarted: 2 parts".into());
         m.policy = Some("run@600".into());
+        m.calibration = Some("{\"ext1\":{\"date\":\"2026-11-25T12:00:00Z\"}}".into());
         let back = EpisodeMetadata::from_record(&m.to_record()).unwrap();
         assert_eq!(back, m);
         assert_eq!(m.to_record()["current_task"], "put the cube in the bin");

@@ -182,6 +182,10 @@ pub struct CalibrationFile {
     /// When it was calibrated: RFC 3339 (UTC) and Unix seconds.
     pub date: String,
     pub unix_time_s: i64,
+    /// For a simulated rig: the scene it was calibrated in (`<spec name> seed <N>`; each seed
+    /// places the cameras anew). The sim bridge uses it in that scene only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim_scene: Option<String>,
 }
 
 impl CalibrationFile {
@@ -230,4 +234,12 @@ pub struct CaptureFile {
     pub unreachable: usize,
     #[serde(default)]
     pub truth: Option<CaptureTruth>,
+    /// A sim capture's scene (`<spec name> seed <N>`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim_scene: Option<String>,
+}
+
+/// How a sim scene is named in calibration files.
+pub fn sim_scene_name(spec_name: &str, seed: u64) -> String {
+    format!("{spec_name} seed {seed}")
 }

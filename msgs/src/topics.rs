@@ -120,6 +120,9 @@ pub const POLICY_INFO: Topic<StringMsg> = Topic::new("/policy/info", Latched);
 pub const CLOCK: Topic<Clock> = Topic::new("/clock", Reliable);
 /// The scene's sampled values and spec (JSON), latched.
 pub const SIM_SCENE: Topic<StringMsg> = Topic::new("/sim/scene", Latched);
+/// The rig's camera calibrations in force (JSON: per camera its date, method, extrinsics),
+/// latched; published by whoever loads them (the camera node, the sim bridge).
+pub const CALIBRATION: Topic<StringMsg> = Topic::new("/calibration", Latched);
 /// `{"seed": N}`: rebuild the scene.
 pub const SIM_RESET: Topic<StringMsg> = Topic::new("/sim/reset", Reliable);
 /// Faults the sim injects on request (JSON, e.g. `{"stall_camera": {"camera": "wrist",

@@ -51,7 +51,7 @@ use labrig_runtime::{RosConfig, Shutdown};
 use labrig_sim::expert::euler_xyz;
 use labrig_sim::scene::SceneValues;
 use labrig_sim::{Meshes, Sim};
-use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+use nalgebra::{Isometry3, Matrix3, Rotation3, UnitQuaternion};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -114,6 +114,13 @@ pub struct BridgeConfig {
     /// `<prefix>/gripper/command` only (arm commands' `gripper_position` is ignored, as the
     /// real FR3 ignores it: the gripper node owns the gripper).
     pub hardware_prefix: String,
+    /// Camera calibrations: a folder of `<camera>.json` from `labrig calibrate` (e.g.
+    /// `calibration/sim`). `/tf_static` and the wrist camera's `/tf` then carry the calibrated
+    /// poses instead of the scene's, `/calibration` says which (date, method) so the recorder
+    /// writes them into every episode; a camera without one keeps the scene's pose, warned.
+    pub calibration: Option<PathBuf>,
+    /// Warn at start when a calibration is older than this (s; DROID warns after an hour).
+    pub calibration_max_age_s: f64,
 }
 
 impl Default for BridgeConfig {
@@ -134,6 +141,8 @@ impl Default for BridgeConfig {
             max_ticks: None,
             assets: None,
             hardware_prefix: String::new(),
+            calibration: None,
+            calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
         }
     }
 }
@@ -220,6 +229,10 @@ pub struct BridgeFlags {
     #[arg(long)]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub hardware_prefix: Option<String>,
+    /// Camera calibrations folder (config `calibration`).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<PathBuf>,
 }
 
 impl labrig_runtime::Node for BridgeNode {
@@ -252,6 +265,8 @@ struct Publishers {
     camera_info: Vec<RosPublisher<CameraInfo>>,
     /// The task's success predicate after every step (`/sim/task`).
     task: RosPublisher<StringMsg>,
+    /// The wrist camera's calibrated pose in the TCP frame (optical), if calibrated.
+    wrist_in_tcp: Option<Isometry3<f64>>,
 }
 
 fn header(t: Nanos, frame: &str) -> Header {
@@ -268,6 +283,19 @@ fn transform(t: Nanos, parent: &str, child: &str, pos: [f64; 3], rot: &Matrix3<f
             rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
         },
     }
+}
+
+/// A calibration file's pose as a transform.
+fn iso(p: &labrig_msgs::calibration::Pose) -> Isometry3<f64> {
+    let [w, i, j, k] = p.quaternion_wxyz;
+    Isometry3::from_parts(
+        nalgebra::Translation3::from(nalgebra::Vector3::from(p.position)),
+        UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, i, j, k)),
+    )
+}
+
+fn rotation(p: &Isometry3<f64>) -> Matrix3<f64> {
+    *p.rotation.to_rotation_matrix().matrix()
 }
 
 /// A MuJoCo camera looks along its -z with y up; ROS optical frames look along +z with y down.
@@ -356,13 +384,14 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     let arm_sets_gripper = hw.is_empty();
     let mut ros = Ros::new(&cfg, "labrig_sim")?;
     let cameras: Vec<&'static str> = if !a.cameras { vec![] } else { labrig_sim::rig::CAMERAS.to_vec() };
-    let pubs = Publishers {
+    let mut pubs = Publishers {
         joint_states: ros.publisher_on(&topics::JOINT_STATES, 10)?,
         arm_state: ros.publisher_at(hw, &topics::ARM_STATE, 10)?,
         gripper_state: ros.publisher_at(hw, &topics::GRIPPER_STATE, 10)?,
         tf: ros.publisher_on(&topics::TF, 10)?,
         clock: ros.publisher_on(&topics::CLOCK, 10)?,
         task: ros.publisher_on(&topics::SIM_TASK, 10)?,
+        wrist_in_tcp: None,
         camera_info: cameras
             .iter()
             .map(|c| ros.publisher(&topics::camera_info(c), qos::reliable(10)))
@@ -370,6 +399,17 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     };
     let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;
     let scene_pub = ros.publisher_on(&topics::SIM_SCENE, 1)?;
+    let calibrations = match &a.calibration {
+        None => None,
+        Some(dir) => {
+            let c = labrig_episode::calibration::load(dir, &labrig_sim::rig::CAMERAS);
+            let now = labrig_runtime::Clock::Wall.now().0 / 1_000_000_000;
+            for w in c.warnings(now, a.calibration_max_age_s) {
+                tracing::warn!("calibration: {w}");
+            }
+            Some((c, ros.publisher_on(&topics::CALIBRATION, 1)?))
+        }
+    };
     let mut expert = if a.expert {
         Some(ExpertPub {
             expert: labrig_sim::expert::Expert::new(&sim),
@@ -397,7 +437,8 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         })
         .collect::<Result<_, _>>()?;
 
-    publish_scene(&sim, &scene_pub, &tf_static, &spec)?;
+    let in_force = calibration_in_force(&sim, &spec, calibrations.as_ref(), &mut pubs)?;
+    publish_scene(&sim, &scene_pub, &tf_static, &spec, in_force.as_ref())?;
     tracing::info!(
         mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.ros.domain_id,
         "sim bridge up"
@@ -440,7 +481,8 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     next.resume_clock(Nanos((rig.sim().time().0 + period.0).max(now)));
                     rig.replace_scene(next);
                     fovy = fovys(rig.sim());
-                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec)?;
+                    let in_force = calibration_in_force(rig.sim(), &spec, calibrations.as_ref(), &mut pubs)?;
+                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref())?;
                     if let Some(e) = &mut expert {
                         e.expert = labrig_sim::expert::Expert::new(rig.sim());
                     }
@@ -642,6 +684,25 @@ impl ExpertPub {
     }
 }
 
+/// The calibrations that apply to this scene (made in it, or on a real rig), published on
+/// `/calibration`; the wrist camera's goes into the /tf the state carries.
+fn calibration_in_force(
+    sim: &Sim,
+    spec: &labrig_sim::scene::SceneSpec,
+    loaded: Option<&(labrig_episode::calibration::Calibrations, RosPublisher<StringMsg>)>,
+    pubs: &mut Publishers,
+) -> anyhow::Result<Option<labrig_episode::calibration::Calibrations>> {
+    let Some((all, publisher)) = loaded else { return Ok(None) };
+    let mut c = all.clone();
+    let scene = labrig_msgs::calibration::sim_scene_name(&spec.name, sim.scene().seed);
+    for w in c.for_sim_scene(&scene) {
+        tracing::warn!("calibration: {w}");
+    }
+    publisher.publish(StringMsg { data: c.summary().to_string() })?;
+    pubs.wrist_in_tcp = c.files.get("wrist").filter(|f| f.parent_frame == "tcp").map(|f| iso(&f.pose));
+    Ok(Some(c))
+}
+
 /// The scene's sampled values (`/sim/scene`) and the external cameras' poses (`/tf_static`),
 /// both latched.
 fn publish_scene(
@@ -649,6 +710,7 @@ fn publish_scene(
     scene_pub: &RosPublisher<StringMsg>,
     tf_static: &RosPublisher<TFMessage>,
     spec: &labrig_sim::scene::SceneSpec,
+    calibrations: Option<&labrig_episode::calibration::Calibrations>,
 ) -> anyhow::Result<()> {
     let scene: &SceneValues = sim.scene();
     // The sampled values, and the spec they came from (so a recording can rebuild the scene).
@@ -659,8 +721,14 @@ fn publish_scene(
         .cameras
         .keys()
         .map(|id| {
+            let child = format!("{id}_optical");
+            // A calibrated camera's pose is its calibration's, as on a real rig.
+            if let Some(f) = calibrations.and_then(|c| c.files.get(id)).filter(|f| f.parent_frame == BASE_FRAME) {
+                let p = iso(&f.pose);
+                return transform(Nanos::ZERO, BASE_FRAME, &child, p.translation.vector.into(), &rotation(&p));
+            }
             let cam = sim.camera_pose(id).expect("scene cameras exist in the model");
-            transform(Nanos::ZERO, BASE_FRAME, &format!("{id}_optical"), cam.0, &optical(&cam.1))
+            transform(Nanos::ZERO, BASE_FRAME, &child, cam.0, &optical(&cam.1))
         })
         .collect();
     tf_static.publish(TFMessage { transforms: statics })?;
@@ -739,7 +807,14 @@ fn publish_state(sim: &Sim, pubs: &Publishers, state: &CommandState) -> Result<(
         ..GripperState::default()
     })?;
     let mut tf = vec![transform(t, BASE_FRAME, "tcp", p, &rot)];
-    if let Some((pos, rot)) = sim.camera_pose("wrist") {
+    if let Some(wrist) = &pubs.wrist_in_tcp {
+        let tcp = nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::new(p[0], p[1], p[2]),
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rot)),
+        );
+        let cam = tcp * wrist;
+        tf.push(transform(t, BASE_FRAME, "wrist_optical", cam.translation.vector.into(), &rotation(&cam)));
+    } else if let Some((pos, rot)) = sim.camera_pose("wrist") {
         tf.push(transform(t, BASE_FRAME, "wrist_optical", pos, &optical(&rot)));
     }
     pubs.tf.publish(TFMessage { transforms: tf })?;

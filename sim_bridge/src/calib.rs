@@ -351,6 +351,7 @@ pub fn capture(opts: &CaptureOptions, progress: &indicatif::ProgressBar) -> anyh
         views,
         unreachable,
         truth: Some(truth),
+        sim_scene: Some(labrig_msgs::calibration::sim_scene_name(&opts.spec.name, opts.seed)),
     };
     let path = opts.out.join("capture.json");
     std::fs::write(&path, serde_json::to_string_pretty(&file)?)

@@ -14,7 +14,14 @@ use std::process::{Command, Output};
 fn labrig(args: &[&str]) -> Output {
     workspace_bin("labrig-calibrate", "labrig-calibration");
     workspace_bin("labrig-sim", "labrig-sim-bridge");
-    Command::new(labrig_bin()).args(args).output().unwrap()
+    for p in ["labrig-recorder", "labrig-control"] {
+        workspace_bin(p, p); // `labrig demo` starts them from beside itself
+    }
+    Command::new(labrig_bin())
+        .args(args)
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("calibration_{}", std::process::id()))
+        .output()
+        .unwrap()
 }
 
 fn text(out: &Output) -> String {
@@ -158,4 +165,94 @@ fn bad_input_is_refused_with_the_reason() {
     .unwrap();
     let out = labrig(&["calibrate", "board", "--out", s(&dir.path().join("b.png")), "--board", s(&big)]);
     assert!(!out.status.success() && text(&out).contains("holds only 50"), "{}", text(&out));
+}
+
+/// The metadata of the one episode a demo recorded (via `labrig inspect --json`).
+fn demo_metadata(out: &Path) -> Value {
+    let mcap = walk(out).into_iter().find(|p| p.extension().is_some_and(|e| e == "mcap")).expect("an episode");
+    let inspect = labrig(&["inspect", s(&mcap), "--json"]);
+    assert!(inspect.status.success(), "{}", text(&inspect));
+    json(&inspect)["metadata"].clone()
+}
+
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() { out.extend(walk(&p)) } else { out.push(p) }
+    }
+    out
+}
+
+#[test]
+fn a_calibration_reaches_tf_static_and_the_next_episodes_metadata_in_its_own_scene_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let domain = labrig_tests::domain_for("calibration_reaches_the_metadata").to_string();
+    let cal_dir = dir.path().join("calibration");
+    let out = labrig(&[
+        "calibrate",
+        "--sim",
+        "--camera",
+        "ext1,wrist",
+        "--views",
+        "14",
+        "--seed",
+        "0",
+        "--out-dir",
+        s(&cal_dir),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let file: labrig_msgs::calibration::CalibrationFile =
+        serde_json::from_str(&std::fs::read_to_string(cal_dir.join("ext1.json")).unwrap()).unwrap();
+    assert_eq!(file.sim_scene.as_deref(), Some("pick_place_cube seed 0"));
+
+    // The scene it was made in: the recorder's extrinsics (from /tf_static) are the calibration's.
+    let demo = dir.path().join("demo0");
+    let out = labrig(&[
+        "demo",
+        "--episodes",
+        "1",
+        "--first-seed",
+        "0",
+        "--domain-id",
+        &domain,
+        "--json",
+        "--out",
+        s(&demo),
+        "--calibration",
+        s(&cal_dir),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let meta = demo_metadata(&demo);
+    let ext1: Vec<f64> = serde_json::from_value(meta["extrinsics"]["ext1"].clone()).unwrap();
+    for (a, b) in ext1.iter().zip(file.droid_extrinsics) {
+        assert!((a - b).abs() < 1e-9, "ext1 extrinsics {ext1:?} are not the calibration's {:?}", file.droid_extrinsics);
+    }
+    let cal: Value = serde_json::from_str(meta["calibration"].as_str().unwrap()).unwrap();
+    assert_eq!(cal["ext1"]["date"], file.date.as_str(), "{cal}");
+    assert_eq!(cal["wrist"]["parent_frame"], "tcp", "{cal}");
+    assert!(cal.get("ext2").is_none(), "ext2 was not calibrated: {cal}");
+
+    // Another scene (seed 1 puts the cameras elsewhere): the calibration is not applied.
+    let demo = dir.path().join("demo1");
+    let out = labrig(&[
+        "demo",
+        "--episodes",
+        "1",
+        "--first-seed",
+        "1",
+        "--domain-id",
+        &domain,
+        "--json",
+        "--out",
+        s(&demo),
+        "--calibration",
+        s(&cal_dir),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let meta = demo_metadata(&demo);
+    let cal: Value = serde_json::from_str(meta["calibration"].as_str().unwrap()).unwrap();
+    assert_eq!(cal, serde_json::json!({}), "a calibration of another scene was applied");
+    let ext1: Vec<f64> = serde_json::from_value(meta["extrinsics"]["ext1"].clone()).unwrap();
+    assert!((ext1[0] - file.droid_extrinsics[0]).abs() > 1e-3 || (ext1[1] - file.droid_extrinsics[1]).abs() > 1e-3);
 }

@@ -54,6 +54,12 @@ pub struct CamerasConfig {
     pub status_period_s: f64,
     /// The frame the extrinsics are given in.
     pub base_frame: String,
+    /// Camera calibrations (`calibration/<rig>`, from `labrig calibrate`): a calibrated
+    /// camera's `/tf_static` is its calibration's (base -> `<id>_optical`, or for the wrist
+    /// camera tcp -> `<id>_optical`) instead of its configured `extrinsics`, and `/calibration`
+    /// names them for the recorder; missing or old calibrations are warned at start.
+    pub calibration: Option<PathBuf>,
+    pub calibration_max_age_s: f64,
 }
 
 impl Default for CamerasConfig {
@@ -68,6 +74,8 @@ impl Default for CamerasConfig {
             retry_s: 1.0,
             status_period_s: 1.0,
             base_frame: "base".into(),
+            calibration: None,
+            calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
         }
     }
 }
@@ -389,6 +397,23 @@ impl Camera {
     }
 }
 
+/// `/tf_static`'s transform for a calibrated camera: its calibration's parent (`base`, named
+/// `base` as configured, or `tcp` for an eye-in-hand camera) -> `<id>_optical`.
+pub fn calibrated_transform(
+    f: &labrig_msgs::calibration::CalibrationFile,
+    base: &str,
+    stamp: Time,
+) -> TransformStamped {
+    let [x, y, z] = f.pose.position;
+    let [w, qx, qy, qz] = f.pose.quaternion_wxyz;
+    let parent = if f.parent_frame == "base" { base.to_owned() } else { f.parent_frame.clone() };
+    TransformStamped {
+        header: Header { stamp, frame_id: parent },
+        child_frame_id: optical_frame(&f.camera),
+        transform: Transform { translation: Vector3 { x, y, z }, rotation: Quaternion { x: qx, y: qy, z: qz, w } },
+    }
+}
+
 /// The camera's optical frame name (as the sim bridge names it).
 pub fn optical_frame(camera: &str) -> String {
     format!("{camera}_optical")
@@ -681,11 +706,33 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
     let status_pub = ros.publisher_on(&topics::CAMERAS_STATUS, 1)?;
     let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;
     let now = Clock::Wall.now();
-    let statics: Vec<TransformStamped> =
-        cameras.iter().filter_map(|c| c.transform(&config.base_frame, Time::from(now))).collect();
+    let calibrations = config.calibration.as_ref().map(|dir| {
+        let ids: Vec<&str> = cameras.iter().map(|c| c.id.as_str()).collect();
+        let c = labrig_episode::calibration::load(dir, &ids);
+        for w in c.warnings(now.0 / 1_000_000_000, config.calibration_max_age_s) {
+            tracing::warn!("calibration: {w}");
+        }
+        c
+    });
+    let statics: Vec<TransformStamped> = cameras
+        .iter()
+        .filter_map(|c| match calibrations.as_ref().and_then(|k| k.files.get(&c.id)) {
+            Some(f) => Some(calibrated_transform(f, &config.base_frame, Time::from(now))),
+            None => c.transform(&config.base_frame, Time::from(now)),
+        })
+        .collect();
     if !statics.is_empty() {
         tf_static.publish(TFMessage { transforms: statics })?;
     }
+    // Latched: kept for the node's life so a recorder that starts later still gets it.
+    let _calibration_pub = match &calibrations {
+        Some(c) => {
+            let p = ros.publisher_on(&topics::CALIBRATION, 1)?;
+            p.publish(StringMsg { data: c.summary().to_string() })?;
+            Some(p)
+        }
+        None => None,
+    };
 
     let (tx, mut rx) = tokio::sync::mpsc::channel::<Event>(1024);
     let ctx = ThreadCtx {
@@ -903,6 +950,28 @@ mod tests {
         let i = cam.intrinsics.unwrap();
         assert_eq!((i.fx, i.cx, i.cy), (150.0, 159.5, 89.5));
         assert_eq!(cam.side_by_side, None);
+    }
+
+    #[test]
+    fn a_calibration_becomes_the_static_transform_from_its_parent_frame() {
+        use labrig_msgs::calibration::{CalibrationFile, Mount, Pose};
+        let text = r#"{"version":1,"rig":"lab","camera":"wrist","mount":"eye_in_hand","parent_frame":"tcp",
+            "child_frame":"wrist_optical","pose":{"position":[0.01,0.09,0.03],"quaternion_wxyz":[0.0,1.0,0.0,0.0]},
+            "droid_extrinsics":[0,0,0,0,0,0],"closed_form":{"position":[0,0,0],"quaternion_wxyz":[1,0,0,0]},
+            "method":"daniilidis+refined","board_pose":{"position":[0,0,0],"quaternion_wxyz":[1,0,0,0]},
+            "intrinsics":{"width":1280,"height":720,"fx":600,"fy":600,"cx":639.5,"cy":359.5,"source":"zed-factory"},
+            "board":{"squares_x":9,"squares_y":14,"square_m":0.02,"marker_m":0.016,"dictionary":"DICT_5X5_100"},
+            "rms_px":0.3,"views":[],"check":{"train_views":42,"test_views":18,"position_mse_m2":[0,0,0],
+            "rotation_mse_rad2":[0,0,0],"mean_position_error_mm":0.2,"mean_rotation_error_deg":0.05,"pass":true},
+            "date":"2026-11-25T12:00:00Z","unix_time_s":1795000000}"#;
+        let f: CalibrationFile = serde_json::from_str(text).unwrap();
+        assert_eq!(f.mount, Mount::EyeInHand);
+        let t = calibrated_transform(&f, "fr3_link0", Time::default());
+        assert_eq!((t.header.frame_id.as_str(), t.child_frame_id.as_str()), ("tcp", "wrist_optical"));
+        assert_eq!((t.transform.translation.y, t.transform.rotation.x), (0.09, 1.0));
+        let ext = CalibrationFile { parent_frame: "base".into(), camera: "ext1".into(), pose: Pose { ..f.pose }, ..f };
+        let t = calibrated_transform(&ext, "fr3_link0", Time::default());
+        assert_eq!((t.header.frame_id.as_str(), t.child_frame_id.as_str()), ("fr3_link0", "ext1_optical"));
     }
 
     #[test]

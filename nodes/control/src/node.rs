@@ -130,6 +130,11 @@ pub struct ControlConfig {
     pub urdf: Option<PathBuf>,
     /// The policy source (`source = "policy"`).
     pub policy: PolicySourceConfig,
+    /// The rig's camera calibrations (a folder of `<camera>.json`, e.g. `calibration/<rig>`):
+    /// the loop warns at start for each of `cameras` whose calibration is missing, unreadable
+    /// or older than `calibration_max_age_s` (DROID's GUI warns after an hour).
+    pub calibration: Option<PathBuf>,
+    pub calibration_max_age_s: f64,
 }
 
 impl Default for ControlConfig {
@@ -160,6 +165,8 @@ impl Default for ControlConfig {
             safety: SafetyConfig { max_command_age_s: 0.0, ..SafetyConfig::default() },
             urdf: None,
             policy: PolicySourceConfig::default(),
+            calibration: None,
+            calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
         }
     }
 }
@@ -282,6 +289,21 @@ struct Pubs {
 
 pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summary> {
     cfg.validate()?;
+    if let Some(dir) = &cfg.calibration {
+        let cameras: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
+        let now = labrig_runtime::Clock::Wall.now().0 / 1_000_000_000;
+        let warnings = labrig_episode::calibration::load(dir, &cameras).warnings(now, cfg.calibration_max_age_s);
+        for w in &warnings {
+            tracing::warn!("calibration: {w}");
+        }
+        if warnings.is_empty() {
+            tracing::info!(
+                "calibration: all {} cameras calibrated within {} s",
+                cameras.len(),
+                cfg.calibration_max_age_s
+            );
+        }
+    }
     let urdf = labrig_arm::urdf_path(cfg.urdf.as_deref());
     let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)
         .with_context(|| format!("loading the FR3 URDF {}", urdf.display()))?;

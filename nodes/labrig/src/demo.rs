@@ -43,6 +43,11 @@ pub struct DemoArgs {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Camera calibrations (`labrig calibrate --sim --out-dir DIR`): the rig publishes them on
+    /// /tf_static and /calibration, every episode's metadata carries them, and the loop warns
+    /// at start for cameras without a current one.
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
 }
 
 /// Sets `flag`'s value in `args` (appended when absent).
@@ -60,15 +65,30 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let out = std::fs::canonicalize(&args.out)?;
     let root = out.join("episodes");
+    let calibration = match &args.calibration {
+        Some(dir) => Some(
+            std::fs::canonicalize(dir)
+                .with_context(|| format!("--calibration {}: no such folder", dir.display()))?
+                .display()
+                .to_string(),
+        ),
+        None => None,
+    };
     {
         let sim = cfg.node_mut("sim").context("sim_demo.toml has no `sim` node")?;
         set_arg(&mut sim.args, "--mode", if args.realtime { "realtime" } else { "lockstep" });
+        if let Some(dir) = &calibration {
+            set_arg(&mut sim.args, "--calibration", dir);
+        }
         if args.realtime {
             sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
         }
         let rec = cfg.node_mut("recorder").context("sim_demo.toml has no `recorder` node")?;
         set_arg(&mut rec.args, "--root", &root.display().to_string());
         let ctl = cfg.node_mut("control").context("sim_demo.toml has no `control` node")?;
+        if let Some(dir) = &calibration {
+            ctl.args.extend(["--set".into(), format!("calibration={dir:?}")]);
+        }
         set_arg(&mut ctl.args, "--episodes", &args.episodes.to_string());
         set_arg(&mut ctl.args, "--first-seed", &args.first_seed.to_string());
         if args.realtime {

@@ -89,6 +89,7 @@ pub fn default_topics() -> Vec<TopicSpec> {
         spec(topics::TF.name, "tf2_msgs/msg/TFMessage", false),
         spec(topics::TF_STATIC.name, "tf2_msgs/msg/TFMessage", true),
         spec(topics::SIM_SCENE.name, "std_msgs/msg/String", true),
+        spec(topics::CALIBRATION.name, "std_msgs/msg/String", true),
         spec(topics::TELEOP_STATE.name, "labrig_msgs/msg/TeleopState", false),
         spec(topics::TELEOP_ACTION.name, "labrig_msgs/msg/ArmCommand", false),
     ];
@@ -262,6 +263,8 @@ struct Closing {
 struct Context {
     tf_static: Option<TFMessage>,
     scene_json: Option<String>,
+    /// `/calibration`: the calibrations in force, for the metadata.
+    calibration_json: Option<String>,
     /// The last message of each latched topic (published once, before any episode): written
     /// into every episode at its start, so each file holds its own /tf_static and scene.
     latched: BTreeMap<String, (Vec<u8>, i64)>,
@@ -742,6 +745,7 @@ impl Recorder {
             meta.uuid.clone_from(&ev.episode_id);
         }
         meta.sim_scene.clone_from(&self.context.scene_json);
+        meta.calibration.clone_from(&self.context.calibration_json);
         if let Some(tf) = &self.context.tf_static {
             meta.extrinsics = extrinsics(tf);
         }
@@ -1064,6 +1068,8 @@ fn drain_topics(
                 ctx.tf_static = labrig_msgs::decode::<TFMessage>(&cdr).ok();
             } else if r.spec.topic == topics::SIM_SCENE.name {
                 ctx.scene_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
+            } else if r.spec.topic == topics::CALIBRATION.name {
+                ctx.calibration_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
             }
             if r.spec.latched {
                 ctx.latched
