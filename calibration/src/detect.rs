@@ -128,3 +128,81 @@ impl Detector {
         Ok(out)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
+    use opencv::core::{BORDER_CONSTANT, Scalar};
+
+    /// Pixels per square of the print; it is blurred before it is warped ~4x down (a print
+    /// warped down unfiltered aliases its edges by ~0.4 px).
+    const PX: u32 = 96;
+
+    /// DROID's board drawn at [`PX`] px per square, warped into a 1280x720 view of a known pose
+    /// (the print's pixel u covers [u, u+1) of the board: its centre is at (u + 0.5) px), and
+    /// the true pixel of every corner.
+    fn synthetic_view() -> (Mat, Detector, Vec<[f64; 2]>) {
+        let spec = BoardSpec::droid();
+        let det = Detector::new(&spec).unwrap();
+        let sharp = crate::board::draw(&spec, PX).unwrap();
+        let mut print = Mat::default();
+        opencv::imgproc::gaussian_blur(&sharp, &mut print, Size::new(0, 0), 1.6, 1.6, BORDER_CONSTANT).unwrap();
+        let s = spec.square_m / PX as f64;
+        let (f, cx, cy) = (623.5, 639.5, 359.5);
+        let k = Matrix3::new(f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0);
+        let r = Rotation3::from_euler_angles(0.35, -0.25, 0.1);
+        let t = Vector3::new(-0.08, -0.12, 0.52);
+        let rt = Matrix3::from_columns(&[r.matrix().column(0).into(), r.matrix().column(1).into(), t]);
+        let m = Matrix3::new(s, 0.0, 0.5 * s, 0.0, s, 0.5 * s, 0.0, 0.0, 1.0);
+        let h = k * rt * m;
+        let rows: Vec<[f64; 3]> = (0..3).map(|i| [h[(i, 0)], h[(i, 1)], h[(i, 2)]]).collect();
+        let hm = Mat::from_slice_2d(&rows).unwrap();
+        let mut img = Mat::default();
+        opencv::imgproc::warp_perspective(
+            &print,
+            &mut img,
+            &hm,
+            Size::new(1280, 720),
+            opencv::imgproc::INTER_LINEAR,
+            BORDER_CONSTANT,
+            Scalar::all(128.0),
+        )
+        .unwrap();
+        let truth = det
+            .object_points()
+            .iter()
+            .map(|o| {
+                let p = k * (r * Point3::new(o[0], o[1], o[2]).coords + t);
+                [p.x / p.z, p.y / p.z]
+            })
+            .collect();
+        (img, det, truth)
+    }
+
+    /// The median distance (px) of the detected corners from the truth.
+    fn median_error(d: &Detection, truth: &[[f64; 2]]) -> f64 {
+        let mut e: Vec<f64> = d
+            .ids
+            .iter()
+            .zip(&d.corners)
+            .map(|(&id, c)| ((c[0] - truth[id as usize][0]).powi(2) + (c[1] - truth[id as usize][1]).powi(2)).sqrt())
+            .collect();
+        e.sort_by(f64::total_cmp);
+        e[e.len() / 2]
+    }
+
+    #[test]
+    fn corners_land_on_the_truth_only_with_the_4_6_half_pixel_fix() {
+        let (img, mut det, truth) = synthetic_view();
+        let fixed = det.detect(&img).unwrap();
+        assert!(fixed.corners.len() >= 90, "{} of 104 corners", fixed.corners.len());
+        let with_fix = median_error(&fixed, &truth);
+        det.half_pixel_fix = false;
+        let raw = det.detect(&img).unwrap();
+        let without = median_error(&raw, &truth);
+        eprintln!("median corner error: {with_fix:.3} px with the fix, {without:.3} px without");
+        assert!(with_fix < 0.2 && with_fix < without / 2.0, "{with_fix:.3} px");
+        assert!(without > 0.3, "the trap is gone from this OpenCV ({without:.3} px): drop the fix");
+    }
+}

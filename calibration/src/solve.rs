@@ -185,13 +185,37 @@ pub fn fit_view(
         .map(|&id| all.get(id as usize).map(|p| Point3::new(p[0], p[1], p[2])))
         .collect::<Option<_>>()
         .ok_or_else(|| CalibError::Board("a corner id beyond the board".into()))?;
-    let pixels = undistort(&detection.corners, k)?;
+    let mut pixels = undistort(&detection.corners, k)?;
+    let mut object = object;
+    let mut detection = detection;
     let cam = Pinhole::of(k);
-    let (board, rms_px) = board_pose(&cam, &object, &pixels)?;
+    let (mut board, mut rms_px) = board_pose(&cam, &object, &pixels)?;
+    // A corner the refinement snapped onto a marker edge sits pixels off while the rest agree
+    // to a tenth: drop corners beyond max(1 px, 4 x the median residual) and fit again.
+    let residual = |pose: &Isometry3<f64>, o: &Point3<f64>, p: &[f64; 2]| {
+        cam.project(&(pose * o)).map_or(f64::INFINITY, |q| ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2)).sqrt())
+    };
+    let res: Vec<f64> = object.iter().zip(&pixels).map(|(o, p)| residual(&board, o, p)).collect();
+    let mut sorted = res.clone();
+    sorted.sort_by(f64::total_cmp);
+    let limit = (4.0 * sorted[sorted.len() / 2]).max(1.0);
+    let keep: Vec<bool> = res.iter().map(|&r| r <= limit).collect();
+    let kept = keep.iter().filter(|&&k| k).count();
+    if kept < res.len() && kept >= MIN_CORNERS {
+        object = kept_only(object, &keep);
+        pixels = kept_only(pixels, &keep);
+        detection.ids = kept_only(detection.ids, &keep);
+        detection.corners = kept_only(detection.corners, &keep);
+        (board, rms_px) = board_pose(&cam, &object, &pixels)?;
+    }
     if rms_px > MAX_VIEW_RMS_PX {
         return Ok(Err(format!("board fit {rms_px:.2} px RMS > {MAX_VIEW_RMS_PX} px")));
     }
     Ok(Ok(ViewFit { index, image, tcp, detection, pixels, object, board, rms_px }))
+}
+
+fn kept_only<T>(v: Vec<T>, keep: &[bool]) -> Vec<T> {
+    v.into_iter().zip(keep).filter(|(_, k)| **k).map(|(x, _)| x).collect()
 }
 
 /// A_i of the model `B_i = X^-1 A_i Y`.
