@@ -48,6 +48,7 @@ fn dictionary_size(name: &str) -> Option<usize> {
 /// OpenCV's board for `spec` (checked: the dictionary must hold a marker per white square).
 pub fn charuco(spec: &BoardSpec) -> Result<Ptr<aruco::CharucoBoard>, CalibError> {
     spec.validate().map_err(|e| CalibError::Board(e.to_string()))?;
+    let dict = dictionary(&spec.dictionary)?;
     if let Some(n) = dictionary_size(&spec.dictionary)
         && n < spec.markers()
     {
@@ -59,7 +60,6 @@ pub fn charuco(spec: &BoardSpec) -> Result<Ptr<aruco::CharucoBoard>, CalibError>
             spec.dictionary
         )));
     }
-    let dict = dictionary(&spec.dictionary)?;
     Ok(aruco::CharucoBoard::create(
         spec.squares_x as i32,
         spec.squares_y as i32,
@@ -110,4 +110,95 @@ pub fn write_image(spec: &BoardSpec, px_per_square: u32, path: &Path) -> Result<
         return Err(CalibError::Image(format!("OpenCV could not write {}", path.display())));
     }
     Ok(())
+}
+
+/// Writes the print as a one-page PDF whose page is the board plus a 5 mm margin, at true size
+/// (print at 100% / "actual size"): the image, Flate-compressed greyscale, drawn over the page.
+pub fn write_pdf(spec: &BoardSpec, px_per_square: u32, path: &Path) -> Result<(), CalibError> {
+    use std::io::Write;
+    let img = draw(spec, px_per_square)?;
+    let (w, h) = (img.cols() as usize, img.rows() as usize);
+    let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+    z.write_all(img.data_bytes()?).map_err(|e| CalibError::io(path, e))?;
+    let data = z.finish().map_err(|e| CalibError::io(path, e))?;
+    // PDF units are points (1/72 in).
+    let pt = |m: f64| m / 0.0254 * 72.0;
+    let [bw, bh] = spec.size_m();
+    let margin = pt(0.005);
+    let (page_w, page_h) = (pt(bw) + 2.0 * margin, pt(bh) + 2.0 * margin);
+    let content = format!("q {:.4} 0 0 {:.4} {margin:.4} {margin:.4} cm /Board Do Q\n", pt(bw), pt(bh));
+    let mut out: Vec<u8> = b"%PDF-1.4\n".to_vec();
+    let mut offsets = Vec::new();
+    let mut object = |out: &mut Vec<u8>, body: &[u8]| {
+        offsets.push(out.len());
+        out.extend_from_slice(format!("{} 0 obj\n", offsets.len()).as_bytes());
+        out.extend_from_slice(body);
+        out.extend_from_slice(b"\nendobj\n");
+    };
+    object(&mut out, b"<< /Type /Catalog /Pages 2 0 R >>");
+    object(&mut out, b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>");
+    object(
+        &mut out,
+        format!(
+            "<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {page_w:.4} {page_h:.4}] \
+             /Resources << /XObject << /Board 5 0 R >> >> /Contents 4 0 R >>"
+        )
+        .as_bytes(),
+    );
+    object(&mut out, format!("<< /Length {} >>\nstream\n{content}endstream", content.len()).as_bytes());
+    let mut image = format!(
+        "<< /Type /XObject /Subtype /Image /Width {w} /Height {h} /ColorSpace /DeviceGray \
+         /BitsPerComponent 8 /Filter /FlateDecode /Length {} >>\nstream\n",
+        data.len()
+    )
+    .into_bytes();
+    image.extend_from_slice(&data);
+    image.extend_from_slice(b"\nendstream");
+    object(&mut out, &image);
+    let xref = out.len();
+    out.extend_from_slice(format!("xref\n0 {}\n0000000000 65535 f \n", offsets.len() + 1).as_bytes());
+    for o in &offsets {
+        out.extend_from_slice(format!("{o:010} 00000 n \n").as_bytes());
+    }
+    out.extend_from_slice(
+        format!("trailer\n<< /Size {} /Root 1 0 R >>\nstartxref\n{xref}\n%%EOF\n", offsets.len() + 1).as_bytes(),
+    );
+    std::fs::write(path, out).map_err(|e| CalibError::io(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pdf_is_one_page_at_true_size_with_a_consistent_xref() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("board.pdf");
+        write_pdf(&BoardSpec::droid(), 40, &path).unwrap();
+        let pdf = std::fs::read(&path).unwrap();
+        let text = String::from_utf8_lossy(&pdf);
+        // 180 x 280 mm + 2 x 5 mm = 190 x 290 mm = 538.58 x 822.05 pt.
+        assert!(text.contains("/MediaBox [0 0 538.5827 822.0472]"), "{}", &text[..400]);
+        let start: usize = text.rsplit("startxref\n").next().unwrap().lines().next().unwrap().parse().unwrap();
+        assert!(pdf[start..].starts_with(b"xref\n0 6\n"));
+        let entries: Vec<usize> = String::from_utf8_lossy(&pdf[start..])
+            .lines()
+            .skip(3)
+            .take(5)
+            .map(|l| l.split(' ').next().unwrap().parse().unwrap())
+            .collect();
+        for (k, off) in entries.iter().enumerate() {
+            assert!(pdf[*off..].starts_with(format!("{} 0 obj", k + 1).as_bytes()), "object {} at {off}", k + 1);
+        }
+        assert!(text.contains("/Width 360 /Height 560"));
+    }
+
+    #[test]
+    fn a_board_needs_a_marker_per_white_square() {
+        let big = BoardSpec { squares_x: 20, squares_y: 20, dictionary: "DICT_4X4_50".into(), ..BoardSpec::droid() };
+        let e = charuco(&big).unwrap_err().to_string();
+        assert!(e.contains("200 markers") && e.contains("holds only 50"), "{e}");
+        let e = charuco(&BoardSpec { dictionary: "DICT_9X9_1".into(), ..BoardSpec::droid() }).unwrap_err().to_string();
+        assert!(e.contains("unknown ArUco dictionary `DICT_9X9_1`"), "{e}");
+    }
 }

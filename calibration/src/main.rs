@@ -119,7 +119,8 @@ struct RunArgs {
 
 #[derive(Debug, Args)]
 struct BoardArgs {
-    /// Output: .png (with its physical resolution and a 5 mm margin) or another image format.
+    /// Output: .pdf (one page at true size), .png (with its physical resolution and a 5 mm
+    /// margin) or another image format.
     #[arg(long)]
     out: PathBuf,
     /// The board (TOML); default DROID's.
@@ -213,8 +214,19 @@ fn load_board(path: Option<&Path>) -> anyhow::Result<BoardSpec> {
 fn board_cmd(a: BoardArgs) -> anyhow::Result<ExitCode> {
     let spec = load_board(a.board.as_deref())?;
     let px = (a.dpi / 0.0254 * spec.square_m).round().max(8.0) as u32;
-    let is_png = a.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("png"));
-    if is_png {
+    let ext = a.out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    if ext.as_deref() == Some("pdf") {
+        board::write_pdf(&spec, px, &a.out)?;
+        let [w, h] = spec.size_m();
+        println!(
+            "{}: one page of {:.0} x {:.0} mm (the board and a 5 mm margin); print at 100% (actual size), then \
+             measure a square: it must be {} mm",
+            a.out.display(),
+            w * 1e3 + 10.0,
+            h * 1e3 + 10.0,
+            spec.square_m * 1e3
+        );
+    } else if ext.as_deref() == Some("png") {
         let dpi = board::write_png(&spec, px, true, &a.out)?;
         let [w, h] = spec.size_m();
         println!(
@@ -352,6 +364,11 @@ fn sim_capture(
     quiet: bool,
 ) -> anyhow::Result<()> {
     let mut cmd = Command::new(sim_program()?);
+    // Mesa's llvmpipe renders on every core by default; one leaves the rest of the machine
+    // (a rig, other tests) its share. An LP_NUM_THREADS given by the caller wins.
+    if std::env::var_os("LP_NUM_THREADS").is_none() {
+        cmd.env("LP_NUM_THREADS", "1");
+    }
     cmd.arg("calib-capture")
         .args(["--camera", camera, "--seed", &f.seed.to_string(), "--views", &views.to_string(), "--rig", rig])
         .arg("--print")

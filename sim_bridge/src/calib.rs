@@ -10,7 +10,7 @@
 
 use crate::hardware::SimHardware;
 use anyhow::Context;
-use labrig_arm::ik::Ik;
+use labrig_arm::safety::SafetyFilter;
 use labrig_msgs::Nanos;
 use labrig_msgs::calibration::{
     BoardSpec, CAPTURE_VERSION, CaptureFile, CaptureTruth, CapturedView, Intrinsics, Mount, Pose,
@@ -59,6 +59,8 @@ const REACH_RAD: f64 = 0.002;
 
 /// The board's centre is put no closer to the camera than this...
 const MIN_CAMERA_DISTANCE_M: f64 = 0.42;
+/// Poses closer than this to the safety layer's workspace limits are skipped.
+const WORKSPACE_MARGIN_M: f64 = 0.005;
 /// The start is chosen where the arm reaches this share of a coarse pose set.
 const PROBE_POSES: usize = 20;
 const PROBE_REACHED: f64 = 0.9;
@@ -122,7 +124,7 @@ fn pose_set(start: &Isometry3<f64>, pivot: &Vector3<f64>, n: usize, amp_m: f64, 
 /// The start pose (base -> tcp) and the pivot for `camera`, and the board's mount.
 fn start_pose(
     sim: &Sim,
-    ik: &Ik,
+    safety: &SafetyFilter,
     camera: &str,
     board: &Board,
     amplitude: (f64, f64),
@@ -161,11 +163,11 @@ fn start_pose(
                     continue;
                 }
                 let start = tcp_for(&centre);
-                let Some(mut q) = joints_for(ik, &reset, &start) else { continue };
+                let Some(mut q) = joints_for(safety, &reset, &start) else { continue };
                 let probe = pose_set(&start, &centre, PROBE_POSES, amplitude.0, amplitude.1);
                 let mut reached = 0;
                 for p in &probe {
-                    if let Some(next) = joints_for(ik, &q, p) {
+                    if let Some(next) = joints_for(safety, &q, p) {
                         q = next;
                         reached += 1;
                     }
@@ -208,8 +210,15 @@ fn joint_command(q: &[f64; 7], seq: u64) -> ArmCommand {
 
 /// Joints that put the TCP at `want`: the IK from `seed`, else followed along the straight
 /// path (position lerp, rotation slerp) from `seed`'s pose in small steps, each seeded by the
-/// last (the IK is local; a far target from a far seed lands on a joint limit).
-fn joints_for(ik: &Ik, seed: &[f64; 7], want: &Isometry3<f64>) -> Option<[f64; 7]> {
+/// last (the IK is local; a far target from a far seed lands on a joint limit). None for a
+/// pose outside the safety layer's workspace (it would refuse the command) or out of reach.
+fn joints_for(safety: &SafetyFilter, seed: &[f64; 7], want: &Isometry3<f64>) -> Option<[f64; 7]> {
+    let (lo, hi) = (safety.config().workspace_min_m, safety.config().workspace_max_m);
+    let p = want.translation.vector;
+    if (0..3).any(|i| p[i] < lo[i] + WORKSPACE_MARGIN_M || p[i] > hi[i] - WORKSPACE_MARGIN_M) {
+        return None;
+    }
+    let ik = safety.ik();
     let ok = |s: &labrig_arm::ik::IkSolution| s.position_error_m < 5e-4 && s.rotation_error_rad < 2e-3;
     let first = ik.solve(seed, want);
     if ok(&first) {
@@ -274,15 +283,14 @@ pub fn capture(opts: &CaptureOptions, progress: &indicatif::ProgressBar) -> anyh
     let fovy = sim.model().cam_fovy()[sim.camera_id(camera).context("camera")?];
     let intrinsics = sim_intrinsics(fovy, opts.width, opts.height);
     let safety = labrig_sim::safety_filter(PERIOD, None)?;
-    let ik = safety.ik().clone();
     let amp_rad = match mount {
         Mount::EyeToHand => opts.amplitude_rad,
         Mount::EyeInHand => opts.amplitude_rad / 1.5,
     };
-    let (start, pivot) = start_pose(&sim, &ik, camera, &board, (opts.amplitude_m, amp_rad))?;
+    let (start, pivot) = start_pose(&sim, &safety, camera, &board, (opts.amplitude_m, amp_rad))?;
     tracing::debug!(?start, ?pivot, camera_distance = ?optical(&sim, camera).map(|c| (c.translation.vector - pivot).norm()), "pose set");
     let poses = pose_set(&start, &pivot, opts.views, opts.amplitude_m, amp_rad);
-    let mut hw = SimHardware::new(sim, safety, true);
+    let mut hw = SimHardware::new(sim, safety.clone(), true);
     std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
     let truth_board = iso(hw.sim().body_pose(BOARD_BODY).context("board")?);
     let truth = match mount {
@@ -303,7 +311,7 @@ pub fn capture(opts: &CaptureOptions, progress: &indicatif::ProgressBar) -> anyh
     for (i, want) in poses.iter().enumerate() {
         // Joints for the pose (IK from the last pose's joints, else from a family of seeds),
         // then joint targets through the safety layer until the arm is there.
-        let Some(q) = joints_for(&ik, &last, want) else {
+        let Some(q) = joints_for(&safety, &last, want) else {
             tracing::debug!(view = i, "no IK solution");
             unreachable += 1;
             progress.inc(1);

@@ -549,7 +549,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         rig.decide(source.as_deref_mut(), &mut out)?;
         // The tick as recorded, to a source that observes (the policy's request goes out here).
         if let (Some(s), Some(mut view)) = (source.as_mut(), rig.view()) {
-            view.images = pixels.iter().filter_map(|r| r.at(view.tick).map(|f| (r.camera.as_str(), f))).collect();
+            view.images = pixels.iter_mut().filter_map(|r| r.at(view.tick).map(|f| (r.camera.as_str(), f))).collect();
             s.observe(view);
         }
         // Lockstep: the source's action for this state comes right after the state.
@@ -573,10 +573,26 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
 }
 
 /// One camera's newest frames, pixels copied out of shared memory, for a source that
-/// observes them.
+/// observes them. A passed-through JPEG is kept as it came and decoded only when a tick takes
+/// it (at most one decode per camera and tick, not one per frame drained).
 struct PixelRing {
     camera: String,
-    frames: VecDeque<Arc<RgbFrame>>,
+    frames: VecDeque<Pixels>,
+}
+
+/// A kept frame: decoded, or a camera's JPEG waiting for a tick to need it.
+enum Pixels {
+    Rgb(Arc<RgbFrame>),
+    Jpeg { bytes: Vec<u8>, capture_ns: i64 },
+}
+
+impl Pixels {
+    fn capture_ns(&self) -> i64 {
+        match self {
+            Pixels::Rgb(f) => f.capture_ns,
+            Pixels::Jpeg { capture_ns, .. } => *capture_ns,
+        }
+    }
 }
 
 impl PixelRing {
@@ -586,16 +602,8 @@ impl PixelRing {
     fn push(&mut self, f: &labrig_runtime::frames::Frame) {
         let h = *f.header();
         if h.encoding() == Some(FrameEncoding::Jpeg) {
-            // A camera's `jpeg_passthrough`: decoded here, only because a policy observes it.
-            match labrig_episode::jpeg::decode_rgb(f.pixels()) {
-                Ok(rgb) => self.keep(RgbFrame {
-                    width: rgb.width as u32,
-                    height: rgb.height as u32,
-                    pixels: rgb.pixels,
-                    capture_ns: h.capture_ns,
-                }),
-                Err(e) => tracing::warn!(camera = %self.camera, "a JPEG frame that does not decode: {e}"),
-            }
+            // A camera's `jpeg_passthrough`: decoded in `at`, only because a policy observes it.
+            self.keep(Pixels::Jpeg { bytes: f.pixels().to_vec(), capture_ns: h.capture_ns });
             return;
         }
         if h.encoding() != Some(FrameEncoding::Rgb8) {
@@ -612,19 +620,47 @@ impl PixelRing {
                 .map(|r| r.concat())
         };
         let Some(pixels) = pixels else { return };
-        self.keep(RgbFrame { width: h.width, height: h.height, pixels, capture_ns: h.capture_ns });
+        self.keep(Pixels::Rgb(Arc::new(RgbFrame {
+            width: h.width,
+            height: h.height,
+            pixels,
+            capture_ns: h.capture_ns,
+        })));
     }
 
-    fn keep(&mut self, frame: RgbFrame) {
-        self.frames.push_back(Arc::new(frame));
+    fn keep(&mut self, frame: Pixels) {
+        self.frames.push_back(frame);
         while self.frames.len() > Self::DEPTH {
             self.frames.pop_front();
         }
     }
 
-    /// The newest frame captured at or before `tick` (the Step's frame).
-    fn at(&self, tick: Nanos) -> Option<Arc<RgbFrame>> {
-        self.frames.iter().rev().find(|f| f.capture_ns <= tick.0).cloned()
+    /// The newest frame captured at or before `tick` (the Step's frame), decoded now if it is
+    /// a JPEG (and kept decoded). A JPEG that does not decode is warned and dropped.
+    fn at(&mut self, tick: Nanos) -> Option<Arc<RgbFrame>> {
+        let i = self.frames.iter().rposition(|f| f.capture_ns() <= tick.0)?;
+        if let Pixels::Jpeg { bytes, capture_ns } = &self.frames[i] {
+            match labrig_episode::jpeg::decode_rgb(bytes) {
+                Ok(rgb) => {
+                    let frame = RgbFrame {
+                        width: rgb.width as u32,
+                        height: rgb.height as u32,
+                        pixels: rgb.pixels,
+                        capture_ns: *capture_ns,
+                    };
+                    self.frames[i] = Pixels::Rgb(Arc::new(frame));
+                }
+                Err(e) => {
+                    tracing::warn!(camera = %self.camera, "a JPEG frame that does not decode: {e}");
+                    self.frames.remove(i);
+                    return None;
+                }
+            }
+        }
+        match &self.frames[i] {
+            Pixels::Rgb(f) => Some(f.clone()),
+            Pixels::Jpeg { .. } => None,
+        }
     }
 }
 
@@ -717,6 +753,29 @@ pub(crate) fn action_dict(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_passed_through_jpeg_is_decoded_only_when_a_tick_takes_it() {
+        let mut ring = PixelRing { camera: "ext1".into(), frames: VecDeque::new() };
+        let rgb: Vec<u8> = (0..16 * 8 * 3).map(|i| (i * 7 % 256) as u8).collect();
+        let jpeg = labrig_episode::jpeg::encode_rgb(&rgb, 16, 8, 90).unwrap();
+        for t in [100, 200, 300, 400] {
+            ring.keep(Pixels::Jpeg { bytes: jpeg.clone(), capture_ns: t });
+        }
+        ring.keep(Pixels::Jpeg { bytes: b"not a jpeg".to_vec(), capture_ns: 500 });
+        // The newest three are kept (300, 400 and the bad one at 500); none is decoded yet.
+        assert_eq!(ring.frames.len(), PixelRing::DEPTH);
+        assert!(ring.frames.iter().all(|f| matches!(f, Pixels::Jpeg { .. })));
+        let f = ring.at(Nanos(350)).expect("the frame of 300");
+        assert_eq!((f.width, f.height, f.capture_ns, f.pixels.len()), (16, 8, 300, 16 * 8 * 3));
+        let decoded: Vec<bool> = ring.frames.iter().map(|f| matches!(f, Pixels::Rgb(_))).collect();
+        assert_eq!(decoded, [true, false, false], "only the frame the tick took is decoded");
+        assert!(ring.at(Nanos(250)).is_none(), "nothing captured by then is kept");
+        // A JPEG that does not decode gives no frame and is dropped.
+        assert!(ring.at(Nanos(600)).is_none());
+        assert_eq!(ring.frames.len(), 2);
+        assert_eq!(ring.at(Nanos(600)).unwrap().capture_ns, 400);
+    }
 
     #[test]
     fn droid_timestamps_are_utc_calendar_dates() {
