@@ -271,16 +271,31 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
         assert!(last.fault.contains(reflex), "the first reason is kept: {}", last.fault);
         let recover = rig.ros.client::<Trigger>("/arm/recover", qos::reliable(10)).unwrap();
         recover.wait_for_service(&rig.ros, Duration::from_secs(30)).await.unwrap();
-        let r = recover.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
-        assert!(r.success, "{}", r.message);
-        // Back out the way it came.
-        let here =
-            rig.wait(5, "a reading after the recovery", |s| s.mode != RobotState::MODE_FAULT).await.joint_positions;
-        let back =
-            |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (start[i] - here[i]) * (k as f64 / 60.0)) };
-        let mut states = Vec::new();
-        rig.play((1..=60).map(|k| joints(back(k))).chain((0..10).map(|_| joints(start))), &mut states).await;
-        let at = states.last().unwrap();
+        // Back out the way it came. Without a realtime kernel franka-sim may abort a motion
+        // with a *_discontinuity reflex when a 1 kHz cycle is missed (CI saw it once while
+        // backing out): that is a real stop, recovered from as an operator would, once more.
+        let mut at = None;
+        for attempt in 0..2 {
+            let r = recover.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
+            assert!(r.success, "{}", r.message);
+            let here =
+                rig.wait(5, "a reading after the recovery", |s| s.mode != RobotState::MODE_FAULT).await.joint_positions;
+            let back =
+                |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (start[i] - here[i]) * (k as f64 / 60.0)) };
+            let mut states = Vec::new();
+            rig.play((1..=60).map(|k| joints(back(k))).chain((0..10).map(|_| joints(start))), &mut states).await;
+            let last = states.last().unwrap().clone();
+            // (Later commands are refused naming that reflex, so the last state may say either.)
+            let missed_cycle = last.mode == RobotState::MODE_FAULT
+                && last.fault.split("reflex! [").nth(1).is_some_and(|r| r.contains("_discontinuity"));
+            if attempt == 0 && missed_cycle {
+                eprintln!("backing out stopped by a missed cycle, recovering again: {}", last.fault);
+                continue;
+            }
+            at = Some(last);
+            break;
+        }
+        let at = at.unwrap();
         assert_ne!(at.mode, RobotState::MODE_FAULT, "{}", at.fault);
         let err = (0..7).map(|i| (at.joint_positions[i] - start[i]).abs()).fold(0.0, f64::max);
         assert!(err < 0.01, "after the recovery the arm is {err:.4} rad from where it started");
