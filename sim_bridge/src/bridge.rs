@@ -299,7 +299,7 @@ fn rotation(p: &Isometry3<f64>) -> Matrix3<f64> {
 }
 
 /// A MuJoCo camera looks along its -z with y up; ROS optical frames look along +z with y down.
-fn optical(rot: &Matrix3<f64>) -> Matrix3<f64> {
+pub(crate) fn optical(rot: &Matrix3<f64>) -> Matrix3<f64> {
     rot * Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, -1.0, -1.0))
 }
 

@@ -83,8 +83,7 @@ fn iso((p, r): ([f64; 3], [f64; 9])) -> Isometry3<f64> {
 /// A MuJoCo camera looks along -z with y up; the optical frame looks along +z with y down.
 fn optical(sim: &Sim, camera: &str) -> anyhow::Result<Isometry3<f64>> {
     let (p, r) = sim.camera_pose(camera).with_context(|| format!("the sim has no camera `{camera}`"))?;
-    let flip = Matrix3::new(1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0);
-    let rot = Rotation3::from_matrix_unchecked(r * flip);
+    let rot = Rotation3::from_matrix_unchecked(crate::bridge::optical(&r));
     Ok(Isometry3::from_parts(Translation3::from(Vector3::from(p)), UnitQuaternion::from_rotation_matrix(&rot)))
 }
 

@@ -209,23 +209,26 @@ fn a_calibration_reaches_tf_static_and_the_next_episodes_metadata_in_its_own_sce
     assert_eq!(file.sim_scene.as_deref(), Some("pick_place_cube seed 0"));
 
     // The scene it was made in: the recorder's extrinsics (from /tf_static) are the calibration's.
-    let demo = dir.path().join("demo0");
-    let out = labrig(&[
-        "demo",
-        "--episodes",
-        "1",
-        "--first-seed",
-        "0",
-        "--domain-id",
-        &domain,
-        "--json",
-        "--out",
-        s(&demo),
-        "--calibration",
-        s(&cal_dir),
-    ]);
-    assert!(out.status.success(), "{}", text(&out));
-    let meta = demo_metadata(&demo);
+    let demo = |seed: &str| {
+        let out_dir = dir.path().join(format!("demo{seed}"));
+        let out = labrig(&[
+            "demo",
+            "--episodes",
+            "1",
+            "--first-seed",
+            seed,
+            "--domain-id",
+            &domain,
+            "--json",
+            "--out",
+            s(&out_dir),
+            "--calibration",
+            s(&cal_dir),
+        ]);
+        assert!(out.status.success(), "{}", text(&out));
+        demo_metadata(&out_dir)
+    };
+    let meta = demo("0");
     let ext1: Vec<f64> = serde_json::from_value(meta["extrinsics"]["ext1"].clone()).unwrap();
     for (a, b) in ext1.iter().zip(file.droid_extrinsics) {
         assert!((a - b).abs() < 1e-9, "ext1 extrinsics {ext1:?} are not the calibration's {:?}", file.droid_extrinsics);
@@ -236,23 +239,7 @@ fn a_calibration_reaches_tf_static_and_the_next_episodes_metadata_in_its_own_sce
     assert!(cal.get("ext2").is_none(), "ext2 was not calibrated: {cal}");
 
     // Another scene (seed 1 puts the cameras elsewhere): the calibration is not applied.
-    let demo = dir.path().join("demo1");
-    let out = labrig(&[
-        "demo",
-        "--episodes",
-        "1",
-        "--first-seed",
-        "1",
-        "--domain-id",
-        &domain,
-        "--json",
-        "--out",
-        s(&demo),
-        "--calibration",
-        s(&cal_dir),
-    ]);
-    assert!(out.status.success(), "{}", text(&out));
-    let meta = demo_metadata(&demo);
+    let meta = demo("1");
     let cal: Value = serde_json::from_str(meta["calibration"].as_str().unwrap()).unwrap();
     assert_eq!(cal, serde_json::json!({}), "a calibration of another scene was applied");
     let ext1: Vec<f64> = serde_json::from_value(meta["extrinsics"]["ext1"].clone()).unwrap();
