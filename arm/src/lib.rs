@@ -3,12 +3,15 @@
 //! - [`kinematics`]: forward kinematics and the geometric Jacobian from the FR3's URDF.
 //! - [`ik`]: damped-least-squares IK steps (nullspace pull to the reset pose, joint-limit
 //!   margins) and DROID's action spaces (cartesian velocity scaling, absolute poses).
+//! - [`calib_path`]: the pose set a calibration capture drives the arm over (DROID's), shared
+//!   by the sim's capture and a live rig's.
 //! - [`safety`]: the safety layer every command passes (NaN/stale refusal, workspace box,
 //!   joint limits and margins, per-step limits) and the watchdog.
 //!
 //! Depends on labrig-msgs, nalgebra, urdf-rs, serde, thiserror. Must never depend on tokio, DDS,
 //! iceoryx2, franka-rs or the heavy native crates (checked by `tests/tests/layering.rs`).
 
+pub mod calib_path;
 pub mod ik;
 pub mod kinematics;
 pub mod safety;

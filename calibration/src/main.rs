@@ -3,9 +3,13 @@
 //! - `labrig calibrate --sim [--scene S --seed N] --camera ext1|...|all [--json]`: the simulated
 //!   rig end to end (capture in `labrig-sim calib-capture`, solve here), and the errors against
 //!   the sim's truth;
+//! - `labrig calibrate --rig <launch config> --camera ext1|...|all [--json]`: a live rig (real,
+//!   or simulated behind the same topics) drives its arm over the pose set and takes the views
+//!   (`labrig calibrate capture`, in the `labrig` CLI, which talks to the rig), solved here;
 //! - `labrig calibrate board --out board.png`: the board's print at scale;
 //! - `labrig calibrate solve <capture dir>`: a capture to `calibration/<rig>/<camera>.json`;
-//! - `labrig calibrate check --sim --camera C`: a few fresh views against the stored calibration.
+//! - `labrig calibrate check --sim|--rig <launch config> --camera C`: a few fresh views against
+//!   the stored calibration.
 
 use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand};
@@ -34,7 +38,7 @@ enum Cmd {
     /// Solve a capture folder (capture.json + views) into a calibration file.
     Solve(SolveArgs),
     /// Take a few fresh views and report the drift against the stored calibration.
-    Check(CheckArgs),
+    Check(Box<CheckArgs>),
 }
 
 /// The board and how to solve (shared by every command).
@@ -93,12 +97,29 @@ struct SimFlags {
     keep_views: bool,
 }
 
+/// How a live rig's views are taken (`--rig`).
+#[derive(Debug, Clone, Args)]
+struct RigFlags {
+    /// Where the pose set is centred: `camera` (facing the camera's published pose) or `here`
+    /// (the arm's pose now: put the board in view first).
+    #[arg(long, default_value = "camera")]
+    start: String,
+    /// DDS domain (default: the launch config's).
+    #[arg(long)]
+    domain_id: Option<u16>,
+}
+
 #[derive(Debug, Args)]
 struct RunArgs {
-    /// Calibrate the simulated rig (the only capture source built so far; a real rig's views
-    /// are solved with `labrig calibrate solve`).
-    #[arg(long)]
+    /// Calibrate the simulated rig in one process (the sim renders the board; no nodes).
+    #[arg(long, conflicts_with = "rig")]
     sim: bool,
+    /// Calibrate a live rig: a launch config (real, or simulated behind the same topics), whose
+    /// hardware nodes are started and whose arm takes the views.
+    #[arg(long)]
+    rig: Option<PathBuf>,
+    #[command(flatten)]
+    rig_flags: RigFlags,
     /// ext1, ext2, wrist, rs1, rs2 or all.
     #[arg(long, default_value = "all")]
     camera: String,
@@ -106,12 +127,12 @@ struct RunArgs {
     sim_flags: SimFlags,
     #[command(flatten)]
     solve: SolveFlags,
-    /// Where calibrations are written: <out-dir>/<camera>.json (default calibration/<rig>).
+    /// Where calibrations are written: <out-dir>/<camera>.json (default calibration/<rig name>).
     #[arg(long)]
     out_dir: Option<PathBuf>,
-    /// The rig's name (the folder under calibration/).
+    /// The rig's name (the folder under calibration/) for `--sim`; a launch config names its own.
     #[arg(long, default_value = "sim")]
-    rig: String,
+    rig_name: String,
     /// One JSON object on stdout instead of text.
     #[arg(long)]
     json: bool,
@@ -150,15 +171,21 @@ struct SolveArgs {
 #[derive(Debug, Args)]
 struct CheckArgs {
     /// Check the simulated rig.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "rig")]
     sim: bool,
+    /// Check a live rig (a launch config).
+    #[arg(long)]
+    rig: Option<PathBuf>,
+    #[command(flatten)]
+    rig_flags: RigFlags,
     #[arg(long)]
     camera: String,
-    /// The stored calibration (default calibration/<rig>/<camera>.json).
+    /// The stored calibration (default calibration/<rig name>/<camera>.json).
     #[arg(long)]
     calibration: Option<PathBuf>,
+    /// The rig's name (the folder under calibration/).
     #[arg(long, default_value = "sim")]
-    rig: String,
+    rig_name: String,
     #[command(flatten)]
     sim_flags: SimFlags,
     /// Move the camera by dx,dy,dz (m, base frame) before the views: a knocked camera.
@@ -183,7 +210,7 @@ fn main() -> ExitCode {
     let result = match cli.cmd {
         Some(Cmd::Board(a)) => board_cmd(a),
         Some(Cmd::Solve(a)) => solve_cmd(a),
-        Some(Cmd::Check(a)) => check_cmd(a),
+        Some(Cmd::Check(a)) => check_cmd(*a),
         None => run_cmd(cli.run),
     };
     match result {
@@ -455,17 +482,114 @@ fn cameras(arg: &str) -> anyhow::Result<Vec<&'static str>> {
         .collect()
 }
 
-fn run_cmd(a: RunArgs) -> anyhow::Result<ExitCode> {
-    if !a.sim {
-        bail!(
-            "capturing views from a running rig is not built yet: calibrate the simulated rig with `--sim`, or \
-             solve views taken on a real rig with `labrig calibrate solve <capture dir>` (README: calibration)"
-        );
+/// Where a calibration's views come from.
+enum Source<'a> {
+    /// `labrig-sim calib-capture`: the sim in one process.
+    Sim,
+    /// `labrig calibrate capture`: a live rig from its launch config.
+    Rig(&'a Path, &'a RigFlags),
+}
+
+impl Source<'_> {
+    fn of<'a>(sim: bool, rig: Option<&'a Path>, flags: &'a RigFlags) -> anyhow::Result<Source<'a>> {
+        match (sim, rig) {
+            (true, _) => Ok(Source::Sim),
+            (false, Some(r)) => Ok(Source::Rig(r, flags)),
+            (false, None) => bail!(
+                "say where the views come from: `--rig <launch config>` (a live rig, real or simulated), `--sim` \
+                 (the simulated rig in one process), or solve views taken by hand with `labrig calibrate solve <capture dir>`"
+            ),
+        }
     }
+
+    /// The rig's name: a launch config's `[rig] name`, else `name`.
+    fn rig_name(&self, name: &str) -> anyhow::Result<String> {
+        let Source::Rig(path, _) = self else { return Ok(name.to_owned()) };
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let v: toml::Table =
+            toml::from_str(&text).with_context(|| format!("{} is not a launch config", path.display()))?;
+        v.get("rig")
+            .and_then(|r| r.get("name"))
+            .and_then(|n| n.as_str())
+            .map(str::to_owned)
+            .with_context(|| format!("{} has no [rig] name", path.display()))
+    }
+
+    /// Takes `views` views of `camera` into `out`.
+    #[allow(clippy::too_many_arguments)] // one capture's settings, passed once
+    fn capture(
+        &self,
+        f: &SimFlags,
+        work: &Work,
+        camera: &str,
+        views: usize,
+        out: &Path,
+        (rig_name, move_camera): (&str, Option<&[f64]>),
+        quiet: bool,
+    ) -> anyhow::Result<()> {
+        match self {
+            Source::Sim => sim_capture(f, work, camera, views, out, (rig_name, move_camera), quiet),
+            Source::Rig(rig, flags) => rig_capture(rig, flags, work, camera, views, out, move_camera, quiet),
+        }
+    }
+}
+
+/// Runs `labrig calibrate capture` (the `labrig` CLI beside this program) for one camera.
+#[allow(clippy::too_many_arguments)] // one capture's settings, passed once
+fn rig_capture(
+    rig: &Path,
+    flags: &RigFlags,
+    work: &Work,
+    camera: &str,
+    views: usize,
+    out: &Path,
+    move_camera: Option<&[f64]>,
+    quiet: bool,
+) -> anyhow::Result<()> {
+    let exe = std::env::current_exe().context("locating labrig-calibrate")?.with_file_name("labrig");
+    if !exe.exists() {
+        bail!("{} is missing: build the workspace (cargo build) so labrig sits beside labrig-calibrate", exe.display());
+    }
+    let mut cmd = Command::new(exe);
+    if std::env::var_os("LP_NUM_THREADS").is_none() {
+        cmd.env("LP_NUM_THREADS", "1");
+    }
+    cmd.args(["calibrate", "capture", "--camera", camera, "--views", &views.to_string(), "--start", &flags.start])
+        .arg("--rig")
+        .arg(rig)
+        .arg("--print")
+        .arg(&work.print)
+        .arg("--board")
+        .arg(&work.board_json)
+        .arg("--out")
+        .arg(out);
+    if let Some(d) = flags.domain_id {
+        cmd.args(["--domain-id", &d.to_string()]);
+    }
+    if let Some(m) = move_camera {
+        let [x, y, z] = m else { bail!("--move-camera takes dx,dy,dz (3 numbers), not {m:?}") };
+        cmd.arg(format!("--move-camera={x},{y},{z}"));
+    }
+    if let Some([w, h]) = work.print_size_m {
+        cmd.arg(format!("--print-size-m={w},{h}"));
+    }
+    if quiet {
+        cmd.arg("--json").stdout(std::process::Stdio::null());
+    }
+    let status = cmd.status().context("running labrig calibrate capture")?;
+    if !status.success() {
+        bail!("taking the views of `{camera}` on {} failed ({status})", rig.display());
+    }
+    Ok(())
+}
+
+fn run_cmd(a: RunArgs) -> anyhow::Result<ExitCode> {
+    let source = Source::of(a.sim, a.rig.as_deref(), &a.rig_flags)?;
+    let rig_name = source.rig_name(&a.rig_name)?;
     let spec = load_board(a.sim_flags.board.as_deref())?;
     let cams = cameras(&a.camera)?;
     let work = Work::new(&a.sim_flags, &spec)?;
-    let out_dir = a.out_dir.clone().unwrap_or_else(|| PathBuf::from("calibration").join(&a.rig));
+    let out_dir = a.out_dir.clone().unwrap_or_else(|| PathBuf::from("calibration").join(&rig_name));
     let t_all = Instant::now();
     let mut rows = Vec::new();
     let mut failed = Vec::new();
@@ -473,9 +597,13 @@ fn run_cmd(a: RunArgs) -> anyhow::Result<ExitCode> {
         let t0 = Instant::now();
         let dir = work.dir.join(cam);
         if !a.json {
-            eprintln!("{cam}: capturing {} views in the sim", a.sim_flags.views);
+            let on = match &source {
+                Source::Sim => "in the sim".to_owned(),
+                Source::Rig(r, _) => format!("on {}", r.display()),
+            };
+            eprintln!("{cam}: capturing {} views {on}", a.sim_flags.views);
         }
-        sim_capture(&a.sim_flags, &work, cam, a.sim_flags.views, &dir, (&a.rig, None), a.json)?;
+        source.capture(&a.sim_flags, &work, cam, a.sim_flags.views, &dir, (&rig_name, None), a.json)?;
         let t_capture = t0.elapsed().as_secs_f64();
         let bar = progress(a.sim_flags.views as u64, &format!("{cam} views detected"), a.json);
         let solved = run::solve_capture(&dir, &a.solve.options(), &bar);
@@ -506,7 +634,7 @@ fn run_cmd(a: RunArgs) -> anyhow::Result<ExitCode> {
     }
     let total = t_all.elapsed().as_secs_f64();
     if a.json {
-        println!("{}", serde_json::json!({"rig": a.rig, "cameras": rows, "total_s": total}));
+        println!("{}", serde_json::json!({"rig": rig_name, "cameras": rows, "total_s": total}));
     } else {
         println!("{} cameras in {total:.0} s; calibrations in {}", rows.len(), out_dir.display());
     }
@@ -514,17 +642,18 @@ fn run_cmd(a: RunArgs) -> anyhow::Result<ExitCode> {
 }
 
 fn check_cmd(a: CheckArgs) -> anyhow::Result<ExitCode> {
-    if !a.sim {
-        bail!("checking a running rig is not built yet: `labrig calibrate check --sim --camera C` checks the sim");
-    }
+    let source = Source::of(a.sim, a.rig.as_deref(), &a.rig_flags)?;
+    let rig_name = source.rig_name(&a.rig_name)?;
     let cam = *cameras(&a.camera)?.first().context("one camera")?;
-    let path =
-        a.calibration.clone().unwrap_or_else(|| PathBuf::from("calibration").join(&a.rig).join(format!("{cam}.json")));
+    let path = a
+        .calibration
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("calibration").join(&rig_name).join(format!("{cam}.json")));
     let stored = run::read_calibration(&path).with_context(|| format!("the stored calibration of `{cam}`"))?;
     let work = Work::new(&a.sim_flags, &stored.board)?;
     let dir = work.dir.join(format!("{cam}-check"));
     let views = a.sim_flags.views.min(12);
-    sim_capture(&a.sim_flags, &work, cam, views, &dir, (&a.rig, a.move_camera.as_deref()), a.json)?;
+    source.capture(&a.sim_flags, &work, cam, views, &dir, (&rig_name, a.move_camera.as_deref()), a.json)?;
     let cap = run::read_capture(&dir)?;
     let detector = labrig_calibration::detect::Detector::new(&stored.board)?;
     let bar = progress(cap.views.len() as u64, "views detected", a.json);

@@ -239,6 +239,10 @@ pub struct CaptureFile {
     pub sim_scene: Option<String>,
 }
 
+/// The calibration board's frame on `/tf_static` (OpenCV's ChArUco frame: origin at the print's
+/// top-left corner, x right, y down, z into the board), when a rig knows where the board is.
+pub const BOARD_FRAME: &str = "calib_board";
+
 /// How a sim scene is named in calibration files.
 pub fn sim_scene_name(spec_name: &str, seed: u64) -> String {
     format!("{spec_name} seed {seed}")

@@ -107,9 +107,18 @@ pub enum BoardMount {
     Table { centre: [f64; 2], yaw_deg: f64 },
 }
 
+impl BoardMount {
+    /// The wrist camera's board: lying across the table in front of the robot, its long side
+    /// along y (what `labrig calibrate` puts in the scene for the wrist camera).
+    pub fn on_table() -> BoardMount {
+        let c = crate::scene::TABLE_CENTRE;
+        BoardMount::Table { centre: [c[0] - 0.05, c[1]], yaw_deg: 90.0 }
+    }
+}
+
 /// The body whose frame is the board's (OpenCV's ChArUco frame: origin at the print's top-left
 /// corner, x right, y down, z into the board).
-pub const BOARD_BODY: &str = "calib_board";
+pub const BOARD_BODY: &str = labrig_msgs::calibration::BOARD_FRAME;
 /// Where the gripper mount puts the board's top edge: this far along the flange's z (the
 /// approach axis), past the 2F-85's fingertips.
 pub const BOARD_GRIPPER_OFFSET_M: f64 = 0.17;

@@ -121,6 +121,46 @@ pub struct BridgeConfig {
     pub calibration: Option<PathBuf>,
     /// Warn at start when a calibration is older than this (s; DROID warns after an hour).
     pub calibration_max_age_s: f64,
+    /// A calibration board in the scene (`labrig calibrate --rig` on a simulated rig): its
+    /// print and where it is. Its pose goes out on `/tf_static` (`tcp -> calib_board` held by
+    /// the gripper, `base -> calib_board` on the table), as a real rig's operator would know
+    /// roughly where it was clamped.
+    pub calib_board: Option<CalibBoardConfig>,
+    /// Render and send only these cameras (default: all five); the others send nothing.
+    pub only_cameras: Vec<String>,
+    /// Camera frames per second of sim time (default: one per control period). A calibration
+    /// at 1280x720 renders a few per second, as a slow camera would.
+    pub camera_rate_hz: Option<f64>,
+    /// Move an external camera by `shift_m` (base frame, still aiming at the table centre)
+    /// from where the scene puts it: a camera knocked after calibration, for `calibrate check`.
+    pub move_camera: Option<MoveCamera>,
+}
+
+/// Where the calibration board is in the sim (config `calib_board`).
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibBoardConfig {
+    /// The board's print (a PNG of the whole board, edge to edge).
+    pub print: PathBuf,
+    /// The print's width and height (m).
+    pub size_m: [f64; 2],
+    /// `gripper` (held for the external cameras) or `table` (for the wrist camera).
+    pub mount: CalibBoardMount,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibBoardMount {
+    Gripper,
+    Table,
+}
+
+/// A camera moved from where the scene puts it (config `move_camera`).
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MoveCamera {
+    pub camera: String,
+    pub shift_m: [f64; 3],
 }
 
 impl Default for BridgeConfig {
@@ -143,6 +183,10 @@ impl Default for BridgeConfig {
             hardware_prefix: String::new(),
             calibration: None,
             calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
+            calib_board: None,
+            only_cameras: Vec::new(),
+            camera_rate_hz: None,
+            move_camera: None,
         }
     }
 }
@@ -160,7 +204,76 @@ impl BridgeConfig {
                 format!("`hardware_prefix` (--hardware-prefix) {:?} must look like /sim", self.hardware_prefix),
             ));
         }
+        for c in &self.only_cameras {
+            if !labrig_sim::rig::CAMERAS.contains(&c.as_str()) {
+                return Err(Invalid::new(
+                    "only_cameras",
+                    format!("only_cameras names `{c}`; the rig's cameras are {}", labrig_sim::rig::CAMERAS.join(", ")),
+                ));
+            }
+        }
+        if let Some(r) = self.camera_rate_hz
+            && !(r.is_finite() && r > 0.0)
+        {
+            return Err(Invalid::new("camera_rate_hz", format!("camera_rate_hz = {r} must be a positive rate")));
+        }
+        if let Some(b) = &self.calib_board
+            && !b.size_m.iter().all(|v| v.is_finite() && (0.01..=2.0).contains(v))
+        {
+            return Err(Invalid::new(
+                "calib_board.size_m",
+                format!("calib_board.size_m = {:?} must be two sizes in 0.01..=2 m", b.size_m),
+            ));
+        }
+        if let Some(m) = &self.move_camera {
+            if !labrig_sim::scene::EXTERNAL_CAMERAS.contains(&m.camera.as_str()) {
+                return Err(Invalid::new(
+                    "move_camera.camera",
+                    format!("move_camera.camera `{}` is not an external camera", m.camera),
+                ));
+            }
+            if !m.shift_m.iter().all(|v| v.is_finite() && v.abs() <= 1.0) {
+                return Err(Invalid::new("move_camera.shift_m", format!("move_camera.shift_m = {:?}", m.shift_m)));
+            }
+        }
         Ok(())
+    }
+
+    /// What calibration adds to the scene, if anything.
+    fn extras(&self) -> Option<labrig_sim::rig::Extras> {
+        use labrig_sim::rig::{Board, BoardMount, Extras};
+        if self.calib_board.is_none() && self.move_camera.is_none() {
+            return None;
+        }
+        Some(Extras {
+            board: self.calib_board.as_ref().map(|b| Board {
+                texture: b.print.clone(),
+                size_m: b.size_m,
+                mount: match b.mount {
+                    CalibBoardMount::Gripper => BoardMount::Gripper,
+                    CalibBoardMount::Table => BoardMount::on_table(),
+                },
+            }),
+            move_camera: self.move_camera.as_ref().map(|m| (m.camera.clone(), m.shift_m)),
+        })
+    }
+
+    /// The scene with `seed`, with what calibration adds.
+    fn sim(
+        &self,
+        assets: &std::path::Path,
+        spec: &labrig_sim::scene::SceneSpec,
+        seed: u64,
+        period: Nanos,
+    ) -> anyhow::Result<Sim> {
+        let mut sim = match self.extras() {
+            Some(x) => Sim::with_extras(assets, spec, seed, period, &x)?,
+            None => Sim::new(assets, spec, seed, period)?,
+        };
+        if self.cameras {
+            sim.enable_cameras(self.width, self.height, self.meshes)?;
+        }
+        Ok(sim)
     }
 }
 
@@ -370,10 +483,8 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     }
     let (spec, assets) = labrig_sim::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
     let period = Nanos::from_secs_rounded(a.period_s);
-    let mut sim = Sim::new(&assets, &spec, a.seed, period)?;
-    if a.cameras {
-        sim.enable_cameras(a.width, a.height, a.meshes)?;
-    }
+    let sim = a.sim(&assets, &spec, a.seed, period)?;
+    let board_mount = a.calib_board.as_ref().map(|b| b.mount);
     // A step that starts at wall time w ends at sim time w: its state and frames go out
     // stamped about when they were made, as a real rig's are.
     let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
@@ -383,7 +494,15 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     let hw = a.hardware_prefix.trim_end_matches('/');
     let arm_sets_gripper = hw.is_empty();
     let mut ros = Ros::new(&cfg, "labrig_sim")?;
-    let cameras: Vec<&'static str> = if !a.cameras { vec![] } else { labrig_sim::rig::CAMERAS.to_vec() };
+    let cameras: Vec<&'static str> = if !a.cameras {
+        vec![]
+    } else {
+        labrig_sim::rig::CAMERAS
+            .iter()
+            .copied()
+            .filter(|c| a.only_cameras.is_empty() || a.only_cameras.iter().any(|o| o == c))
+            .collect()
+    };
     let mut pubs = Publishers {
         joint_states: ros.publisher_on(&topics::JOINT_STATES, 10)?,
         arm_state: ros.publisher_at(hw, &topics::ARM_STATE, 10)?,
@@ -438,7 +557,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         .collect::<Result<_, _>>()?;
 
     let in_force = calibration_in_force(&sim, &spec, calibrations.as_ref(), &mut pubs)?;
-    publish_scene(&sim, &scene_pub, &tf_static, &spec, in_force.as_ref())?;
+    publish_scene(&sim, &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount)?;
     tracing::info!(
         mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.ros.domain_id,
         "sim bridge up"
@@ -461,6 +580,9 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         rig.sim_mut().resume_clock(Nanos(wall_line(period)));
     }
     let sim_start = rig.sim().time();
+    // The next frame's time (sim time) when cameras send at their own rate.
+    let frame_period = a.camera_rate_hz.map(|hz| Nanos::from_secs_rounded(1.0 / hz));
+    let mut next_frame = sim_start;
     report_publish(publish_state(rig.sim(), &pubs, rig.state()));
     if let Some(e) = &mut expert {
         e.publish(rig.sim());
@@ -471,10 +593,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         while let Some(r) = take(&reset_sub, &mut rig) {
             match serde_json::from_str::<ResetRequest>(&r.msg.data) {
                 Ok(req) => {
-                    let mut next = Sim::new(&assets, &spec, req.seed, period)?;
-                    if a.cameras {
-                        next.enable_cameras(a.width, a.height, a.meshes)?;
-                    }
+                    let mut next = a.sim(&assets, &spec, req.seed, period)?;
                     // On the wall clock's time line the rebuild's time is lost, as a real rig's.
                     // The new scene starts a period on: its first state is a tick of its own.
                     let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
@@ -482,7 +601,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     rig.replace_scene(next);
                     fovy = fovys(rig.sim());
                     let in_force = calibration_in_force(rig.sim(), &spec, calibrations.as_ref(), &mut pubs)?;
-                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref())?;
+                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount)?;
                     if let Some(e) = &mut expert {
                         e.expert = labrig_sim::expert::Expert::new(rig.sim());
                     }
@@ -603,16 +722,26 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                 )),
             }
         }
-        send_frames(
-            rig.sim_mut(),
-            &cameras,
-            &mut rgb,
-            &mut frame_pubs,
-            &pubs.camera_info,
-            &fovy,
-            (a.width, a.height),
-            &stalled_until,
-        )?;
+        let frame_due = match frame_period {
+            None => true,
+            Some(p) if rig.sim().time() >= next_frame => {
+                next_frame = Nanos(next_frame.0.max(rig.sim().time().0 - p.0) + p.0);
+                true
+            }
+            Some(_) => false,
+        };
+        if frame_due {
+            send_frames(
+                rig.sim_mut(),
+                &cameras,
+                &mut rgb,
+                &mut frame_pubs,
+                &pubs.camera_info,
+                &fovy,
+                (a.width, a.height),
+                &stalled_until,
+            )?;
+        }
         if let Some(e) = &mut expert {
             e.publish(rig.sim());
         }
@@ -711,6 +840,7 @@ fn publish_scene(
     tf_static: &RosPublisher<TFMessage>,
     spec: &labrig_sim::scene::SceneSpec,
     calibrations: Option<&labrig_episode::calibration::Calibrations>,
+    board_mount: Option<CalibBoardMount>,
 ) -> anyhow::Result<()> {
     let scene: &SceneValues = sim.scene();
     // The sampled values, and the spec they came from (so a recording can rebuild the scene).
@@ -731,6 +861,31 @@ fn publish_scene(
             transform(Nanos::ZERO, BASE_FRAME, &child, cam.0, &optical(&cam.1))
         })
         .collect();
+    let mut statics = statics;
+    // The calibration board, where the scene put it.
+    if let Some((p, r)) = sim.body_pose(labrig_sim::rig::BOARD_BODY) {
+        let board = Isometry3::from_parts(
+            nalgebra::Translation3::from(nalgebra::Vector3::from(p)),
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_row_slice(&r))),
+        );
+        let (tp, tr) = sim.tcp_pose();
+        let tcp = Isometry3::from_parts(
+            nalgebra::Translation3::from(nalgebra::Vector3::from(tp)),
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_row_slice(&tr))),
+        );
+        // Held by the gripper: fixed in the TCP frame; on the table: in the base frame.
+        let (parent, pose) = match board_mount {
+            Some(CalibBoardMount::Gripper) => ("tcp", tcp.inverse() * board),
+            _ => (BASE_FRAME, board),
+        };
+        statics.push(transform(
+            Nanos::ZERO,
+            parent,
+            labrig_sim::rig::BOARD_BODY,
+            pose.translation.vector.into(),
+            &rotation(&pose),
+        ));
+    }
     tf_static.publish(TFMessage { transforms: statics })?;
     Ok(())
 }

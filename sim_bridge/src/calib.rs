@@ -10,6 +10,7 @@
 
 use crate::hardware::SimHardware;
 use anyhow::Context;
+use labrig_arm::calib_path::{self, joints_for, pose_set};
 use labrig_arm::safety::SafetyFilter;
 use labrig_msgs::Nanos;
 use labrig_msgs::calibration::{
@@ -57,14 +58,6 @@ const REACH_TICKS: usize = 80;
 /// A pose counts as reached when every joint is this close to its target (rad).
 const REACH_RAD: f64 = 0.002;
 
-/// The board's centre is put no closer to the camera than this...
-const MIN_CAMERA_DISTANCE_M: f64 = 0.42;
-/// Poses closer than this to the safety layer's workspace limits are skipped.
-const WORKSPACE_MARGIN_M: f64 = 0.005;
-/// The start is chosen where the arm reaches this share of a coarse pose set.
-const PROBE_POSES: usize = 20;
-const PROBE_REACHED: f64 = 0.9;
-
 /// The rig's mount of a camera: the wrist camera is eye-in-hand, the rest eye-to-hand.
 pub fn mount_of(camera: &str) -> Mount {
     if EXTERNAL_CAMERAS.contains(&camera) { Mount::EyeToHand } else { Mount::EyeInHand }
@@ -103,24 +96,8 @@ pub fn sim_intrinsics(fovy_deg: f64, width: usize, height: usize) -> Intrinsics 
     }
 }
 
-/// The pose set: `n` poses on a smooth closed path around `start` (the angles rotate about
-/// `pivot`, a point fixed to the gripper, so the board stays in view).
-fn pose_set(start: &Isometry3<f64>, pivot: &Vector3<f64>, n: usize, amp_m: f64, amp_rad: f64) -> Vec<Isometry3<f64>> {
-    (0..n)
-        .map(|k| {
-            let t = std::f64::consts::TAU * k as f64 / n as f64;
-            let dp = Vector3::new(t.sin(), (2.0 * t + 0.7).sin(), 0.6 * (3.0 * t + 1.3).sin()) * amp_m;
-            let dr = Vector3::new((2.0 * t + 0.3).sin(), (t + 1.1).sin(), 0.8 * (3.0 * t + 0.5).sin()) * amp_rad;
-            let turn = UnitQuaternion::from_scaled_axis(dr);
-            // Turn the gripper about the pivot (in the base frame), then shift.
-            let p = start.translation.vector;
-            let p_new = pivot + turn * (p - pivot) + dp;
-            Isometry3::from_parts(Translation3::from(p_new), turn * start.rotation)
-        })
-        .collect()
-}
-
-/// The start pose (base -> tcp) and the pivot for `camera`, and the board's mount.
+/// The start pose (base -> tcp) and the pivot for `camera`, from what the sim knows: the
+/// camera's pose, the board's.
 fn start_pose(
     sim: &Sim,
     safety: &SafetyFilter,
@@ -130,69 +107,23 @@ fn start_pose(
 ) -> anyhow::Result<(Isometry3<f64>, Vector3<f64>)> {
     let tcp = iso(sim.tcp_pose());
     let board_pose = iso(sim.body_pose(BOARD_BODY).context("the scene has no board")?);
-    let [w, h] = board.size_m;
-    let centre_in_board = Vector3::new(w / 2.0, h / 2.0, 0.0);
+    let cam = optical(sim, camera)?;
     match board.mount {
         BoardMount::Gripper => {
-            // The board's centre on the camera's optical axis (it looks at the table centre),
-            // as close to the camera as the arm reaches (a sim camera is 0.9-1.2 m from the
-            // table centre; DROID's 20 mm squares want it within ~0.6 m), its face toward the
-            // camera, its y as close to down as the face allows.
-            let tcp_board = tcp.inverse() * board_pose;
-            let cam = optical(sim, camera)?.translation.vector;
-            let aim = Vector3::from(TABLE_CENTRE);
-            let toward = (cam - aim).normalize();
-            let span = (cam - aim).norm();
-            let down = Vector3::new(0.0, 0.0, -1.0);
-            let z = -toward;
-            let y = (down - z * down.dot(&z)).normalize();
-            let x = y.cross(&z);
-            let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-            let rot = UnitQuaternion::from_rotation_matrix(&rot);
-            let tcp_for = |centre: &Vector3<f64>| {
-                let origin = centre - rot * centre_in_board;
-                Isometry3::from_parts(Translation3::from(origin), rot) * tcp_board.inverse()
-            };
             let reset = sim.joint_positions();
-            // From the camera back toward the table centre: the first centre from which the
-            // arm reaches nearly all of the pose set.
-            for k in 0..=60 {
-                let centre = cam - toward * (MIN_CAMERA_DISTANCE_M + (span - MIN_CAMERA_DISTANCE_M) * k as f64 / 60.0);
-                if centre.z > 0.6 || centre.z < 0.2 {
-                    continue;
-                }
-                let start = tcp_for(&centre);
-                let Some(mut q) = joints_for(safety, &reset, &start) else { continue };
-                let probe = pose_set(&start, &centre, PROBE_POSES, amplitude.0, amplitude.1);
-                let mut reached = 0;
-                for p in &probe {
-                    if let Some(next) = joints_for(safety, &q, p) {
-                        q = next;
-                        reached += 1;
-                    }
-                }
-                if reached as f64 >= PROBE_REACHED * PROBE_POSES as f64 {
-                    return Ok((start, centre));
-                }
-            }
-            anyhow::bail!(
-                "the arm cannot hold the board toward `{camera}` anywhere on its line of sight to the table \
-                 (camera at [{:.2}, {:.2}, {:.2}])",
-                cam.x,
-                cam.y,
-                cam.z
+            calib_path::start_facing_camera(
+                safety,
+                &reset,
+                &cam.translation.vector,
+                &Vector3::from(TABLE_CENTRE),
+                &(tcp.inverse() * board_pose),
+                board.size_m,
+                amplitude,
             )
+            .with_context(|| format!("`{camera}`"))
         }
         BoardMount::Table { .. } => {
-            // Keep the reset orientation; put the TCP where the wrist camera's axis meets the
-            // board's centre 0.38 m away.
-            let cam = optical(sim, camera)?;
-            let tcp_cam = tcp.inverse() * cam;
-            let centre = board_pose * nalgebra::Point3::from(centre_in_board);
-            let axis = tcp.rotation * (tcp_cam.rotation * Vector3::z());
-            let cam_pos = centre.coords - axis * 0.38;
-            let p = cam_pos - tcp.rotation * tcp_cam.translation.vector;
-            Ok((Isometry3::from_parts(Translation3::from(p), tcp.rotation), centre.coords))
+            Ok(calib_path::start_above_board(&tcp, &(tcp.inverse() * cam), &board_pose, board.size_m))
         }
     }
 }
@@ -205,39 +136,6 @@ fn joint_command(q: &[f64; 7], seq: u64) -> ArmCommand {
         seq,
         ..ArmCommand::default()
     }
-}
-
-/// Joints that put the TCP at `want`: the IK from `seed`, else followed along the straight
-/// path (position lerp, rotation slerp) from `seed`'s pose in small steps, each seeded by the
-/// last (the IK is local; a far target from a far seed lands on a joint limit). None for a
-/// pose outside the safety layer's workspace (it would refuse the command) or out of reach.
-fn joints_for(safety: &SafetyFilter, seed: &[f64; 7], want: &Isometry3<f64>) -> Option<[f64; 7]> {
-    let (lo, hi) = (safety.config().workspace_min_m, safety.config().workspace_max_m);
-    let p = want.translation.vector;
-    if (0..3).any(|i| p[i] < lo[i] + WORKSPACE_MARGIN_M || p[i] > hi[i] - WORKSPACE_MARGIN_M) {
-        return None;
-    }
-    let ik = safety.ik();
-    let ok = |s: &labrig_arm::ik::IkSolution| s.position_error_m < 5e-4 && s.rotation_error_rad < 2e-3;
-    let first = ik.solve(seed, want);
-    if ok(&first) {
-        return Some(first.joints);
-    }
-    let from = ik.kinematics().tcp_pose(seed);
-    let steps = 40;
-    let mut q = *seed;
-    for k in 1..=steps {
-        let t = k as f64 / steps as f64;
-        let p = from.translation.vector.lerp(&want.translation.vector, t);
-        let r = from.rotation.slerp(&want.rotation, t);
-        let sol = ik.solve(&q, &Isometry3::from_parts(Translation3::from(p), r));
-        if sol.position_error_m > 0.01 || sol.rotation_error_rad > 0.05 {
-            return None;
-        }
-        q = sol.joints;
-    }
-    let last = ik.solve(&q, want);
-    ok(&last).then_some(last.joints)
 }
 
 /// Writes an RGB8 frame as 8-bit greyscale PGM (BT.601 luma).
@@ -270,10 +168,7 @@ pub fn capture(opts: &CaptureOptions, progress: &indicatif::ProgressBar) -> anyh
         size_m,
         mount: match mount {
             Mount::EyeToHand => BoardMount::Gripper,
-            Mount::EyeInHand => {
-                // Lying across the table in front of the robot, its long side along y.
-                BoardMount::Table { centre: [TABLE_CENTRE[0] - 0.05, TABLE_CENTRE[1]], yaw_deg: 90.0 }
-            }
+            Mount::EyeInHand => BoardMount::on_table(),
         },
     };
     let extras = Extras { board: Some(board.clone()), move_camera: Some((camera.to_owned(), opts.camera_shift_m)) };

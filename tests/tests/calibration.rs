@@ -245,3 +245,137 @@ fn a_calibration_reaches_tf_static_and_the_next_episodes_metadata_in_its_own_sce
     let ext1: Vec<f64> = serde_json::from_value(meta["extrinsics"]["ext1"].clone()).unwrap();
     assert!((ext1[0] - file.droid_extrinsics[0]).abs() > 1e-3 || (ext1[1] - file.droid_extrinsics[1]).abs() > 1e-3);
 }
+
+/// The scene's camera poses from `labrig sim snapshot` (the scene values: position, look-at).
+fn scene_cameras(dir: &Path, seed: &str) -> Value {
+    let out = dir.join(format!("snapshot{seed}"));
+    let shot = labrig(&["sim", "snapshot", "--seed", seed, "--out", s(&out), "--width", "64", "--height", "48"]);
+    assert!(shot.status.success(), "{}", text(&shot));
+    let values = walk(&out).into_iter().find(|p| p.extension().is_some_and(|e| e == "json")).expect("scene values");
+    serde_json::from_str::<Value>(&std::fs::read_to_string(values).unwrap()).unwrap()["values"]["cameras"].clone()
+}
+
+/// A calibration file's pose as position and optical axis (its z) in the parent frame.
+fn position_and_axis(cal: &labrig_msgs::calibration::CalibrationFile) -> ([f64; 3], [f64; 3]) {
+    let [w, x, y, z] = cal.pose.quaternion_wxyz;
+    // Third column of the rotation matrix of (w, x, y, z).
+    let axis = [2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)];
+    (cal.pose.position, axis)
+}
+
+/// `labrig calibrate --rig <launch config>`: the path a real rig takes. The launch config's
+/// hardware nodes (sim_droid.toml: the sim bridge in real time behind the franka and gripper
+/// nodes; its loop, recorder and teleop node are not started) come up, the arm is driven over
+/// DROID's pose set by joint targets on /arm/command through the franka node's safety layer,
+/// the views are the camera's frames from shared memory after the arm has been still 0.5 s,
+/// the TCP poses are /arm/state's. The result is held against the scene's own camera poses
+/// (from `labrig sim snapshot`, independently of the capture), and `calibrate check --rig`
+/// catches the camera moved 3 cm.
+#[test]
+fn a_live_rig_calibrates_from_its_launch_config_and_check_catches_a_moved_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    let domain = labrig_tests::domain_for("calibration_live_rig").to_string();
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../launch_configs/sim_droid.toml");
+    let out_dir = dir.path().join("calibration");
+    let out = labrig(&[
+        "calibrate",
+        "--rig",
+        s(&rig),
+        "--domain-id",
+        &domain,
+        "--camera",
+        "ext1,wrist",
+        "--views",
+        "20",
+        "--json",
+        "--out-dir",
+        s(&out_dir),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let r = json(&out);
+    assert_eq!(r["rig"], "sim_droid", "{r}");
+    let truth = scene_cameras(dir.path(), "0");
+    let mut table = String::new();
+    for c in r["cameras"].as_array().unwrap() {
+        let id = c["camera"].as_str().unwrap();
+        assert!(c["ok"].as_bool().unwrap(), "{id}: {c}");
+        let rep = &c["report"];
+        assert!(rep["views_used"].as_u64().unwrap() >= 10, "{c}");
+        // The capture knew the truth from the bridge's /tf_static (the scene's poses).
+        let (mm, deg) = (rep["position_error_mm"].as_f64().unwrap(), rep["rotation_error_deg"].as_f64().unwrap());
+        let (max_mm, max_deg) = if id == "wrist" { (1.0, 0.1) } else { (2.0, 0.2) };
+        table += &format!("{id}: {mm:.3} mm {deg:.4} deg, {} views, {:.3} px\n", rep["views_used"], rep["rms_px"]);
+        assert!(mm <= max_mm && deg <= max_deg, "{id}: {mm:.3} mm / {deg:.4} deg against the truth\n{c}");
+        let cal: labrig_msgs::calibration::CalibrationFile =
+            serde_json::from_str(&std::fs::read_to_string(out_dir.join(format!("{id}.json"))).unwrap()).unwrap();
+        assert_eq!(cal.rig, "sim_droid");
+        assert_eq!(cal.sim_scene.as_deref(), Some("pick_place_cube seed 0"), "the scene the rig ran");
+        assert_eq!(cal.intrinsics.source, "camera_info");
+        assert_eq!((cal.intrinsics.width, cal.intrinsics.height), (1280, 720));
+        if id == "ext1" {
+            // Independently: the scene puts ext1 at `position`, looking at `look_at`.
+            let cam = &truth["ext1"];
+            let p: Vec<f64> = serde_json::from_value(cam["position"].clone()).unwrap();
+            let look: Vec<f64> = serde_json::from_value(cam["look_at"].clone()).unwrap();
+            let (pos, axis) = position_and_axis(&cal);
+            let d_mm = ((0..3).map(|i| (pos[i] - p[i]).powi(2)).sum::<f64>()).sqrt() * 1e3;
+            let want: Vec<f64> = (0..3).map(|i| look[i] - p[i]).collect();
+            let n = want.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let cos = (0..3).map(|i| axis[i] * want[i] / n).sum::<f64>();
+            let angle_deg = cos.clamp(-1.0, 1.0).acos().to_degrees();
+            assert!(d_mm <= 2.0 && angle_deg <= 0.2, "ext1 at {pos:?} looking {axis:?}; the scene's: {cam}");
+        }
+    }
+    eprintln!("{table}");
+
+    let cal = out_dir.join("ext1.json");
+    let check = |extra: &[&str]| {
+        let mut args = vec![
+            "calibrate",
+            "check",
+            "--rig",
+            s(&rig),
+            "--domain-id",
+            &domain,
+            "--camera",
+            "ext1",
+            "--views",
+            "10",
+            "--json",
+            "--calibration",
+            s(&cal),
+        ];
+        args.extend_from_slice(extra);
+        labrig(&args)
+    };
+    let still = check(&[]);
+    assert!(still.status.success(), "{}", text(&still));
+    let still = json(&still);
+    assert!(still["drift_mm"].as_f64().unwrap() < 2.0 && !still["moved"].as_bool().unwrap(), "{still}");
+    let moved = check(&["--move-camera", "0.03,0,0"]);
+    assert_eq!(moved.status.code(), Some(3), "{}", text(&moved));
+    let moved = json(&moved);
+    let drift = moved["drift_mm"].as_f64().unwrap();
+    assert!(moved["moved"].as_bool().unwrap() && (20.0..40.0).contains(&drift), "{moved}");
+}
+
+/// A live rig that cannot do it says why: a launch config with no arm, a camera the rig does
+/// not have.
+#[test]
+fn a_live_rig_capture_refuses_what_it_cannot_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = dir.path().join("no_arm.toml");
+    std::fs::write(
+        &rig,
+        "[rig]\nname = \"no_arm\"\n\n[[node]]\nname = \"recorder\"\nprogram = \"labrig-recorder\"\nargs = [\"run\"]\nhealth = \"/recorder/status\"\n",
+    )
+    .unwrap();
+    let out = labrig(&["calibrate", "--rig", s(&rig), "--camera", "ext1", "--out-dir", s(&dir.path().join("o"))]);
+    assert!(!out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("starts no arm"), "{}", text(&out));
+    let out =
+        labrig(&["calibrate", "capture", "--rig", s(&rig), "--camera", "ext9", "--out", s(&dir.path().join("c"))]);
+    assert!(!out.status.success() && text(&out).contains("unknown camera `ext9`"), "{}", text(&out));
+    let out = labrig(&["calibrate", "--camera", "ext1"]);
+    assert!(!out.status.success() && text(&out).contains("say where the views come from"), "{}", text(&out));
+}

@@ -150,6 +150,23 @@ pub fn sim(args: &[String]) -> anyhow::Result<ExitCode> {
     node("labrig-sim", args)
 }
 
+/// `labrig calibrate capture ...` takes a live rig's views here (this crate talks to the rig);
+/// everything else goes to `labrig-calibrate` (the crate that links OpenCV), which runs
+/// `labrig calibrate capture` itself for `--rig`.
+pub fn calibrate(args: &[String]) -> anyhow::Result<ExitCode> {
+    if args.first().map(String::as_str) == Some("capture") {
+        #[derive(Debug, clap::Parser)]
+        #[command(name = "labrig calibrate capture", about = "Take one camera's calibration views on a live rig")]
+        struct Capture {
+            #[command(flatten)]
+            args: crate::calib_capture::CaptureArgs,
+        }
+        let parsed = <Capture as clap::Parser>::try_parse_from(args.iter()).unwrap_or_else(|e| e.exit());
+        return crate::calib_capture::run(parsed.args);
+    }
+    node("labrig-calibrate", args)
+}
+
 /// `labrig replay <episode> --sim ...` -> `labrig-sim replay <episode> ...` (the simulated rig
 /// is the only replay target so far; `--sim` says so explicitly).
 pub fn replay(args: &[String]) -> anyhow::Result<ExitCode> {
@@ -294,7 +311,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             node("labrig-droid", &forwarded)
         }
         Command::Sim { args } => sim(&args),
-        Command::Calibrate { args } => node("labrig-calibrate", &args),
+        Command::Calibrate { args } => calibrate(&args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
         Command::Teleop { args } => node("labrig-teleop", &args),
