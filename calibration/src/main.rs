@@ -100,9 +100,10 @@ struct SimFlags {
 /// How a live rig's views are taken (`--rig`).
 #[derive(Debug, Clone, Args)]
 struct RigFlags {
-    /// Where the pose set is centred: `camera` (facing the camera's published pose) or `here`
-    /// (the arm's pose now: put the board in view first).
-    #[arg(long, default_value = "camera")]
+    /// Where the pose set is centred: `camera` (facing the camera's published pose, holding the
+    /// board where the rig says it is), `here` (the arm's pose now: put the board in view
+    /// first), or `auto` (camera where the rig publishes both poses, else here).
+    #[arg(long, default_value = "auto")]
     start: String,
     /// DDS domain (default: the launch config's).
     #[arg(long)]

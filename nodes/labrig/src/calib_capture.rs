@@ -62,6 +62,8 @@ const SIM_CAMERA_HZ: f64 = 4.0;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum Start {
+    /// `camera` where the rig publishes the camera's and the board's poses, else `here`.
+    Auto,
     /// Around a pose facing the camera, found from the rig's published camera and board poses
     /// (`/tf_static`: the rig config's extrinsics, the board's nominal mount).
     Camera,
@@ -93,7 +95,7 @@ pub struct CaptureArgs {
     #[arg(long, value_delimiter = ',')]
     pub print_size_m: Option<Vec<f64>>,
     /// Where the pose set is centred.
-    #[arg(long, value_enum, default_value_t = Start::Camera)]
+    #[arg(long, value_enum, default_value_t = Start::Auto)]
     pub start: Start,
     /// DDS domain (default: the launch config's).
     #[arg(long)]
@@ -542,8 +544,20 @@ async fn capture(
         Mount::EyeInHand => link.wrist_in_tcp,
     };
     let published_board = link.statics.get(labrig_msgs::calibration::BOARD_FRAME).cloned();
-    let (start, pivot) = match a.start {
-        Start::Here => (tcp_now, tcp_now.translation.vector),
+    let start_at = match a.start {
+        Start::Auto if published_camera.is_some() && published_board.is_some() => Start::Camera,
+        Start::Auto => {
+            eprintln!(
+                "{camera}: the rig publishes no {} pose: the views are taken around the arm's pose now \
+                 (the board must be in view)",
+                if published_camera.is_none() { "camera" } else { "board" }
+            );
+            Start::Here
+        }
+        s => s,
+    };
+    let (start, pivot) = match start_at {
+        Start::Auto | Start::Here => (tcp_now, tcp_now.translation.vector),
         Start::Camera => {
             let cam = published_camera.with_context(|| {
                 format!(
