@@ -23,21 +23,29 @@ fn board_in_tcp() -> Isometry3<f64> {
     )
 }
 
+/// The start for a camera at `camera` looking at `aim`, with DROID's amplitudes.
+fn start(
+    f: &SafetyFilter,
+    camera: &Vector3<f64>,
+    aim: &Vector3<f64>,
+) -> Result<(Isometry3<f64>, Vector3<f64>), StartError> {
+    calib_path::start_facing_camera(
+        f,
+        &DROID_RESET_POSE,
+        camera,
+        aim,
+        &board_in_tcp(),
+        [0.18, 0.28],
+        (calib_path::AMPLITUDE_M, calib_path::AMPLITUDE_RAD),
+    )
+}
+
 #[test]
 fn a_camera_beside_the_table_gets_a_start_with_its_pose_set_reachable() {
     let f = filter();
     let camera = Vector3::new(0.5, 0.9, 0.6);
     let aim = Vector3::new(0.5, 0.0, 0.0);
-    let (start, centre) = calib_path::start_facing_camera(
-        &f,
-        &DROID_RESET_POSE,
-        &camera,
-        &aim,
-        &board_in_tcp(),
-        [0.18, 0.28],
-        (calib_path::AMPLITUDE_M, calib_path::AMPLITUDE_RAD),
-    )
-    .expect("a start");
+    let (start, centre) = start(&f, &camera, &aim).expect("a start");
     // The board's centre is on the line of sight, at least the minimum distance from the camera.
     let along = (centre - camera).normalize();
     assert!(along.dot(&(aim - camera).normalize()) > 1.0 - 1e-9, "{centre}");
@@ -65,16 +73,7 @@ fn a_camera_out_of_reach_is_refused_with_its_position() {
     // Far across a room: no point of its line of sight to a far table is in the workspace.
     let camera = Vector3::new(3.0, 3.0, 1.0);
     let aim = Vector3::new(2.5, 2.5, 0.0);
-    let err = calib_path::start_facing_camera(
-        &f,
-        &DROID_RESET_POSE,
-        &camera,
-        &aim,
-        &board_in_tcp(),
-        [0.18, 0.28],
-        (calib_path::AMPLITUDE_M, calib_path::AMPLITUDE_RAD),
-    )
-    .unwrap_err();
+    let err = start(&f, &camera, &aim).unwrap_err();
     assert_eq!(err, StartError::NoLineOfSight { camera: [3.0, 3.0, 1.0] });
     assert!(err.to_string().contains("[3.00, 3.00, 1.00]"), "{err}");
     // A pose outside the safety layer's workspace is never sent.

@@ -397,26 +397,22 @@ fn sim_capture(
     if std::env::var_os("LP_NUM_THREADS").is_none() {
         cmd.env("LP_NUM_THREADS", "1");
     }
-    cmd.arg("calib-capture")
-        .args(["--camera", camera, "--seed", &f.seed.to_string(), "--views", &views.to_string(), "--rig", rig])
-        .arg("--print")
-        .arg(&work.print)
-        .arg("--board")
-        .arg(&work.board_json)
-        .arg("--out")
-        .arg(out);
+    cmd.arg("calib-capture").args([
+        "--camera",
+        camera,
+        "--seed",
+        &f.seed.to_string(),
+        "--views",
+        &views.to_string(),
+        "--rig",
+        rig,
+    ]);
+    work.capture_args(&mut cmd, out, move_camera)?;
     if let Some(s) = &f.scene {
         cmd.arg("--scene").arg(s);
     }
     if let Some(a) = &f.assets {
         cmd.arg("--assets").arg(a);
-    }
-    if let Some(m) = move_camera {
-        let [x, y, z] = m else { bail!("--move-camera takes dx,dy,dz (3 numbers), not {m:?}") };
-        cmd.arg(format!("--move-camera={x},{y},{z}"));
-    }
-    if let Some([w, h]) = work.print_size_m {
-        cmd.arg(format!("--print-size-m={w},{h}"));
     }
     if quiet {
         cmd.arg("--quiet");
@@ -440,6 +436,20 @@ struct Work {
 }
 
 impl Work {
+    /// What both captures take: the print, the board, the output, a camera moved, the print's
+    /// size where it is not the board's.
+    fn capture_args(&self, cmd: &mut Command, out: &Path, move_camera: Option<&[f64]>) -> anyhow::Result<()> {
+        cmd.arg("--print").arg(&self.print).arg("--board").arg(&self.board_json).arg("--out").arg(out);
+        if let Some(m) = move_camera {
+            let [x, y, z] = m else { bail!("--move-camera takes dx,dy,dz (3 numbers), not {m:?}") };
+            cmd.arg(format!("--move-camera={x},{y},{z}"));
+        }
+        if let Some([w, h]) = self.print_size_m {
+            cmd.arg(format!("--print-size-m={w},{h}"));
+        }
+        Ok(())
+    }
+
     fn new(f: &SimFlags, spec: &BoardSpec) -> anyhow::Result<Work> {
         let (dir, temporary) = match &f.work {
             Some(d) => (d.clone(), false),
@@ -557,22 +567,10 @@ fn rig_capture(
     }
     cmd.args(["calibrate", "capture", "--camera", camera, "--views", &views.to_string(), "--start", &flags.start])
         .arg("--rig")
-        .arg(rig)
-        .arg("--print")
-        .arg(&work.print)
-        .arg("--board")
-        .arg(&work.board_json)
-        .arg("--out")
-        .arg(out);
+        .arg(rig);
+    work.capture_args(&mut cmd, out, move_camera)?;
     if let Some(d) = flags.domain_id {
         cmd.args(["--domain-id", &d.to_string()]);
-    }
-    if let Some(m) = move_camera {
-        let [x, y, z] = m else { bail!("--move-camera takes dx,dy,dz (3 numbers), not {m:?}") };
-        cmd.arg(format!("--move-camera={x},{y},{z}"));
-    }
-    if let Some([w, h]) = work.print_size_m {
-        cmd.arg(format!("--print-size-m={w},{h}"));
     }
     if quiet {
         cmd.arg("--json").stdout(std::process::Stdio::null());

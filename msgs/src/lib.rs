@@ -12,6 +12,7 @@
 
 pub mod calibration;
 mod codec;
+pub mod dv;
 pub mod geometry_msgs;
 mod invalid;
 pub mod labrig_msgs;

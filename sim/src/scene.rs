@@ -36,50 +36,8 @@ pub const HANDLE_LENGTH: f64 = 0.07;
 pub const DRAWER_OPEN_M: f64 = 0.10;
 pub const DRAWER_CLOSED_M: f64 = 0.02;
 
-/// A camera-pose bin: 15 deg of polar angle x 30 deg of azimuth around the table centre.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum CameraBin {
-    ShoulderLeft,
-    ShoulderRight,
-    AgentLeft,
-    AgentRight,
-    AgentFront,
-}
-
-impl CameraBin {
-    pub const ALL: [CameraBin; 5] = [
-        CameraBin::ShoulderLeft,
-        CameraBin::ShoulderRight,
-        CameraBin::AgentLeft,
-        CameraBin::AgentRight,
-        CameraBin::AgentFront,
-    ];
-
-    /// (polar, azimuth) ranges in degrees. The robot stands at the table's -x edge facing +x;
-    /// "left" is +y. Shoulder bins are behind and beside the robot, agent bins across the table.
-    pub fn ranges_deg(self) -> ([f64; 2], [f64; 2]) {
-        let polar = [45.0, 60.0];
-        let azimuth = match self {
-            CameraBin::ShoulderLeft => [120.0, 150.0],
-            CameraBin::ShoulderRight => [-150.0, -120.0],
-            CameraBin::AgentLeft => [30.0, 60.0],
-            CameraBin::AgentRight => [-60.0, -30.0],
-            CameraBin::AgentFront => [-15.0, 15.0],
-        };
-        (polar, azimuth)
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            CameraBin::ShoulderLeft => "shoulder-left",
-            CameraBin::ShoulderRight => "shoulder-right",
-            CameraBin::AgentLeft => "agent-left",
-            CameraBin::AgentRight => "agent-right",
-            CameraBin::AgentFront => "agent-front",
-        }
-    }
-}
+/// The paper's five camera bins (shared with the dataset tools).
+pub use labrig_msgs::dv::CameraBin;
 
 /// A closed range `[min, max]`.
 pub type Range = [f64; 2];

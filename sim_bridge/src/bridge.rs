@@ -446,32 +446,42 @@ enum FaultRequest {
     StallCamera { camera: String, seconds: f64 },
 }
 
-/// Renders every camera, then sends each frame and camera_info (stalled cameras: none).
-#[allow(clippy::too_many_arguments)] // the bridge loop's camera state, borrowed piecewise
-fn send_frames(
-    sim: &mut Sim,
-    cameras: &[&'static str],
-    rgb: &mut [Vec<u8>],
-    frame_pubs: &mut [FramePublisher],
-    info: &[RosPublisher<CameraInfo>],
-    fovy: &[f64],
-    (width, height): (usize, usize),
-    stalled_until: &[Instant],
-) -> anyhow::Result<()> {
-    let t = sim.time();
-    for (camera, buf) in cameras.iter().zip(rgb.iter_mut()) {
-        sim.render_into(camera, buf)?;
+/// The cameras the bridge sends: their shared-memory publishers, render buffers, fields of
+/// view (per scene) and stalls (`/sim/fault`).
+struct CameraOut {
+    cameras: Vec<&'static str>,
+    pubs: Vec<FramePublisher>,
+    rgb: Vec<Vec<u8>>,
+    fovy: Vec<f64>,
+    size: (usize, usize),
+    stalled_until: Vec<Instant>,
+}
+
+impl CameraOut {
+    /// The fields of view of `sim`'s cameras (a new scene may change them).
+    fn set_scene(&mut self, sim: &Sim) {
+        self.fovy =
+            self.cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect();
     }
-    let now = Instant::now();
-    for (i, camera) in cameras.iter().enumerate() {
-        // A camera stalled on purpose (`/sim/fault`) sends nothing until its time is up.
-        if stalled_until.get(i).is_some_and(|&u| now < u) {
-            continue;
+
+    /// Renders every camera, then sends each frame and camera_info (stalled cameras: none).
+    fn send(&mut self, sim: &mut Sim, info: &[RosPublisher<CameraInfo>]) -> anyhow::Result<()> {
+        let t = sim.time();
+        for (camera, buf) in self.cameras.iter().zip(self.rgb.iter_mut()) {
+            sim.render_into(camera, buf)?;
         }
-        frame_pubs[i].publish(&rgb[i], t, t)?;
-        info[i].publish(camera_info(t, camera, width, height, fovy[i]))?;
+        let now = Instant::now();
+        let (width, height) = self.size;
+        for (i, camera) in self.cameras.iter().enumerate() {
+            // A camera stalled on purpose (`/sim/fault`) sends nothing until its time is up.
+            if self.stalled_until.get(i).is_some_and(|&u| now < u) {
+                continue;
+            }
+            self.pubs[i].publish(&self.rgb[i], t, t)?;
+            info[i].publish(camera_info(t, camera, width, height, self.fovy[i]))?;
+        }
+        Ok(())
     }
-    Ok(())
 }
 
 async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
@@ -546,7 +556,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     let arm_sub: RosSubscription<ArmCommand> = ros.subscription_at(hw, &topics::ARM_COMMAND, 100)?;
     let gripper_sub: RosSubscription<GripperCommand> = ros.subscription_at(hw, &topics::GRIPPER_COMMAND, 100)?;
     let frames = FrameNode::new()?;
-    let mut frame_pubs: Vec<FramePublisher> = cameras
+    let frame_pubs: Vec<FramePublisher> = cameras
         .iter()
         .map(|c| {
             frames.publisher(
@@ -564,12 +574,15 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     );
 
     let mut rig = SimHardware::new(sim, safety, arm_sets_gripper);
-    let fovys = |sim: &Sim| -> Vec<f64> {
-        cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect()
+    let mut out = CameraOut {
+        rgb: cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect(),
+        stalled_until: cameras.iter().map(|_| Instant::now()).collect(),
+        cameras: cameras.clone(),
+        pubs: frame_pubs,
+        fovy: Vec::new(),
+        size: (a.width, a.height),
     };
-    let mut fovy = fovys(rig.sim());
-    let mut rgb: Vec<Vec<u8>> = cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect();
-    let mut stalled_until: Vec<Instant> = cameras.iter().map(|_| Instant::now()).collect();
+    out.set_scene(rig.sim());
     let mut ticks = 0u64;
     let started = Instant::now();
     let mut next_deadline = Instant::now();
@@ -599,7 +612,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
                     next.resume_clock(Nanos((rig.sim().time().0 + period.0).max(now)));
                     rig.replace_scene(next);
-                    fovy = fovys(rig.sim());
+                    out.set_scene(rig.sim());
                     let in_force = calibration_in_force(rig.sim(), &spec, calibrations.as_ref(), &mut pubs)?;
                     publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount)?;
                     if let Some(e) = &mut expert {
@@ -608,16 +621,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     tracing::info!(seed = req.seed, time_s = rig.sim().time().as_secs_f64(), "new scene");
                     // The new scene's first state comes with its own frames: the episode's
                     // first step must not see the last scene's images.
-                    send_frames(
-                        rig.sim_mut(),
-                        &cameras,
-                        &mut rgb,
-                        &mut frame_pubs,
-                        &pubs.camera_info,
-                        &fovy,
-                        (a.width, a.height),
-                        &stalled_until,
-                    )?;
+                    out.send(rig.sim_mut(), &pubs.camera_info)?;
                     report_publish(publish_state(rig.sim(), &pubs, rig.state()));
                     if let Some(e) = &mut expert {
                         e.publish(rig.sim());
@@ -710,7 +714,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     match cameras.iter().position(|c| *c == camera) {
                         Some(i) => {
                             tracing::warn!(camera, seconds, "fault injected: the camera stalls");
-                            stalled_until[i] = Instant::now() + Duration::from_secs_f64(seconds);
+                            out.stalled_until[i] = Instant::now() + Duration::from_secs_f64(seconds);
                         }
                         None => rig.refuse(format!("refused /sim/fault: no camera {camera:?}")),
                     }
@@ -731,16 +735,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
             Some(_) => false,
         };
         if frame_due {
-            send_frames(
-                rig.sim_mut(),
-                &cameras,
-                &mut rgb,
-                &mut frame_pubs,
-                &pubs.camera_info,
-                &fovy,
-                (a.width, a.height),
-                &stalled_until,
-            )?;
+            out.send(rig.sim_mut(), &pubs.camera_info)?;
         }
         if let Some(e) = &mut expert {
             e.publish(rig.sim());
