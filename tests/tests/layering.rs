@@ -106,7 +106,8 @@ fn heavy_native_crates_stay_where_they_belong() {
         (TORCH, &["labrig-policies", "labrig-policy-server"]),
         (OPENCV, &["labrig-calibration", "labrig-cameras"]),
         (MUJOCO, &["labrig-sim", "labrig-sim-bridge"]),
-        (HDF5, &["labrig-droid"]),
+        // The dataset index reads DROID raw trajectory.h5 files through labrig-droid.
+        (HDF5, &["labrig-droid", "labrig-dataset"]),
     ];
     let mut bad = Vec::new();
     for name in workspace().keys().filter(|n| n.as_str() != "labrig-tests") {

@@ -51,6 +51,15 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The paper's dataset tools: `labrig dataset index <root>... --out <index>`, `labrig
+    /// dataset retrieve --index <index> --target <episodes|index|target.toml> --align
+    /// object,skill,camPose,objTex,objSpat --out manifest.json` (see `labrig dataset --help`).
+    #[command(disable_help_flag = true)]
+    Dataset {
+        /// Arguments for labrig-dataset.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Replay a recorded episode against the simulated rig: `labrig replay <episode> --sim
     /// [--json] [--max-tcp-error-m 0.005 ...]` (exit 5 when it deviates beyond the tolerances).
     #[command(disable_help_flag = true)]
@@ -312,6 +321,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Sim { args } => sim(&args),
         Command::Calibrate { args } => calibrate(&args),
+        Command::Dataset { args } => node("labrig-dataset", &args),
         Command::Gripper { args } => node("labrig-gripper", &args),
         Command::Franka { args } => node("labrig-franka", &args),
         Command::Teleop { args } => node("labrig-teleop", &args),

@@ -1,0 +1,276 @@
+//! `labrig-dataset` (run as `labrig dataset ...`): the paper's dataset tools.
+//!
+//! - `labrig dataset index <root>... --out <index dir> [--shard I/N] [--json]`: one row per
+//!   episode (labrig MCAP and DROID raw, found by auto-detection) into a Parquet part;
+//! - `labrig dataset retrieve --index <dir> --target <episodes dir|index dir|target.toml>
+//!   --align object,skill,camPose,objTex,objSpat --out manifest.json [--json]`.
+
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand};
+use labrig_dataset::dv::{GraspParams, Vocabulary};
+use labrig_dataset::retrieve::{self, Dim, Target, Thresholds};
+use labrig_dataset::row::IndexRow;
+use labrig_dataset::source::{self, Derive};
+use labrig_dataset::table;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+#[derive(Debug, Parser)]
+#[command(name = "labrig dataset", about = "The paper's dataset tools: index, retrieve by alignment, manifests")]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Index episodes (labrig MCAP, DROID raw) into a directory of Parquet parts.
+    Index(IndexArgs),
+    /// Retrieve the demos aligned with a target into a manifest.
+    Retrieve(RetrieveArgs),
+}
+
+#[derive(Debug, Args)]
+struct IndexArgs {
+    /// Folders searched for episodes.
+    #[arg(required = true)]
+    roots: Vec<PathBuf>,
+    /// The index directory (created); this run writes part-<I>-of-<N>.parquet there.
+    #[arg(long)]
+    out: PathBuf,
+    /// Index the I-th of N disjoint slices of the episodes found (0-based), e.g. 3/16.
+    #[arg(long, default_value = "0/1")]
+    shard: String,
+    /// The vocabulary of objects, primitives and colours (TOML; default dataset/vocabulary.toml).
+    #[arg(long)]
+    vocabulary: Option<PathBuf>,
+    /// The table centre in the base frame (m): the origin of the cameras' spherical coordinates.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_value = "0.5,0,0")]
+    table_centre: Vec<f64>,
+    /// The gripper signal is averaged over this many steps to find the first real close.
+    #[arg(long, default_value_t = 15)]
+    grasp_window: usize,
+    /// The averaged gripper signal (0 open .. 1 closed) above which the gripper is closed.
+    #[arg(long, default_value_t = 0.5)]
+    grasp_threshold: f64,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, Args)]
+struct RetrieveArgs {
+    /// The index directory to retrieve from.
+    #[arg(long)]
+    index: PathBuf,
+    /// The target: a folder of episodes, an index directory, or a TOML spec (cameras,
+    /// object_position, object, skill, colour).
+    #[arg(long)]
+    target: PathBuf,
+    /// Dimensions to align, any of object, skill, camPose, objTex, objSpat (applied in that
+    /// order, the paper's).
+    #[arg(long, value_delimiter = ',', required = true)]
+    align: Vec<String>,
+    /// The manifest to write.
+    #[arg(long)]
+    out: PathBuf,
+    /// camPose: a demo camera within this of the target camera in x and in y (m).
+    #[arg(long, default_value_t = 0.20)]
+    cam_xy_m: f64,
+    /// camPose: ... and in z (m).
+    #[arg(long, default_value_t = 0.10)]
+    cam_z_m: f64,
+    /// objSpat: the cuboid's size around the target's object position (m).
+    #[arg(long, value_delimiter = ',', default_value = "0.6,0.6,0.3")]
+    obj_box_m: Vec<f64>,
+    /// Keep the target's own episodes out of the result (by episode id).
+    #[arg(long)]
+    exclude_target: bool,
+    #[arg(long)]
+    json: bool,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.cmd {
+        Cmd::Index(a) => index(a),
+        Cmd::Retrieve(a) => retrieve_cmd(a),
+    };
+    match result {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("labrig dataset: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn shard_of(s: &str) -> anyhow::Result<(usize, usize)> {
+    let (i, n) = s.split_once('/').with_context(|| format!("--shard {s}: expected I/N, e.g. 0/4"))?;
+    let (i, n): (usize, usize) = (i.trim().parse()?, n.trim().parse()?);
+    anyhow::ensure!(n >= 1 && i < n, "--shard {s}: I must be in 0..N");
+    Ok((i, n))
+}
+
+fn derive_of(a: &IndexArgs) -> anyhow::Result<Derive> {
+    let vocabulary = match &a.vocabulary {
+        None => Vocabulary::default_words(),
+        Some(p) => Vocabulary::parse(&std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?)
+            .with_context(|| format!("{} is not a vocabulary", p.display()))?,
+    };
+    let [x, y, z] = a.table_centre.as_slice() else { bail!("--table-centre takes x,y,z") };
+    anyhow::ensure!(a.grasp_window >= 1, "--grasp-window must be at least 1");
+    Ok(Derive {
+        vocabulary,
+        grasp: GraspParams { window: a.grasp_window, threshold: a.grasp_threshold },
+        table_centre: [*x, *y, *z],
+    })
+}
+
+fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    let (i, n) = shard_of(&a.shard)?;
+    let derive = derive_of(&a)?;
+    let mut found = Vec::new();
+    for root in &a.roots {
+        anyhow::ensure!(root.is_dir(), "{}: no such folder", root.display());
+        found.extend(source::discover(root));
+    }
+    found.sort();
+    found.dedup();
+    let total = found.len();
+    // Disjoint slices: every N-th episode of the sorted list, so slices are balanced.
+    let mine: Vec<_> = found.into_iter().enumerate().filter(|(k, _)| k % n == i).map(|(_, f)| f).collect();
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let part = a.out.join(table::part_name(i, n));
+    // Rows of an unchanged episode (same path, size and mtime) are kept from the last run.
+    let previous: BTreeMap<String, IndexRow> = if part.exists() {
+        table::read_part(&part)
+            .map(|rows| rows.into_iter().map(|r| (r.source_path.clone(), r)).collect())
+            .unwrap_or_default()
+    } else {
+        BTreeMap::new()
+    };
+    let bar = indicatif::ProgressBar::new(mine.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} episodes [{elapsed}] {msg}")
+            .expect("static template"),
+    );
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let (mut rows, mut bad, mut skipped) = (Vec::new(), Vec::new(), 0usize);
+    let mut bytes = 0u64;
+    for f in &mine {
+        let key = f.dir.display().to_string();
+        let unchanged = previous.get(&key).filter(|r| source::stamp(f).ok() == Some((r.file_size, r.file_mtime_ns)));
+        match unchanged {
+            Some(r) => {
+                skipped += 1;
+                rows.push(r.clone());
+            }
+            None => match source::row(f, &derive) {
+                Ok(r) => {
+                    bytes += r.file_size;
+                    rows.push(r);
+                }
+                Err(why) => bad.push(serde_json::json!({"path": key, "format": f.format.name(), "reason": why})),
+            },
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    table::write_part(&part, &rows)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let mut by_format: BTreeMap<&str, usize> = BTreeMap::new();
+    for r in &rows {
+        *by_format.entry(r.source_format.as_str()).or_default() += 1;
+    }
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({"part": part, "shard": [i, n], "found": total, "in_shard": mine.len(),
+                "indexed": rows.len() - skipped, "unchanged": skipped, "bad": bad, "by_format": by_format,
+                "seconds": seconds, "episodes_per_s": mine.len() as f64 / seconds.max(1e-9),
+                "mb_per_s": bytes as f64 / 1e6 / seconds.max(1e-9)})
+        );
+    } else {
+        println!(
+            "{}: {} episodes ({} indexed, {} unchanged, {} bad) of {} found, shard {i}/{n}, {seconds:.1} s",
+            part.display(),
+            rows.len(),
+            rows.len() - skipped,
+            skipped,
+            bad.len(),
+            total
+        );
+        for (f, k) in &by_format {
+            println!("    {f}: {k}");
+        }
+        for b in &bad {
+            println!("    skipped {}: {}", b["path"].as_str().unwrap_or(""), b["reason"].as_str().unwrap_or(""));
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The target from a folder of episodes, an index directory or a TOML spec.
+fn target_of(path: &Path) -> anyhow::Result<(Target, Vec<String>)> {
+    if path.is_file() {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let t: Target = toml::from_str(&text).with_context(|| format!("{} is not a target spec", path.display()))?;
+        return Ok((t, Vec::new()));
+    }
+    anyhow::ensure!(path.is_dir(), "--target {}: no such file or folder", path.display());
+    let rows = if table::parts(path).map(|p| !p.is_empty()).unwrap_or(false) {
+        table::read_index(path)?
+    } else {
+        let derive = Derive::default();
+        let found = source::discover(path);
+        anyhow::ensure!(!found.is_empty(), "--target {}: no episodes and no index there", path.display());
+        let mut rows = Vec::new();
+        for f in &found {
+            rows.push(source::row(f, &derive).map_err(|e| anyhow::anyhow!("target episode: {e}"))?);
+        }
+        rows
+    };
+    Ok((Target::of_episodes(&rows), rows.into_iter().map(|r| r.episode_id).collect()))
+}
+
+fn retrieve_cmd(a: RetrieveArgs) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    let align: Vec<Dim> =
+        a.align.iter().map(|s| Dim::parse(s)).collect::<Result<_, _>>().map_err(anyhow::Error::msg)?;
+    let [bx, by, bz] = a.obj_box_m.as_slice() else { bail!("--obj-box-m takes x,y,z") };
+    let thresholds = Thresholds { cam_xy_m: a.cam_xy_m, cam_z_m: a.cam_z_m, obj_box_m: [*bx, *by, *bz] };
+    let (target, target_ids) = target_of(&a.target)?;
+    let missing = target.missing(&align);
+    anyhow::ensure!(missing.is_empty(), "cannot align: {}", missing.join("; "));
+    let mut rows = table::read_index(&a.index)?;
+    if a.exclude_target {
+        rows.retain(|r| !target_ids.contains(&r.episode_id));
+    }
+    let t_read = t0.elapsed().as_secs_f64();
+    let manifest = retrieve::retrieve(&rows, &target, &align, &thresholds);
+    let t_query = t0.elapsed().as_secs_f64() - t_read;
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&a.out, serde_json::to_string_pretty(&manifest)? + "\n")
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({"manifest": a.out, "funnel": manifest.funnel, "retrieved": manifest.episodes.len(),
+                "target": manifest.target, "read_s": t_read, "query_s": t_query})
+        );
+    } else {
+        println!("{} episodes retrieved -> {}", manifest.episodes.len(), a.out.display());
+        println!("    {:<10} {:>10}", "stage", "kept");
+        for s in &manifest.funnel {
+            println!("    {:<10} {:>10}", s.stage, s.kept);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,307 @@
+//! Retrieval by alignment, as the paper does it on DROID: the dimensions named in `--align`
+//! are applied in the paper's order (object and skill from the instruction, then camera pose,
+//! then object texture, then object position), each keeping the demos that pass, with the
+//! count after each stage (the funnel).
+
+use crate::row::IndexRow;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// The dimensions retrieval can align, in the order they are applied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub enum Dim {
+    #[serde(rename = "object")]
+    Object,
+    #[serde(rename = "skill")]
+    Skill,
+    #[serde(rename = "camPose")]
+    CamPose,
+    #[serde(rename = "objTex")]
+    ObjTex,
+    #[serde(rename = "objSpat")]
+    ObjSpat,
+}
+
+impl Dim {
+    pub const ORDER: [Dim; 5] = [Dim::Object, Dim::Skill, Dim::CamPose, Dim::ObjTex, Dim::ObjSpat];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Dim::Object => "object",
+            Dim::Skill => "skill",
+            Dim::CamPose => "camPose",
+            Dim::ObjTex => "objTex",
+            Dim::ObjSpat => "objSpat",
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Dim, String> {
+        Dim::ORDER
+            .into_iter()
+            .find(|d| d.name().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("unknown dimension `{s}` (one of {})", Dim::ORDER.map(Dim::name).join(", ")))
+    }
+}
+
+/// The thresholds, with the paper's values by default.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Thresholds {
+    /// camPose: a demo camera within this of a target camera in x and in y, and in z (m).
+    pub cam_xy_m: f64,
+    pub cam_z_m: f64,
+    /// objSpat: the cuboid's size centred on the target's mean object position (m).
+    pub obj_box_m: [f64; 3],
+}
+
+impl Default for Thresholds {
+    fn default() -> Thresholds {
+        Thresholds { cam_xy_m: 0.20, cam_z_m: 0.10, obj_box_m: [0.60, 0.60, 0.30] }
+    }
+}
+
+/// What the demos are aligned to: from target episodes (means, most common words) or a spec.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Target {
+    /// The target's external camera positions (base frame, m).
+    #[serde(default)]
+    pub cameras: Vec<[f64; 3]>,
+    /// The centre of the object box (the target episodes' mean object position).
+    pub object_position: Option<[f64; 3]>,
+    pub object: Option<String>,
+    pub skill: Option<String>,
+    pub colour: Option<String>,
+}
+
+fn most_common<'a>(values: impl Iterator<Item = Option<&'a str>>) -> Option<String> {
+    let mut n: BTreeMap<&str, usize> = BTreeMap::new();
+    for v in values.flatten() {
+        *n.entry(v).or_default() += 1;
+    }
+    n.into_iter().max_by_key(|(_, c)| *c).map(|(v, _)| v.to_owned())
+}
+
+fn mean(points: impl Iterator<Item = [f64; 3]>) -> Option<[f64; 3]> {
+    let (mut s, mut k) = ([0.0; 3], 0usize);
+    for p in points {
+        for i in 0..3 {
+            s[i] += p[i];
+        }
+        k += 1;
+    }
+    (k > 0).then(|| s.map(|v| v / k as f64))
+}
+
+impl Target {
+    /// The target of some episodes: per external camera (by name) the mean position, the mean
+    /// object position, the most common object, primitive and colour.
+    pub fn of_episodes(rows: &[IndexRow]) -> Target {
+        let cameras = crate::row::EXTERNAL_CAMERAS
+            .iter()
+            .filter_map(|c| mean(rows.iter().filter_map(|r| r.camera(c)?.position)))
+            .collect();
+        Target {
+            cameras,
+            object_position: mean(rows.iter().filter_map(|r| r.object_position)),
+            object: most_common(rows.iter().map(|r| r.object.as_deref())),
+            skill: most_common(rows.iter().map(|r| r.primitive.as_deref())),
+            colour: most_common(rows.iter().map(|r| r.colour.as_deref())),
+        }
+    }
+
+    /// Whether `row` passes `dim`'s rule. A dimension the target does not say is an error of
+    /// the query, found before any row is read ([`Target::missing`]).
+    pub fn passes(&self, dim: Dim, row: &IndexRow, t: &Thresholds) -> bool {
+        match dim {
+            Dim::Object => row.object.is_some() && row.object == self.object,
+            Dim::Skill => row.primitive.is_some() && row.primitive == self.skill,
+            Dim::ObjTex => row.colour.is_some() && row.colour == self.colour,
+            Dim::CamPose => {
+                let demo = row.external_positions();
+                !demo.is_empty()
+                    && self.cameras.iter().all(|c| {
+                        demo.iter().any(|(_, d)| {
+                            (d[0] - c[0]).abs() <= t.cam_xy_m
+                                && (d[1] - c[1]).abs() <= t.cam_xy_m
+                                && (d[2] - c[2]).abs() <= t.cam_z_m
+                        })
+                    })
+            }
+            Dim::ObjSpat => match (row.object_position, self.object_position) {
+                (Some(p), Some(c)) => (0..3).all(|i| (p[i] - c[i]).abs() <= t.obj_box_m[i] / 2.0),
+                _ => false,
+            },
+        }
+    }
+
+    /// What the target lacks for `dims`, named.
+    pub fn missing(&self, dims: &[Dim]) -> Vec<String> {
+        dims.iter()
+            .filter_map(|d| {
+                let lacks = match d {
+                    Dim::Object => self.object.is_none(),
+                    Dim::Skill => self.skill.is_none(),
+                    Dim::ObjTex => self.colour.is_none(),
+                    Dim::CamPose => self.cameras.is_empty(),
+                    Dim::ObjSpat => self.object_position.is_none(),
+                };
+                lacks.then(|| {
+                    format!(
+                        "{}: the target has no {}",
+                        d.name(),
+                        match d {
+                            Dim::Object => "object (no instruction word of the vocabulary)",
+                            Dim::Skill => "motion primitive (no instruction word of the vocabulary)",
+                            Dim::ObjTex => "object colour",
+                            Dim::CamPose => "external camera pose",
+                            Dim::ObjSpat => "object position (the gripper never closes)",
+                        }
+                    )
+                })
+            })
+            .collect()
+    }
+}
+
+/// One stage of the funnel.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stage {
+    pub stage: String,
+    pub kept: usize,
+}
+
+/// A retrieved episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Retrieved {
+    pub id: String,
+    pub format: String,
+    pub path: String,
+    /// The rules it passed, in order.
+    pub passed: Vec<String>,
+}
+
+/// The manifest `labrig dataset retrieve` writes and `labrig train --cotrain` reads.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub manifest_version: u32,
+    pub index_version: u32,
+    pub align: Vec<Dim>,
+    pub thresholds: Thresholds,
+    pub target: Target,
+    pub funnel: Vec<Stage>,
+    pub episodes: Vec<Retrieved>,
+}
+
+pub const MANIFEST_VERSION: u32 = 1;
+
+/// Applies `align` (in the paper's order, whatever order it was given in) to `rows`.
+pub fn retrieve(rows: &[IndexRow], target: &Target, align: &[Dim], t: &Thresholds) -> Manifest {
+    let mut dims: Vec<Dim> = Dim::ORDER.into_iter().filter(|d| align.contains(d)).collect();
+    dims.dedup();
+    let mut kept: Vec<&IndexRow> = rows.iter().collect();
+    let mut funnel = vec![Stage { stage: "all".into(), kept: kept.len() }];
+    for d in &dims {
+        kept.retain(|r| target.passes(*d, r, t));
+        funnel.push(Stage { stage: d.name().into(), kept: kept.len() });
+    }
+    let passed: Vec<String> = dims.iter().map(|d| d.name().to_owned()).collect();
+    Manifest {
+        manifest_version: MANIFEST_VERSION,
+        index_version: crate::INDEX_VERSION,
+        align: dims,
+        thresholds: *t,
+        target: target.clone(),
+        funnel,
+        episodes: kept
+            .into_iter()
+            .map(|r| Retrieved {
+                id: r.episode_id.clone(),
+                format: r.source_format.clone(),
+                path: r.source_path.clone(),
+                passed: passed.clone(),
+            })
+            .collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::row::{CAMERAS, CameraRow};
+
+    fn demo(cam: [f64; 3], object: [f64; 3]) -> IndexRow {
+        let mut cameras: Vec<CameraRow> = CAMERAS.iter().map(|_| CameraRow::default()).collect();
+        cameras[1].position = Some(cam); // ext2
+        IndexRow {
+            episode_id: format!("{cam:?} {object:?}"),
+            cameras,
+            object_position: Some(object),
+            object: Some("cube".into()),
+            primitive: Some("place".into()),
+            colour: Some("red".into()),
+            ..IndexRow::default()
+        }
+    }
+
+    fn target() -> Target {
+        Target {
+            cameras: vec![[0.5, 0.8, 0.6]],
+            object_position: Some([0.5, 0.0, 0.05]),
+            object: Some("cube".into()),
+            skill: Some("place".into()),
+            colour: Some("red".into()),
+        }
+    }
+
+    #[test]
+    fn cam_pose_keeps_19_9_cm_and_drops_20_1_cm_on_each_axis() {
+        let (t, th) = (target(), Thresholds::default());
+        for (d, keep) in [(0.199, true), (0.201, false), (-0.199, true), (-0.201, false)] {
+            assert_eq!(t.passes(Dim::CamPose, &demo([0.5 + d, 0.8, 0.6], [0.5, 0.0, 0.05]), &th), keep, "x {d}");
+            assert_eq!(t.passes(Dim::CamPose, &demo([0.5, 0.8 + d, 0.6], [0.5, 0.0, 0.05]), &th), keep, "y {d}");
+        }
+        for (d, keep) in [(0.099, true), (0.101, false)] {
+            assert_eq!(t.passes(Dim::CamPose, &demo([0.5, 0.8, 0.6 + d], [0.5, 0.0, 0.05]), &th), keep, "z {d}");
+        }
+        // A demo with no known camera pose is not aligned.
+        let mut none = demo([0.5, 0.8, 0.6], [0.5, 0.0, 0.05]);
+        none.cameras[1].position = None;
+        assert!(!t.passes(Dim::CamPose, &none, &th));
+    }
+
+    #[test]
+    fn obj_spat_keeps_the_inside_of_the_60_60_30_cm_cuboid() {
+        let (t, th) = (target(), Thresholds::default());
+        let cam = [0.5, 0.8, 0.6];
+        for (i, half) in [(0usize, 0.30), (1, 0.30), (2, 0.15)] {
+            for sign in [1.0, -1.0] {
+                let mut inside = [0.5, 0.0, 0.05];
+                inside[i] += sign * (half - 0.001);
+                let mut outside = [0.5, 0.0, 0.05];
+                outside[i] += sign * (half + 0.001);
+                assert!(t.passes(Dim::ObjSpat, &demo(cam, inside), &th), "{inside:?}");
+                assert!(!t.passes(Dim::ObjSpat, &demo(cam, outside), &th), "{outside:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_funnel_counts_each_stage_in_the_papers_order() {
+        let mut rows = vec![demo([0.5, 0.8, 0.6], [0.5, 0.0, 0.05]); 3];
+        rows[1].object = Some("cup".into());
+        rows[2].cameras[1].position = Some([0.0, 0.0, 0.0]);
+        rows.push(demo([0.5, 0.8, 0.6], [0.9, 0.9, 0.05]));
+        let m = retrieve(&rows, &target(), &[Dim::ObjSpat, Dim::Object, Dim::CamPose], &Thresholds::default());
+        let funnel: Vec<(&str, usize)> = m.funnel.iter().map(|s| (s.stage.as_str(), s.kept)).collect();
+        assert_eq!(funnel, [("all", 4), ("object", 3), ("camPose", 2), ("objSpat", 1)]);
+        assert_eq!(m.episodes.len(), 1);
+        assert_eq!(m.episodes[0].passed, ["object", "camPose", "objSpat"]);
+        assert_eq!(m.align, [Dim::Object, Dim::CamPose, Dim::ObjSpat]);
+    }
+
+    #[test]
+    fn a_target_without_what_a_dimension_needs_is_named() {
+        let t = Target { cameras: vec![], ..target() };
+        assert_eq!(t.missing(&[Dim::Object, Dim::CamPose]), ["camPose: the target has no external camera pose"]);
+    }
+}

@@ -1,0 +1,220 @@
+//! Episodes to index rows, by auto-detection: labrig MCAP episodes (a directory holding
+//! `episode_0.mcap`) and DROID raw episodes (a directory holding `trajectory.h5` and
+//! `metadata_<uuid>.json`). Only low-dimensional data is read: no image is decoded.
+
+use crate::INDEX_VERSION;
+use crate::dv::{self, GraspParams, Vocabulary};
+use crate::row::{CAMERAS, IndexRow};
+use labrig_episode::EpisodeMetadata;
+use std::path::{Path, PathBuf};
+
+/// An episode found under a root.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Found {
+    pub dir: PathBuf,
+    pub format: Format,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Format {
+    Labrig,
+    DroidRaw,
+}
+
+impl Format {
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Labrig => "labrig",
+            Format::DroidRaw => "droid_raw",
+        }
+    }
+}
+
+/// Every episode under `root` (sorted by path, so shards are stable).
+pub fn discover(root: &Path) -> Vec<Found> {
+    let mut found: Vec<Found> = labrig_episode::episode::find_episodes(root)
+        .into_iter()
+        .map(|dir| Found { dir, format: Format::Labrig })
+        .chain(
+            labrig_episode::episode::dirs_holding(root, "trajectory.h5")
+                .into_iter()
+                .map(|dir| Found { dir, format: Format::DroidRaw }),
+        )
+        .collect();
+    found.sort();
+    found
+}
+
+/// How rows are derived.
+#[derive(Debug, Clone)]
+pub struct Derive {
+    pub vocabulary: Vocabulary,
+    pub grasp: GraspParams,
+    /// The table centre in the base frame (m), the origin of the spherical coordinates.
+    pub table_centre: [f64; 3],
+}
+
+impl Default for Derive {
+    fn default() -> Derive {
+        Derive { vocabulary: Vocabulary::default_words(), grasp: GraspParams::default(), table_centre: [0.5, 0.0, 0.0] }
+    }
+}
+
+/// The files an episode is (their total size and newest modification time say whether it
+/// changed since it was indexed).
+pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for e in std::fs::read_dir(&found.dir)? {
+        let p = e?.path();
+        let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+        let keep = match found.format {
+            Format::Labrig => name.ends_with(".mcap") || name == "metadata.yaml",
+            Format::DroidRaw => name == "trajectory.h5" || (name.starts_with("metadata_") && name.ends_with(".json")),
+        };
+        if keep {
+            files.push(p);
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// (total size, newest mtime in ns) of an episode's files.
+pub fn stamp(found: &Found) -> std::io::Result<(u64, i64)> {
+    let mut size = 0;
+    let mut mtime = 0i64;
+    for f in files_of(found)? {
+        let m = std::fs::metadata(&f)?;
+        size += m.len();
+        let t = m.modified()?.duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as i64).unwrap_or(0);
+        mtime = mtime.max(t);
+    }
+    Ok((size, mtime))
+}
+
+/// The row of one episode, or why it cannot be indexed.
+pub fn row(found: &Found, d: &Derive) -> Result<IndexRow, String> {
+    let (file_size, file_mtime_ns) = stamp(found).map_err(|e| format!("{}: {e}", found.dir.display()))?;
+    let (meta, xyz, gripper, instructions) = match found.format {
+        Format::Labrig => read_labrig(&found.dir)?,
+        Format::DroidRaw => read_droid_raw(&found.dir)?,
+    };
+    if xyz.is_empty() {
+        return Err(format!("{}: no steps", found.dir.display()));
+    }
+    let instruction = instructions.first().cloned().filter(|s| !s.is_empty());
+    let text = instructions.join(" ");
+    let object_position = dv::first_grasp(&gripper, d.grasp).map(|t| xyz[t]);
+    let mut colour = d.vocabulary.colour(&text);
+    if colour.is_none()
+        && let Some(scene) = meta.sim_scene.as_deref().and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
+        && let Some(hsv) = scene.get("object_hsv").and_then(|v| serde_json::from_value::<[f64; 3]>(v.clone()).ok())
+    {
+        colour = Some(dv::colour_of_hsv(hsv).to_owned());
+    }
+    let cameras = CAMERAS
+        .iter()
+        .map(|c| dv::camera_row(meta.camera_serials.get(*c).cloned(), meta.extrinsics.get(*c).copied(), d.table_centre))
+        .collect();
+    Ok(IndexRow {
+        index_version: INDEX_VERSION,
+        episode_id: meta.uuid.clone(),
+        source_path: found.dir.display().to_string(),
+        source_format: found.format.name().to_owned(),
+        file_size,
+        file_mtime_ns,
+        success: meta.success,
+        lab: meta.lab.clone(),
+        building: meta.building.clone(),
+        scene_id: meta.scene_id.clone(),
+        instruction,
+        instruction_2: instructions.get(1).cloned().filter(|s| !s.is_empty()),
+        instruction_3: instructions.get(2).cloned().filter(|s| !s.is_empty()),
+        length: xyz.len() as u64,
+        cameras,
+        object_position,
+        object: d.vocabulary.object(&text),
+        primitive: d.vocabulary.primitive(&text),
+        colour,
+        sim_dv: meta.sim_scene.clone(),
+    })
+}
+
+type Read = (EpisodeMetadata, Vec<[f64; 3]>, Vec<f64>, Vec<String>);
+
+fn read_labrig(dir: &Path) -> Result<Read, String> {
+    let data = labrig_episode::read_episode(dir).map_err(|e| e.to_string())?;
+    let meta = data.metadata.ok_or_else(|| format!("{}: no DROID metadata record", dir.display()))?;
+    let xyz = data.steps.iter().map(|s| {
+        let c = s.robot_state.cartesian_position;
+        [c[0], c[1], c[2]]
+    });
+    // The commanded gripper (the operator's trigger): a gripper closed on an object stalls
+    // part-way, so the measured position may never pass the threshold.
+    let gripper = data.steps.iter().map(|s| s.action.gripper_position).collect();
+    let instructions = vec![meta.task_instruction.clone()];
+    Ok((meta, xyz.collect(), gripper, instructions))
+}
+
+fn read_droid_raw(dir: &Path) -> Result<Read, String> {
+    let json_path = std::fs::read_dir(dir)
+        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .find(|p| {
+            let n = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            n.starts_with("metadata_") && n.ends_with(".json")
+        })
+        .ok_or_else(|| format!("{}: no metadata_<uuid>.json beside trajectory.h5", dir.display()))?;
+    let text = std::fs::read_to_string(&json_path).map_err(|e| format!("{}: {e}", json_path.display()))?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", json_path.display()))?;
+    let mut meta = labrig_droid::meta::parse(&value).map_err(|e| format!("{}: {e}", json_path.display()))?.meta;
+    // DROID's own files say success by their folder.
+    if meta.success.is_none() {
+        let path = dir.display().to_string();
+        meta.success = if path.contains("/success/") {
+            Some(true)
+        } else if path.contains("/failure/") {
+            Some(false)
+        } else {
+            None
+        };
+    }
+    let h5 = dir.join("trajectory.h5");
+    let doc = labrig_droid::h5doc::read(&h5).map_err(|e| e.to_string())?;
+    let column = |key: &str| -> Result<(Vec<usize>, Vec<f64>), String> {
+        let c = doc.datasets.get(key).ok_or_else(|| format!("{}: no `{key}`", h5.display()))?;
+        match &c.data {
+            labrig_droid::h5doc::Data::F64(v) => Ok((c.shape.clone(), v.clone())),
+            other => Err(format!("{}: `{key}` is {}, not float64", h5.display(), other.dtype())),
+        }
+    };
+    let (shape, cart) = column("observation/robot_state/cartesian_position")?;
+    if shape.len() != 2 || shape[1] != 6 {
+        return Err(format!("{}: cartesian_position has shape {shape:?}, not (T, 6)", h5.display()));
+    }
+    // The commanded gripper where the file has it (a gripper closed on an object stalls
+    // part-way), else the measured one.
+    let (gshape, gripper) = if doc.datasets.contains_key("action/gripper_position") {
+        column("action/gripper_position")?
+    } else {
+        column("observation/robot_state/gripper_position")?
+    };
+    let steps = shape[0];
+    if gshape.first() != Some(&steps) || gripper.len() != steps {
+        return Err(format!(
+            "{}: gripper_position has {} steps, cartesian_position {steps}",
+            h5.display(),
+            gshape.first().copied().unwrap_or(0)
+        ));
+    }
+    let xyz = cart.chunks_exact(6).map(|c| [c[0], c[1], c[2]]).collect();
+    let mut instructions = vec![meta.task_instruction.clone()];
+    for key in ["language_instruction_2", "language_instruction_3"] {
+        if let Some(s) = value.get(key).and_then(|v| v.as_str()) {
+            instructions.push(s.to_owned());
+        }
+    }
+    Ok((meta, xyz, gripper, instructions))
+}

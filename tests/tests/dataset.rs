@@ -1,0 +1,285 @@
+//! `labrig dataset`: the index over DROID raw episodes written by h5py (tests/peers/
+//! make_droid_raw.py: known extrinsics, gripper traces with an accidental 3-step close before
+//! the grasp, instructions) and a labrig episode from `labrig demo`; the index read back by
+//! pyarrow (tests/peers/read_index.py) with its documented columns; shards that together are
+//! the unsharded index; retrieval aligned with one camera region and one object region
+//! returning exactly the episodes generated there, with its funnel, and the same ids from the
+//! same query run by pyarrow; a manifest of DROID raw episodes refused by `labrig train` with
+//! the way to convert them.
+
+use labrig_tests::{cache_dir, labrig_bin, repo_root, workspace_bin};
+use serde_json::{Value, json};
+use std::collections::BTreeSet;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+
+fn labrig(args: &[&str]) -> Output {
+    workspace_bin("labrig-dataset", "labrig-dataset");
+    Command::new(labrig_bin()).args(args).output().unwrap()
+}
+
+fn text(out: &Output) -> String {
+    format!(
+        "exit {:?}\nstdout: {}\nstderr: {}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+fn ok_json(out: &Output) -> Value {
+    assert!(out.status.success(), "{}", text(out));
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("not JSON ({e}): {}", text(out)))
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn python() -> PathBuf {
+    let p = std::env::var_os("LABRIG_DROID_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| cache_dir().join("venv-droid/bin/python"));
+    assert!(p.exists(), "the venv {} is missing: run `bash scripts/setup.sh`", p.display());
+    p
+}
+
+/// Two camera regions x two object regions, three episodes each, plus one that names no object.
+const CAMS: [[f64; 6]; 2] = [[0.3, 0.6, 0.5, -2.3, 0.0, -1.6], [1.1, -0.5, 0.5, -2.3, 0.0, 2.4]];
+const OBJECTS: [[f64; 3]; 2] = [[0.5, 0.1, 0.05], [0.5, 0.5, 0.05]];
+
+fn uuid(cam: usize, obj: usize, k: usize) -> String {
+    format!("FIX+op+c{cam}o{obj}k{k}")
+}
+
+fn write_fixtures(root: &Path) {
+    let mut eps = Vec::new();
+    for (c, cam) in CAMS.iter().enumerate() {
+        for (o, obj) in OBJECTS.iter().enumerate() {
+            for k in 0..3 {
+                eps.push(json!({
+                    "name": format!("c{c}o{o}k{k}"), "success": k != 2, "uuid": uuid(c, o, k),
+                    "task": "Put the red cube in the bin", "steps": 80,
+                    "ext1": cam, "ext2": [0.5, -0.9, 0.7, -2.0, 0.0, 0.0],
+                    "grasp_step": 40, "grasp_xyz": obj, "accidental_step": 12, "decoy_xyz": [0.9, 0.9, 0.3],
+                }));
+            }
+        }
+    }
+    eps.push(json!({
+        "name": "wipe", "success": true, "uuid": "FIX+op+wipe", "task": "wipe the table", "steps": 30,
+        "ext1": CAMS[0], "ext2": CAMS[0], "grasp_step": null, "grasp_xyz": [0, 0, 0],
+    }));
+    let mut child = Command::new(python())
+        .arg(repo_root().join("tests/peers/make_droid_raw.py"))
+        .arg(root)
+        .stdin(Stdio::piped())
+        .spawn()
+        .unwrap();
+    child.stdin.take().unwrap().write_all(serde_json::to_string(&eps).unwrap().as_bytes()).unwrap();
+    assert!(child.wait().unwrap().success(), "make_droid_raw.py failed");
+    // A damaged one: its trajectory is not HDF5.
+    let bad = root.join("success/2026-11-26/damaged");
+    std::fs::create_dir_all(&bad).unwrap();
+    std::fs::write(bad.join("trajectory.h5"), b"not hdf5").unwrap();
+    std::fs::write(bad.join("metadata_FIX+op+bad.json"), r#"{"uuid": "FIX+op+bad"}"#).unwrap();
+}
+
+fn pyarrow(index: &Path, query: &Value) -> Value {
+    let out = Command::new(python())
+        .arg(repo_root().join("tests/peers/read_index.py"))
+        .arg(index)
+        .arg(query.to_string())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "read_index.py: {}", text(&out));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("droid_raw");
+    write_fixtures(&raw);
+    // One labrig episode of the simulated rig.
+    workspace_bin("labrig-sim", "labrig-sim-bridge");
+    for p in ["labrig-recorder", "labrig-control"] {
+        workspace_bin(p, p);
+    }
+    let demo = dir.path().join("demo");
+    let domain = labrig_tests::domain_for("dataset_demo").to_string();
+    let out = Command::new(labrig_bin())
+        .args(["demo", "--episodes", "1", "--domain-id", &domain, "--json", "--out", s(&demo)])
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("dataset_{}", std::process::id()))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+
+    let index = dir.path().join("index");
+    let r = ok_json(&labrig(&["dataset", "index", s(&raw), s(&demo), "--out", s(&index), "--json"]));
+    assert_eq!(r["found"], 15, "{r}");
+    assert_eq!(r["by_format"], json!({"droid_raw": 13, "labrig": 1}), "{r}");
+    let bad = r["bad"].as_array().unwrap();
+    assert_eq!(bad.len(), 1, "{r}");
+    assert!(bad[0]["path"].as_str().unwrap().ends_with("damaged"), "{r}");
+
+    // pyarrow reads it with the documented columns; the object is where the gripper closed for
+    // good (the accidental close at the decoy is ignored).
+    let q = json!({"object": "cube", "cam": &CAMS[0][..3], "cam_xy": 0.2, "cam_z": 0.1,
+                   "box_centre": OBJECTS[0], "box": [0.6, 0.6, 0.3]});
+    let py = pyarrow(&index, &q);
+    let cols: BTreeSet<&str> = py["columns"].as_array().unwrap().iter().map(|c| c.as_str().unwrap()).collect();
+    for c in [
+        "index_version",
+        "episode_id",
+        "source_path",
+        "source_format",
+        "success",
+        "lab",
+        "building",
+        "scene_id",
+        "instruction",
+        "length",
+        "ext1_serial",
+        "ext1_x",
+        "ext1_y",
+        "ext1_z",
+        "ext1_roll",
+        "ext1_radius_m",
+        "ext1_polar_deg",
+        "ext1_azimuth_deg",
+        "ext1_bin",
+        "wrist_x",
+        "object_x",
+        "object_y",
+        "object_z",
+        "object",
+        "primitive",
+        "colour",
+        "sim_dv",
+    ] {
+        assert!(cols.contains(c), "column {c} missing: {cols:?}");
+    }
+    let rows = py["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 14);
+    for row in rows.iter().filter(|r| r["episode_id"].as_str().unwrap().starts_with("FIX+op+c")) {
+        let id = row["episode_id"].as_str().unwrap();
+        let o = if id.contains("o0") { OBJECTS[0] } else { OBJECTS[1] };
+        assert_eq!([row["object_x"].as_f64(), row["object_y"].as_f64()], [Some(o[0]), Some(o[1])], "{id}");
+    }
+    let wipe = rows.iter().find(|r| r["episode_id"] == "FIX+op+wipe").unwrap();
+    assert!(wipe["object_x"].is_null(), "the gripper never closes: {wipe}");
+    let sim = rows.iter().find(|r| r["source_format"] == "labrig").unwrap();
+    assert!(sim["object_x"].is_number() && sim["ext1_bin"].is_string(), "the demo's row: {sim}");
+
+    // Shards: two disjoint halves, together the unsharded index.
+    let sharded = dir.path().join("sharded");
+    let a =
+        ok_json(&labrig(&["dataset", "index", s(&raw), s(&demo), "--out", s(&sharded), "--shard", "0/2", "--json"]));
+    let b =
+        ok_json(&labrig(&["dataset", "index", s(&raw), s(&demo), "--out", s(&sharded), "--shard", "1/2", "--json"]));
+    assert_eq!(a["in_shard"].as_u64().unwrap() + b["in_shard"].as_u64().unwrap(), 15);
+    let ids = |v: &Value| -> BTreeSet<String> {
+        v["rows"].as_array().unwrap().iter().map(|r| r["episode_id"].as_str().unwrap().to_owned()).collect()
+    };
+    let py_sharded = pyarrow(&sharded, &q);
+    assert_eq!(py_sharded["rows"].as_array().unwrap().len(), 14, "no episode twice");
+    assert_eq!(ids(&py_sharded), ids(&py));
+    // Re-indexing an unchanged shard reads nothing again.
+    let again =
+        ok_json(&labrig(&["dataset", "index", s(&raw), s(&demo), "--out", s(&sharded), "--shard", "0/2", "--json"]));
+    assert_eq!(
+        again["unchanged"],
+        a["in_shard"].as_u64().unwrap() - a["bad"].as_array().unwrap().len() as u64,
+        "{again}"
+    );
+
+    // Retrieval aligned with camera region 0 and object region 0: exactly those three episodes.
+    let target = dir.path().join("target.toml");
+    std::fs::write(
+        &target,
+        format!(
+            "cameras = [[{}, {}, {}]]\nobject_position = [{}, {}, {}]\nobject = \"cube\"\nskill = \"place\"\ncolour = \"red\"\n",
+            CAMS[0][0], CAMS[0][1], CAMS[0][2], OBJECTS[0][0], OBJECTS[0][1], OBJECTS[0][2]
+        ),
+    )
+    .unwrap();
+    let manifest = dir.path().join("manifest.json");
+    let r = ok_json(&labrig(&[
+        "dataset",
+        "retrieve",
+        "--index",
+        s(&index),
+        "--target",
+        s(&target),
+        "--align",
+        "objSpat,camPose,object,skill",
+        "--out",
+        s(&manifest),
+        "--json",
+    ]));
+    let funnel: Vec<(String, u64)> = r["funnel"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| (f["stage"].as_str().unwrap().to_owned(), f["kept"].as_u64().unwrap()))
+        .collect();
+    // 14 rows; the wipe has no object; the sim episode's cube is placed, its cameras elsewhere.
+    assert_eq!(funnel[0], ("all".to_owned(), 14), "{r}");
+    assert_eq!(funnel[1], ("object".to_owned(), 13), "{r}");
+    assert_eq!(funnel[2], ("skill".to_owned(), 13), "{r}");
+    assert_eq!(funnel[3].0, "camPose", "{r}");
+    assert_eq!(funnel[4], ("objSpat".to_owned(), 3), "{r}");
+    let m: Value = serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
+    let got: BTreeSet<String> =
+        m["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_owned()).collect();
+    let want: BTreeSet<String> = (0..3).map(|k| uuid(0, 0, k)).collect();
+    assert_eq!(got, want);
+    assert_eq!(m["episodes"][0]["passed"], json!(["object", "skill", "camPose", "objSpat"]));
+    // pyarrow's query (object, camera, object box) keeps the same ids.
+    let py_ids: BTreeSet<String> =
+        py["kept"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_owned()).collect();
+    assert_eq!(py_ids, want);
+
+    // A target whose dimension is missing is named; the trainer refuses DROID raw data with the way on.
+    let no_obj = dir.path().join("no_object.toml");
+    std::fs::write(&no_obj, "cameras = [[0.3, 0.6, 0.5]]\n").unwrap();
+    let out = labrig(&[
+        "dataset",
+        "retrieve",
+        "--index",
+        s(&index),
+        "--target",
+        s(&no_obj),
+        "--align",
+        "objSpat",
+        "--out",
+        s(&manifest),
+    ]);
+    assert!(
+        !out.status.success() && text(&out).contains("objSpat: the target has no object position"),
+        "{}",
+        text(&out)
+    );
+    workspace_bin("labrig-policies", "labrig-policies");
+    let out = Command::new(labrig_bin())
+        .args([
+            "train",
+            "--target",
+            s(&demo),
+            "--cotrain",
+            s(&manifest),
+            "--out",
+            s(&dir.path().join("run")),
+            "--steps",
+            "1",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        !out.status.success() && text(&out).contains("convert it first with `labrig import droid"),
+        "{}",
+        text(&out)
+    );
+}
