@@ -12,6 +12,7 @@
 //!
 //! A library with no transport (no tokio, DDS, iceoryx2) and none of mujoco, tch or OpenCV.
 
+pub mod bench;
 pub mod dv;
 pub mod retrieve;
 pub mod row;

@@ -30,6 +30,24 @@ enum Cmd {
     Index(IndexArgs),
     /// Retrieve the demos aligned with a target into a manifest.
     Retrieve(RetrieveArgs),
+    /// Retrieval over a synthetic index (p50/p99 per --align combination) and, with --episodes-root,
+    /// index throughput against merely reading the files.
+    Bench(BenchArgs),
+}
+
+#[derive(Debug, Args)]
+struct BenchArgs {
+    /// Synthetic episodes in the index.
+    #[arg(long, default_value_t = 1_000_000)]
+    episodes: usize,
+    /// Retrievals timed per combination.
+    #[arg(long, default_value_t = 20)]
+    runs: usize,
+    /// A folder of episodes whose indexing is timed.
+    #[arg(long)]
+    episodes_root: Option<PathBuf>,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -96,6 +114,7 @@ fn main() -> ExitCode {
     let result = match cli.cmd {
         Cmd::Index(a) => index(a),
         Cmd::Retrieve(a) => retrieve_cmd(a),
+        Cmd::Bench(a) => bench(a),
     };
     match result {
         Ok(c) => c,
@@ -270,6 +289,87 @@ fn retrieve_cmd(a: RetrieveArgs) -> anyhow::Result<ExitCode> {
         println!("    {:<10} {:>10}", "stage", "kept");
         for s in &manifest.funnel {
             println!("    {:<10} {:>10}", s.stage, s.kept);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn pct(sorted: &[f64], p: f64) -> f64 {
+    sorted[((sorted.len() as f64 - 1.0) * p).round() as usize]
+}
+
+fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
+    use labrig_dataset::bench;
+    anyhow::ensure!(a.episodes >= 1 && a.runs >= 1, "--episodes and --runs must be at least 1");
+    let t0 = Instant::now();
+    let rows = bench::synthetic(a.episodes, 7);
+    let t_gen = t0.elapsed().as_secs_f64();
+    let dir = tempfile::tempdir()?;
+    let part = dir.path().join(table::part_name(0, 1));
+    let t1 = Instant::now();
+    table::write_part(&part, &rows)?;
+    let t_write = t1.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(&part)?.len();
+    drop(rows);
+    let t2 = Instant::now();
+    let rows = table::read_index(dir.path())?;
+    let t_read = t2.elapsed().as_secs_f64();
+    let t3 = Instant::now();
+    let columns = retrieve::Columns::of(&rows);
+    let t_columns = t3.elapsed().as_secs_f64();
+    let mut results = Vec::new();
+    for align in bench::combinations() {
+        let (ms, kept, manifest_ms) = bench::time_retrieval(&rows, &columns, &align, a.runs);
+        let names: Vec<&str> = align.iter().map(|d| d.name()).collect();
+        results.push(serde_json::json!({"align": names.join(","), "p50_ms": pct(&ms, 0.5), "p99_ms": pct(&ms, 0.99),
+            "kept": kept, "manifest_ms": manifest_ms}));
+    }
+    let mut throughput = serde_json::Value::Null;
+    if let Some(root) = &a.episodes_root {
+        let found = source::discover(root);
+        anyhow::ensure!(!found.is_empty(), "{}: no episodes", root.display());
+        // The disk's part: reading every file an episode is, byte for byte.
+        let t3 = Instant::now();
+        let mut read_bytes = 0u64;
+        for f in &found {
+            for file in source::files_of(f)? {
+                read_bytes += std::fs::read(&file)?.len() as u64;
+            }
+        }
+        let t_files = t3.elapsed().as_secs_f64();
+        let t4 = Instant::now();
+        let derive = Derive::default();
+        let ok = found.iter().filter(|f| source::row(f, &derive).is_ok()).count();
+        let t_index = t4.elapsed().as_secs_f64();
+        throughput = serde_json::json!({"episodes": found.len(), "indexed": ok, "mb": read_bytes as f64 / 1e6,
+            "index_s": t_index, "index_episodes_per_s": found.len() as f64 / t_index,
+            "index_mb_per_s": read_bytes as f64 / 1e6 / t_index,
+            "read_files_s": t_files, "read_mb_per_s": read_bytes as f64 / 1e6 / t_files});
+    }
+    let report = serde_json::json!({"episodes": a.episodes, "generate_s": t_gen, "write_s": t_write,
+        "parquet_mb": bytes as f64 / 1e6, "read_s": t_read, "columns_s": t_columns, "retrieval": results, "index_throughput": throughput});
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} synthetic episodes: Parquet {:.1} MB, written in {t_write:.1} s, read back in {t_read:.1} s, \
+             columns for retrieval in {t_columns:.2} s",
+            a.episodes,
+            bytes as f64 / 1e6
+        );
+        println!("    {:<40} {:>9} {:>9} {:>9} {:>12}", "align", "p50 ms", "p99 ms", "kept", "manifest ms");
+        for r in &results {
+            println!(
+                "    {:<40} {:>9.2} {:>9.2} {:>9} {:>12.1}",
+                r["align"].as_str().unwrap_or(""),
+                r["p50_ms"].as_f64().unwrap_or(0.0),
+                r["p99_ms"].as_f64().unwrap_or(0.0),
+                r["kept"],
+                r["manifest_ms"].as_f64().unwrap_or(0.0)
+            );
+        }
+        if !throughput.is_null() {
+            println!("index throughput: {throughput}");
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -109,29 +109,10 @@ impl Target {
         }
     }
 
-    /// Whether `row` passes `dim`'s rule. A dimension the target does not say is an error of
-    /// the query, found before any row is read ([`Target::missing`]).
+    /// Whether `row` passes `dim`'s rule (through the same columnar path as [`retrieve`]).
     pub fn passes(&self, dim: Dim, row: &IndexRow, t: &Thresholds) -> bool {
-        match dim {
-            Dim::Object => row.object.is_some() && row.object == self.object,
-            Dim::Skill => row.primitive.is_some() && row.primitive == self.skill,
-            Dim::ObjTex => row.colour.is_some() && row.colour == self.colour,
-            Dim::CamPose => {
-                let demo = row.external_positions();
-                !demo.is_empty()
-                    && self.cameras.iter().all(|c| {
-                        demo.iter().any(|(_, d)| {
-                            (d[0] - c[0]).abs() <= t.cam_xy_m
-                                && (d[1] - c[1]).abs() <= t.cam_xy_m
-                                && (d[2] - c[2]).abs() <= t.cam_z_m
-                        })
-                    })
-            }
-            Dim::ObjSpat => match (row.object_position, self.object_position) {
-                (Some(p), Some(c)) => (0..3).all(|i| (p[i] - c[i]).abs() <= t.obj_box_m[i] / 2.0),
-                _ => false,
-            },
-        }
+        let (kept, _) = select(&Columns::of(std::slice::from_ref(row)), self, &[dim], t);
+        !kept.is_empty()
     }
 
     /// What the target lacks for `dims`, named.
@@ -194,16 +175,110 @@ pub struct Manifest {
 
 pub const MANIFEST_VERSION: u32 = 1;
 
-/// Applies `align` (in the paper's order, whatever order it was given in) to `rows`.
-pub fn retrieve(rows: &[IndexRow], target: &Target, align: &[Dim], t: &Thresholds) -> Manifest {
-    let mut dims: Vec<Dim> = Dim::ORDER.into_iter().filter(|d| align.contains(d)).collect();
-    dims.dedup();
-    let mut kept: Vec<&IndexRow> = rows.iter().collect();
+/// The index as retrieval scans it: words as codes of one dictionary, positions as arrays
+/// with NaN where unknown (a NaN never passes a threshold), one entry per row.
+#[derive(Debug, Clone, Default)]
+pub struct Columns {
+    dict: BTreeMap<String, u32>,
+    object: Vec<u32>,
+    primitive: Vec<u32>,
+    colour: Vec<u32>,
+    /// The external cameras' positions (ext1, ext2, rs1, rs2).
+    cameras: Vec<[[f64; 3]; 4]>,
+    object_position: Vec<[f64; 3]>,
+}
+
+/// The code of a word no row has, and of no word.
+const NONE: u32 = u32::MAX;
+
+impl Columns {
+    pub fn of(rows: &[IndexRow]) -> Columns {
+        let mut c = Columns::default();
+        let code = |dict: &mut BTreeMap<String, u32>, w: &Option<String>| match w {
+            None => NONE,
+            Some(w) => {
+                let next = dict.len() as u32;
+                *dict.entry(w.clone()).or_insert(next)
+            }
+        };
+        for r in rows {
+            c.object.push(code(&mut c.dict, &r.object));
+            c.primitive.push(code(&mut c.dict, &r.primitive));
+            c.colour.push(code(&mut c.dict, &r.colour));
+            let mut cams = [[f64::NAN; 3]; 4];
+            for (k, id) in crate::row::EXTERNAL_CAMERAS.iter().enumerate() {
+                if let Some(p) = r.camera(id).and_then(|c| c.position) {
+                    cams[k] = p;
+                }
+            }
+            c.cameras.push(cams);
+            c.object_position.push(r.object_position.unwrap_or([f64::NAN; 3]));
+        }
+        c
+    }
+
+    pub fn len(&self) -> usize {
+        self.object.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.object.is_empty()
+    }
+
+    fn code(&self, w: &Option<String>) -> u32 {
+        w.as_ref().and_then(|w| self.dict.get(w).copied()).unwrap_or(NONE)
+    }
+}
+
+/// The rows (indices) that pass `align` in the paper's order, and the funnel.
+pub fn select(c: &Columns, target: &Target, align: &[Dim], t: &Thresholds) -> (Vec<u32>, Vec<Stage>) {
+    let dims: Vec<Dim> = Dim::ORDER.into_iter().filter(|d| align.contains(d)).collect();
+    let mut kept: Vec<u32> = (0..c.len() as u32).collect();
     let mut funnel = vec![Stage { stage: "all".into(), kept: kept.len() }];
     for d in &dims {
-        kept.retain(|r| target.passes(*d, r, t));
+        match d {
+            Dim::Object | Dim::Skill | Dim::ObjTex => {
+                let (col, want) = match d {
+                    Dim::Object => (&c.object, c.code(&target.object)),
+                    Dim::Skill => (&c.primitive, c.code(&target.skill)),
+                    _ => (&c.colour, c.code(&target.colour)),
+                };
+                kept.retain(|&i| want != NONE && col[i as usize] == want);
+            }
+            Dim::CamPose => kept.retain(|&i| {
+                let demo = &c.cameras[i as usize];
+                target.cameras.iter().all(|tc| {
+                    demo.iter().any(|d| {
+                        (d[0] - tc[0]).abs() <= t.cam_xy_m
+                            && (d[1] - tc[1]).abs() <= t.cam_xy_m
+                            && (d[2] - tc[2]).abs() <= t.cam_z_m
+                    })
+                })
+            }),
+            Dim::ObjSpat => {
+                let centre = target.object_position.unwrap_or([f64::NAN; 3]);
+                let half = t.obj_box_m.map(|v| v / 2.0);
+                kept.retain(|&i| {
+                    let p = &c.object_position[i as usize];
+                    (0..3).all(|k| (p[k] - centre[k]).abs() <= half[k])
+                });
+            }
+        }
         funnel.push(Stage { stage: d.name().into(), kept: kept.len() });
     }
+    (kept, funnel)
+}
+
+/// The manifest of a selection.
+pub fn manifest(
+    rows: &[IndexRow],
+    target: &Target,
+    align: &[Dim],
+    t: &Thresholds,
+    kept: &[u32],
+    funnel: Vec<Stage>,
+) -> Manifest {
+    let dims: Vec<Dim> = Dim::ORDER.into_iter().filter(|d| align.contains(d)).collect();
     let passed: Vec<String> = dims.iter().map(|d| d.name().to_owned()).collect();
     Manifest {
         manifest_version: MANIFEST_VERSION,
@@ -213,15 +288,24 @@ pub fn retrieve(rows: &[IndexRow], target: &Target, align: &[Dim], t: &Threshold
         target: target.clone(),
         funnel,
         episodes: kept
-            .into_iter()
-            .map(|r| Retrieved {
-                id: r.episode_id.clone(),
-                format: r.source_format.clone(),
-                path: r.source_path.clone(),
-                passed: passed.clone(),
+            .iter()
+            .map(|&i| {
+                let r = &rows[i as usize];
+                Retrieved {
+                    id: r.episode_id.clone(),
+                    format: r.source_format.clone(),
+                    path: r.source_path.clone(),
+                    passed: passed.clone(),
+                }
             })
             .collect(),
     }
+}
+
+/// Applies `align` (in the paper's order, whatever order it was given in) to `rows`.
+pub fn retrieve(rows: &[IndexRow], target: &Target, align: &[Dim], t: &Thresholds) -> Manifest {
+    let (kept, funnel) = select(&Columns::of(rows), target, align, t);
+    manifest(rows, target, align, t, &kept, funnel)
 }
 
 #[cfg(test)]
