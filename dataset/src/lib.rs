@@ -5,7 +5,8 @@
 //!   bins, the object position at the first gripper close, object / motion primitive / colour
 //!   from the instruction through an editable vocabulary;
 //! - [`source`]: readers by auto-detection: labrig MCAP episodes and DROID raw episodes
-//!   (trajectory.h5 + metadata JSON), low-dimensional data only;
+//!   (trajectory.h5 + metadata JSON), DROID's RLDS TFRecord shards ([`rlds`]), low-dimensional
+//!   data only;
 //! - [`table`]: the index as a directory of Parquet parts (columns any Parquet reader queries);
 //! - [`retrieve`]: the paper's alignment rules, in its order, with the funnel, and the manifest
 //!   `labrig train --cotrain` reads.
@@ -15,6 +16,7 @@
 pub mod bench;
 pub mod dv;
 pub mod retrieve;
+pub mod rlds;
 pub mod row;
 pub mod source;
 pub mod table;

@@ -183,19 +183,25 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
     let mut bytes = 0u64;
     for f in &mine {
         let key = f.dir.display().to_string();
-        let unchanged = previous.get(&key).filter(|r| source::stamp(f).ok() == Some((r.file_size, r.file_mtime_ns)));
-        match unchanged {
-            Some(r) => {
-                skipped += 1;
-                rows.push(r.clone());
-            }
-            None => match source::row(f, &derive) {
+        // The rows the last run made of it (an RLDS shard's are `<file>#<k>`).
+        let before: Vec<&IndexRow> = previous
+            .range(key.clone()..)
+            .take_while(|(p, _)| p.starts_with(&key))
+            .filter(|(p, _)| **p == key || p[key.len()..].starts_with('#'))
+            .map(|(_, r)| r)
+            .collect();
+        let stamp = source::stamp(f).ok();
+        if !before.is_empty() && before.iter().all(|r| stamp == Some((r.file_size, r.file_mtime_ns))) {
+            skipped += before.len();
+            rows.extend(before.into_iter().cloned());
+        } else {
+            match source::rows(f, &derive) {
                 Ok(r) => {
-                    bytes += r.file_size;
-                    rows.push(r);
+                    bytes += r.first().map(|r| r.file_size).unwrap_or(0);
+                    rows.extend(r);
                 }
                 Err(why) => bad.push(serde_json::json!({"path": key, "format": f.format.name(), "reason": why})),
-            },
+            }
         }
         bar.inc(1);
     }
@@ -216,7 +222,7 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
         );
     } else {
         println!(
-            "{}: {} episodes ({} indexed, {} unchanged, {} bad) of {} found, shard {i}/{n}, {seconds:.1} s",
+            "{}: {} episodes ({} indexed, {} unchanged, {} bad) from {} sources found, shard {i}/{n}, {seconds:.1} s",
             part.display(),
             rows.len(),
             rows.len() - skipped,
@@ -250,7 +256,7 @@ fn target_of(path: &Path) -> anyhow::Result<(Target, Vec<String>)> {
         anyhow::ensure!(!found.is_empty(), "--target {}: no episodes and no index there", path.display());
         let mut rows = Vec::new();
         for f in &found {
-            rows.push(source::row(f, &derive).map_err(|e| anyhow::anyhow!("target episode: {e}"))?);
+            rows.extend(source::rows(f, &derive).map_err(|e| anyhow::anyhow!("target episode: {e}"))?);
         }
         rows
     };
@@ -339,7 +345,7 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         let t_files = t3.elapsed().as_secs_f64();
         let t4 = Instant::now();
         let derive = Derive::default();
-        let ok = found.iter().filter(|f| source::row(f, &derive).is_ok()).count();
+        let ok: usize = found.iter().filter_map(|f| source::rows(f, &derive).ok()).map(|r| r.len()).sum();
         let t_index = t4.elapsed().as_secs_f64();
         throughput = serde_json::json!({"episodes": found.len(), "indexed": ok, "mb": read_bytes as f64 / 1e6,
             "index_s": t_index, "index_episodes_per_s": found.len() as f64 / t_index,

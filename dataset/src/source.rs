@@ -1,6 +1,7 @@
 //! Episodes to index rows, by auto-detection: labrig MCAP episodes (a directory holding
-//! `episode_0.mcap`) and DROID raw episodes (a directory holding `trajectory.h5` and
-//! `metadata_<uuid>.json`). Only low-dimensional data is read: no image is decoded.
+//! `episode_0.mcap`), DROID raw episodes (a directory holding `trajectory.h5` and
+//! `metadata_<uuid>.json`) and DROID's RLDS shards (`*.tfrecord-NNNNN-of-NNNNN`, many episodes
+//! each). Only low-dimensional data is read: no image is decoded.
 
 use crate::INDEX_VERSION;
 use crate::dv::{self, GraspParams, Vocabulary};
@@ -19,6 +20,8 @@ pub struct Found {
 pub enum Format {
     Labrig,
     DroidRaw,
+    /// A TFRecord shard of an RLDS dataset (its `dir` is the file).
+    Rlds,
 }
 
 impl Format {
@@ -26,6 +29,7 @@ impl Format {
         match self {
             Format::Labrig => "labrig",
             Format::DroidRaw => "droid_raw",
+            Format::Rlds => "rlds",
         }
     }
 }
@@ -41,8 +45,24 @@ pub fn discover(root: &Path) -> Vec<Found> {
                 .map(|dir| Found { dir, format: Format::DroidRaw }),
         )
         .collect();
+    found.extend(tfrecords(root).into_iter().map(|dir| Found { dir, format: Format::Rlds }));
     found.sort();
     found
+}
+
+/// TFRecord shards under `root` (TFDS names them `<name>-<split>.tfrecord-NNNNN-of-NNNNN`).
+fn tfrecords(root: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let Ok(entries) = std::fs::read_dir(root) else { return out };
+    for e in entries.flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(tfrecords(&p));
+        } else if p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.contains(".tfrecord")) {
+            out.push(p);
+        }
+    }
+    out
 }
 
 /// How rows are derived.
@@ -63,6 +83,9 @@ impl Default for Derive {
 /// The files an episode is (their total size and newest modification time say whether it
 /// changed since it was indexed).
 pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
+    if found.format == Format::Rlds {
+        return Ok(vec![found.dir.clone()]);
+    }
     let mut files = Vec::new();
     for e in std::fs::read_dir(&found.dir)? {
         let p = e?.path();
@@ -70,6 +93,7 @@ pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
         let keep = match found.format {
             Format::Labrig => name.ends_with(".mcap") || name == "metadata.yaml",
             Format::DroidRaw => name == "trajectory.h5" || (name.starts_with("metadata_") && name.ends_with(".json")),
+            Format::Rlds => false,
         };
         if keep {
             files.push(p);
@@ -92,13 +116,35 @@ pub fn stamp(found: &Found) -> std::io::Result<(u64, i64)> {
     Ok((size, mtime))
 }
 
-/// The row of one episode, or why it cannot be indexed.
-pub fn row(found: &Found, d: &Derive) -> Result<IndexRow, String> {
+/// The rows of what was found (one episode, or an RLDS shard's many), or why it cannot be
+/// indexed.
+pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, String> {
     let (file_size, file_mtime_ns) = stamp(found).map_err(|e| format!("{}: {e}", found.dir.display()))?;
-    let (meta, xyz, gripper, instructions) = match found.format {
-        Format::Labrig => read_labrig(&found.dir)?,
-        Format::DroidRaw => read_droid_raw(&found.dir)?,
+    let read = match found.format {
+        Format::Labrig => vec![read_labrig(&found.dir)?],
+        Format::DroidRaw => vec![read_droid_raw(&found.dir)?],
+        Format::Rlds => read_rlds(&found.dir)?,
     };
+    let many = read.len() > 1 || found.format == Format::Rlds;
+    read.into_iter()
+        .enumerate()
+        .map(|(k, r)| {
+            let mut row = row_of(found, r, d, (file_size, file_mtime_ns))?;
+            if many {
+                row.source_path = format!("{}#{k}", row.source_path);
+            }
+            Ok(row)
+        })
+        .collect()
+}
+
+/// The row of one episode (the first of an RLDS shard), or why it cannot be indexed.
+pub fn row(found: &Found, d: &Derive) -> Result<IndexRow, String> {
+    rows(found, d)?.into_iter().next().ok_or_else(|| format!("{}: no episode", found.dir.display()))
+}
+
+fn row_of(found: &Found, read: Read, d: &Derive, (file_size, file_mtime_ns): (u64, i64)) -> Result<IndexRow, String> {
+    let (meta, xyz, gripper, instructions) = read;
     if xyz.is_empty() {
         return Err(format!("{}: no steps", found.dir.display()));
     }
@@ -217,4 +263,95 @@ fn read_droid_raw(dir: &Path) -> Result<Read, String> {
         }
     }
     Ok((meta, xyz, gripper, instructions))
+}
+
+/// The features an RLDS episode is indexed by.
+const RLDS_KEYS: [&str; 13] = [
+    "steps/observation/cartesian_position",
+    "steps/observation/gripper_position",
+    "steps/action",
+    "steps/is_first",
+    "steps/language_instruction",
+    "steps/language_instruction_2",
+    "steps/language_instruction_3",
+    "episode_metadata/file_path",
+    "episode_metadata/recording_folderpath",
+    "episode_metadata/building",
+    "episode_metadata/extrinsics_exterior_cam_1",
+    "episode_metadata/extrinsics_exterior_cam_2",
+    "episode_metadata/extrinsics_wrist_cam",
+];
+
+fn read_rlds(file: &Path) -> Result<Vec<Read>, String> {
+    use crate::rlds::{self, Values};
+    let bytes = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let records = rlds::records(&bytes).map_err(|e| format!("{}: {e}", file.display()))?;
+    let mut out = Vec::new();
+    for (k, rec) in records.iter().enumerate() {
+        let at = || format!("{} episode {k}", file.display());
+        let f = rlds::example(rec, &RLDS_KEYS).map_err(|e| format!("{}: {e}", at()))?;
+        let floats = |key: &str| match f.get(key) {
+            Some(Values::Floats(v)) => Some(v.iter().map(|x| *x as f64).collect::<Vec<f64>>()),
+            _ => None,
+        };
+        let text = |key: &str| match f.get(key) {
+            Some(Values::Bytes(v)) => v.iter().map(|b| String::from_utf8_lossy(b).into_owned()).find(|s| !s.is_empty()),
+            _ => None,
+        };
+        let cart = floats("steps/observation/cartesian_position")
+            .ok_or_else(|| format!("{}: no steps/observation/cartesian_position", at()))?;
+        if cart.len() % 6 != 0 {
+            return Err(format!("{}: cartesian_position holds {} values, not T x 6", at(), cart.len()));
+        }
+        let steps = cart.len() / 6;
+        // The commanded gripper (the action's 7th value) where there is an action, as for raw data.
+        let gripper = match floats("steps/action") {
+            Some(a) if a.len() == steps * 7 => a.chunks_exact(7).map(|c| c[6]).collect(),
+            _ => floats("steps/observation/gripper_position")
+                .filter(|g| g.len() == steps)
+                .ok_or_else(|| format!("{}: no gripper signal of {steps} steps", at()))?,
+        };
+        let file_path = text("episode_metadata/file_path");
+        let folder = text("episode_metadata/recording_folderpath");
+        let mut meta = EpisodeMetadata {
+            // DROID's episode key (its annotation releases use it).
+            uuid: match (&folder, &file_path) {
+                (Some(r), Some(p)) => format!("{r}--{p}"),
+                (None, Some(p)) => p.clone(),
+                _ => format!("{}#{k}", file.display()),
+            },
+            lab: String::new(),
+            building: text("episode_metadata/building").unwrap_or_default(),
+            user: String::new(),
+            scene_id: String::new(),
+            task_instruction: text("steps/language_instruction").unwrap_or_default(),
+            success: None,
+            robot_serial: String::new(),
+            camera_serials: std::collections::BTreeMap::new(),
+            extrinsics: std::collections::BTreeMap::new(),
+            start_ns: 0,
+            trajectory_length: steps as u64,
+            sim_scene: None,
+            recovered: None,
+            policy: None,
+            calibration: None,
+        };
+        meta.success = file_path.as_deref().map(|p| p.contains("/success/"));
+        for (id, key) in [
+            ("ext1", "episode_metadata/extrinsics_exterior_cam_1"),
+            ("ext2", "episode_metadata/extrinsics_exterior_cam_2"),
+            ("wrist", "episode_metadata/extrinsics_wrist_cam"),
+        ] {
+            if let Some(e) = floats(key).filter(|e| e.len() == 6 && e.iter().any(|v| *v != 0.0)) {
+                meta.extrinsics.insert(id.to_owned(), [e[0], e[1], e[2], e[3], e[4], e[5]]);
+            }
+        }
+        let xyz = cart.chunks_exact(6).map(|c| [c[0], c[1], c[2]]).collect();
+        let mut instructions = vec![meta.task_instruction.clone()];
+        for key in ["steps/language_instruction_2", "steps/language_instruction_3"] {
+            instructions.push(text(key).unwrap_or_default());
+        }
+        out.push((meta, xyz, gripper, instructions));
+    }
+    Ok(out)
 }

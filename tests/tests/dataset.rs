@@ -283,3 +283,68 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
         text(&out)
     );
 }
+
+/// DROID's RLDS release: the committed shard (tests/fixtures/rlds, written by the PyPI
+/// `tfrecord` package from make_rlds.py: nine episodes, fake image bytes, an accidental close
+/// before each grasp) is indexed without TensorFlow, read back by pyarrow, retrieved by
+/// alignment; a damaged copy is listed as bad with the reason.
+#[test]
+fn an_rlds_shard_is_indexed_and_retrieved_and_a_damaged_one_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let shard = repo_root().join("tests/fixtures/rlds/droid_101-train.tfrecord-00000-of-00001");
+    let root = dir.path().join("rlds");
+    std::fs::create_dir_all(&root).unwrap();
+    std::fs::copy(&shard, root.join("droid_101-train.tfrecord-00000-of-00002")).unwrap();
+    let mut damaged = std::fs::read(&shard).unwrap();
+    let mid = damaged.len() / 2;
+    damaged[mid] ^= 0x55;
+    std::fs::write(root.join("droid_101-train.tfrecord-00001-of-00002"), damaged).unwrap();
+    let index = dir.path().join("index");
+    let r = ok_json(&labrig(&["dataset", "index", s(&root), "--out", s(&index), "--json"]));
+    assert_eq!(r["by_format"], json!({"rlds": 9}), "{r}");
+    let bad = r["bad"].as_array().unwrap();
+    assert_eq!(bad.len(), 1, "{r}");
+    assert!(bad[0]["reason"].as_str().unwrap().contains("CRC does not match"), "{r}");
+
+    let q = json!({"object": "cube", "cam": [0.3, 0.6, 0.5], "cam_xy": 0.2, "cam_z": 0.1,
+                   "box_centre": [0.5, 0.1, 0.05], "box": [0.6, 0.6, 0.3]});
+    let py = pyarrow(&index, &q);
+    let rows = py["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 9);
+    for row in rows {
+        let id = row["episode_id"].as_str().unwrap();
+        // DROID's episode key: recording_folderpath--file_path.
+        assert!(id.starts_with("gs://droid/") && id.contains("--gs://droid/"), "{id}");
+        if id.contains("/wave/") {
+            assert!(row["object_x"].is_null(), "{row}");
+        } else {
+            let y = if id.contains("o0k") { 0.1 } else { 0.5 };
+            assert!((row["object_y"].as_f64().unwrap() - y).abs() < 1e-6, "the grasp, not the decoy: {row}");
+        }
+    }
+    let target = dir.path().join("target.toml");
+    std::fs::write(&target, "cameras = [[0.3, 0.6, 0.5]]\nobject_position = [0.5, 0.1, 0.05]\nobject = \"cube\"\n")
+        .unwrap();
+    let manifest = dir.path().join("m.json");
+    let r = ok_json(&labrig(&[
+        "dataset",
+        "retrieve",
+        "--index",
+        s(&index),
+        "--target",
+        s(&target),
+        "--align",
+        "object,camPose,objSpat",
+        "--out",
+        s(&manifest),
+        "--json",
+    ]));
+    let m: Value = serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
+    let got: BTreeSet<String> =
+        m["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_owned()).collect();
+    assert_eq!(got.len(), 2, "{r}");
+    assert!(got.iter().all(|id| id.contains("/c0o0k")), "{got:?}");
+    let py_ids: BTreeSet<String> =
+        py["kept"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_owned()).collect();
+    assert_eq!(py_ids, got);
+}
