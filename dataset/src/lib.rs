@@ -19,6 +19,7 @@ pub mod retrieve;
 pub mod rlds;
 pub mod row;
 pub mod source;
+pub mod stats;
 pub mod table;
 
 /// The index's schema version (a column of every row; readers refuse another).

@@ -30,9 +30,28 @@ enum Cmd {
     Index(IndexArgs),
     /// Retrieve the demos aligned with a target into a manifest.
     Retrieve(RetrieveArgs),
+    /// What an index holds, by bin, object and primitive; with --target, the funnel; --plot a PNG.
+    Stats(StatsArgs),
     /// Retrieval over a synthetic index (p50/p99 per --align combination) and, with --episodes-root,
     /// index throughput against merely reading the files.
     Bench(BenchArgs),
+}
+
+#[derive(Debug, Args)]
+struct StatsArgs {
+    #[arg(long)]
+    index: PathBuf,
+    /// A target (as `retrieve --target`) whose retrieval is drawn over the index.
+    #[arg(long)]
+    target: Option<PathBuf>,
+    /// The dimensions to align with the target.
+    #[arg(long, value_delimiter = ',', default_value = "object,skill,camPose,objSpat")]
+    align: Vec<String>,
+    /// The picture (PNG): cameras by bin and objects from above and from the side.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -115,6 +134,7 @@ fn main() -> ExitCode {
         Cmd::Index(a) => index(a),
         Cmd::Retrieve(a) => retrieve_cmd(a),
         Cmd::Bench(a) => bench(a),
+        Cmd::Stats(a) => stats(a),
     };
     match result {
         Ok(c) => c,
@@ -376,6 +396,55 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         }
         if !throughput.is_null() {
             println!("index throughput: {throughput}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn stats(a: StatsArgs) -> anyhow::Result<ExitCode> {
+    use labrig_dataset::stats;
+    let rows = table::read_index(&a.index)?;
+    let manifest = match &a.target {
+        None => None,
+        Some(t) => {
+            let align: Vec<Dim> =
+                a.align.iter().map(|s| Dim::parse(s)).collect::<Result<_, _>>().map_err(anyhow::Error::msg)?;
+            let (target, _) = target_of(t)?;
+            let missing = target.missing(&align);
+            anyhow::ensure!(missing.is_empty(), "cannot align: {}", missing.join("; "));
+            Some(retrieve::retrieve(&rows, &target, &align, &Thresholds::default()))
+        }
+    };
+    let by_bin = stats::bins(&rows);
+    let by_object = stats::counts(&rows, |r| vec![r.object.as_deref()]);
+    let by_primitive = stats::counts(&rows, |r| vec![r.primitive.as_deref()]);
+    let by_format = stats::counts(&rows, |r| vec![Some(r.source_format.as_str())]);
+    let with_object = rows.iter().filter(|r| r.object_position.is_some()).count();
+    if let Some(p) = &a.plot {
+        stats::plot(&rows, manifest.as_ref(), p).map_err(anyhow::Error::msg)?;
+    }
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({"episodes": rows.len(), "with_object_position": with_object, "camera_bins": by_bin,
+                "objects": by_object, "primitives": by_primitive, "formats": by_format,
+                "funnel": manifest.as_ref().map(|m| &m.funnel), "plot": a.plot})
+        );
+    } else {
+        println!("{} episodes ({with_object} with an object position)", rows.len());
+        for (name, map) in
+            [("format", &by_format), ("camera bin", &by_bin), ("object", &by_object), ("primitive", &by_primitive)]
+        {
+            println!("    {name:<11} {}", map.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "));
+        }
+        if let Some(m) = &manifest {
+            println!("    {:<10} {:>10}", "stage", "kept");
+            for s in &m.funnel {
+                println!("    {:<10} {:>10}", s.stage, s.kept);
+            }
+        }
+        if let Some(p) = &a.plot {
+            println!("    plot: {}", p.display());
         }
     }
     Ok(ExitCode::SUCCESS)

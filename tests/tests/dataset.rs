@@ -242,6 +242,26 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
         py["kept"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_owned()).collect();
     assert_eq!(py_ids, want);
 
+    // The stats: the same funnel, counts by bin, and the picture.
+    let png = dir.path().join("stats.png");
+    let st = ok_json(&labrig(&[
+        "dataset",
+        "stats",
+        "--index",
+        s(&index),
+        "--target",
+        s(&target),
+        "--align",
+        "object,skill,camPose,objSpat",
+        "--plot",
+        s(&png),
+        "--json",
+    ]));
+    assert_eq!(st["funnel"], r["funnel"], "{st}");
+    assert_eq!(st["episodes"], 14);
+    assert_eq!(st["formats"], json!({"droid_raw": 13, "labrig": 1}), "{st}");
+    assert!(std::fs::metadata(&png).unwrap().len() > 10_000);
+
     // A target whose dimension is missing is named; the trainer refuses DROID raw data with the way on.
     let no_obj = dir.path().join("no_object.toml");
     std::fs::write(&no_obj, "cameras = [[0.3, 0.6, 0.5]]\n").unwrap();
