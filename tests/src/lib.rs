@@ -232,3 +232,13 @@ pub fn check_droid_with_python(root: &std::path::Path) -> (bool, Vec<serde_json:
         .collect();
     (out.status.success(), reports, String::from_utf8_lossy(&out.stderr).into_owned())
 }
+
+/// A finished command's exit status, stdout and stderr, for assertion messages.
+pub fn output_text(out: &std::process::Output) -> String {
+    format!(
+        "exit {:?}\nstdout: {}\nstderr: {}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}

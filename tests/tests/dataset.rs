@@ -20,12 +20,7 @@ fn labrig(args: &[&str]) -> Output {
 }
 
 fn text(out: &Output) -> String {
-    format!(
-        "exit {:?}\nstdout: {}\nstderr: {}",
-        out.status.code(),
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
+    labrig_tests::output_text(out)
 }
 
 fn ok_json(out: &Output) -> Value {
