@@ -138,11 +138,6 @@ pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, String> {
         .collect()
 }
 
-/// The row of one episode (the first of an RLDS shard), or why it cannot be indexed.
-pub fn row(found: &Found, d: &Derive) -> Result<IndexRow, String> {
-    rows(found, d)?.into_iter().next().ok_or_else(|| format!("{}: no episode", found.dir.display()))
-}
-
 fn row_of(found: &Found, read: Read, d: &Derive, (file_size, file_mtime_ns): (u64, i64)) -> Result<IndexRow, String> {
     let (meta, xyz, gripper, instructions) = read;
     if xyz.is_empty() {

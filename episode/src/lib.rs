@@ -16,6 +16,7 @@ pub mod calibration;
 mod chunk;
 pub mod episode;
 pub mod font;
+pub mod grey;
 pub mod inspect;
 pub mod jpeg;
 pub mod metadata;

@@ -21,7 +21,6 @@ use labrig_sim::rig::{BOARD_BODY, Board, BoardMount, Extras};
 use labrig_sim::scene::{EXTERNAL_CAMERAS, SceneSpec, TABLE_CENTRE};
 use labrig_sim::{Meshes, Sim};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// What to capture.
@@ -140,13 +139,8 @@ fn joint_command(q: &[f64; 7], seq: u64) -> ArmCommand {
 
 /// Writes an RGB8 frame as 8-bit greyscale PGM (BT.601 luma).
 fn write_pgm(path: &Path, rgb: &[u8], width: usize, height: usize) -> anyhow::Result<()> {
-    let mut out = Vec::with_capacity(width * height + 32);
-    write!(out, "P5\n{width} {height}\n255\n")?;
-    out.extend(
-        rgb.chunks_exact(3)
-            .map(|p| ((299 * p[0] as u32 + 587 * p[1] as u32 + 114 * p[2] as u32 + 500) / 1000).min(255) as u8),
-    );
-    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+    use labrig_episode::grey;
+    grey::write_pgm(path, width, height, &grey::from_rgb(rgb)).with_context(|| format!("writing {}", path.display()))
 }
 
 /// The capture's outcome.

@@ -21,7 +21,7 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
         .env(labrig_runtime::frames::NAMESPACE_ENV, format!("demo_{}", std::process::id()))
         .output()
         .unwrap();
-    assert!(out.status.success(), "demo failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "demo failed: {}", labrig_tests::output_text(&out));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["recorded"], 2, "{r}");
     assert_eq!(r["successes"], 2, "{r}");

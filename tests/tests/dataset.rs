@@ -1,6 +1,6 @@
 //! `labrig dataset`: the index over DROID raw episodes written by h5py (tests/peers/
 //! make_droid_raw.py: known extrinsics, gripper traces with an accidental 3-step close before
-//! the grasp, instructions) and a labrig episode from `labrig demo`; the index read back by
+//! the grasp, instructions) and a committed labrig episode of the simulated rig; the index read back by
 //! pyarrow (tests/peers/read_index.py) with its documented columns; shards that together are
 //! the unsharded index; retrieval aligned with one camera region and one object region
 //! returning exactly the episodes generated there, with its funnel, and the same ids from the
@@ -92,24 +92,45 @@ fn pyarrow(index: &Path, query: &Value) -> Value {
     serde_json::from_slice(&out.stdout).unwrap()
 }
 
+/// `labrig dataset retrieve ... --json`: its report and the manifest it wrote.
+fn retrieve(index: &Path, target: &Path, align: &str, manifest: &Path) -> (Value, Value) {
+    let r = ok_json(&labrig(&[
+        "dataset",
+        "retrieve",
+        "--index",
+        s(index),
+        "--target",
+        s(target),
+        "--align",
+        align,
+        "--out",
+        s(manifest),
+        "--json",
+    ]));
+    (r, serde_json::from_str(&std::fs::read_to_string(manifest).unwrap()).unwrap())
+}
+
+/// The strings of a JSON array (of `key` in each element, or the elements themselves for "").
+fn strings(v: &Value, key: &str) -> BTreeSet<String> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|e| if key.is_empty() { e } else { &e[key] }.as_str().unwrap().to_owned())
+        .collect()
+}
+
 #[test]
 fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment() {
     let dir = tempfile::tempdir().unwrap();
     let raw = dir.path().join("droid_raw");
     write_fixtures(&raw);
-    // One labrig episode of the simulated rig.
-    workspace_bin("labrig-sim", "labrig-sim-bridge");
-    for p in ["labrig-recorder", "labrig-control"] {
-        workspace_bin(p, p);
-    }
+    // One labrig episode of the simulated rig (the committed pick-and-place fixture).
     let demo = dir.path().join("demo");
-    let domain = labrig_tests::domain_for("dataset_demo").to_string();
-    let out = Command::new(labrig_bin())
-        .args(["demo", "--episodes", "1", "--domain-id", &domain, "--json", "--out", s(&demo)])
-        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("dataset_{}", std::process::id()))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", text(&out));
+    let fixture = repo_root().join("tests/fixtures/episodes/pick_place_seed7");
+    std::fs::create_dir_all(demo.join("pick_place_seed7")).unwrap();
+    for f in ["episode_0.mcap", "metadata.yaml"] {
+        std::fs::copy(fixture.join(f), demo.join("pick_place_seed7").join(f)).unwrap();
+    }
 
     let index = dir.path().join("index");
     let r = ok_json(&labrig(&["dataset", "index", s(&raw), s(&demo), "--out", s(&index), "--json"]));
@@ -201,19 +222,7 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
     )
     .unwrap();
     let manifest = dir.path().join("manifest.json");
-    let r = ok_json(&labrig(&[
-        "dataset",
-        "retrieve",
-        "--index",
-        s(&index),
-        "--target",
-        s(&target),
-        "--align",
-        "objSpat,camPose,object,skill",
-        "--out",
-        s(&manifest),
-        "--json",
-    ]));
+    let (r, m) = retrieve(&index, &target, "objSpat,camPose,object,skill", &manifest);
     let funnel: Vec<(String, u64)> = r["funnel"]
         .as_array()
         .unwrap()
@@ -226,16 +235,12 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
     assert_eq!(funnel[2], ("skill".to_owned(), 13), "{r}");
     assert_eq!(funnel[3].0, "camPose", "{r}");
     assert_eq!(funnel[4], ("objSpat".to_owned(), 3), "{r}");
-    let m: Value = serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
-    let got: BTreeSet<String> =
-        m["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_owned()).collect();
+    let got = strings(&m["episodes"], "id");
     let want: BTreeSet<String> = (0..3).map(|k| uuid(0, 0, k)).collect();
     assert_eq!(got, want);
     assert_eq!(m["episodes"][0]["passed"], json!(["object", "skill", "camPose", "objSpat"]));
     // pyarrow's query (object, camera, object box) keeps the same ids.
-    let py_ids: BTreeSet<String> =
-        py["kept"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_owned()).collect();
-    assert_eq!(py_ids, want);
+    assert_eq!(strings(&py["kept"], ""), want);
 
     // The stats: the same funnel, counts by bin, and the picture.
     let png = dir.path().join("stats.png");
@@ -340,26 +345,9 @@ fn an_rlds_shard_is_indexed_and_retrieved_and_a_damaged_one_is_named() {
     let target = dir.path().join("target.toml");
     std::fs::write(&target, "cameras = [[0.3, 0.6, 0.5]]\nobject_position = [0.5, 0.1, 0.05]\nobject = \"cube\"\n")
         .unwrap();
-    let manifest = dir.path().join("m.json");
-    let r = ok_json(&labrig(&[
-        "dataset",
-        "retrieve",
-        "--index",
-        s(&index),
-        "--target",
-        s(&target),
-        "--align",
-        "object,camPose,objSpat",
-        "--out",
-        s(&manifest),
-        "--json",
-    ]));
-    let m: Value = serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
-    let got: BTreeSet<String> =
-        m["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_owned()).collect();
+    let (r, m) = retrieve(&index, &target, "object,camPose,objSpat", &dir.path().join("m.json"));
+    let got = strings(&m["episodes"], "id");
     assert_eq!(got.len(), 2, "{r}");
     assert!(got.iter().all(|id| id.contains("/c0o0k")), "{got:?}");
-    let py_ids: BTreeSet<String> =
-        py["kept"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_owned()).collect();
-    assert_eq!(py_ids, got);
+    assert_eq!(strings(&py["kept"], ""), got);
 }

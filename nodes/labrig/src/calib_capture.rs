@@ -36,7 +36,6 @@ use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
 use labrig_runtime::{RosConfig, Shutdown};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -218,7 +217,7 @@ fn rig_for_capture(
         };
         // The scene's own camera poses on /tf_static: they are the truth the report uses.
         drop_flag(&mut n.args, "--calibration");
-        n.args.retain(|x| !x.starts_with("calibration="));
+        drop_set(&mut n.args, "calibration");
         crate::demo::set_arg(&mut n.args, "--width", &a.width.to_string());
         crate::demo::set_arg(&mut n.args, "--height", &a.height.to_string());
         let mount = if mount == Mount::EyeInHand { "table" } else { "gripper" };
@@ -245,6 +244,14 @@ fn rig_for_capture(
     }
     let order = cfg.validate(a.rig.parent().unwrap_or(Path::new(".")))?;
     Ok((cfg, order, simulated))
+}
+
+/// Removes every `--set <key>=...` (the pair) from `args`.
+fn drop_set(args: &mut Vec<String>, key: &str) {
+    let prefix = format!("{key}=");
+    while let Some(i) = args.windows(2).position(|w| w[0] == "--set" && w[1].starts_with(&prefix)) {
+        args.drain(i..i + 2);
+    }
 }
 
 /// Removes `flag` and its value from `args`.
@@ -357,19 +364,17 @@ impl Link {
         Ok(())
     }
 
-    /// The newest frame captured at or after `after_ns` (older ones are dropped), as grey.
+    /// The first frame captured at or after `after_ns` (older ones are dropped), as grey.
     fn frame_after(&mut self, after_ns: i64) -> anyhow::Result<Option<Grey>> {
         let Some(sub) = &self.frames else { return Ok(None) };
-        let mut out = None;
         while let Some(f) = sub.receive()? {
             self.last_frame_at = Instant::now();
             let h = *f.header();
-            if h.capture_ns < after_ns {
-                continue;
+            if h.capture_ns >= after_ns {
+                return Ok(Some(grey(&h, f.pixels()).with_context(|| format!("a frame of `{}`", self.camera))?));
             }
-            out = Some(grey(&h, f.pixels()).with_context(|| format!("a frame of `{}`", self.camera))?);
         }
-        Ok(out)
+        Ok(None)
     }
 
     fn state(&self) -> Option<&RobotState> {
@@ -419,7 +424,7 @@ impl Link {
 /// A frame as 8-bit grey (BT.601 luma).
 fn grey(h: &labrig_runtime::frames::FrameHeader, px: &[u8]) -> anyhow::Result<Grey> {
     let (w, ht, stride) = (h.width as usize, h.height as usize, h.stride as usize);
-    let luma = |r: u8, g: u8, b: u8| ((299 * r as u32 + 587 * g as u32 + 114 * b as u32 + 500) / 1000).min(255) as u8;
+    let luma = labrig_episode::grey::luma;
     let enc = h.encoding().context("unknown frame encoding")?;
     let rows = |bpp: usize| -> anyhow::Result<Vec<&[u8]>> {
         let stride = if stride == 0 { w * bpp } else { stride };
@@ -439,7 +444,7 @@ fn grey(h: &labrig_runtime::frames::FrameHeader, px: &[u8]) -> anyhow::Result<Gr
             return Ok(Grey {
                 width: rgb.width,
                 height: rgb.height,
-                pixels: rgb.pixels.chunks_exact(3).map(|p| luma(p[0], p[1], p[2])).collect(),
+                pixels: labrig_episode::grey::from_rgb(&rgb.pixels),
             });
         }
         FrameEncoding::Depth16 => bail!("a depth stream cannot be calibrated; name the colour camera"),
@@ -448,10 +453,8 @@ fn grey(h: &labrig_runtime::frames::FrameHeader, px: &[u8]) -> anyhow::Result<Gr
 }
 
 fn write_pgm(path: &Path, g: &Grey) -> anyhow::Result<()> {
-    let mut out = Vec::with_capacity(g.pixels.len() + 32);
-    write!(out, "P5\n{} {}\n255\n", g.width, g.height)?;
-    out.extend_from_slice(&g.pixels);
-    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+    labrig_episode::grey::write_pgm(path, g.width, g.height, &g.pixels)
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 fn intrinsics_of(info: &CameraInfo) -> Intrinsics {
