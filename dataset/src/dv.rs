@@ -121,6 +121,7 @@ pub fn camera_row(serial: Option<String>, extrinsics: Option<[f64; 6]>, centre: 
         polar_deg: Some(polar),
         azimuth_deg: Some(azimuth),
         bin: Some(CameraBin::of(polar, azimuth).map(|b| b.name()).unwrap_or("none").to_owned()),
+        extrinsics_from: Some("metadata".to_owned()),
     }
 }
 

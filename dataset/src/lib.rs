@@ -6,7 +6,7 @@
 //!   from the instruction through an editable vocabulary;
 //! - [`source`]: readers by auto-detection: labrig MCAP episodes and DROID raw episodes
 //!   (trajectory.h5 + metadata JSON), DROID's RLDS TFRecord shards ([`rlds`]), low-dimensional
-//!   data only;
+//!   data only; [`recal`]: DROID's re-calibrated extrinsics as an override;
 //! - [`table`]: the index as a directory of Parquet parts (columns any Parquet reader queries);
 //! - [`retrieve`]: the paper's alignment rules, in its order, with the funnel, and the manifest
 //!   `labrig train --cotrain` reads.
@@ -15,6 +15,7 @@
 
 pub mod bench;
 pub mod dv;
+pub mod recal;
 pub mod retrieve;
 pub mod rlds;
 pub mod row;
@@ -23,4 +24,4 @@ pub mod stats;
 pub mod table;
 
 /// The index's schema version (a column of every row; readers refuse another).
-pub const INDEX_VERSION: u32 = 1;
+pub const INDEX_VERSION: u32 = 2;

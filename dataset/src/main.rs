@@ -92,6 +92,10 @@ struct IndexArgs {
     /// The averaged gripper signal (0 open .. 1 closed) above which the gripper is closed.
     #[arg(long, default_value_t = 0.5)]
     grasp_threshold: f64,
+    /// Re-calibrated extrinsics (DROID's cam2base_extrinsics.json: episode -> camera serial ->
+    /// x, y, z, roll, pitch, yaw) that replace an episode's own where it names the serial.
+    #[arg(long)]
+    extrinsics: Option<PathBuf>,
     #[arg(long)]
     json: bool,
 }
@@ -160,10 +164,17 @@ fn derive_of(a: &IndexArgs) -> anyhow::Result<Derive> {
     };
     let [x, y, z] = a.table_centre.as_slice() else { bail!("--table-centre takes x,y,z") };
     anyhow::ensure!(a.grasp_window >= 1, "--grasp-window must be at least 1");
+    let recalibration = match &a.extrinsics {
+        None => None,
+        Some(p) => Some(std::sync::Arc::new(
+            labrig_dataset::recal::Recalibration::load(p).map_err(|e| anyhow::anyhow!("--extrinsics {e}"))?,
+        )),
+    };
     Ok(Derive {
         vocabulary,
         grasp: GraspParams { window: a.grasp_window, threshold: a.grasp_threshold },
         table_centre: [*x, *y, *z],
+        recalibration,
     })
 }
 
@@ -183,8 +194,11 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
     let mine: Vec<_> = found.into_iter().enumerate().filter(|(k, _)| k % n == i).map(|(_, f)| f).collect();
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let part = a.out.join(table::part_name(i, n));
-    // Rows of an unchanged episode (same path, size and mtime) are kept from the last run.
-    let previous: BTreeMap<String, IndexRow> = if part.exists() {
+    // Rows of an unchanged episode (same path, size and mtime) are kept from the last run,
+    // if it used the same --extrinsics file (or none).
+    let recal_stamp = derive.recalibration.as_ref().map(|r| r.stamp.as_str()).unwrap_or("");
+    let same_override = table::part_recalibration(&part).is_some_and(|s| s == recal_stamp);
+    let previous: BTreeMap<String, IndexRow> = if part.exists() && same_override {
         table::read_part(&part)
             .map(|rows| rows.into_iter().map(|r| (r.source_path.clone(), r)).collect())
             .unwrap_or_default()
@@ -226,17 +240,34 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    table::write_part(&part, &rows)?;
+    table::write_part(&part, &rows, recal_stamp)?;
     let seconds = t0.elapsed().as_secs_f64();
     let mut by_format: BTreeMap<&str, usize> = BTreeMap::new();
     for r in &rows {
         *by_format.entry(r.source_format.as_str()).or_default() += 1;
     }
+    // What the override changed: episodes with a re-calibrated camera, and those the file names
+    // whose metadata has none of its serials (DROID's RLDS release carries no serials).
+    let recalibration = derive.recalibration.as_ref().map(|r| {
+        let changed = rows
+            .iter()
+            .filter(|row| row.cameras.iter().any(|c| c.extrinsics_from.as_deref() == Some("recalibrated")))
+            .count();
+        let unmatched = rows
+            .iter()
+            .filter(|row| {
+                r.has(&row.episode_id)
+                    && !row.cameras.iter().any(|c| c.extrinsics_from.as_deref() == Some("recalibrated"))
+            })
+            .count();
+        serde_json::json!({"file_episodes": r.episodes(), "recalibrated": changed, "named_without_serials": unmatched})
+    });
     if a.json {
         println!(
             "{}",
             serde_json::json!({"part": part, "shard": [i, n], "found": total, "in_shard": mine.len(),
                 "indexed": rows.len() - skipped, "unchanged": skipped, "bad": bad, "by_format": by_format,
+                "extrinsics_override": recalibration,
                 "seconds": seconds, "episodes_per_s": mine.len() as f64 / seconds.max(1e-9),
                 "mb_per_s": bytes as f64 / 1e6 / seconds.max(1e-9)})
         );
@@ -252,6 +283,12 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
         );
         for (f, k) in &by_format {
             println!("    {f}: {k}");
+        }
+        if let Some(r) = &recalibration {
+            println!(
+                "    --extrinsics: {} episodes re-calibrated; {} named by the file without a matching camera serial",
+                r["recalibrated"], r["named_without_serials"]
+            );
         }
         for b in &bad {
             println!("    skipped {}: {}", b["path"].as_str().unwrap_or(""), b["reason"].as_str().unwrap_or(""));
@@ -333,7 +370,7 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let dir = tempfile::tempdir()?;
     let part = dir.path().join(table::part_name(0, 1));
     let t1 = Instant::now();
-    table::write_part(&part, &rows)?;
+    table::write_part(&part, &rows, "")?;
     let t_write = t1.elapsed().as_secs_f64();
     let bytes = std::fs::metadata(&part)?.len();
     drop(rows);

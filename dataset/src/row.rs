@@ -20,6 +20,9 @@ pub struct CameraRow {
     pub azimuth_deg: Option<f64>,
     /// The paper's camPose bin, or `none` when the pose is known but in no bin.
     pub bin: Option<String>,
+    /// Where the pose came from: `metadata` (the episode's own) or `recalibrated` (an
+    /// `--extrinsics` override file).
+    pub extrinsics_from: Option<String>,
 }
 
 /// One episode, as the index has it.

@@ -5,6 +5,7 @@
 
 use crate::INDEX_VERSION;
 use crate::dv::{self, GraspParams, Vocabulary};
+use crate::recal::Recalibration;
 use crate::row::{CAMERAS, IndexRow};
 use labrig_episode::EpisodeMetadata;
 use std::path::{Path, PathBuf};
@@ -72,11 +73,18 @@ pub struct Derive {
     pub grasp: GraspParams,
     /// The table centre in the base frame (m), the origin of the spherical coordinates.
     pub table_centre: [f64; 3],
+    /// Re-calibrated extrinsics that replace an episode's own (`--extrinsics`).
+    pub recalibration: Option<std::sync::Arc<Recalibration>>,
 }
 
 impl Default for Derive {
     fn default() -> Derive {
-        Derive { vocabulary: Vocabulary::default_words(), grasp: GraspParams::default(), table_centre: [0.5, 0.0, 0.0] }
+        Derive {
+            vocabulary: Vocabulary::default_words(),
+            grasp: GraspParams::default(),
+            table_centre: [0.5, 0.0, 0.0],
+            recalibration: None,
+        }
     }
 }
 
@@ -155,7 +163,19 @@ fn row_of(found: &Found, read: Read, d: &Derive, (file_size, file_mtime_ns): (u6
     }
     let cameras = CAMERAS
         .iter()
-        .map(|c| dv::camera_row(meta.camera_serials.get(*c).cloned(), meta.extrinsics.get(*c).copied(), d.table_centre))
+        .map(|c| {
+            let serial = meta.camera_serials.get(*c).cloned();
+            let recalibrated = match (&d.recalibration, &serial) {
+                (Some(r), Some(s)) => r.pose(&meta.uuid, s),
+                _ => None,
+            };
+            let mut row =
+                dv::camera_row(serial, recalibrated.or_else(|| meta.extrinsics.get(*c).copied()), d.table_centre);
+            if recalibrated.is_some() {
+                row.extrinsics_from = Some("recalibrated".to_owned());
+            }
+            row
+        })
         .collect();
     Ok(IndexRow {
         index_version: INDEX_VERSION,

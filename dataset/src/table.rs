@@ -5,7 +5,8 @@
 //! `index_version, episode_id, source_path, source_format, file_size, file_mtime_ns, success,
 //! lab, building, scene_id, instruction, instruction_2, instruction_3, length`, per camera
 //! `<c>` of ext1, ext2, rs1, rs2, wrist: `<c>_serial, <c>_x, <c>_y, <c>_z, <c>_roll,
-//! <c>_pitch, <c>_yaw, <c>_radius_m, <c>_polar_deg, <c>_azimuth_deg, <c>_bin`, then
+//! <c>_pitch, <c>_yaw, <c>_radius_m, <c>_polar_deg, <c>_azimuth_deg, <c>_bin,
+//! <c>_extrinsics_from` (`metadata` or `recalibrated`), then
 //! `object_x, object_y, object_z, object, primitive, colour, sim_dv`.
 
 use crate::INDEX_VERSION;
@@ -95,6 +96,9 @@ fn columns(rows: &[IndexRow]) -> Vec<(Field, ArrayRef)> {
         c.push(float(&format!("{cam}_polar_deg"), rows, |r| at(r).polar_deg));
         c.push(float(&format!("{cam}_azimuth_deg"), rows, |r| at(r).azimuth_deg));
         c.push(text(&format!("{cam}_bin"), rows, |r| r.cameras.get(k).and_then(|c| c.bin.as_deref())));
+        c.push(text(&format!("{cam}_extrinsics_from"), rows, |r| {
+            r.cameras.get(k).and_then(|c| c.extrinsics_from.as_deref())
+        }));
     }
     for (i, axis) in ["x", "y", "z"].iter().enumerate() {
         c.push(float(&format!("object_{axis}"), rows, |r| r.object_position.map(|p| p[i])));
@@ -107,7 +111,8 @@ fn columns(rows: &[IndexRow]) -> Vec<(Field, ArrayRef)> {
 }
 
 /// Writes `rows` as one Parquet file (through a temporary name, so a reader never sees half).
-pub fn write_part(path: &Path, rows: &[IndexRow]) -> Result<(), TableError> {
+/// `recalibration` is the stamp of the `--extrinsics` file the rows were made with ("" for none).
+pub fn write_part(path: &Path, rows: &[IndexRow], recalibration: &str) -> Result<(), TableError> {
     let pq = |error| TableError::Parquet { path: path.display().to_string(), error };
     let io = |error| TableError::Io { path: path.display().to_string(), error };
     let (fields, arrays): (Vec<Field>, Vec<ArrayRef>) = columns(rows).into_iter().unzip();
@@ -117,15 +122,25 @@ pub fn write_part(path: &Path, rows: &[IndexRow]) -> Result<(), TableError> {
     let file = std::fs::File::create(&tmp).map_err(io)?;
     let props = WriterProperties::builder()
         .set_compression(Compression::SNAPPY)
-        .set_key_value_metadata(Some(vec![parquet::file::metadata::KeyValue::new(
-            "labrig_index_version".into(),
-            INDEX_VERSION.to_string(),
-        )]))
+        .set_key_value_metadata(Some(vec![
+            parquet::file::metadata::KeyValue::new("labrig_index_version".into(), INDEX_VERSION.to_string()),
+            parquet::file::metadata::KeyValue::new(RECALIBRATION_KEY.into(), recalibration.to_owned()),
+        ]))
         .build();
     let mut w = ArrowWriter::try_new(file, schema, Some(props)).map_err(pq)?;
     w.write(&batch).map_err(pq)?;
     w.close().map_err(pq)?;
     std::fs::rename(&tmp, path).map_err(io)
+}
+
+const RECALIBRATION_KEY: &str = "labrig_extrinsics_override";
+
+/// The stamp of the `--extrinsics` file a part was made with ("" for none; None when unreadable).
+pub fn part_recalibration(path: &Path) -> Option<String> {
+    let file = std::fs::File::open(path).ok()?;
+    let b = ParquetRecordBatchReaderBuilder::try_new(file).ok()?;
+    let kv = b.metadata().file_metadata().key_value_metadata()?;
+    Some(kv.iter().find(|k| k.key == RECALIBRATION_KEY).and_then(|k| k.value.clone()).unwrap_or_default())
 }
 
 /// Reads one part.
@@ -189,6 +204,7 @@ fn rows_of(path: &str, b: &RecordBatch) -> Result<Vec<IndexRow>, TableError> {
             [f("roll")?, f("pitch")?, f("yaw")?],
             [f("radius_m")?, f("polar_deg")?, f("azimuth_deg")?],
             text(&format!("{cam}_bin"))?,
+            text(&format!("{cam}_extrinsics_from"))?,
         ));
     }
     let obj = [float("object_x")?, float("object_y")?, float("object_z")?];
@@ -212,7 +228,7 @@ fn rows_of(path: &str, b: &RecordBatch) -> Result<Vec<IndexRow>, TableError> {
             length: length[i].unwrap_or(0),
             cameras: cams
                 .iter()
-                .map(|(serial, pos, eul, sph, bin)| CameraRow {
+                .map(|(serial, pos, eul, sph, bin, from)| CameraRow {
                     serial: serial[i].clone(),
                     position: three(pos, i),
                     euler: three(eul, i),
@@ -220,6 +236,7 @@ fn rows_of(path: &str, b: &RecordBatch) -> Result<Vec<IndexRow>, TableError> {
                     polar_deg: sph[1][i],
                     azimuth_deg: sph[2][i],
                     bin: bin[i].clone(),
+                    extrinsics_from: from[i].clone(),
                 })
                 .collect(),
             object_position: three(&obj, i),
@@ -293,7 +310,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let rows: Vec<IndexRow> = (0..7).map(sample).collect();
         let path = dir.path().join(part_name(0, 1));
-        write_part(&path, &rows).unwrap();
+        write_part(&path, &rows, "").unwrap();
         assert_eq!(read_index(dir.path()).unwrap(), rows);
     }
 }

@@ -4,8 +4,9 @@ labrig, and runs a retrieval query on it.
 usage: read_index.py INDEX_DIR QUERY_JSON
 QUERY_JSON: {"object": "cube", "cam": [x, y, z], "cam_xy": 0.2, "cam_z": 0.1,
              "box_centre": [x, y, z], "box": [0.6, 0.6, 0.3]}
-prints one JSON object: the columns, the rows (id, object position, ext1 bin), and the ids the
-query keeps (object, then some external camera near the target camera, then the object box).
+prints one JSON object: the columns, the rows (id, object position, ext1 x, bin and pose source),
+and the ids the query keeps (object, then some external camera near the target camera, then the
+object box).
 """
 import glob
 import json
@@ -42,5 +43,7 @@ inside = pc.and_(
     pc.less_equal(pc.abs(pc.subtract(kept["object_z"], bz)), hz),
 )
 kept = kept.filter(pc.fill_null(inside, False))
-rows = table.select(["episode_id", "object_x", "object_y", "object_z", "ext1_bin", "source_format"]).to_pylist()
+rows = table.select(
+    ["episode_id", "object_x", "object_y", "object_z", "ext1_x", "ext1_bin", "ext1_extrinsics_from", "source_format"]
+).to_pylist()
 print(json.dumps({"columns": cols, "rows": rows, "kept": sorted(kept["episode_id"].to_pylist())}))

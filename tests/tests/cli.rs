@@ -143,6 +143,15 @@ fn bad_arguments_are_named() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(labrig_bin())
+        .args(["demo", "--scene", "no/such_scene.toml", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--scene no/such_scene.toml: no such spec file"), "{err}");
 }
 
 #[test]

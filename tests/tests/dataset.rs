@@ -9,7 +9,7 @@
 
 use labrig_tests::{cache_dir, labrig_bin, repo_root, workspace_bin};
 use serde_json::{Value, json};
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -262,6 +262,46 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
     assert_eq!(st["formats"], json!({"droid_raw": 13, "labrig": 1}), "{st}");
     assert!(std::fs::metadata(&png).unwrap().len() > 10_000);
 
+    // DROID's re-calibrated extrinsics (cam2base_extrinsics.json, keyed by episode, then camera
+    // serial): one episode's ext1 (serial 21) moves to the other camera region and leaves the
+    // retrieval; an entry for a serial the episode lacks changes nothing and is counted.
+    let recal = dir.path().join("cam2base_extrinsics.json");
+    std::fs::write(
+        &recal,
+        json!({
+            uuid(0, 0, 0): {"21": CAMS[1], "21_metric_type": "quality"},
+            uuid(0, 0, 1): {"99": CAMS[1]},
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let recal_index = dir.path().join("recal_index");
+    let index_with = |extra: &[&str]| {
+        ok_json(&labrig(
+            &[&["dataset", "index", s(&raw), s(&demo), "--out", s(&recal_index), "--json"], extra].concat(),
+        ))
+    };
+    let r = index_with(&["--extrinsics", s(&recal)]);
+    assert_eq!(
+        r["extrinsics_override"],
+        json!({"file_episodes": 2, "recalibrated": 1, "named_without_serials": 1}),
+        "{r}"
+    );
+    let (_, m) = retrieve(&recal_index, &target, "object,skill,camPose,objSpat", &manifest);
+    assert_eq!(strings(&m["episodes"], "id"), (1..3).map(|k| uuid(0, 0, k)).collect::<BTreeSet<_>>());
+    let py = pyarrow(&recal_index, &q);
+    let moved = py["rows"].as_array().unwrap().iter().find(|r| r["episode_id"] == uuid(0, 0, 0)).unwrap();
+    assert_eq!(
+        (moved["ext1_extrinsics_from"].as_str(), moved["ext1_x"].as_f64()),
+        (Some("recalibrated"), Some(CAMS[1][0]))
+    );
+    assert_eq!(strings(&py["kept"], ""), (1..3).map(|k| uuid(0, 0, k)).collect::<BTreeSet<_>>());
+    // The same file again: nothing re-read; without it: every row re-derived, the episode back.
+    assert_eq!(index_with(&["--extrinsics", s(&recal)])["unchanged"], 14);
+    assert_eq!(index_with(&[])["unchanged"], 0);
+    let (_, m) = retrieve(&recal_index, &target, "object,skill,camPose,objSpat", &manifest);
+    assert_eq!(strings(&m["episodes"], "id"), want);
+
     // A target whose dimension is missing is named; the trainer refuses DROID raw data with the way on.
     let no_obj = dir.path().join("no_object.toml");
     std::fs::write(&no_obj, "cameras = [[0.3, 0.6, 0.5]]\n").unwrap();
@@ -302,6 +342,101 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
         "{}",
         text(&out)
     );
+}
+
+/// The end to end: simulated episodes recorded by `labrig demo` from the specs
+/// dataset/scenes/region_c<C>o<O>.toml, two camera regions (ext1 in a narrow window at azimuth
+/// +45 or -45 deg; the other cameras the same in all) x two object regions (y < 0 or y > 0),
+/// two seeds each; retrieval aligned with one camera
+/// region and one object region (a TOML target, then a folder of episodes as the target)
+/// returns exactly the episodes generated there; `labrig train --cotrain` trains on the
+/// retrieved manifest.
+#[test]
+fn sim_episodes_from_two_camera_and_two_object_regions_are_retrieved_by_their_own() {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control"] {
+        workspace_bin(p, p);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let episodes = dir.path().join("episodes");
+    let mut ids = BTreeMap::new();
+    for (cam, obj) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+        let spec = repo_root().join(format!("dataset/scenes/region_c{cam}o{obj}.toml"));
+        let out_dir = episodes.join(format!("c{cam}o{obj}"));
+        let domain = labrig_tests::domain_for(&format!("dataset_sim_c{cam}o{obj}")).to_string();
+        let out = Command::new(labrig_bin())
+            .args([
+                "demo",
+                "--scene",
+                s(&spec),
+                "--episodes",
+                "2",
+                "--domain-id",
+                &domain,
+                "--json",
+                "--out",
+                s(&out_dir),
+            ])
+            .env(labrig_runtime::frames::NAMESPACE_ENV, format!("dataset_sim_{}", std::process::id()))
+            .output()
+            .unwrap();
+        let r = ok_json(&out);
+        assert_eq!((r["recorded"].as_u64(), r["successes"].as_u64()), (Some(2), Some(2)), "c{cam}o{obj}: {r}");
+        let uuids: BTreeSet<String> = r["episodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| e["inspect"]["metadata"]["uuid"].as_str().unwrap().to_owned())
+            .collect();
+        assert_eq!(uuids.len(), 2, "{r}");
+        ids.insert((cam, obj), uuids);
+    }
+    let index = dir.path().join("index");
+    let r = ok_json(&labrig(&["dataset", "index", s(&episodes), "--out", s(&index), "--json"]));
+    assert_eq!(r["by_format"], json!({"labrig": 8}), "{r}");
+
+    // A TOML target in camera region 0 and object region 0 (ext1's window centre, the cube's box centre).
+    let (polar, az, radius) = (51f64.to_radians(), 45f64.to_radians(), 1.01);
+    let cam = [0.5 + radius * polar.sin() * az.cos(), radius * polar.sin() * az.sin(), radius * polar.cos()];
+    let target = dir.path().join("target.toml");
+    std::fs::write(
+        &target,
+        format!(
+            "cameras = [[{}, {}, {}]]\nobject_position = [0.475, -0.195, 0.05]\nobject = \"cube\"\n",
+            cam[0], cam[1], cam[2]
+        ),
+    )
+    .unwrap();
+    let manifest = dir.path().join("c0o0.json");
+    let (r, m) = retrieve(&index, &target, "object,camPose,objSpat", &manifest);
+    let funnel: Vec<u64> = r["funnel"].as_array().unwrap().iter().map(|f| f["kept"].as_u64().unwrap()).collect();
+    assert_eq!(funnel, [8, 8, 4, 2], "all, object, camPose, objSpat: {r}");
+    assert_eq!(strings(&m["episodes"], "id"), ids[&(0, 0)]);
+
+    // The episodes of camera region 1 x object region 1 as the target: exactly themselves.
+    let manifest = dir.path().join("c1o1.json");
+    let (_, m) = retrieve(&index, &episodes.join("c1o1"), "camPose,objSpat", &manifest);
+    assert_eq!(strings(&m["episodes"], "id"), ids[&(1, 1)]);
+    // Each alone keeps the region it aligns: camPose the two object regions of camera region 1.
+    let (_, m) = retrieve(&index, &episodes.join("c1o1"), "camPose", &dir.path().join("cam.json"));
+    assert_eq!(strings(&m["episodes"], "id"), &ids[&(1, 0)] | &ids[&(1, 1)]);
+    let (_, m) = retrieve(&index, &episodes.join("c1o1"), "objSpat", &dir.path().join("obj.json"));
+    assert_eq!(strings(&m["episodes"], "id"), &ids[&(0, 1)] | &ids[&(1, 1)]);
+
+    // The trainer co-trains on the retrieved manifest (labrig-format episodes).
+    workspace_bin("labrig-policies", "labrig-policies");
+    let out = Command::new(labrig_bin())
+        .args(["train", "--target", s(&episodes.join("c0o0")), "--cotrain", s(&manifest), "--w", "0.5"])
+        .args(["--preset", "small_lowdim", "--batch-size", "8", "--steps", "2", "--json", "--out"])
+        .arg(dir.path().join("run"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    // Its progress lines come first on stdout, then the report.
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let r: Value = serde_json::from_str(&stdout[stdout.find("\n{").map(|i| i + 1).unwrap_or(0)..])
+        .unwrap_or_else(|e| panic!("{e}: {}", text(&out)));
+    assert_eq!(r["cotrain_episodes"], 2, "{r}");
+    assert!(r["drawn_cotrain"].as_u64().unwrap() > 0, "{r}");
 }
 
 /// DROID's RLDS release: the committed shard (tests/fixtures/rlds, written by the PyPI

@@ -31,6 +31,10 @@ pub struct DemoArgs {
     /// The first scene seed (the episodes take seeds first..first+episodes).
     #[arg(long, default_value_t = 0)]
     pub first_seed: u64,
+    /// The scene: a built-in one (pick_place, drawer_open, drawer_close) or a spec file
+    /// (sim/scenes/*.toml shows the format): camera bins, object boxes, textures.
+    #[arg(long, default_value = "pick_place")]
+    pub scene: String,
     /// Run the sim in real time instead of lockstep.
     #[arg(long)]
     pub realtime: bool,
@@ -65,6 +69,15 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let out = std::fs::canonicalize(&args.out)?;
     let root = out.join("episodes");
+    // A spec file is handed to the sim by its absolute path (the nodes' working folder may differ).
+    let scene = match Path::new(&args.scene) {
+        p if p.is_file() => std::fs::canonicalize(p)?.display().to_string(),
+        p if p.extension().is_some_and(|e| e == "toml") || args.scene.contains('/') => {
+            bail!("--scene {}: no such spec file", p.display())
+        }
+        // A built-in name: the sim node knows them and names a wrong one.
+        _ => args.scene.clone(),
+    };
     let calibration = match &args.calibration {
         Some(dir) => Some(
             std::fs::canonicalize(dir)
@@ -77,6 +90,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     {
         let sim = cfg.node_mut("sim").context("sim_demo.toml has no `sim` node")?;
         set_arg(&mut sim.args, "--mode", if args.realtime { "realtime" } else { "lockstep" });
+        set_arg(&mut sim.args, "--scene", &scene);
         if let Some(dir) = &calibration {
             set_arg(&mut sim.args, "--calibration", dir);
         }
