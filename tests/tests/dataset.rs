@@ -344,6 +344,35 @@ fn droid_raw_and_labrig_episodes_are_indexed_sharded_and_retrieved_by_alignment(
     );
 }
 
+/// `labrig dataset bench` (functional, not timing: the figures are the README's): every
+/// `--align` combination timed over a small synthetic index, and the index throughput of the
+/// RLDS fixture counted in episodes, not shards.
+#[test]
+fn the_dataset_bench_reports_every_combination_and_the_index_throughput() {
+    let rlds = repo_root().join("tests/fixtures/rlds");
+    let r = ok_json(&labrig(&[
+        "dataset",
+        "bench",
+        "--episodes",
+        "2000",
+        "--runs",
+        "2",
+        "--episodes-root",
+        s(&rlds),
+        "--json",
+    ]));
+    assert_eq!(r["episodes"], 2000, "{r}");
+    let combos = r["retrieval"].as_array().unwrap();
+    assert_eq!(combos.len(), 7, "{r}");
+    for c in combos {
+        assert!(c["p50_ms"].as_f64().unwrap() > 0.0 && c["p99_ms"].as_f64() >= c["p50_ms"].as_f64(), "{c}");
+        assert!(c["kept"].as_u64().unwrap() <= 2000, "{c}");
+    }
+    let t = &r["index_throughput"];
+    assert_eq!((t["sources"].as_u64(), t["indexed"].as_u64()), (Some(1), Some(9)), "{t}");
+    assert!(t["index_episodes_per_s"].as_f64().unwrap() > 0.0, "{t}");
+}
+
 /// The end to end: simulated episodes recorded by `labrig demo` from the specs
 /// dataset/scenes/region_c<C>o<O>.toml, two camera regions (ext1 in a narrow window at azimuth
 /// +45 or -45 deg; the other cameras the same in all) x two object regions (y < 0 or y > 0),
