@@ -99,7 +99,9 @@ pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
         let p = e?.path();
         let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
         let keep = match found.format {
-            Format::Labrig => name.ends_with(".mcap") || name == "metadata.yaml",
+            Format::Labrig => {
+                name.ends_with(".mcap") || name == "metadata.yaml" || name == labrig_episode::judge::JUDGED_FILE
+            }
             Format::DroidRaw => name == "trajectory.h5" || (name.starts_with("metadata_") && name.ends_with(".json")),
             Format::Rlds => false,
         };

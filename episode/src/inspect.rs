@@ -253,6 +253,10 @@ fn scan(path: &Path) -> Result<Scan, ReadError> {
         part.last_step = indices.max();
         parts.push(part);
     }
+    // A relabelled episode's judged flag (judged.json) over the recording's.
+    if let (Some(record), Some(j)) = (droid.as_mut(), files[0].parent().and_then(crate::judge::judged)) {
+        record.insert("success".into(), j.success.to_string());
+    }
     Ok(Scan {
         file: files[0].clone(),
         complete: parts.iter().all(|p| p.complete),

@@ -6,6 +6,8 @@
 //! - [`inspect`]: one pass over an episode file (summary, steps, metadata).
 //! - [`recover`]: an episode whose recorder died, made whole up to its last closed chunk.
 //! - [`jpeg`]: camera frames as JPEG.
+//! - [`judge`]: relabel (success <-> failure, `judged.json`) and trash, never rewriting a recording.
+//! - [`sheet`]: an episode's contact sheet (PNG).
 //!
 //! Depends on labrig-msgs, mcap, serde, chrono, jpeg-encoder. Must never depend on tokio, DDS,
 //! iceoryx2 or the heavy native crates (checked by `tests/tests/layering.rs`): the trainer and the
@@ -19,8 +21,10 @@ pub mod font;
 pub mod grey;
 pub mod inspect;
 pub mod jpeg;
+pub mod judge;
 pub mod metadata;
 pub mod recover;
+pub mod sheet;
 
 /// An MCAP log time (any u64) as the i64 nanoseconds the episode's times are: past i64::MAX
 /// (year 2262) it saturates instead of turning negative.

@@ -19,6 +19,7 @@ pub mod labrig_msgs;
 pub mod registry;
 pub mod rosgraph_msgs;
 pub mod sensor_msgs;
+pub mod session;
 pub mod std_msgs;
 pub mod std_srvs;
 pub mod tf2_msgs;

@@ -94,6 +94,13 @@ pub const RIG_STEP: Topic<Step> = Topic::new("/rig/step", Latched);
 pub const RIG_EPISODE: Topic<EpisodeEvent> = Topic::new("/rig/episode", Latched);
 /// Operator requests to the loop (`labrig episode ...`, the Quest's A/B buttons).
 pub const RIG_REQUEST: Topic<EpisodeEvent> = Topic::new("/rig/request", Reliable);
+/// The operator's session (JSON, [`crate::session::Session`]: operator, lab, building, scene
+/// id, task), latched: the operator station sets it; the loop and the recorder put it into
+/// each episode.
+pub const RIG_SESSION: Topic<StringMsg> = Topic::new("/rig/session", Latched);
+/// The operator station's status (JSON: its URL, requests served), latched, once a second
+/// (the launcher's heartbeat for it).
+pub const STATION_STATUS: Topic<StringMsg> = Topic::new("/station/status", Latched);
 /// The loop's status (JSON), latched.
 pub const CONTROL_STATUS: Topic<StringMsg> = Topic::new("/control/status", Latched);
 /// The recorder's status (JSON), latched.

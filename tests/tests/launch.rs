@@ -54,8 +54,8 @@ fn bad_launch_configs_are_refused_with_the_problem_named() {
         ),
         (
             // A node still to come is not a program yet: refused by name, not at spawn time.
-            "[rig]\nname = \"r\"\n[[node]]\nname = \"c\"\nprogram = \"labrig-station\"\nhealth = \"/x\"\n".to_owned(),
-            "unknown program `labrig-station`",
+            "[rig]\nname = \"r\"\n[[node]]\nname = \"c\"\nprogram = \"labrig-viewer\"\nhealth = \"/x\"\n".to_owned(),
+            "unknown program `labrig-viewer`",
         ),
     ];
     for (i, (text, want)) in cases.iter().enumerate() {

@@ -332,6 +332,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let scene_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_SCENE, 1)?;
     let requests: RosSubscription<EpisodeEvent> = ros.subscription_on(&topics::RIG_REQUEST, 10)?;
     let recorder_status: RosSubscription<StringMsg> = ros.subscription_on(&topics::RECORDER_STATUS, 1)?;
+    let session: RosSubscription<StringMsg> = ros.subscription_on(&topics::RIG_SESSION, 1)?;
     let mut source: Option<Box<dyn ActionSource>> = match cfg.source {
         SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(&mut ros)?)),
         SourceKind::Hold => None,
@@ -518,6 +519,10 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 break;
             }
             tokio::time::sleep(Duration::from_micros(100)).await;
+        }
+        // The session before the requests: a Start sent right after a session change has it.
+        while let Some(s) = session.try_take()? {
+            rig.push_session(&s.msg.data);
         }
         while let Some(r) = requests.try_take().unwrap_or_else(|e| {
             tracing::warn!("/rig/request: {e}");

@@ -338,6 +338,22 @@ impl RigLoop {
             && t.prev_ns.is_some_and(|p| !self.book.keeping_pace(Nanos(p), Nanos(t.ns)).is_empty())
     }
 
+    /// The operator's session (`/rig/session`, JSON): its lab and operator name the next
+    /// episodes' uuids (`<lab>+<user>+<time>`); empty ones leave the config's.
+    pub fn push_session(&mut self, json: &str) {
+        match serde_json::from_str::<labrig_msgs::session::Session>(json) {
+            Ok(s) => {
+                if !s.lab.is_empty() {
+                    self.cfg.lab = s.lab;
+                }
+                if !s.operator.is_empty() {
+                    self.cfg.user = s.operator;
+                }
+            }
+            Err(e) => tracing::warn!("/rig/session: not a session ({e}): the uuids keep their lab and user"),
+        }
+    }
+
     /// An operator's request (`/rig/request`); the newest one of a tick wins.
     pub fn push_request(&mut self, event: &EpisodeEvent) {
         match event.kind() {
@@ -851,6 +867,18 @@ mod tests {
         assert!(out.steps.is_empty() && out.events.is_empty());
         assert_eq!(src.actions.len(), 1, "idle, the source is not asked");
         assert_eq!(out.arm.iter().map(|c| c.seq).collect::<Vec<_>>(), [1, 2, 3]);
+    }
+
+    #[test]
+    fn the_operators_session_names_the_next_episodes_uuid() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        tick(&mut rig, 0, &mut src, &mut out);
+        rig.push_session(r#"{"operator": "alice", "lab": "AUTOLab", "task": "wipe"}"#);
+        rig.push_session("not json"); // refused, the session above stays
+        request(&mut rig, EpisodeEventKind::Start, "");
+        src.actions.push_back(go(joints_at(0.01)));
+        tick(&mut rig, 1, &mut src, &mut out);
+        assert!(out.events[0].episode_id.starts_with("AUTOLab+alice+"), "{}", out.events[0].episode_id);
     }
 
     #[test]

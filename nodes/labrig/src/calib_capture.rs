@@ -41,7 +41,8 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 /// The programs a capture never starts: they command the arm or record.
-const NOT_STARTED: [&str; 4] = ["labrig-control", "labrig-recorder", "labrig-teleop", "labrig-policy"];
+const NOT_STARTED: [&str; 5] =
+    ["labrig-control", "labrig-recorder", "labrig-teleop", "labrig-policy", "labrig-station"];
 /// Command period (wall clock), as the rig loop's.
 const PERIOD: Duration = Duration::from_millis(50);
 /// DROID pauses 0.5 s before each view (the arm's time).

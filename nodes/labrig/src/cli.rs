@@ -145,6 +145,14 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// The operator station, a web page for collecting demos: `labrig station [--listen
+    /// 127.0.0.1:8080] [--root episodes] [--token T]` (see `labrig station run --help`).
+    #[command(disable_help_flag = true)]
+    Station {
+        /// Arguments for labrig-station (`run` is implied).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The episode recorder: `labrig recorder run --root episodes` (see `labrig recorder run --help`).
     #[command(disable_help_flag = true)]
     Recorder {
@@ -328,6 +336,10 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Cameras { args } => node("labrig-cameras", &args),
         Command::Control { args } => node("labrig-control", &args),
         Command::Recorder { args } => node("labrig-recorder", &args),
+        Command::Station { args } => match args.first().map(String::as_str) {
+            Some("run" | "help" | "--help" | "-h" | "--version" | "-V") => node("labrig-station", &args),
+            _ => node("labrig-station", &tool("run", args)),
+        },
     }
 }
 

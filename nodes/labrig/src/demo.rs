@@ -9,8 +9,7 @@ use crate::launch::{LaunchConfig, Output};
 use anyhow::{Context, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use labrig_msgs::labrig_msgs::{EpisodeEventKind, RIG_CAMERAS};
-use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::labrig_msgs::EpisodeEventKind;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, qos};
@@ -341,44 +340,5 @@ impl SimRig {
 
 /// One PNG: a row per moment (first, middle, last recorded frame), a column per camera.
 pub fn contact_sheet(mcap_file: &Path, png_out: &Path) -> anyhow::Result<()> {
-    let buf = std::fs::read(mcap_file)?;
-    let mut frames: Vec<Vec<Vec<u8>>> = vec![Vec::new(); RIG_CAMERAS.len()];
-    for m in mcap::MessageStream::new(&buf)? {
-        let m = m?;
-        let Some(cam) =
-            m.channel.topic.strip_prefix(topics::CAMERAS_PREFIX).and_then(|t| t.strip_suffix("/image/compressed"))
-        else {
-            continue;
-        };
-        let Some(i) = RIG_CAMERAS.iter().position(|c| *c == cam) else { continue };
-        let img = labrig_msgs::decode::<CompressedImage>(&m.data)?;
-        frames[i].push(img.data);
-    }
-    let n = frames.iter().map(Vec::len).min().unwrap_or(0);
-    anyhow::ensure!(n > 0, "the episode has no frames from every camera");
-    let decode = |jpeg: &[u8]| -> anyhow::Result<(usize, usize, Vec<u8>)> {
-        let rgb = labrig_episode::jpeg::decode_rgb(jpeg)?;
-        Ok((rgb.width, rgb.height, rgb.pixels))
-    };
-    let (w, h, _) = decode(&frames[0][0])?;
-    let rows = [0, n / 2, n - 1];
-    let gap = 4;
-    let (sw, sh) = (RIG_CAMERAS.len() * (w + gap) - gap, rows.len() * (h + gap) - gap);
-    let mut sheet = vec![32u8; sw * sh * 3];
-    for (r, &k) in rows.iter().enumerate() {
-        for (c, cam) in frames.iter().enumerate() {
-            let (fw, fh, px) = decode(&cam[k])?;
-            anyhow::ensure!((fw, fh) == (w, h), "cameras of different sizes ({fw}x{fh} vs {w}x{h})");
-            for y in 0..h {
-                let dst = ((r * (h + gap) + y) * sw + c * (w + gap)) * 3;
-                sheet[dst..dst + w * 3].copy_from_slice(&px[y * w * 3..(y + 1) * w * 3]);
-            }
-        }
-    }
-    let file = std::io::BufWriter::new(std::fs::File::create(png_out)?);
-    let mut enc = png::Encoder::new(file, sw as u32, sh as u32);
-    enc.set_color(png::ColorType::Rgb);
-    enc.set_depth(png::BitDepth::Eight);
-    enc.write_header()?.write_image_data(&sheet)?;
-    Ok(())
+    Ok(labrig_episode::sheet::contact_sheet(mcap_file, png_out)?)
 }

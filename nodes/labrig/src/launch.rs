@@ -23,7 +23,7 @@ use std::time::{Duration, Instant};
 
 /// The programs a launch config may start (built beside the `labrig` binary). Only programs
 /// that exist: a config naming another one (a node still to come, a typo) is refused by name.
-pub const PROGRAMS: [&str; 8] = [
+pub const PROGRAMS: [&str; 9] = [
     "labrig-sim",
     "labrig-franka",
     "labrig-gripper",
@@ -32,6 +32,7 @@ pub const PROGRAMS: [&str; 8] = [
     "labrig-teleop",
     "labrig-policy",
     "labrig-cameras",
+    "labrig-station",
 ];
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]

@@ -90,6 +90,7 @@ pub fn default_topics() -> Vec<TopicSpec> {
         spec(topics::TF_STATIC.name, "tf2_msgs/msg/TFMessage", true),
         spec(topics::SIM_SCENE.name, "std_msgs/msg/String", true),
         spec(topics::CALIBRATION.name, "std_msgs/msg/String", true),
+        spec(topics::RIG_SESSION.name, "std_msgs/msg/String", true),
         spec(topics::TELEOP_STATE.name, "labrig_msgs/msg/TeleopState", false),
         spec(topics::TELEOP_ACTION.name, "labrig_msgs/msg/ArmCommand", false),
     ];
@@ -265,6 +266,8 @@ struct Context {
     scene_json: Option<String>,
     /// `/calibration`: the calibrations in force, for the metadata.
     calibration_json: Option<String>,
+    /// `/rig/session`: the operator's session (operator, lab, building, scene, task).
+    session: Option<labrig_msgs::session::Session>,
     /// The last message of each latched topic (published once, before any episode): written
     /// into every episode at its start, so each file holds its own /tf_static and scene.
     latched: BTreeMap<String, (Vec<u8>, i64)>,
@@ -740,7 +743,25 @@ impl Recorder {
             .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
             .and_then(|v| v["spec_name"].as_str().map(str::to_owned))
             .unwrap_or_default();
-        let mut meta = EpisodeMetadata::new(&self.cfg.rig, &scene_id, &ev.note, Nanos(start_ns));
+        // The operator's session (`labrig station`) names who, where and what, over the
+        // recorder's own config; an empty field leaves it.
+        let mut rig = self.cfg.rig.clone();
+        let (mut scene_id, mut task) = (scene_id, ev.note.clone());
+        if let Some(s) = &self.context.session {
+            let set = |field: &mut String, v: &str| {
+                if !v.is_empty() {
+                    v.clone_into(field);
+                }
+            };
+            set(&mut rig.user, &s.operator);
+            set(&mut rig.lab, &s.lab);
+            set(&mut rig.building, &s.building);
+            set(&mut scene_id, &s.scene_id);
+            if task.is_empty() {
+                s.task.clone_into(&mut task);
+            }
+        }
+        let mut meta = EpisodeMetadata::new(&rig, &scene_id, &task, Nanos(start_ns));
         if !ev.episode_id.is_empty() {
             meta.uuid.clone_from(&ev.episode_id);
         }
@@ -1070,6 +1091,12 @@ fn drain_topics(
                 ctx.scene_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
             } else if r.spec.topic == topics::CALIBRATION.name {
                 ctx.calibration_json = labrig_msgs::decode::<StringMsg>(&cdr).ok().map(|s| s.data);
+            } else if r.spec.topic == topics::RIG_SESSION.name {
+                let text = labrig_msgs::decode::<StringMsg>(&cdr).map(|s| s.data).unwrap_or_default();
+                match serde_json::from_str::<labrig_msgs::session::Session>(&text) {
+                    Ok(s) => ctx.session = Some(s),
+                    Err(e) => tracing::warn!("/rig/session: not a session ({e}): kept the last one"),
+                }
             }
             if r.spec.latched {
                 ctx.latched

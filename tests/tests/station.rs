@@ -1,0 +1,254 @@
+//! `labrig station` on the simulated rig (launch_configs/sim_droid.toml as `labrig launch`
+//! starts it, the station on a free loopback port): the page and its API over real HTTP; the
+//! cameras' thumbnails update; a session set on the page is in the next episode's metadata
+//! (operator and lab in its uuid); start then success from the page records an episode that
+//! `labrig inspect` accepts; relabel moves it to failure/ and inspect sees the new flag; the
+//! contact sheet; trash moves it to trash/ (never erased); requests without the token or from
+//! another origin are refused and reach nothing.
+
+use labrig_tests::{Proc, domain_for, labrig_bin, repo_root};
+use serde_json::{Value, json};
+use std::io::Read;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+struct Http {
+    base: String,
+    token: String,
+}
+
+enum Reply {
+    Ok(Vec<u8>),
+    Err(u16, String),
+}
+
+fn reply(r: Result<ureq::Response, ureq::Error>) -> Reply {
+    match r {
+        Ok(resp) => {
+            let mut b = Vec::new();
+            resp.into_reader().read_to_end(&mut b).unwrap();
+            Reply::Ok(b)
+        }
+        Err(ureq::Error::Status(code, resp)) => Reply::Err(code, resp.into_string().unwrap_or_default()),
+        Err(e) => Reply::Err(0, e.to_string()),
+    }
+}
+
+impl Http {
+    fn get(&self, path: &str) -> Reply {
+        reply(ureq::get(&format!("{}{path}", self.base)).timeout(Duration::from_secs(10)).call())
+    }
+    fn get_json(&self, path: &str) -> Value {
+        match self.get(path) {
+            Reply::Ok(b) => serde_json::from_slice(&b).unwrap(),
+            Reply::Err(c, e) => panic!("GET {path}: {c} {e}"),
+        }
+    }
+    fn post_with(&self, path: &str, body: &Value, token: Option<&str>, origin: Option<&str>) -> Reply {
+        let mut r = ureq::post(&format!("{}{path}", self.base))
+            .timeout(Duration::from_secs(10))
+            .set("content-type", "application/json");
+        if let Some(t) = token {
+            r = r.set("x-labrig-token", t);
+        }
+        if let Some(o) = origin {
+            r = r.set("origin", o);
+        }
+        reply(r.send_string(&body.to_string()))
+    }
+    fn post(&self, path: &str, body: Value) -> Value {
+        let origin = self.base.trim_end_matches('/').to_owned();
+        match self.post_with(path, &body, Some(&self.token), Some(&origin)) {
+            Reply::Ok(b) => serde_json::from_slice(&b).unwrap(),
+            Reply::Err(c, e) => panic!("POST {path}: {c} {e}"),
+        }
+    }
+}
+
+fn wait_for<T>(what: &str, timeout: Duration, mut f: impl FnMut() -> Option<T>) -> T {
+    let t0 = Instant::now();
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(t0.elapsed() < timeout, "timed out after {timeout:?} waiting for {what}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+fn inspect(dir: &str) -> Value {
+    let out = Command::new(labrig_bin()).args(["inspect", "--json", dir]).output().unwrap();
+    assert!(out.status.success(), "labrig inspect {dir}: {}", labrig_tests::output_text(&out));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
+    for p in ["labrig-sim", "labrig-franka", "labrig-gripper", "labrig-recorder", "labrig-control", "labrig-teleop"] {
+        labrig_tests::workspace_bin(p, p);
+    }
+    labrig_tests::workspace_bin("labrig-station", "labrig-station");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = tempfile::tempdir().unwrap();
+    let repo_cfg = repo_root().join("launch_configs/sim_droid.toml");
+    let text = std::fs::read_to_string(&repo_cfg).unwrap();
+    let station_args = "args = [\"run\", \"--root\", \"episodes\"]\nafter = [\"control\"]";
+    assert!(text.contains(station_args), "sim_droid.toml's station node changed: update this test");
+    let text = text
+        .replace(
+            station_args,
+            &format!(
+                "args = [\"run\", \"--root\", \"episodes\", \"--listen\", \"127.0.0.1:{port}\"]\nafter = [\"control\"]"
+            ),
+        )
+        .replace(
+            "config = \"nodes/teleop_sim_trace.toml\"",
+            &format!(
+                "config = {:?}",
+                repo_root().join("launch_configs/nodes/teleop_sim_trace.toml").display().to_string()
+            ),
+        );
+    let cfg = dir.path().join("sim_droid.toml");
+    std::fs::write(&cfg, text).unwrap();
+    let domain = domain_for("station_sim_droid");
+    let mut cmd = Command::new(labrig_bin());
+    cmd.args(["launch", "--json", "--seconds", "240", "--domain-id", &domain.to_string()])
+        .arg(&cfg)
+        .current_dir(dir.path())
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("station_{}", std::process::id()));
+    let mut rig = Proc::spawn("labrig launch", cmd);
+    let h = rig.wait_json(Duration::from_secs(120), "every node healthy", |v| {
+        v["event"] == "health" && v["nodes"].as_array().is_some_and(|n| n.iter().all(|n| n["up"] == true))
+    });
+    assert!(h["nodes"].as_array().unwrap().iter().any(|n| n["node"] == "station"), "{h}");
+
+    // The page, with the token it gives (loopback).
+    let mut http = Http { base: format!("http://127.0.0.1:{port}"), token: String::new() };
+    let page = match http.get("/") {
+        Reply::Ok(b) => String::from_utf8(b).unwrap(),
+        Reply::Err(c, e) => panic!("GET /: {c} {e}"),
+    };
+    assert!(page.contains("<title>labrig station</title>"));
+    let at = page.find("let token = \"").unwrap() + "let token = \"".len();
+    http.token = page[at..at + page[at..].find('"').unwrap()].to_owned();
+    assert!(http.token.len() >= 16, "the loopback page carries the token");
+
+    // Live state: the arm, the loop, the recorder, every camera with frames.
+    let status = wait_for("the rig's state and every camera", Duration::from_secs(30), || {
+        let s = http.get_json("/api/status");
+        let cams_ok = s["cameras"].as_object().unwrap().values().all(|c| c["fps"].as_f64().is_some_and(|f| f > 0.0));
+        (s["robot"].is_object() && s["loop"].is_object() && s["recorder"].is_object() && cams_ok).then_some(s)
+    });
+    assert_eq!(status["robot"]["joints"].as_array().unwrap().len(), 7, "{status}");
+    assert_eq!(status["cameras"].as_object().unwrap().len(), 5, "{status}");
+    let thumb = |cam: &str| match http.get(&format!("/api/cameras/{cam}.jpg")) {
+        Reply::Ok(b) => b,
+        Reply::Err(c, e) => panic!("{cam}: {c} {e}"),
+    };
+    let first = thumb("ext1");
+    assert_eq!(&first[..2], &[0xFF, 0xD8], "a JPEG");
+
+    // Refused: no token, a wrong one, another origin; none reaches the rig.
+    let sent_before = http.get_json("/api/status")["requests_sent"].as_u64().unwrap();
+    let origin = http.base.clone();
+    for (token, org, code) in [
+        (None, Some(origin.as_str()), 401),
+        (Some("wrong-token"), Some(origin.as_str()), 401),
+        (Some(http.token.as_str()), Some("http://evil.example"), 403),
+    ] {
+        match http.post_with("/api/episode/start", &json!({}), token, org) {
+            Reply::Err(c, _) => assert_eq!(c, code, "{token:?} {org:?}"),
+            Reply::Ok(_) => panic!("{token:?} {org:?} was let through"),
+        }
+    }
+    assert_eq!(http.get_json("/api/status")["requests_sent"].as_u64().unwrap(), sent_before);
+
+    // The session, then an episode from the page.
+    let session = json!({"operator": "alice", "lab": "AUTOLab", "building": "B1", "scene_id": "table_3",
+                         "task": "move the arm along x"});
+    http.post("/api/session", session.clone());
+    std::thread::sleep(Duration::from_secs(1));
+    http.post("/api/episode/start", json!({}));
+    wait_for("the episode recording", Duration::from_secs(20), || {
+        let s = http.get_json("/api/status");
+        (s["loop"]["state"] == "Recording" && s["loop"]["steps"].as_u64().unwrap_or(0) >= 40).then_some(())
+    });
+    // The arm moves with the trace: the thumbnails change.
+    let moving = wait_for("a thumbnail that changed", Duration::from_secs(20), || {
+        let t = thumb("ext1");
+        (t != first).then_some(t)
+    });
+    assert_eq!(&moving[..2], &[0xFF, 0xD8]);
+    // Success from the page (the trace's A press may have ended it first: either way a success).
+    http.post("/api/episode/success", json!({}));
+    let ep = wait_for("the episode listed", Duration::from_secs(30), || {
+        let l = http.get_json("/api/episodes");
+        l["episodes"].as_array().unwrap().first().cloned()
+    });
+    assert_eq!(ep["outcome"], "success", "{ep}");
+    assert_eq!((ep["operator"].as_str(), ep["task"].as_str()), (Some("alice"), Some("move the arm along x")), "{ep}");
+    assert_eq!(
+        (ep["lab"].as_str(), ep["building"].as_str(), ep["scene_id"].as_str()),
+        (Some("AUTOLab"), Some("B1"), Some("table_3"))
+    );
+    let id = ep["id"].as_str().unwrap().to_owned();
+    assert!(id.starts_with("AUTOLab+alice+"), "{id}");
+    let episodes = dir.path().join("episodes");
+    let found = labrig_episode::episode::find_episodes(&episodes.join("success"));
+    assert_eq!(found.len(), 1, "{found:?}");
+    let i = inspect(found[0].to_str().unwrap());
+    assert_eq!(i["flags"], json!([]), "{i}");
+    assert_eq!(
+        (i["metadata"]["user"].as_str(), i["metadata"]["task_instruction"].as_str()),
+        (Some("alice"), Some("move the arm along x"))
+    );
+
+    // The contact sheet.
+    match http.get(&format!("/api/episodes/{id}/sheet.png")) {
+        Reply::Ok(b) => assert!(b.starts_with(b"\x89PNG") && b.len() > 20_000, "{} bytes", b.len()),
+        Reply::Err(c, e) => panic!("sheet: {c} {e}"),
+    }
+    // Relabel: moved to failure/, judged.json beside it, inspect reads the new flag.
+    let r = http.post(&format!("/api/episodes/{id}/relabel"), json!({"success": false}));
+    assert!(r["dir"].as_str().unwrap().starts_with("failure/"), "{r}");
+    let moved = episodes.join(r["dir"].as_str().unwrap());
+    assert!(moved.join("judged.json").is_file() && !found[0].exists());
+    assert_eq!(inspect(moved.to_str().unwrap())["metadata"]["success"], false);
+    let l = http.get_json("/api/episodes");
+    assert_eq!(
+        (l["episodes"][0]["outcome"].as_str(), l["episodes"][0]["relabeled"].as_bool()),
+        (Some("failure"), Some(true))
+    );
+    // Trash: moved under trash/, the files whole.
+    let r = http.post(&format!("/api/episodes/{id}/trash"), json!({}));
+    let trashed = episodes.join(r["dir"].as_str().unwrap());
+    assert!(r["dir"].as_str().unwrap().starts_with("trash/") && trashed.join("episode_0.mcap").is_file(), "{r}");
+    assert_eq!(http.get_json("/api/episodes")["episodes"], json!([]));
+    match http.post_with(&format!("/api/episodes/{id}/trash"), &json!({}), Some(&http.token), None) {
+        Reply::Err(c, _) => assert_eq!(c, 404, "a trashed episode is no longer listed"),
+        Reply::Ok(_) => panic!("trashed twice"),
+    }
+
+    // The station dies: the rig goes on (the loop keeps ticking), the launcher starts the
+    // station again on the same address, and the page's API answers again.
+    let ticks = http.get_json("/api/status")["loop"]["ticks"].as_u64().unwrap();
+    let pattern = format!("labrig-station run --root episodes --listen 127.0.0.1:{port}");
+    assert!(Command::new("pkill").args(["-KILL", "-f", &pattern]).status().unwrap().success(), "no station to kill");
+    let r = rig.wait_json(Duration::from_secs(30), "the station's restart", |v| v["event"] == "restart");
+    assert_eq!(r["node"], "station", "{r}");
+    let s = wait_for("the station back", Duration::from_secs(30), || match http.get("/api/status") {
+        Reply::Ok(b) => serde_json::from_slice::<Value>(&b).ok().filter(|s| s["loop"].is_object()),
+        Reply::Err(..) => None,
+    });
+    assert!(s["loop"]["ticks"].as_u64().unwrap() > ticks, "the loop ran on: {s}");
+    assert_eq!(s["session"]["operator"], "alice", "the session is kept across a restart");
+
+    // Stopped like an operator stops it: every node gone.
+    let pid = rig.child.id().to_string();
+    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
+    assert!(end.get("error").is_none(), "{end}");
+    assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
+    let left = Command::new("pgrep").args(["-f", &format!("--domain-id {domain}")]).output().unwrap();
+    assert!(left.stdout.is_empty(), "nodes left running: {}", String::from_utf8_lossy(&left.stdout));
+}
