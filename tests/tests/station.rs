@@ -1,5 +1,6 @@
 //! `labrig station` on the simulated rig (launch_configs/sim_droid.toml as `labrig launch`
-//! starts it, the station on a free loopback port): the page and its API over real HTTP; the
+//! starts it, the station on a free loopback port, the scripted expert as the loop's source so
+//! an episode the page starts runs until the page or the expert ends it): the page and its API over real HTTP; the
 //! cameras' thumbnails update; a session set on the page is in the next episode's metadata
 //! (operator and lab in its uuid); start then success from the page records an episode that
 //! `labrig inspect` accepts; relabel moves it to failure/ and inspect sees the new flag; the
@@ -82,8 +83,29 @@ fn inspect(dir: &str) -> Value {
     serde_json::from_slice(&out.stdout).unwrap()
 }
 
-#[test]
-fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
+/// sim_droid.toml as `labrig launch` starts it, the station on a free loopback port, episodes
+/// under a fresh folder; returns once every node is healthy.
+struct Rig {
+    proc: Proc,
+    port: u16,
+    domain: u16,
+    dir: tempfile::TempDir,
+    stopped: bool,
+}
+
+impl Drop for Rig {
+    /// A test that failed midway leaves no node running (the launcher's children outlive a
+    /// killed launcher).
+    fn drop(&mut self) {
+        if !self.stopped {
+            let _ = Command::new("kill").args(["-INT", &self.proc.child.id().to_string()]).status();
+            let _ = self.proc.wait_exit(Duration::from_secs(20));
+            let _ = Command::new("pkill").args(["-KILL", "-f", &format!("--domain-id {}$", self.domain)]).status();
+        }
+    }
+}
+
+fn start_rig(name: &str) -> Rig {
     for p in ["labrig-sim", "labrig-franka", "labrig-gripper", "labrig-recorder", "labrig-control", "labrig-teleop"] {
         labrig_tests::workspace_bin(p, p);
     }
@@ -93,13 +115,29 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     let repo_cfg = repo_root().join("launch_configs/sim_droid.toml");
     let text = std::fs::read_to_string(&repo_cfg).unwrap();
     let station_args = "args = [\"run\", \"--root\", \"episodes\"]\nafter = [\"control\"]";
-    assert!(text.contains(station_args), "sim_droid.toml's station node changed: update this test");
+    for line in [
+        station_args,
+        "\"--hardware-prefix\", \"/sim\"]",
+        "\"--source\", \"teleop\", \"--clock\", \"sim\", \"--manual\"]",
+    ] {
+        assert!(text.contains(line), "sim_droid.toml changed ({line}): update this test");
+    }
     let text = text
         .replace(
             station_args,
             &format!(
                 "args = [\"run\", \"--root\", \"episodes\", \"--listen\", \"127.0.0.1:{port}\"]\nafter = [\"control\"]"
             ),
+        )
+        // The scripted expert moves the arm once the page starts an episode (the teleop
+        // trace's own A press could end an episode before the page saw it).
+        .replace(
+            "args = [\"run\", \"--mode\", \"realtime\", \"--hardware-prefix\", \"/sim\"]",
+            "args = [\"run\", \"--mode\", \"realtime\", \"--hardware-prefix\", \"/sim\", \"--expert\"]",
+        )
+        .replace(
+            "args = [\"run\", \"--source\", \"teleop\", \"--clock\", \"sim\", \"--manual\"]",
+            "args = [\"run\", \"--source\", \"scripted\", \"--clock\", \"sim\", \"--manual\"]",
         )
         .replace(
             "config = \"nodes/teleop_sim_trace.toml\"",
@@ -110,17 +148,56 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
         );
     let cfg = dir.path().join("sim_droid.toml");
     std::fs::write(&cfg, text).unwrap();
-    let domain = domain_for("station_sim_droid");
+    let domain = domain_for(name);
     let mut cmd = Command::new(labrig_bin());
     cmd.args(["launch", "--json", "--seconds", "240", "--domain-id", &domain.to_string()])
         .arg(&cfg)
         .current_dir(dir.path())
-        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("station_{}", std::process::id()));
-    let mut rig = Proc::spawn("labrig launch", cmd);
-    let h = rig.wait_json(Duration::from_secs(120), "every node healthy", |v| {
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("{name}_{}", std::process::id()));
+    let mut proc = Proc::spawn("labrig launch", cmd);
+    let h = proc.wait_json(Duration::from_secs(120), "every node healthy", |v| {
         v["event"] == "health" && v["nodes"].as_array().is_some_and(|n| n.iter().all(|n| n["up"] == true))
     });
     assert!(h["nodes"].as_array().unwrap().iter().any(|n| n["node"] == "station"), "{h}");
+    Rig { proc, port, domain, dir, stopped: false }
+}
+
+impl Rig {
+    /// Stopped like an operator stops it (SIGINT): every node gone.
+    fn stop(mut self) {
+        let pid = self.proc.child.id().to_string();
+        assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+        let end = self.proc.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
+        assert!(end.get("error").is_none(), "{end}");
+        assert_eq!(self.proc.wait_exit(Duration::from_secs(30)), Some(0));
+        let left = Command::new("pgrep").args(["-f", &format!("--domain-id {}", self.domain)]).output().unwrap();
+        self.stopped = true;
+        assert!(left.stdout.is_empty(), "nodes left running: {}", String::from_utf8_lossy(&left.stdout));
+    }
+}
+
+/// A Node peer (tests/peers/*.mjs) run from the folder setup installed its packages in.
+fn node_peer(script: &str, args: &[&str]) -> std::process::Output {
+    let peers = std::env::var_os("LABRIG_NODE_PEERS")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| labrig_tests::cache_dir().join("node-peers"));
+    assert!(
+        peers.join("node_modules").is_dir(),
+        "{} has no node_modules: run `bash scripts/setup.sh`",
+        peers.display()
+    );
+    // ES modules resolve packages beside the script: it runs from there.
+    let copy = peers.join(script);
+    std::fs::copy(repo_root().join("tests/peers").join(script), &copy).unwrap();
+    let node = std::env::var("LABRIG_NODE").unwrap_or_else(|_| "node".into());
+    Command::new(node).arg(&copy).args(args).output().unwrap()
+}
+
+#[test]
+fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
+    let rig = start_rig("station_sim_droid");
+    let (port, dir) = (rig.port, rig.dir.path().to_owned());
+    let mut rig = rig;
 
     // The page, with the token it gives (loopback).
     let mut http = Http { base: format!("http://127.0.0.1:{port}"), token: String::new() };
@@ -148,6 +225,33 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     let first = thumb("ext1");
     assert_eq!(&first[..2], &[0xFF, 0xD8], "a JPEG");
 
+    // Foxglove: its own client (@foxglove/ws-protocol) lists the channels, subscribes, and
+    // Foxglove's ros2msg/CDR readers decode the joint states and a camera preview.
+    let out = node_peer("foxglove_client.mjs", &[&format!("ws://127.0.0.1:{port}/foxglove"), "ext1"]);
+    assert!(out.status.success(), "foxglove_client.mjs: {}", labrig_tests::output_text(&out));
+    let fox: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let topics: Vec<&str> = fox["channels"].as_array().unwrap().iter().map(|c| c["topic"].as_str().unwrap()).collect();
+    for t in [
+        "/joint_states",
+        "/tf",
+        "/tf_static",
+        "/rig/step",
+        "/rig/episode",
+        "/cameras/ext1/camera_info",
+        "/cameras/wrist/preview/compressed",
+    ] {
+        assert!(topics.contains(&t), "channel {t} missing: {topics:?}");
+    }
+    assert!(fox["channels"].as_array().unwrap().iter().all(|c| c["encoding"] == "cdr"), "{fox}");
+    let js = &fox["joint_state"];
+    assert!(js["position"].as_array().unwrap().len() >= 7 && js["name"][0].as_str().unwrap().contains("joint"), "{js}");
+    let img = &fox["image"];
+    assert_eq!(
+        (img["format"].as_str(), img["jpeg"].as_bool(), img["frame_id"].as_str()),
+        (Some("jpeg"), Some(true), Some("ext1_optical")),
+        "{img}"
+    );
+
     // Refused: no token, a wrong one, another origin; none reaches the rig.
     let sent_before = http.get_json("/api/status")["requests_sent"].as_u64().unwrap();
     let origin = http.base.clone();
@@ -171,15 +275,15 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     http.post("/api/episode/start", json!({}));
     wait_for("the episode recording", Duration::from_secs(20), || {
         let s = http.get_json("/api/status");
-        (s["loop"]["state"] == "Recording" && s["loop"]["steps"].as_u64().unwrap_or(0) >= 40).then_some(())
+        (s["loop"]["state"] == "Recording" && s["loop"]["steps"].as_u64().unwrap_or(0) >= 20).then_some(())
     });
-    // The arm moves with the trace: the thumbnails change.
+    // The arm moves (the expert): the thumbnails change.
     let moving = wait_for("a thumbnail that changed", Duration::from_secs(20), || {
         let t = thumb("ext1");
         (t != first).then_some(t)
     });
     assert_eq!(&moving[..2], &[0xFF, 0xD8]);
-    // Success from the page (the trace's A press may have ended it first: either way a success).
+    // Success from the page (the expert may have finished first: either way a success).
     http.post("/api/episode/success", json!({}));
     let ep = wait_for("the episode listed", Duration::from_secs(30), || {
         let l = http.get_json("/api/episodes");
@@ -193,7 +297,7 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     );
     let id = ep["id"].as_str().unwrap().to_owned();
     assert!(id.starts_with("AUTOLab+alice+"), "{id}");
-    let episodes = dir.path().join("episodes");
+    let episodes = dir.join("episodes");
     let found = labrig_episode::episode::find_episodes(&episodes.join("success"));
     assert_eq!(found.len(), 1, "{found:?}");
     let i = inspect(found[0].to_str().unwrap());
@@ -234,7 +338,7 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     let ticks = http.get_json("/api/status")["loop"]["ticks"].as_u64().unwrap();
     let pattern = format!("labrig-station run --root episodes --listen 127.0.0.1:{port}");
     assert!(Command::new("pkill").args(["-KILL", "-f", &pattern]).status().unwrap().success(), "no station to kill");
-    let r = rig.wait_json(Duration::from_secs(30), "the station's restart", |v| v["event"] == "restart");
+    let r = rig.proc.wait_json(Duration::from_secs(30), "the station's restart", |v| v["event"] == "restart");
     assert_eq!(r["node"], "station", "{r}");
     let s = wait_for("the station back", Duration::from_secs(30), || match http.get("/api/status") {
         Reply::Ok(b) => serde_json::from_slice::<Value>(&b).ok().filter(|s| s["loop"].is_object()),
@@ -243,12 +347,66 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     assert!(s["loop"]["ticks"].as_u64().unwrap() > ticks, "the loop ran on: {s}");
     assert_eq!(s["session"]["operator"], "alice", "the session is kept across a restart");
 
-    // Stopped like an operator stops it: every node gone.
-    let pid = rig.child.id().to_string();
-    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
-    let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
-    assert!(end.get("error").is_none(), "{end}");
-    assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
-    let left = Command::new("pgrep").args(["-f", &format!("--domain-id {domain}")]).output().unwrap();
-    assert!(left.stdout.is_empty(), "nodes left running: {}", String::from_utf8_lossy(&left.stdout));
+    rig.stop();
+}
+
+/// The page itself in a real browser (Debian's chromium, headless, driven by playwright-core:
+/// tests/peers/station_browser.mjs): it goes live, the thumbnails change while the arm moves,
+/// the session form, Start and Success (clicked) record an episode that `labrig inspect`
+/// accepts with the session's operator and task, "to failure" relabels it (judged.json's
+/// history), "trash" moves it under trash/. The screenshots are kept for the README.
+#[test]
+fn the_station_page_records_judges_and_trashes_an_episode_in_a_browser() {
+    let rig = start_rig("station_browser");
+    let shots = rig.dir.path().join("shots");
+    std::fs::create_dir_all(&shots).unwrap();
+    let out = node_peer("station_browser.mjs", &[&format!("http://127.0.0.1:{}/", rig.port), shots.to_str().unwrap()]);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "station_browser.mjs: {}", labrig_tests::output_text(&out));
+    let stages: Vec<Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+    let names: Vec<&str> = stages.iter().map(|s| s["stage"].as_str().unwrap()).collect();
+    assert_eq!(names, ["live", "session", "recording", "recorded", "relabeled", "trashed"], "{stdout}");
+    assert_eq!(stages[0]["cameras"], 5);
+    // The thumbnails changed while the arm moved.
+    let before = std::fs::read(shots.join("cams_before.png")).unwrap();
+    let after = std::fs::read(shots.join("cams_after.png")).unwrap();
+    assert!(before.len() > 10_000 && before != after, "the camera thumbnails did not change");
+    let id = stages[3]["id"].as_str().unwrap();
+    assert!(id.starts_with("RAILab+bob+"), "{id}");
+    let cells = stages[3]["cells"].as_array().unwrap();
+    assert_eq!((cells[7].as_str(), cells[8].as_str()), (Some("bob"), Some("push the cube forward")), "{cells:?}");
+    // On disk: the episode is in trash/, whole; inspect accepts it with the session in its
+    // metadata and the relabel in judged.json.
+    let trashed = labrig_episode::episode::find_episodes(&rig.dir.path().join("episodes/trash"));
+    assert_eq!(trashed.len(), 1, "{trashed:?}");
+    let i = inspect(trashed[0].to_str().unwrap());
+    assert_eq!(i["flags"], json!([]), "{i}");
+    let m = &i["metadata"];
+    assert_eq!(
+        (
+            m["user"].as_str(),
+            m["lab"].as_str(),
+            m["building"].as_str(),
+            m["scene_id"].as_str(),
+            m["task_instruction"].as_str()
+        ),
+        (Some("bob"), Some("RAILab"), Some("B2"), Some("kitchen_1"), Some("push the cube forward"))
+    );
+    assert_eq!(m["success"], false, "relabelled to failure");
+    let judged: Value =
+        serde_json::from_str(&std::fs::read_to_string(trashed[0].join("judged.json")).unwrap()).unwrap();
+    assert_eq!(
+        (judged["history"][0]["from"].as_bool(), judged["history"][0]["to"].as_bool()),
+        (Some(true), Some(false))
+    );
+    assert!(judged["history"][0]["by"].as_str().unwrap().contains("bob"), "{judged}");
+    assert!(labrig_episode::episode::find_episodes(&rig.dir.path().join("episodes/success")).is_empty());
+    assert!(std::fs::metadata(shots.join("page.png")).unwrap().len() > 50_000);
+    // LABRIG_STATION_SHOTS=<dir> keeps the screenshots (the README's figure comes from there).
+    if let Some(keep) = std::env::var_os("LABRIG_STATION_SHOTS") {
+        for f in ["page.png", "cams_before.png", "cams_after.png"] {
+            std::fs::copy(shots.join(f), std::path::Path::new(&keep).join(f)).unwrap();
+        }
+    }
+    rig.stop();
 }

@@ -10,10 +10,12 @@
 //! - [`episodes`]: the episodes under the recorder's root with their `labrig inspect`
 //!   verdicts, relabel and trash (labrig_episode::judge), contact sheets.
 //! - [`web`]: the HTTP server (axum): the page, its JSON API, the token and origin checks.
+//! - [`foxglove`]: the live rig for Foxglove (the Foxglove WebSocket protocol at `/foxglove`).
 //!
 //! If the station dies the rig goes on: nothing in the loop or the recorder waits for it.
 
 pub mod episodes;
+pub mod foxglove;
 pub mod live;
 pub mod thumbs;
 pub mod web;

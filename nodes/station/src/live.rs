@@ -108,6 +108,7 @@ fn json_of(text: &str) -> Value {
 pub async fn run(
     ros_cfg: &labrig_runtime::RosConfig,
     url: &str,
+    hub: Arc<crate::foxglove::Hub>,
     live: Arc<Mutex<Live>>,
     mut commands: tokio::sync::mpsc::UnboundedReceiver<Command>,
     shutdown: Shutdown,
@@ -124,6 +125,13 @@ pub async fn run(
     let requests = ros.publisher_on(&topics::RIG_REQUEST, 10)?;
     let session_pub = ros.publisher_on(&topics::RIG_SESSION, 1)?;
     let status_pub = ros.publisher_on(&topics::STATION_STATUS, 1)?;
+    // The DDS topics Foxglove gets as received (the thumbnails go to the hub from their thread).
+    let mut forwarded = Vec::new();
+    for c in hub.channels.iter().filter(|c| !c.topic.ends_with("/preview/compressed")) {
+        let q = if c.latched { labrig_runtime::ros::qos::latched(1) } else { labrig_runtime::ros::qos::reliable(16) };
+        forwarded
+            .push((c.topic.clone(), ros.raw_subscription(&c.topic, &labrig_msgs::dds_type_name(&c.schema_name), q)?));
+    }
     let mut status_at = Instant::now() - Duration::from_secs(2);
     // The kept session goes out at start (latched: the loop and the recorder get it whenever
     // they come up).
@@ -152,6 +160,12 @@ pub async fn run(
             status_at = now;
             let sent = live.lock().expect("live state").sent;
             status_pub.publish(StringMsg { data: json!({"url": url, "requests_sent": sent}).to_string() })?;
+        }
+        for (topic, sub) in &forwarded {
+            while let Some(s) = sub.try_take()? {
+                let ns = s.receive_time.0.max(0) as u64;
+                hub.publish(topic, ns, axum::body::Bytes::from(s.msg.to_cdr_bytes()));
+            }
         }
         let mut l = live.lock().expect("live state");
         while let Some(s) = arm.try_take()? {

@@ -3,6 +3,9 @@
 //! own oldest frames and never holds a camera, the loop or the recorder back), keeps the
 //! newest frame, and a few times a second scales it down and encodes it as JPEG.
 
+use labrig_msgs::Nanos;
+use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::std_msgs::Header;
 use labrig_runtime::Shutdown;
 use labrig_runtime::frames::{FrameEncoding, FrameHeader, FrameNode};
 use std::collections::BTreeMap;
@@ -23,6 +26,11 @@ pub struct Thumb {
 }
 
 pub type Thumbs = Arc<Mutex<BTreeMap<String, Thumb>>>;
+
+/// The Foxglove channel of a camera's thumbnails.
+pub fn preview_topic(camera: &str) -> String {
+    labrig_msgs::topics::camera_preview(camera)
+}
 
 /// An image scaled to `width` (nearest sample), as RGB; None for a frame it cannot read.
 pub fn scaled_rgb(h: &FrameHeader, px: &[u8], width: u32) -> Option<(usize, usize, Vec<u8>)> {
@@ -82,6 +90,7 @@ pub fn spawn(
     cameras: Vec<String>,
     hz: f64,
     width: u32,
+    hub: Arc<crate::foxglove::Hub>,
     shutdown: Shutdown,
 ) -> anyhow::Result<(Thumbs, std::thread::JoinHandle<()>)> {
     let thumbs: Thumbs = Arc::default();
@@ -155,6 +164,15 @@ pub fn spawn(
                 let now = Instant::now();
                 times.retain(|t| now.duration_since(*t) < Duration::from_secs(1));
                 let fps = times.len() as f64;
+                // Foxglove's preview of the camera: the thumbnail as a CompressedImage.
+                let image = CompressedImage {
+                    header: Header { stamp: Nanos(h.capture_ns).into(), frame_id: format!("{cam}_optical") },
+                    format: "jpeg".into(),
+                    data: small.clone(),
+                };
+                if let Ok(cdr) = labrig_msgs::encode(&image) {
+                    hub.publish(&preview_topic(cam), h.capture_ns.max(0) as u64, cdr.into());
+                }
                 out.lock().expect("thumbnails").insert(
                     cam.clone(),
                     Thumb {

@@ -45,6 +45,8 @@ struct App {
     commands: tokio::sync::mpsc::UnboundedSender<Command>,
     started: Instant,
     requests: AtomicU64,
+    hub: Arc<crate::foxglove::Hub>,
+    shutdown: Shutdown,
 }
 
 type Shared = Arc<App>;
@@ -70,10 +72,30 @@ fn token_of(headers: &HeaderMap, query: Option<&str>) -> Option<String> {
 async fn guard(State(app): State<Shared>, req: Request, next: Next) -> Response {
     app.requests.fetch_add(1, Ordering::Relaxed);
     let path = req.uri().path().to_owned();
+    let headers = req.headers();
+    if path == "/foxglove" {
+        // A WebSocket is not held to the same-origin rule: on loopback, a browser page may
+        // connect only from this station's own origin or Foxglove's web app; anything else,
+        // and everything beyond loopback, needs the token.
+        let origin = headers.get(header::ORIGIN).and_then(|v| v.to_str().ok());
+        let host = headers.get(header::HOST).and_then(|v| v.to_str().ok()).unwrap_or("");
+        let trusted = origin.is_none_or(|o| o == format!("http://{host}") || o == "https://app.foxglove.dev");
+        if !(app.loopback && trusted) {
+            match token_of(headers, req.uri().query()) {
+                Some(t) if same(&t, &app.token) => {}
+                _ => {
+                    return error(
+                        StatusCode::UNAUTHORIZED,
+                        "the Foxglove connection needs ?token=<the station's token>",
+                    );
+                }
+            }
+        }
+        return next.run(req).await;
+    }
     if !path.starts_with("/api/") {
         return next.run(req).await;
     }
-    let headers = req.headers();
     let is_post = req.method() == Method::POST;
     if is_post || !app.loopback {
         match token_of(headers, req.uri().query()) {
@@ -295,9 +317,38 @@ fn load_session(path: &std::path::Path) -> Session {
     }
 }
 
+async fn foxglove_ws(State(app): State<Shared>, ws: axum::extract::WebSocketUpgrade) -> Response {
+    let (hub, stop) = (app.hub.clone(), app.shutdown.clone());
+    let started_ms =
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0);
+    ws.protocols([crate::foxglove::SUBPROTOCOL])
+        .on_upgrade(move |socket| crate::foxglove::serve(socket, hub, started_ms, stop))
+}
+
+/// The channels Foxglove is offered.
+fn hub_for(cfg: &StationConfig) -> crate::foxglove::Hub {
+    use labrig_msgs::RosMessage;
+    use labrig_msgs::labrig_msgs::{EpisodeEvent, Step};
+    use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage, JointState};
+    use labrig_msgs::tf2_msgs::TFMessage;
+    use labrig_msgs::{schema_text, topics};
+    let mut hub = crate::foxglove::Hub::default();
+    hub.add(topics::JOINT_STATES.name, JointState::TYPE_NAME, schema_text::<JointState>(), false);
+    hub.add(topics::TF.name, TFMessage::TYPE_NAME, schema_text::<TFMessage>(), false);
+    hub.add(topics::TF_STATIC.name, TFMessage::TYPE_NAME, schema_text::<TFMessage>(), true);
+    hub.add(topics::RIG_STEP.name, Step::TYPE_NAME, schema_text::<Step>(), false);
+    hub.add(topics::RIG_EPISODE.name, EpisodeEvent::TYPE_NAME, schema_text::<EpisodeEvent>(), true);
+    for c in &cfg.cameras {
+        hub.add(&topics::camera_info(c), CameraInfo::TYPE_NAME, schema_text::<CameraInfo>(), false);
+        hub.add(&crate::thumbs::preview_topic(c), CompressedImage::TYPE_NAME, schema_text::<CompressedImage>(), false);
+    }
+    hub
+}
+
 fn router(app: Shared) -> Router {
     Router::new()
         .route("/", get(page))
+        .route("/foxglove", get(foxglove_ws))
         .route("/api/status", get(status))
         .route("/api/cameras/{file}", get(camera))
         .route("/api/episodes", get(episodes))
@@ -321,11 +372,13 @@ pub async fn run(cfg: StationConfig, shutdown: Shutdown) -> anyhow::Result<Stati
     let loopback = addr.ip().is_loopback();
     let token = cfg.token.clone().unwrap_or_else(random_token);
     let live = Arc::new(Mutex::new(Live { session: load_session(&cfg.session_path()), ..Live::default() }));
+    let hub = Arc::new(hub_for(&cfg));
     let (thumbs, thumbs_thread) = crate::thumbs::spawn(
         cfg.frames_namespace.clone(),
         cfg.cameras.clone(),
         cfg.thumbnail_hz,
         cfg.thumbnail_width,
+        hub.clone(),
         shutdown.clone(),
     )?;
     let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
@@ -343,6 +396,8 @@ pub async fn run(cfg: StationConfig, shutdown: Shutdown) -> anyhow::Result<Stati
         commands: tx,
         started: Instant::now(),
         requests: AtomicU64::new(0),
+        hub: hub.clone(),
+        shutdown: shutdown.clone(),
     });
     tracing::info!(url = %format!("http://{bound}/"), root = %cfg.root.display(), loopback, "station up");
     // The address a test or a script can read: the first line on stdout.
@@ -355,7 +410,7 @@ pub async fn run(cfg: StationConfig, shutdown: Shutdown) -> anyhow::Result<Stati
         })
     };
     let url = format!("http://{bound}/");
-    let ros = crate::live::run(&cfg.ros, &url, live.clone(), rx, shutdown.clone()).await;
+    let ros = crate::live::run(&cfg.ros, &url, hub, live.clone(), rx, shutdown.clone()).await;
     shutdown.trigger();
     let served = server.await;
     let _ = thumbs_thread.join();
@@ -374,15 +429,17 @@ pub fn test_router(
 ) -> (Router, tokio::sync::mpsc::UnboundedReceiver<Command>) {
     let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
     let app = Arc::new(App {
-        cfg,
         token: token.to_owned(),
         loopback,
         live: Arc::default(),
         thumbs: Arc::default(),
         episodes: Mutex::new(Episodes::default()),
+        hub: Arc::new(hub_for(&cfg)),
+        cfg,
         commands: tx,
         started: Instant::now(),
         requests: AtomicU64::new(0),
+        shutdown: Shutdown::new(),
     });
     (router(app), rx)
 }
