@@ -410,3 +410,32 @@ fn the_station_page_records_judges_and_trashes_an_episode_in_a_browser() {
     }
     rig.stop();
 }
+
+/// `labrig bench station` (functional, not timing: the figures are the README's): both runs
+/// report the loop's jitter and the recordings; the station's page and a Foxglove client
+/// were served while the rig ran.
+#[test]
+fn the_station_bench_measures_the_rig_alone_and_with_the_station() {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-station"] {
+        labrig_tests::workspace_bin(p, p);
+    }
+    let domain = domain_for("bench_station").to_string();
+    let out = Command::new(labrig_bin())
+        .args(["bench", "station", "--seconds", "10", "--clients", "1", "--json", "--domain-id", &domain])
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("bench_station_{}", std::process::id()))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", labrig_tests::output_text(&out));
+    let r: Value =
+        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}: {}", labrig_tests::output_text(&out)));
+    for run in ["alone", "with_station"] {
+        assert!(r[run]["ticks"].as_u64().unwrap() > 100, "{run}: {}", r[run]);
+        assert!(r[run]["tick_jitter_us"]["p99"].is_number() && r[run]["dropped_frames"].is_u64(), "{}", r[run]);
+    }
+    assert!(r["alone"]["cpu_percent"].get("labrig-station").is_none());
+    assert!(r["with_station"]["cpu_percent"]["labrig-station"].is_number(), "{}", r["with_station"]);
+    let load = &r["with_station"]["load"];
+    assert!(load["page"]["requests"].as_u64().unwrap() > 50 && load["page"]["errors"] == 0, "{load}");
+    assert!(load["foxglove"][0]["messages"].as_u64().unwrap() > 100, "{load}");
+    assert!(r["p99_jitter_ratio"].is_number());
+}

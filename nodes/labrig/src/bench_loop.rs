@@ -74,6 +74,39 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
             tmp.clone()
         }
     };
+    let report = measure(&a, &out, None)?;
+    if a.out.is_none() {
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    if a.json {
+        println!("{report}");
+    } else {
+        print_report(&report);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// What runs beside the rig while it is measured: a node added to the launch config, and a
+/// load started once the rig is up (it runs until the flag turns true).
+pub struct Beside {
+    pub node: crate::launch::NodeSpec,
+    pub load: Load,
+}
+
+/// Starts the load; it runs until the flag turns true and its thread returns its figures.
+pub type Load =
+    Box<dyn FnOnce(std::sync::Arc<std::sync::atomic::AtomicBool>) -> std::thread::JoinHandle<serde_json::Value>>;
+
+impl std::fmt::Debug for Beside {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Beside").field("node", &self.node.name).finish()
+    }
+}
+
+/// One measured run of the demo's rig in real time for `a.seconds` (episodes under
+/// `out/episodes`), with `beside` running next to it; the report as JSON (`load`: what the load
+/// returned).
+pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Result<serde_json::Value> {
     let root = out.join("episodes");
     let stats = out.join("control_stats.json");
     let (mut cfg, order) = LaunchConfig::parse(crate::demo::SIM_DEMO, Path::new("launch_configs/sim_demo.toml"))?;
@@ -90,6 +123,14 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
         set_arg(&mut ctl.args, "--episodes", "0");
         set_arg(&mut ctl.args, "--stats-out", &stats.display().to_string());
     }
+    let (mut load, mut order) = (None, order);
+    if let Some(b) = beside {
+        order.push(cfg.nodes.len());
+        cfg.nodes.push(b.node);
+        load = Some(b.load);
+    }
+    let stop_load = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut load_thread = None;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let bar = ProgressBar::new(a.seconds as u64);
     bar.set_style(ProgressStyle::with_template("{spinner} bench loop {bar:30} {pos}/{len} s  {msg}")?);
@@ -123,18 +164,29 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
             if let Some(&pid) = pids.get("labrig-control") {
                 control_pid = Some(pid);
             }
+            // The load starts once every node of the rig is running.
+            if load_thread.is_none()
+                && pids.contains_key("labrig-control")
+                && started.elapsed() > Duration::from_secs(3)
+                && let Some(l) = load.take()
+            {
+                load_thread = Some(l(stop_load.clone()));
+            }
             // The measured window ends after `seconds`: stop the control loop (it writes its
             // stats), the launcher then stops the rig when its job is done.
             if started.elapsed().as_secs_f64() >= seconds
                 && let Some(pid) = control_pid.take()
             {
                 bar.set_message("stopping");
+                stop_load.store(true, std::sync::atomic::Ordering::Relaxed);
                 let _ = std::process::Command::new("kill").args(["-TERM", &pid.to_string()]).status();
             }
         }
         rig.await.context("the launcher task")?
     })?;
     bar.finish_and_clear();
+    stop_load.store(true, std::sync::atomic::Ordering::Relaxed);
+    let load_report = load_thread.map(|t| t.join().unwrap_or(serde_json::Value::Null));
     anyhow::ensure!(code == ExitCode::SUCCESS, "the rig stopped with an error (see above)");
     let control: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(&stats).with_context(|| format!("the control loop's stats {}", stats.display()))?,
@@ -186,48 +238,52 @@ pub fn run(a: LoopArgs) -> anyhow::Result<ExitCode> {
         "mb_per_s": bytes as f64 / 1e6 / run_s,
         "mb_per_recorded_s": bytes as f64 / 1e6 / recorded_s.max(1e-9),
         "cpu_percent": cpu_pct,
+        "load": load_report,
     });
-    if a.out.is_none() {
-        let _ = std::fs::remove_dir_all(&out);
-    }
-    if a.json {
-        println!("{report}");
-    } else {
-        let r = &report;
-        println!(
-            "labrig bench loop: {:.0} s free-running, sim in real time, {}",
-            run_s,
-            r["cameras"].as_str().unwrap_or("")
-        );
-        println!("  (a shared 2-core machine: timings are noisy; compare ratios, rerun before concluding)");
-        println!(
-            "  control loop: {} ticks, period jitter p50 {:.0} us, p99 {:.0} us, max {:.0} us; missed ticks {}",
-            r["ticks"],
-            control["jitter_us"][0].as_f64().unwrap_or(f64::NAN),
-            control["jitter_us"][1].as_f64().unwrap_or(f64::NAN),
-            control["jitter_us"][2].as_f64().unwrap_or(f64::NAN),
-            r["missed_ticks"]
-        );
-        println!(
-            "  observations: {} steps with a camera missing, {} with a stale frame (> 100 ms); skew p50 {:.0} us, p99 {:.0} us",
-            r["steps_missing_frames"],
-            r["steps_stale_frames"],
-            control["skew_us"][0].as_f64().unwrap_or(f64::NAN),
-            control["skew_us"][1].as_f64().unwrap_or(f64::NAN)
-        );
-        println!(
-            "  recorded: {} episodes ({} successful), {} steps, {:.0} s; dropped frames {}, flagged episodes {}",
-            r["recorded_episodes"], r["successes"], steps, recorded_s, dropped, flagged
-        );
-        println!(
-            "  written: {:.1} MB, {:.2} MB/s over the run, {:.2} MB/s while recording",
-            r["mb_written"].as_f64().unwrap_or(0.0),
-            r["mb_per_s"].as_f64().unwrap_or(0.0),
-            r["mb_per_recorded_s"].as_f64().unwrap_or(0.0)
-        );
-        for (n, p) in &cpu_pct {
-            println!("  cpu {n}: {p:.1}% of one core");
+    Ok(report)
+}
+
+pub fn print_report(r: &serde_json::Value) {
+    let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    println!(
+        "labrig bench loop: {:.0} s free-running, sim in real time, {}",
+        f(&r["seconds"]),
+        r["cameras"].as_str().unwrap_or("")
+    );
+    println!("  (a shared 2-core machine: timings are noisy; compare ratios, rerun before concluding)");
+    println!(
+        "  control loop: {} ticks, period jitter p50 {:.0} us, p99 {:.0} us, max {:.0} us; missed ticks {}",
+        r["ticks"],
+        f(&r["tick_jitter_us"]["p50"]),
+        f(&r["tick_jitter_us"]["p99"]),
+        f(&r["tick_jitter_us"]["max"]),
+        r["missed_ticks"]
+    );
+    println!(
+        "  observations: {} steps with a camera missing, {} with a stale frame (> 100 ms); skew p50 {:.0} us, p99 {:.0} us",
+        r["steps_missing_frames"],
+        r["steps_stale_frames"],
+        f(&r["camera_skew_us"]["p50"]),
+        f(&r["camera_skew_us"]["p99"])
+    );
+    println!(
+        "  recorded: {} episodes ({} successful), {} steps, {:.0} s; dropped frames {}, flagged episodes {}",
+        r["recorded_episodes"],
+        r["successes"],
+        r["recorded_steps"],
+        f(&r["recorded_seconds"]),
+        r["dropped_frames"],
+        r["flagged_episodes"]
+    );
+    println!(
+        "  written: {:.1} MB, {:.2} MB/s over the run, {:.2} MB/s while recording",
+        f(&r["mb_written"]),
+        f(&r["mb_per_s"]),
+        f(&r["mb_per_recorded_s"])
+    );
+    if let Some(cpu) = r["cpu_percent"].as_object() {
+        for (n, p) in cpu {
+            println!("  cpu {n}: {:.1}% of one core", f(p));
         }
     }
-    Ok(ExitCode::SUCCESS)
 }

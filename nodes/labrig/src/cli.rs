@@ -232,6 +232,9 @@ pub enum BenchCommand {
     Shm(crate::bench::ShmArgs),
     /// The rig loop free-running for minutes: tick jitter, missed ticks, dropped frames, recorder CPU, MB/s.
     Loop(crate::bench_loop::LoopArgs),
+    /// Whether the operator station is felt: the rig's loop jitter, skew and dropped frames
+    /// alone vs with the station, its page and three Foxglove clients.
+    Station(crate::bench_station::StationArgs),
     /// Camera streams (ffmpeg MJPEG servers) through labrig-cameras into the loop's observation:
     /// delivered/lost frames, capture -> observation latency, skew, CPU.
     Cameras(crate::bench_cameras::CamerasBenchArgs),
@@ -300,6 +303,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Franka { args }) => node("labrig-franka", &tool("bench", args)),
         Command::Bench(BenchCommand::Record { args }) => node("labrig-recorder", &tool("bench", args)),
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
+        Command::Bench(BenchCommand::Station(a)) => crate::bench_station::run(a),
         Command::Bench(BenchCommand::Cameras(a)) => crate::bench_cameras::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),

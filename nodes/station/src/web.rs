@@ -400,8 +400,8 @@ pub async fn run(cfg: StationConfig, shutdown: Shutdown) -> anyhow::Result<Stati
         shutdown: shutdown.clone(),
     });
     tracing::info!(url = %format!("http://{bound}/"), root = %cfg.root.display(), loopback, "station up");
-    // The address a test or a script can read: the first line on stdout.
-    println!("labrig station: http://{bound}/");
+    // For the operator at a terminal (stderr: a node's stdout is left to its stats).
+    eprintln!("labrig station: http://{bound}/");
     let server = {
         let stop = shutdown.clone();
         let app = app.clone();
