@@ -3,12 +3,16 @@
 // set, Start then Success (the buttons) record an episode that appears in the table, "to
 // failure" relabels it, "trash" (confirmed) moves it out of the table.
 //
-// usage: node station_browser.mjs URL OUT_DIR
+// Last, the station is frozen (SIGSTOP to the processes matching STATION_PATTERN): the page
+// says it is disconnected; thawed (SIGCONT), the page says it is live again, by itself.
+//
+// usage: node station_browser.mjs URL OUT_DIR STATION_PATTERN
 // writes OUT_DIR/{cams_before,cams_after,page}.png; prints JSON lines, one per stage
 // ({"stage": ..., ...}); exits 1 with the reason on stderr when a stage times out.
 import { chromium } from "playwright-core";
+import { execSync } from "node:child_process";
 
-const [url, out] = process.argv.slice(2);
+const [url, out, stationPattern] = process.argv.slice(2);
 const say = (o) => console.log(JSON.stringify(o));
 const browser = await chromium.launch({
   executablePath: process.env.LABRIG_CHROMIUM || "/usr/bin/chromium",
@@ -48,7 +52,7 @@ try {
   say({ stage: "session" });
 
   await page.click("#b_start");
-  await page.waitForFunction(() => document.getElementById("episode_state").textContent.includes("Recording"), null, { timeout: 20000 });
+  await page.waitForFunction(() => document.getElementById("episode_state").textContent.includes("Recording"), null, { timeout: 40000 });
   // The expert moves the arm; give it time to move, then the thumbnails again.
   await page.waitForTimeout(2500);
   await page.locator("#cams").screenshot({ path: `${out}/cams_after.png` });
@@ -79,6 +83,17 @@ try {
   await page.locator("#episodes tbody tr").first().locator("button.trash").click();
   await page.waitForFunction(() => document.querySelectorAll("#episodes tbody tr").length === 0, null, { timeout: 20000 });
   say({ stage: "trashed", id });
+
+  execSync(`pkill -STOP -f '${stationPattern}'`);
+  try {
+    await page.waitForFunction(() => document.getElementById("conn").textContent.startsWith("disconnected"), null, { timeout: 15000 });
+  } finally {
+    execSync(`pkill -CONT -f '${stationPattern}'`);
+  }
+  say({ stage: "disconnected" });
+  await page.waitForFunction(() => document.getElementById("conn").textContent === "live", null, { timeout: 40000 });
+  const log = await page.evaluate(() => document.getElementById("log").innerText);
+  say({ stage: "reconnected", said: log.includes("reconnected") });
   await browser.close();
 } catch (e) {
   await fail(String(e));

@@ -77,10 +77,21 @@ fn wait_for<T>(what: &str, timeout: Duration, mut f: impl FnMut() -> Option<T>) 
     }
 }
 
+/// `labrig inspect --json`: the episode reads whole (exit 0, or 3 when something is flagged: a
+/// real-time rig beside a browser on two cores may miss a tick, which inspect rightly names).
 fn inspect(dir: &str) -> Value {
     let out = Command::new(labrig_bin()).args(["inspect", "--json", dir]).output().unwrap();
-    assert!(out.status.success(), "labrig inspect {dir}: {}", labrig_tests::output_text(&out));
-    serde_json::from_slice(&out.stdout).unwrap()
+    assert!(matches!(out.status.code(), Some(0 | 3)), "labrig inspect {dir}: {}", labrig_tests::output_text(&out));
+    let i: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(i["complete"] == true && i["damage"].is_null() && i["steps"].as_u64().unwrap() > 10, "{i}");
+    for f in i["flags"].as_array().unwrap() {
+        let f = f.as_str().unwrap();
+        assert!(
+            f.contains("missed control ticks") || f.contains("frames dropped"),
+            "flagged for more than timing: {f}"
+        );
+    }
+    i
 }
 
 /// sim_droid.toml as `labrig launch` starts it, the station on a free loopback port, episodes
@@ -301,7 +312,6 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     let found = labrig_episode::episode::find_episodes(&episodes.join("success"));
     assert_eq!(found.len(), 1, "{found:?}");
     let i = inspect(found[0].to_str().unwrap());
-    assert_eq!(i["flags"], json!([]), "{i}");
     assert_eq!(
         (i["metadata"]["user"].as_str(), i["metadata"]["task_instruction"].as_str()),
         (Some("alice"), Some("move the arm along x"))
@@ -354,18 +364,30 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
 /// tests/peers/station_browser.mjs): it goes live, the thumbnails change while the arm moves,
 /// the session form, Start and Success (clicked) record an episode that `labrig inspect`
 /// accepts with the session's operator and task, "to failure" relabels it (judged.json's
-/// history), "trash" moves it under trash/. The screenshots are kept for the README.
+/// history), "trash" moves it under trash/; the station frozen, the page says it is
+/// disconnected, and live again by itself once the station is thawed. The screenshots are kept
+/// for the README.
 #[test]
 fn the_station_page_records_judges_and_trashes_an_episode_in_a_browser() {
     let rig = start_rig("station_browser");
     let shots = rig.dir.path().join("shots");
     std::fs::create_dir_all(&shots).unwrap();
-    let out = node_peer("station_browser.mjs", &[&format!("http://127.0.0.1:{}/", rig.port), shots.to_str().unwrap()]);
+    // `[n]`: the pattern matches the station, not the script's own command line that holds it.
+    let station = format!("labrig-statio[n] run --root episodes --listen 127.0.0.1:{}", rig.port);
+    let out = node_peer(
+        "station_browser.mjs",
+        &[&format!("http://127.0.0.1:{}/", rig.port), shots.to_str().unwrap(), &station],
+    );
     let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(out.status.success(), "station_browser.mjs: {}", labrig_tests::output_text(&out));
     let stages: Vec<Value> = stdout.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
     let names: Vec<&str> = stages.iter().map(|s| s["stage"].as_str().unwrap()).collect();
-    assert_eq!(names, ["live", "session", "recording", "recorded", "relabeled", "trashed"], "{stdout}");
+    assert_eq!(
+        names,
+        ["live", "session", "recording", "recorded", "relabeled", "trashed", "disconnected", "reconnected"],
+        "{stdout}"
+    );
+    assert_eq!(stages[7]["said"], true, "the page's log says it reconnected: {stdout}");
     assert_eq!(stages[0]["cameras"], 5);
     // The thumbnails changed while the arm moved.
     let before = std::fs::read(shots.join("cams_before.png")).unwrap();
@@ -380,7 +402,6 @@ fn the_station_page_records_judges_and_trashes_an_episode_in_a_browser() {
     let trashed = labrig_episode::episode::find_episodes(&rig.dir.path().join("episodes/trash"));
     assert_eq!(trashed.len(), 1, "{trashed:?}");
     let i = inspect(trashed[0].to_str().unwrap());
-    assert_eq!(i["flags"], json!([]), "{i}");
     let m = &i["metadata"];
     assert_eq!(
         (
