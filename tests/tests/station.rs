@@ -343,6 +343,14 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
         Reply::Ok(_) => panic!("trashed twice"),
     }
 
+    // Home while idle: the loop takes the request and says the arm is home (a new Reset event).
+    let seq = http.get_json("/api/status")["last_event"]["seq"].as_u64().unwrap_or(0);
+    http.post("/api/episode/reset", json!({}));
+    wait_for("the loop's Reset after the page's Home", Duration::from_secs(20), || {
+        let e = http.get_json("/api/status")["last_event"].clone();
+        (e["seq"].as_u64().unwrap_or(0) > seq && e["kind"] == "reset").then_some(())
+    });
+
     // The station dies: the rig goes on (the loop keeps ticking), the launcher starts the
     // station again on the same address, and the page's API answers again.
     let ticks = http.get_json("/api/status")["loop"]["ticks"].as_u64().unwrap();
@@ -350,11 +358,15 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     assert!(Command::new("pkill").args(["-KILL", "-f", &pattern]).status().unwrap().success(), "no station to kill");
     let r = rig.proc.wait_json(Duration::from_secs(30), "the station's restart", |v| v["event"] == "restart");
     assert_eq!(r["node"], "station", "{r}");
-    let s = wait_for("the station back", Duration::from_secs(30), || match http.get("/api/status") {
-        Reply::Ok(b) => serde_json::from_slice::<Value>(&b).ok().filter(|s| s["loop"].is_object()),
-        Reply::Err(..) => None,
-    });
-    assert!(s["loop"]["ticks"].as_u64().unwrap() > ticks, "the loop ran on: {s}");
+    // (The loop's status is latched and refreshed each second: the relaunched station may hear
+    // the last one first.)
+    let s =
+        wait_for("the station back, the loop ticking on", Duration::from_secs(30), || match http.get("/api/status") {
+            Reply::Ok(b) => serde_json::from_slice::<Value>(&b)
+                .ok()
+                .filter(|s| s["loop"]["ticks"].as_u64().is_some_and(|t| t > ticks)),
+            Reply::Err(..) => None,
+        });
     assert_eq!(s["session"]["operator"], "alice", "the session is kept across a restart");
 
     rig.stop();

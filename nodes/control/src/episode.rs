@@ -18,6 +18,8 @@ pub enum Ending {
     Success,
     Failure,
     Discarded,
+    /// No episode: the operator sent the arm home while idle.
+    Homing,
 }
 
 /// What the loop does on a transition.
@@ -29,6 +31,8 @@ pub enum Effect {
     EndRecording(Ending),
     /// The arm is home: ready for the next episode.
     Ready,
+    /// Idle, the operator asked for home: send the arm there (no episode, nothing recorded).
+    GoHome,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -82,6 +86,8 @@ impl Episodes {
             }
             // The arm reached home (the loop sends Reset when it has).
             (State::Resetting(_), E::Reset) => (State::Idle, Effect::Ready),
+            // An operator's Reset while idle: home first, then idle again.
+            (State::Idle, E::Reset) => (State::Resetting(Ending::Homing), Effect::GoHome),
             _ => return Err(refused),
         };
         if matches!(effect, Effect::EndRecording(Ending::Success | Ending::Failure)) {
@@ -132,5 +138,15 @@ mod tests {
         assert_eq!(e.on(E::Start).unwrap_err().state, State::Recording);
         assert_eq!(e.on(E::Reset).unwrap_err().event, E::Reset);
         assert!(e.recording());
+    }
+
+    #[test]
+    fn a_reset_while_idle_goes_home_without_an_episode() {
+        let mut e = Episodes::default();
+        assert_eq!(e.on(E::Reset), Ok(Effect::GoHome));
+        assert_eq!(e.state(), State::Resetting(Ending::Homing));
+        assert_eq!(e.on(E::Start).unwrap_err().state, State::Resetting(Ending::Homing));
+        assert_eq!(e.on(E::Reset), Ok(Effect::Ready), "home: idle again");
+        assert_eq!(e.recorded, 0);
     }
 }

@@ -391,6 +391,12 @@ impl RigLoop {
     ) -> Result<(), LoopError> {
         let tick_ns = self.tick().ns;
         let (mut event, mut instruction) = match self.pending_request.take() {
+            // Only the loop says the arm is home: an operator's Reset means "go home", which
+            // applies while idle (while resetting the arm is on its way already).
+            Some((EpisodeEventKind::Reset, _)) if self.episodes.state() != State::Idle => {
+                tracing::warn!(state = ?self.episodes.state(), "a Reset request applies while idle only: ignored");
+                (None, String::new())
+            }
             Some((k, note)) => (Some(k), note),
             None => (None, String::new()),
         };
@@ -550,6 +556,7 @@ impl RigLoop {
                     Ending::Success => "success",
                     Ending::Failure => "failure",
                     Ending::Discarded => "discarded",
+                    Ending::Homing => "none",
                 };
                 tracing::info!(episode = %self.episode_id, steps = self.episodes.steps, outcome, "episode ended");
                 self.summary.episodes.push(EpisodeReport {
@@ -567,6 +574,10 @@ impl RigLoop {
             Ok(Effect::Ready) => {
                 self.publish_event(out, kind, "", tick_ns);
                 tracing::info!("the arm is home");
+            }
+            Ok(Effect::GoHome) => {
+                self.reset_started = tick_ns;
+                tracing::info!("the operator sent the arm home");
             }
             Err(refused) => tracing::warn!("{refused}"),
         }
@@ -922,6 +933,32 @@ mod tests {
         let summary = rig.finish(&mut out);
         assert_eq!(summary.episodes.len(), 1);
         assert_eq!(out.kinds().len(), 3, "finish adds no Stop when no episode is open");
+    }
+
+    #[test]
+    fn an_operators_reset_while_idle_sends_the_arm_home_and_nothing_is_recorded() {
+        let (mut rig, mut src, mut out) = (rig(100), Queue::default(), Sent::default());
+        // The arm away from home, idle.
+        rig.set_robot(state(joints_at(0.3)));
+        out.arm.push(ArmCommand { joint_position: joints_at(0.3), ..Default::default() });
+        tick(&mut rig, 0, &mut src, &mut out);
+        // A Reset from the operator: the loop drives it home in safe steps, then says Reset.
+        request(&mut rig, EpisodeEventKind::Reset, "");
+        tick(&mut rig, 1, &mut src, &mut out);
+        assert!(matches!(rig.state(), State::Resetting(_)), "{:?}", rig.state());
+        // A second Reset on the way is ignored (only the loop says the arm is home).
+        request(&mut rig, EpisodeEventKind::Reset, "");
+        let mut k = 2;
+        while rig.state() != State::Idle {
+            tick(&mut rig, k, &mut src, &mut out);
+            k += 1;
+            assert!(k < 400, "never home: {:?}", out.arm.last());
+        }
+        assert!(k > 4, "home took more than a tick or two from 0.3 rad away");
+        let last = out.arm.last().unwrap().joint_position;
+        assert!(last.iter().zip(DROID_RESET_POSE).all(|(q, h)| (q - h).abs() < 0.02), "{last:?}");
+        assert_eq!(out.kinds(), [EpisodeEventKind::Reset], "no episode, only the arm home");
+        assert!(out.steps.is_empty() && rig.summary().episodes.is_empty());
     }
 
     #[test]

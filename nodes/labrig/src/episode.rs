@@ -1,4 +1,4 @@
-//! `labrig episode start|success|failure|discard|stop`: an operator's episode event for the rig
+//! `labrig episode start|success|failure|discard|stop|reset`: an operator's episode event for the rig
 //! loop (on `/rig/request`). The loop applies it if it makes sense in its state (a Success
 //! while idle is refused, named in its log) and publishes what happened on `/rig/episode`.
 
@@ -18,6 +18,8 @@ pub enum Kind {
     Discard,
     /// End without a label (recorded as a failure, as in DROID).
     Stop,
+    /// Idle: send the arm home (after an episode it goes there by itself).
+    Reset,
 }
 
 #[derive(Debug, Args)]
@@ -41,6 +43,7 @@ pub fn run(a: EpisodeArgs) -> anyhow::Result<ExitCode> {
         Kind::Failure => EpisodeEventKind::Failure,
         Kind::Discard => EpisodeEventKind::Discard,
         Kind::Stop => EpisodeEventKind::Stop,
+        Kind::Reset => EpisodeEventKind::Reset,
     };
     let cfg = a.ros.config()?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;

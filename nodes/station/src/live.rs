@@ -23,6 +23,8 @@ pub struct Live {
     /// `/calibration`: per camera its Unix time.
     pub calibration: Option<Value>,
     pub last_event: Option<(Value, Instant)>,
+    /// Episode events seen since the station started.
+    pub events_seen: u64,
     pub session: Session,
     /// Requests sent (for the page's log and the stats).
     pub sent: u64,
@@ -206,7 +208,11 @@ pub async fn run(
         }
         while let Some(s) = events.try_take()? {
             let m = s.msg;
-            l.last_event = Some((json!({"kind": event_name(m.kind), "episode": m.episode_id, "note": m.note}), now));
+            l.events_seen += 1;
+            l.last_event = Some((
+                json!({"kind": event_name(m.kind), "episode": m.episode_id, "note": m.note, "seq": l.events_seen}),
+                now,
+            ));
         }
     }
     Ok(())

@@ -4,7 +4,7 @@
 //!   a camera's newest thumbnail; `GET /api/episodes` the episodes, newest first;
 //!   `GET /api/episodes/<id>/sheet.png` an episode's contact sheet.
 //! - `POST /api/session` (JSON: operator, lab, building, scene_id, task),
-//!   `POST /api/episode/<start|success|failure|discard|stop>` (optional JSON `{"note"}`; a
+//!   `POST /api/episode/<start|success|failure|discard|stop|reset>` (optional JSON `{"note"}`; a
 //!   start without one takes the session's task), `POST /api/episodes/<id>/relabel`
 //!   (`{"success": bool}`), `POST /api/episodes/<id>/trash`.
 //!
@@ -252,10 +252,12 @@ async fn episode_event(State(app): State<Shared>, UrlPath(kind): UrlPath<String>
         "failure" => EpisodeEventKind::Failure,
         "discard" => EpisodeEventKind::Discard,
         "stop" => EpisodeEventKind::Stop,
+        // Idle: the loop sends the arm home (after an episode it goes there by itself).
+        "reset" => EpisodeEventKind::Reset,
         other => {
             return error(
                 StatusCode::NOT_FOUND,
-                format!("no event {other:?} (start, success, failure, discard, stop)"),
+                format!("no event {other:?} (start, success, failure, discard, stop, reset)"),
             );
         }
     };
