@@ -468,6 +468,7 @@ fn the_station_bench_measures_the_rig_alone_and_with_the_station() {
     assert!(r["alone"]["cpu_percent"].get("labrig-station").is_none());
     assert!(r["with_station"]["cpu_percent"]["labrig-station"].is_number(), "{}", r["with_station"]);
     let load = &r["with_station"]["load"];
+    // Every request answered (a thumbnail asked for before the camera's first frame is a 503).
     assert!(load["page"]["requests"].as_u64().unwrap() > 50 && load["page"]["errors"] == 0, "{load}");
     assert!(load["foxglove"][0]["messages"].as_u64().unwrap() > 100, "{load}");
     assert!(r["p99_jitter_ratio"].is_number());

@@ -32,7 +32,9 @@ pub struct StationArgs {
 /// The page's polling, as the page does it; returns what it fetched.
 fn page_client(base: String, stop: Arc<AtomicBool>) -> Value {
     let agent = ureq::AgentBuilder::new().timeout(Duration::from_secs(5)).build();
-    let (mut requests, mut bytes, mut errors) = (0u64, 0u64, 0u64);
+    // `refused`: answered with an error status (a camera with no frame yet answers 503);
+    // `errors`: no answer at all.
+    let (mut requests, mut bytes, mut errors, mut refused) = (0u64, 0u64, 0u64, 0u64);
     let mut last_list = Instant::now() - Duration::from_secs(10);
     let mut get = |path: &str| match agent.get(&format!("{base}{path}")).call() {
         Ok(r) => {
@@ -41,6 +43,7 @@ fn page_client(base: String, stop: Arc<AtomicBool>) -> Value {
             requests += 1;
             bytes += b.len() as u64;
         }
+        Err(ureq::Error::Status(..)) => refused += 1,
         Err(_) => errors += 1,
     };
     while !stop.load(Ordering::Relaxed) {
@@ -55,7 +58,7 @@ fn page_client(base: String, stop: Arc<AtomicBool>) -> Value {
         }
         std::thread::sleep(Duration::from_millis(250).saturating_sub(t.elapsed()));
     }
-    json!({"requests": requests, "bytes": bytes, "errors": errors})
+    json!({"requests": requests, "bytes": bytes, "errors": errors, "refused": refused})
 }
 
 /// A Foxglove client subscribed to every advertised channel; returns what it received.
@@ -202,9 +205,10 @@ pub fn run(a: StationArgs) -> anyhow::Result<ExitCode> {
     println!("  p99 jitter with / alone: {ratio:.2}");
     let l = &with["load"];
     println!(
-        "  the page: {} requests ({:.1} MB, {} errors); Foxglove: {}",
+        "  the page: {} requests ({:.1} MB, {} refused, {} unanswered); Foxglove: {}",
         l["page"]["requests"],
         l["page"]["bytes"].as_f64().unwrap_or(0.0) / 1e6,
+        l["page"]["refused"],
         l["page"]["errors"],
         l["foxglove"]
             .as_array()

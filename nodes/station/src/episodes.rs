@@ -55,6 +55,9 @@ pub fn check_id(id: &str) -> Result<(), EpisodesError> {
     if ok { Ok(()) } else { Err(EpisodesError::BadId(id.to_owned())) }
 }
 
+/// How many episodes the page lists (and the station acts on): the newest.
+pub const LISTED: usize = 200;
+
 /// The list, cached per episode file.
 #[derive(Debug, Default)]
 pub struct Episodes {
@@ -98,36 +101,44 @@ fn listed(dir: &Path, outcome: &str) -> Option<Listed> {
 }
 
 impl Episodes {
-    /// Every episode under `root`'s success/ and failure/, newest first (at most `limit`).
+    /// The episodes under `root`'s success/ and failure/, newest first (at most `limit`).
     pub fn list(&mut self, root: &Path, limit: usize) -> Vec<Listed> {
-        let mut out = Vec::new();
-        let mut live = Vec::new();
+        // The newest `limit` by file time first (a rig's root holds thousands: only those are
+        // inspected), then each read once and cached while its files stay as they were.
+        let mut found: Vec<(SystemTime, u64, PathBuf, &str)> = Vec::new();
         for outcome in ["success", "failure"] {
             for dir in labrig_episode::episode::find_episodes(&root.join(outcome)) {
-                let Some(st) = stamp(&dir) else { continue };
-                live.push(dir.clone());
-                match self.cache.get(&dir) {
-                    Some((s, l)) if *s == st => out.push(l.clone()),
-                    _ => {
-                        // An episode being finished is skipped until it reads.
-                        if let Some(l) = listed(&dir, outcome) {
-                            self.cache.insert(dir.clone(), (st, l.clone()));
-                            out.push(l);
-                        }
+                let Some((size, time)) = stamp(&dir) else { continue };
+                found.push((time, size, dir, outcome));
+            }
+        }
+        found.sort_by_key(|f| std::cmp::Reverse(f.0));
+        found.truncate(limit);
+        let mut out = Vec::new();
+        for (time, size, dir, outcome) in &found {
+            let st = (*size, *time);
+            match self.cache.get(dir) {
+                Some((s, l)) if *s == st => out.push(l.clone()),
+                _ => {
+                    // An episode being finished is skipped until it reads.
+                    if let Some(l) = listed(dir, outcome) {
+                        self.cache.insert(dir.clone(), (st, l.clone()));
+                        out.push(l);
                     }
                 }
             }
         }
-        self.cache.retain(|d, _| live.contains(d));
+        self.cache.retain(|d, _| found.iter().any(|f| &f.2 == d));
         out.sort_by_key(|l| std::cmp::Reverse(l.start_ns));
         out.truncate(limit);
         out
     }
 
-    /// The folder of episode `id` (looked up in a fresh list).
+    /// The folder of episode `id` (looked up in a fresh list of the newest [`LISTED`]: the ones
+    /// the page shows).
     pub fn find(&mut self, root: &Path, id: &str) -> Result<PathBuf, EpisodesError> {
         check_id(id)?;
-        self.list(root, usize::MAX)
+        self.list(root, LISTED)
             .into_iter()
             .find(|l| l.id == id)
             .map(|l| l.dir)

@@ -184,7 +184,7 @@ async fn with_episodes<T: Send + 'static>(
 }
 
 async fn episodes(State(app): State<Shared>) -> Response {
-    match with_episodes(&app, |e, root| Ok(e.list(root, 200))).await {
+    match with_episodes(&app, |e, root| Ok(e.list(root, crate::episodes::LISTED))).await {
         Ok(list) => axum::Json(json!({ "episodes": list })).into_response(),
         Err(r) => r,
     }
