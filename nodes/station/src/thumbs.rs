@@ -16,8 +16,9 @@ use std::time::{Duration, Instant};
 #[derive(Debug, Clone)]
 pub struct Thumb {
     pub jpeg: Arc<Vec<u8>>,
-    /// The enlarged view (twice the width), made from the same frame.
-    pub large: Arc<Vec<u8>>,
+    /// The enlarged view's pixels (twice the width, RGB), from the same frame: encoded only when
+    /// the page asks for it ([`Thumb::large_jpeg`]), not for every camera at every cycle.
+    pub large: Arc<(usize, usize, Vec<u8>)>,
     pub capture_ns: i64,
     pub sequence: u64,
     pub made: Instant,
@@ -75,6 +76,14 @@ pub fn scaled_rgb(h: &FrameHeader, px: &[u8], width: u32) -> Option<(usize, usiz
         }
     }
     Some((w, hgt, out))
+}
+
+impl Thumb {
+    /// The enlarged view as JPEG.
+    pub fn large_jpeg(&self) -> Option<Vec<u8>> {
+        let (w, h, rgb) = &*self.large;
+        jpeg(*w, *h, rgb)
+    }
 }
 
 fn jpeg(w: usize, h: usize, rgb: &[u8]) -> Option<Vec<u8>> {
@@ -146,7 +155,6 @@ pub fn spawn(
                 let Some(frame) = newest else { continue };
                 let h = *frame.header();
                 let made = scaled_rgb(&h, frame.pixels(), width * 2).and_then(|(w2, h2, rgb2)| {
-                    let large = jpeg(w2, h2, &rgb2)?;
                     // The thumbnail: every other pixel of the enlarged view.
                     let (w1, h1) = ((w2 / 2).max(1), (h2 / 2).max(1));
                     let mut rgb1 = Vec::with_capacity(w1 * h1 * 3);
@@ -156,7 +164,7 @@ pub fn spawn(
                             rgb1.extend_from_slice(&rgb2[i..i + 3]);
                         }
                     }
-                    Some((jpeg(w1, h1, &rgb1)?, large))
+                    Some((jpeg(w1, h1, &rgb1)?, (w2, h2, rgb2)))
                 });
                 drop(frame);
                 let Some((small, large)) = made else { continue };

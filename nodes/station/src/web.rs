@@ -159,9 +159,15 @@ async fn camera(
     let Some(t) = app.thumbs.lock().expect("thumbnails").get(cam).cloned() else {
         return error(StatusCode::SERVICE_UNAVAILABLE, format!("no frame from {cam} yet"));
     };
-    let bytes = if q.contains_key("large") { t.large } else { t.jpeg };
-    ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "no-store")], Body::from(bytes.to_vec()))
-        .into_response()
+    let bytes = if q.contains_key("large") {
+        match t.large_jpeg() {
+            Some(b) => b,
+            None => return error(StatusCode::INTERNAL_SERVER_ERROR, format!("encoding {cam}'s enlarged view")),
+        }
+    } else {
+        t.jpeg.to_vec()
+    };
+    ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "no-store")], Body::from(bytes)).into_response()
 }
 
 /// Runs blocking episode work off the async threads.
