@@ -116,6 +116,20 @@ impl Drop for Rig {
     }
 }
 
+/// launch_configs/nodes/teleop_sim_trace.toml's controller trace without its A presses (the
+/// controller still moves and grips, so the page shows a live teleop node), written under
+/// `dir`; returns the teleop config that plays it.
+fn quiet_trace(dir: &std::path::Path) -> String {
+    let trace = repo_root().join("nodes/quest_teleop/tests/fixtures/square.logcat");
+    let text = std::fs::read_to_string(&trace).unwrap();
+    assert!(text.contains(",A,"), "{} has no A press: update this test", trace.display());
+    std::fs::write(dir.join("no_buttons.logcat"), text.replace(",A,", ",")).unwrap();
+    let cfg = dir.join("teleop_no_buttons.toml");
+    std::fs::write(&cfg, "[input]\nkind = \"playback\"\nfile = \"no_buttons.logcat\"\nspeed = 1.0\nrepeat = true\n")
+        .unwrap();
+    cfg.display().to_string()
+}
+
 fn start_rig(name: &str) -> Rig {
     for p in ["labrig-sim", "labrig-franka", "labrig-gripper", "labrig-recorder", "labrig-control", "labrig-teleop"] {
         labrig_tests::workspace_bin(p, p);
@@ -140,8 +154,7 @@ fn start_rig(name: &str) -> Rig {
                 "args = [\"run\", \"--root\", \"episodes\", \"--listen\", \"127.0.0.1:{port}\"]\nafter = [\"control\"]"
             ),
         )
-        // The scripted expert moves the arm once the page starts an episode (the teleop
-        // trace's own A press could end an episode before the page saw it).
+        // The scripted expert moves the arm once the page starts an episode.
         .replace(
             "args = [\"run\", \"--mode\", \"realtime\", \"--hardware-prefix\", \"/sim\"]",
             "args = [\"run\", \"--mode\", \"realtime\", \"--hardware-prefix\", \"/sim\", \"--expert\"]",
@@ -150,13 +163,10 @@ fn start_rig(name: &str) -> Rig {
             "args = [\"run\", \"--source\", \"teleop\", \"--clock\", \"sim\", \"--manual\"]",
             "args = [\"run\", \"--source\", \"scripted\", \"--clock\", \"sim\", \"--manual\"]",
         )
-        .replace(
-            "config = \"nodes/teleop_sim_trace.toml\"",
-            &format!(
-                "config = {:?}",
-                repo_root().join("launch_configs/nodes/teleop_sim_trace.toml").display().to_string()
-            ),
-        );
+        // The teleop node plays the committed trace with its A presses taken out: the trace
+        // presses A (success) every 8.5 s, which ended the page's episode 0.7 s after its
+        // Start in a CI run, before the page had seen it run.
+        .replace("config = \"nodes/teleop_sim_trace.toml\"", &format!("config = {:?}", quiet_trace(dir.path())));
     let cfg = dir.path().join("sim_droid.toml");
     std::fs::write(&cfg, text).unwrap();
     let domain = domain_for(name);
