@@ -94,6 +94,21 @@ pub fn domain_for(test: &str) -> u16 {
     (10 + h % 200) as u16
 }
 
+/// The processes started for DDS domain `domain` by `labrig launch` (their command lines end
+/// in `--domain-id <domain>`), one `pid command line` per line; empty when none.
+pub fn nodes_on_domain(domain: u16) -> String {
+    // `--` first: a pattern starting with `--` is otherwise read as an option, and pgrep exits
+    // 2 printing nothing (which read as "none left").
+    let out = Command::new("pgrep").args(["-a", "-f", "--", &format!("--domain-id {domain}$")]).output().unwrap();
+    assert!(matches!(out.status.code(), Some(0 | 1)), "pgrep failed: {}", output_text(&out));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// SIGKILLs whatever [`nodes_on_domain`] lists.
+pub fn kill_domain(domain: u16) {
+    let _ = Command::new("pkill").args(["-KILL", "-f", "--", &format!("--domain-id {domain}$")]).status();
+}
+
 /// Environment that keeps a Fast DDS (rclpy) process on loopback: the committed XML profile
 /// (UDPv4 whitelisted to 127.0.0.1, unicast initial peers, no built-in transports) and
 /// discovery range SYSTEM_DEFAULT (anything else makes rmw add multicast or LAN locators).

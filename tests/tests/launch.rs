@@ -1,6 +1,7 @@
 //! `labrig launch`: every file in launch_configs/ validates; bad files are refused with the
 //! problem named; the simulated rig (sim_droid.toml) starts in dependency order, reports
-//! health, restarts a killed node, stops cleanly; a node that fails to start stops the rig.
+//! health, restarts a killed node, stops cleanly; a node that fails to start stops the rig; a
+//! SIGKILLed launcher leaves no node running.
 
 use labrig_tests::{Proc, domain_for, labrig_bin, repo_root};
 use serde_json::Value;
@@ -100,8 +101,8 @@ fn the_sim_rig_starts_reports_health_restarts_and_stops() {
     let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
     assert!(end.get("error").is_none(), "{end}");
     assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
-    let left = Command::new("pgrep").args(["-f", &format!("--domain-id {domain}")]).output().unwrap();
-    assert!(left.stdout.is_empty(), "nodes left running: {}", String::from_utf8_lossy(&left.stdout));
+    let left = labrig_tests::nodes_on_domain(domain);
+    assert!(left.is_empty(), "nodes left running: {left}");
 }
 
 #[test]
@@ -124,4 +125,44 @@ fn a_node_that_fails_to_start_stops_the_rig() {
     let last: Value = serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap()).unwrap();
     assert_eq!(last["event"], "stopped");
     assert!(last["error"].as_str().unwrap().contains("node `arm` exited while starting"), "{last}");
+}
+
+/// A launcher that is SIGKILLed (no chance to stop its nodes) still leaves no node running:
+/// each gets SIGTERM from the kernel as its parent dies and stops as on Ctrl-C.
+#[test]
+fn no_node_outlives_a_killed_launcher() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("two_nodes.toml");
+    std::fs::write(
+        &path,
+        "[rig]\nname = \"two_nodes\"\n\
+         [[node]]\nname = \"sim\"\nprogram = \"labrig-sim\"\nargs = [\"run\", \"--mode\", \"realtime\", \"--hardware-prefix\", \"/sim\"]\nhealth = \"/joint_states\"\n\
+         [[node]]\nname = \"recorder\"\nprogram = \"labrig-recorder\"\nargs = [\"run\", \"--root\", \"episodes\"]\nafter = [\"sim\"]\nhealth = \"/recorder/status\"\n",
+    )
+    .unwrap();
+    let domain = domain_for("launch_killed_launcher");
+    let mut cmd = Command::new(labrig_bin());
+    cmd.args(["launch", "--json", "--seconds", "120", "--domain-id", &domain.to_string()])
+        .arg(&path)
+        .current_dir(dir.path())
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("killed_launcher_{}", std::process::id()));
+    let mut rig = Proc::spawn("labrig launch", cmd);
+    rig.wait_json(Duration::from_secs(120), "both nodes up", |v| {
+        v["event"] == "health" && v["nodes"].as_array().is_some_and(|n| n.iter().all(|n| n["up"] == true))
+    });
+    let nodes = labrig_tests::nodes_on_domain(domain);
+    assert!(
+        nodes.contains("labrig-sim run") && nodes.contains("labrig-recorder run"),
+        "the sim and the recorder run: {nodes}"
+    );
+    rig.child.kill().unwrap();
+    let _ = rig.child.wait();
+    let t0 = std::time::Instant::now();
+    while !labrig_tests::nodes_on_domain(domain).is_empty() && t0.elapsed() < Duration::from_secs(30) {
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let left = labrig_tests::nodes_on_domain(domain);
+    // Whatever the outcome, nothing of this test stays behind.
+    labrig_tests::kill_domain(domain);
+    assert!(left.is_empty(), "nodes still running 30 s after the launcher was killed: {left}");
 }

@@ -582,7 +582,7 @@ fn after(t: &Instant, hit: Option<Instant>) -> bool {
 
 /// Sends `sig` to the processes whose command line contains `pattern`.
 fn signal(sig: &str, pattern: &str) -> anyhow::Result<()> {
-    let ok = Command::new("pkill").args([sig, "-f", pattern]).status()?.success();
+    let ok = Command::new("pkill").args([sig, "-f", "--", pattern]).status()?.success();
     anyhow::ensure!(ok, "no process matches {pattern:?}");
     Ok(())
 }

@@ -229,7 +229,31 @@ fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Resul
         cmd.arg("--config").arg(dir.join(c));
     }
     cmd.args(["--domain-id", &domain.to_string()]);
+    stop_with_launcher(&mut cmd);
     cmd.spawn().map_err(|e| anyhow::anyhow!("node `{}`: cannot start {}: {e}", spec.name, exe.display()))
+}
+
+/// A node gets SIGTERM when the launcher dies, however it dies (SIGKILL, a crash): no node
+/// outlives the rig that started it, and each ends as it would on Ctrl-C (the recorder files
+/// an open episode). Linux's parent-death signal fires when the *thread* that forked the child
+/// ends; the launcher forks every node from its main thread ([`run`] is not on a runtime's
+/// worker), which lives as long as the process.
+fn stop_with_launcher(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let launcher = nix::unistd::getpid();
+    // SAFETY: the closure runs in the child between fork and exec, and calls only prctl(2),
+    // getppid(2) and _exit(2), which are async-signal-safe; it allocates nothing.
+    #[allow(unsafe_code)]
+    unsafe {
+        cmd.pre_exec(move || {
+            nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGTERM)?;
+            // The launcher died before the prctl: the signal will never come.
+            if nix::unistd::getppid() != launcher {
+                nix::libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
 }
 
 fn stop(r: &mut Running) {
