@@ -114,7 +114,8 @@ pub enum TopicKindInfo {
 /// A node's handle on ROS 2: one DDS participant, one ros2-client node, its spinner.
 pub struct Ros {
     context: Context,
-    node: Node,
+    /// None only while the handle is dropped ([`Drop`] ends it before the spinner).
+    node: Option<Node>,
     participant: DomainParticipant,
     subscriber: rustdds::Subscriber,
     spinner: Option<tokio::task::JoinHandle<()>>,
@@ -218,7 +219,7 @@ fn build_participant(
 
 impl std::fmt::Debug for Ros {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Ros").field("node", &self.node.fully_qualified_name()).finish()
+        f.debug_struct("Ros").field("node", &self.node().fully_qualified_name()).finish()
     }
 }
 
@@ -263,7 +264,7 @@ impl Ros {
         let subscriber = participant
             .create_subscriber(&QosPolicies::qos_none())
             .map_err(|e| RosError::Participant { domain_id, message: e.to_string() })?;
-        Ok(Ros { context, node, participant, subscriber, spinner: Some(spinner), watch })
+        Ok(Ros { context, node: Some(node), participant, subscriber, spinner: Some(spinner), watch })
     }
 
     /// False once this participant's RustDDS threads have died (see [`exit_on_dds_death`]).
@@ -281,7 +282,7 @@ impl Ros {
     }
 
     pub fn node_name(&self) -> String {
-        self.node.fully_qualified_name()
+        self.node().fully_qualified_name()
     }
 
     fn parse_name(&self, name: &str) -> Result<Name, RosError> {
@@ -299,8 +300,8 @@ impl Ros {
         let create = |message: String| RosError::Create { what: "publisher", topic: topic.to_owned(), message };
         let name = self.parse_name(topic)?;
         let ros_topic =
-            self.node.create_topic(&name, message_type_name::<T>(), &qos).map_err(|e| create(e.to_string()))?;
-        let publisher = self.node.create_publisher::<T>(&ros_topic, Some(qos)).map_err(|e| create(e.to_string()))?;
+            self.node().create_topic(&name, message_type_name::<T>(), &qos).map_err(|e| create(e.to_string()))?;
+        let publisher = self.node_mut().create_publisher::<T>(&ros_topic, Some(qos)).map_err(|e| create(e.to_string()))?;
         Ok(RosPublisher { publisher, topic: topic.to_owned() })
     }
 
@@ -385,7 +386,7 @@ impl Ros {
     pub fn server<S: RosService>(&mut self, service: &str, qos: QosProfile) -> Result<RosServer<S>, RosError> {
         let name = self.parse_name(service)?;
         let server = self
-            .node
+            .node_mut()
             .create_server::<Wire<S::Request>, Wire<S::Response>>(
                 ServiceMapping::Enhanced,
                 &name,
@@ -405,7 +406,7 @@ impl Ros {
     pub fn client<S: RosService>(&mut self, service: &str, qos: QosProfile) -> Result<RosClient<S>, RosError> {
         let name = self.parse_name(service)?;
         let client = self
-            .node
+            .node_mut()
             .create_client::<Wire<S::Request>, Wire<S::Response>>(
                 ServiceMapping::Enhanced,
                 &name,
@@ -432,12 +433,12 @@ impl Ros {
 
     /// Number of matched remote readers of a topic we publish, as the ROS graph reports it.
     pub fn subscription_count(&self, topic: &str) -> usize {
-        self.node.subscription_count(topic)
+        self.node().subscription_count(topic)
     }
 
     /// Number of known publishers of a topic, as the ROS graph reports it.
     pub fn publisher_count(&self, topic: &str) -> usize {
-        self.node.publisher_count(topic)
+        self.node().publisher_count(topic)
     }
 
     /// Waits (bounded) until a topic with this name is discovered; returns its info.
@@ -469,10 +470,23 @@ impl Ros {
     }
 }
 
+impl Ros {
+    fn node(&self) -> &Node {
+        self.node.as_ref().expect("the ROS 2 node is there until the handle is dropped")
+    }
+
+    fn node_mut(&mut self) -> &mut Node {
+        self.node.as_mut().expect("the ROS 2 node is there until the handle is dropped")
+    }
+}
+
 impl Drop for Ros {
     fn drop(&mut self) {
         // Before the participant goes (its threads end with it).
         self.watch.stop.store(true, Ordering::SeqCst);
+        // The node first: dropping it tells the spinner to stop, which ros2-client logs as an
+        // error ("Cannot notify spin task to stop") once the spinner is gone.
+        drop(self.node.take());
         if let Some(s) = self.spinner.take() {
             s.abort();
         }
@@ -803,7 +817,7 @@ impl<S: RosService> std::fmt::Debug for RosClient<S> {
 impl<S: RosService> RosClient<S> {
     /// Waits (bounded) until a server is matched.
     pub async fn wait_for_service(&self, ros: &Ros, timeout: Duration) -> Result<(), RosError> {
-        tokio::time::timeout(timeout, self.client.wait_for_service(&ros.node))
+        tokio::time::timeout(timeout, self.client.wait_for_service(ros.node()))
             .await
             .map_err(|_| RosError::Timeout { service: self.service.clone(), timeout })
     }
