@@ -111,7 +111,7 @@ impl Drop for Rig {
         if !self.stopped {
             let _ = Command::new("kill").args(["-INT", &self.proc.child.id().to_string()]).status();
             let _ = self.proc.wait_exit(Duration::from_secs(20));
-            let _ = Command::new("pkill").args(["-KILL", "-f", &format!("--domain-id {}$", self.domain)]).status();
+            labrig_tests::kill_domain(self.domain);
         }
     }
 }
@@ -191,9 +191,9 @@ impl Rig {
         let end = self.proc.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
         assert!(end.get("error").is_none(), "{end}");
         assert_eq!(self.proc.wait_exit(Duration::from_secs(30)), Some(0));
-        let left = Command::new("pgrep").args(["-f", &format!("--domain-id {}", self.domain)]).output().unwrap();
+        let left = labrig_tests::nodes_on_domain(self.domain);
         self.stopped = true;
-        assert!(left.stdout.is_empty(), "nodes left running: {}", String::from_utf8_lossy(&left.stdout));
+        assert!(left.is_empty(), "nodes left running: {left}");
     }
 }
 
@@ -298,6 +298,14 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
         let s = http.get_json("/api/status");
         (s["loop"]["state"] == "Recording" && s["loop"]["steps"].as_u64().unwrap_or(0) >= 20).then_some(())
     });
+    // The recorder's status says how large the episode is on disk so far, and it grows (a
+    // chunk is closed every 250 ms; the status comes once a second).
+    let bytes = || {
+        let r = http.get_json("/api/status")["recorder"].clone();
+        (r["state"] == "recording").then(|| r["bytes"].as_u64().unwrap_or(0)).filter(|&b| b > 0)
+    };
+    let b0 = wait_for("the recorder's episode size", Duration::from_secs(10), &bytes);
+    wait_for("the episode's size growing", Duration::from_secs(10), || bytes().filter(|&b| b > b0));
     // The arm moves (the expert): the thumbnails change.
     let moving = wait_for("a thumbnail that changed", Duration::from_secs(20), || {
         let t = thumb("ext1");

@@ -39,7 +39,7 @@ use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
 use labrig_msgs::topics;
 use labrig_msgs::{Nanos, RosMessage, TypeVisitor, dds_type_name, visit_type};
-use labrig_runtime::frames::{FrameEncoding, FrameNode, FrameSubscriber};
+use labrig_runtime::frames::{FrameEncoding, FrameIntake, FrameNode, FrameSubscriber, OwnedFrame};
 use labrig_runtime::ros::{RawSubscription, Ros, RosPublisher, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
@@ -292,12 +292,15 @@ enum Verdict {
 struct Recorder {
     cfg: RecorderConfig,
     topics: Vec<Recorded>,
-    cameras: Vec<(String, FrameSubscriber)>,
+    /// Every camera's frames, taken from shared memory by a thread of its own.
+    intake: FrameIntake,
+    /// Frames the intake let go so far (it queued [`INTAKE_FRAMES_PER_CAMERA`] of a camera).
+    intake_dropped: u64,
     status: RosPublisher<StringMsg>,
     context: Context,
     episode: Option<Episode>,
     /// Each camera's newest frame while no episode is open.
-    held: BTreeMap<String, labrig_runtime::frames::Frame>,
+    held: BTreeMap<String, OwnedFrame>,
     last: serde_json::Value,
     errors: u64,
     /// Sizes of the episodes recorded by this process (bytes), for the free-space margin.
@@ -312,6 +315,10 @@ struct Recorder {
 /// Frames kept per camera while a restarted recorder waits to rejoin (three seconds).
 const REJOIN_FRAMES_PER_CAMERA: usize = 60;
 
+/// Frames the intake queues per camera while the recorder's loop is busy (a chunk's fsync, an
+/// episode being filed): three seconds at 20 Hz, where shared memory alone keeps 200 ms.
+const INTAKE_FRAMES_PER_CAMERA: usize = 60;
+
 pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     cfg.validate()?;
     // Frames first: a restarted recorder takes them again as soon as it can (shared memory
@@ -322,6 +329,8 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     };
     let cameras: Vec<(String, FrameSubscriber)> =
         cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
+    let intake = FrameIntake::start("recorder-frames", cameras, INTAKE_FRAMES_PER_CAMERA)
+        .map_err(|e| anyhow::anyhow!("starting the frame intake thread: {e}"))?;
     let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
     let mut recorded = Vec::new();
     for t in &cfg.topics {
@@ -342,11 +351,12 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     std::fs::create_dir_all(cfg.root.join(".recording"))
         .map_err(|e| anyhow::anyhow!("creating {}: {e}", cfg.root.join(".recording").display()))?;
     let orphans = orphans(&cfg.root);
-    tracing::info!(root = %cfg.root.display(), topics = recorded.len(), cameras = cameras.len(), orphans = orphans.len(), "recorder up");
+    tracing::info!(root = %cfg.root.display(), topics = recorded.len(), cameras = intake.cameras().len(), orphans = orphans.len(), "recorder up");
     let mut rec = Recorder {
         cfg,
         topics: recorded,
-        cameras,
+        intake,
+        intake_dropped: 0,
         status,
         context: Context::default(),
         episode: None,
@@ -419,7 +429,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                 rec.last = json!({
                     "state": "recording", "staging": ep.staging, "episode": ep.uuid, "messages": ep.writer.messages(),
                     "frames": ep.frames, "seconds": ep.started.elapsed().as_secs_f64(), "errors": rec.errors,
-                    "part": ep.prior_parts,
+                    "part": ep.prior_parts, "bytes": dir_bytes(&ep.staging),
                 });
             }
             rec.publish_status();
@@ -483,14 +493,15 @@ impl Recorder {
     /// Frames while no decision on the episodes is made yet (the rejoin wait): encoded and kept,
     /// the oldest dropped past [`REJOIN_FRAMES_PER_CAMERA`] per camera.
     fn buffer_frames(&mut self) {
-        for (camera, sub) in &self.cameras {
-            while let Ok(Some(frame)) = sub.receive() {
+        let taken = self.intake.take();
+        for (camera, frames) in self.intake.cameras().iter().zip(taken) {
+            for frame in frames {
                 if let Some(e) = encode_frame(camera, &frame, self.cfg.jpeg_quality) {
                     self.buffered.push_back(e);
                 }
             }
         }
-        let limit = REJOIN_FRAMES_PER_CAMERA * self.cameras.len().max(1);
+        let limit = REJOIN_FRAMES_PER_CAMERA * self.intake.cameras().len().max(1);
         while self.buffered.len() > limit {
             self.buffered.pop_front();
         }
@@ -838,16 +849,9 @@ impl Recorder {
     fn record(&mut self) {
         let mut failed: Option<EpisodeError> =
             drain_topics(&self.topics, &mut self.context, self.episode.as_mut(), false);
-        for (camera, sub) in &self.cameras {
-            loop {
-                let frame = match sub.receive() {
-                    Ok(Some(f)) => f,
-                    Ok(None) => break,
-                    Err(e) => {
-                        tracing::warn!("camera {camera}: {e}");
-                        break;
-                    }
-                };
+        let taken = self.intake.take();
+        'cameras: for (camera, frames) in self.intake.cameras().iter().zip(taken) {
+            for frame in frames {
                 let Some(ep) = &mut self.episode else {
                     // Idle: the newest frame is kept, for a Start whose first step uses it.
                     self.held.insert(camera.clone(), frame);
@@ -859,9 +863,17 @@ impl Recorder {
                 }
                 if let Err(e) = write_frame(ep, camera, &frame, self.cfg.jpeg_quality, Clock::Wall.now().0) {
                     failed = Some(e);
-                    break;
+                    break 'cameras;
                 }
             }
+        }
+        let dropped: u64 = self.intake.dropped().iter().sum();
+        if dropped > self.intake_dropped {
+            tracing::warn!(
+                frames = dropped - self.intake_dropped,
+                "the recorder fell {INTAKE_FRAMES_PER_CAMERA} frames behind a camera: its oldest frames were let go"
+            );
+            self.intake_dropped = dropped;
         }
         if let Some(e) = failed {
             self.errors += 1;
@@ -982,7 +994,7 @@ pub fn free_bytes(path: &Path) -> std::io::Result<u64> {
 /// camera's `jpeg_passthrough`) as they came, depth16 frames (a RealSense's aligned depth,
 /// camera `<id>_depth`) as a 16-bit greyscale PNG of millimetres, lossless; anything else is
 /// logged and skipped.
-fn encode_frame(camera: &str, frame: &labrig_runtime::frames::Frame, quality: u8) -> Option<Encoded> {
+fn encode_frame(camera: &str, frame: &OwnedFrame, quality: u8) -> Option<Encoded> {
     let h = *frame.header();
     let (encoded, format) = match h.encoding() {
         Some(FrameEncoding::Rgb8) => (
@@ -1052,7 +1064,7 @@ fn write_image(ep: &mut Episode, e: &Encoded, log_ns: i64) -> Result<(), Episode
 fn write_frame(
     ep: &mut Episode,
     camera: &str,
-    frame: &labrig_runtime::frames::Frame,
+    frame: &OwnedFrame,
     quality: u8,
     log_ns: i64,
 ) -> Result<(), EpisodeError> {
@@ -1170,7 +1182,7 @@ mod tests {
         let subscriber = node.subscriber(&cam).unwrap();
         publisher.publish(bytes, Nanos(5), Nanos(6)).unwrap();
         let frame = subscriber.receive().unwrap().expect("frame");
-        encode_frame("ext1", &frame, 90)
+        encode_frame("ext1", &OwnedFrame::from(&frame), 90)
     }
 
     #[test]
@@ -1193,7 +1205,7 @@ mod tests {
             node.publisher("rs1_depth", FrameFormat { encoding: FrameEncoding::Depth16, width: 4, height: 2 }).unwrap();
         let subscriber = node.subscriber("rs1_depth").unwrap();
         publisher.publish(&le, Nanos(5), Nanos(6)).unwrap();
-        let e = encode_frame("rs1_depth", &subscriber.receive().unwrap().unwrap(), 90).expect("depth is recorded");
+        let e = encode_frame("rs1_depth", &OwnedFrame::from(&subscriber.receive().unwrap().unwrap()), 90).expect("depth is recorded");
         assert_eq!((e.image.format.as_str(), e.image.header.frame_id.as_str()), ("png", "rs1_optical"));
         let mut reader = png::Decoder::new(std::io::Cursor::new(e.image.data)).read_info().unwrap();
         let mut buf = vec![0u8; reader.output_buffer_size().unwrap()];
