@@ -1,6 +1,7 @@
 //! Bad input never panics: every node's TOML config through the node skeleton's `load` (the
 //! file, `--set`, the node's own `validate`), for every node (franka, gripper, recorder,
-//! control, teleop, the sim bridge), and the launch configs through `LaunchConfig::parse`.
+//! control, teleop, the sim bridge, the station, the cameras; not the policy server, whose
+//! crate links libtorch), and the launch configs through `LaunchConfig::parse`.
 //! Here, not in labrig-runtime, because the nodes depend on labrig-runtime.
 //!
 //! Inputs: the real files in launch_configs/ (and an empty file for nodes without one), their
@@ -194,6 +195,16 @@ fn franka_after(c: &labrig_franka::node::FrankaNodeConfig) {
 
 fn bridge_after(c: &labrig_sim_bridge::bridge::BridgeConfig) {
     sleepable("period_s", c.period_s);
+}
+
+fn station_after(c: &labrig_station::StationConfig) {
+    sleepable("thumbnail_hz (1 / it)", 1.0 / c.thumbnail_hz);
+    let addr: std::net::SocketAddr = c.listen.parse().expect("a validated listen address parses");
+    assert!(
+        addr.ip().is_loopback() || c.token.as_deref().is_some_and(|t| t.len() >= 8),
+        "listening on {addr} without a token: {c:?}"
+    );
+    assert!(c.calibration_max_age_s > 0.0, "{c:?}");
 }
 
 // control: teleop_max_age_s, source_timeout_s; recorder: rejoin_wait_s — the findings below.
@@ -481,8 +492,8 @@ where
     load_node::<N>(Some(&text), set, after)
 }
 
-fn subjects() -> &'static [Subject; 6] {
-    static S: std::sync::OnceLock<[Subject; 6]> = std::sync::OnceLock::new();
+fn subjects() -> &'static [Subject; 8] {
+    static S: std::sync::OnceLock<[Subject; 8]> = std::sync::OnceLock::new();
     S.get_or_init(|| {
         [
             subject::<labrig_franka::FrankaNode>("franka"),
@@ -491,6 +502,8 @@ fn subjects() -> &'static [Subject; 6] {
             subject::<labrig_control::ControlNode>("control"),
             subject::<labrig_quest_teleop::TeleopNode>("teleop"),
             subject::<labrig_sim_bridge::bridge::BridgeNode>("sim"),
+            subject::<labrig_station::StationNode>("station"),
+            subject::<labrig_cameras::CamerasNode>("cameras"),
         ]
     })
 }
@@ -508,6 +521,8 @@ proptest! {
         let _ = run_case::<labrig_control::ControlNode>(&s[3], &c, |_| {});
         let _ = run_case::<labrig_quest_teleop::TeleopNode>(&s[4], &c, teleop_after);
         let _ = run_case::<labrig_sim_bridge::bridge::BridgeNode>(&s[5], &c, bridge_after);
+        let _ = run_case::<labrig_station::StationNode>(&s[6], &c, station_after);
+        let _ = run_case::<labrig_cameras::CamerasNode>(&s[7], &c, |_| {});
     }
 
     /// Any text as any node's config.
@@ -519,6 +534,8 @@ proptest! {
         let _ = load_node::<labrig_control::ControlNode>(Some(&text), Vec::new(), |_| {});
         let _ = load_node::<labrig_quest_teleop::TeleopNode>(Some(&text), Vec::new(), |_| {});
         let _ = load_node::<labrig_sim_bridge::bridge::BridgeNode>(Some(&text), Vec::new(), |_| {});
+        let _ = load_node::<labrig_station::StationNode>(Some(&text), Vec::new(), |_| {});
+        let _ = load_node::<labrig_cameras::CamerasNode>(Some(&text), Vec::new(), |_| {});
     }
 
     /// The launch configs, edited and mangled: a start order, or refused. A parse error names

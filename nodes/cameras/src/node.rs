@@ -204,7 +204,9 @@ impl CamerasConfig {
                 return bad(&format!("cameras.{id}"), "is not a camera id (1-32 of [A-Za-z0-9_-])".into());
             }
             let spec =
-                SourceSpec::parse(&c.source).map_err(|e| Invalid::new(key("source"), format!("camera {id}: {e}")))?;
+                SourceSpec::parse(&c.source).map_err(|e| {
+                Invalid::new(key("source"), format!("cameras config: `{}` of camera {id}: {e}", key("source")))
+            })?;
             if (c.width == 0) != (c.height == 0) {
                 return bad(&key("width"), format!("and height are {}x{}: give both or neither", c.width, c.height));
             }

@@ -97,6 +97,12 @@ impl StationConfig {
                 format!("thumbnail_hz = {} must be in 0.2..=30", self.thumbnail_hz),
             ));
         }
+        if !(self.calibration_max_age_s.is_finite() && self.calibration_max_age_s > 0.0) {
+            return Err(Invalid::new(
+                "calibration_max_age_s",
+                format!("calibration_max_age_s = {} must be a positive number of seconds", self.calibration_max_age_s),
+            ));
+        }
         if !(32..=1280).contains(&self.thumbnail_width) {
             return Err(Invalid::new(
                 "thumbnail_width",
