@@ -203,8 +203,7 @@ impl CamerasConfig {
             if !is_camera_id(id) {
                 return bad(&format!("cameras.{id}"), "is not a camera id (1-32 of [A-Za-z0-9_-])".into());
             }
-            let spec =
-                SourceSpec::parse(&c.source).map_err(|e| {
+            let spec = SourceSpec::parse(&c.source).map_err(|e| {
                 Invalid::new(key("source"), format!("cameras config: `{}` of camera {id}: {e}", key("source")))
             })?;
             if (c.width == 0) != (c.height == 0) {

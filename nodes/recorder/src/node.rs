@@ -1205,7 +1205,8 @@ mod tests {
             node.publisher("rs1_depth", FrameFormat { encoding: FrameEncoding::Depth16, width: 4, height: 2 }).unwrap();
         let subscriber = node.subscriber("rs1_depth").unwrap();
         publisher.publish(&le, Nanos(5), Nanos(6)).unwrap();
-        let e = encode_frame("rs1_depth", &OwnedFrame::from(&subscriber.receive().unwrap().unwrap()), 90).expect("depth is recorded");
+        let e = encode_frame("rs1_depth", &OwnedFrame::from(&subscriber.receive().unwrap().unwrap()), 90)
+            .expect("depth is recorded");
         assert_eq!((e.image.format.as_str(), e.image.header.frame_id.as_str()), ("png", "rs1_optical"));
         let mut reader = png::Decoder::new(std::io::Cursor::new(e.image.data)).read_info().unwrap();
         let mut buf = vec![0u8; reader.output_buffer_size().unwrap()];

@@ -558,7 +558,8 @@ mod tests {
         let cam = format!("intake{}", std::process::id());
         let fmt = FrameFormat { encoding: FrameEncoding::Mono8, width: 2, height: 1 };
         let mut publisher = node.publisher(&cam, fmt).unwrap();
-        let intake = FrameIntake::start("intake-test", vec![(cam.clone(), node.subscriber(&cam).unwrap())], 10).unwrap();
+        let intake =
+            FrameIntake::start("intake-test", vec![(cam.clone(), node.subscriber(&cam).unwrap())], 10).unwrap();
         // Three times the subscriber's own buffer, published while the owner takes nothing.
         let n = 3 * SUBSCRIBER_BUFFER as u64;
         for i in 0..n {

@@ -301,7 +301,8 @@ impl Ros {
         let name = self.parse_name(topic)?;
         let ros_topic =
             self.node().create_topic(&name, message_type_name::<T>(), &qos).map_err(|e| create(e.to_string()))?;
-        let publisher = self.node_mut().create_publisher::<T>(&ros_topic, Some(qos)).map_err(|e| create(e.to_string()))?;
+        let publisher =
+            self.node_mut().create_publisher::<T>(&ros_topic, Some(qos)).map_err(|e| create(e.to_string()))?;
         Ok(RosPublisher { publisher, topic: topic.to_owned() })
     }
 
