@@ -236,8 +236,11 @@ fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Resul
 /// A node gets SIGTERM when the launcher dies, however it dies (SIGKILL, a crash): no node
 /// outlives the rig that started it, and each ends as it would on Ctrl-C (the recorder files
 /// an open episode). Linux's parent-death signal fires when the *thread* that forked the child
-/// ends; the launcher forks every node from its main thread ([`run`] is not on a runtime's
-/// worker), which lives as long as the process.
+/// ends: `labrig launch` forks every node, restarts included, from its main thread (the
+/// supervisor runs in `block_on`); the demo, rollouts, the calibration capture and the benches
+/// supervise from a tokio worker thread, which lives until their runtime shuts down, after the
+/// rig is stopped. Nothing here may fork nodes from a thread that ends earlier (a
+/// `spawn_blocking` or `block_in_place` thread).
 fn stop_with_launcher(cmd: &mut Command) {
     use std::os::unix::process::CommandExt;
     let launcher = nix::unistd::getpid();

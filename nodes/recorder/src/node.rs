@@ -225,12 +225,15 @@ impl Episode {
         }
     }
 
-    /// Whether a camera frame belongs in this part: not in an earlier part (by capture time,
-    /// the frames' publish time in the file), not sent after the end event. Frames are stamped
-    /// on the rig's clock (the sim's, in a simulation), so the Start's wall time is no bound.
+    /// Whether a camera frame belongs in this part: captured at most [`PREROLL_NS`] before the
+    /// Start's stamp (the intake may hold seconds of frames from before a Start that came while
+    /// the loop was busy), not in an earlier part (by capture time, the frames' publish time in
+    /// the file), not sent after the end event. Frames are stamped on the rig's clock (the
+    /// sim's, in a simulation), so the Start's wall time is no bound.
     fn takes_frame(&self, camera: &str, capture_ns: i64, publish_ns: i64) -> bool {
+        let before_start = capture_ns < self.first_tick_ns - PREROLL_NS;
         let in_earlier = self.resume_after.get(&topics::camera_image(camera)).is_some_and(|&t| capture_ns <= t);
-        !in_earlier && self.closing.is_none_or(|c| publish_ns <= c.sent_before_ns)
+        !before_start && !in_earlier && self.closing.is_none_or(|c| publish_ns <= c.sent_before_ns)
     }
 
     /// Whether a message published at `publish_ns` on `topic` belongs in this part.
@@ -316,8 +319,10 @@ struct Recorder {
 const REJOIN_FRAMES_PER_CAMERA: usize = 60;
 
 /// Frames the intake queues per camera while the recorder's loop is busy (a chunk's fsync, an
-/// episode being filed): three seconds at 20 Hz, where shared memory alone keeps 200 ms.
+/// episode being filed): three seconds at 20 Hz, where shared memory alone keeps 200 ms...
 const INTAKE_FRAMES_PER_CAMERA: usize = 60;
+/// ...and at most this many bytes of them (1280x720 RGB: 34 frames, 1.7 s).
+const INTAKE_BYTES_PER_CAMERA: usize = 96 << 20;
 
 pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     cfg.validate()?;
@@ -329,7 +334,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     };
     let cameras: Vec<(String, FrameSubscriber)> =
         cfg.cameras.iter().map(|c| Ok((c.clone(), frames.subscriber(c)?))).collect::<Result<_, anyhow::Error>>()?;
-    let intake = FrameIntake::start("recorder-frames", cameras, INTAKE_FRAMES_PER_CAMERA)
+    let intake = FrameIntake::start("recorder-frames", cameras, INTAKE_FRAMES_PER_CAMERA, INTAKE_BYTES_PER_CAMERA)
         .map_err(|e| anyhow::anyhow!("starting the frame intake thread: {e}"))?;
     let mut ros = Ros::new(&cfg.ros, "labrig_recorder")?;
     let mut recorded = Vec::new();
@@ -385,9 +390,10 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     let wait = Duration::from_secs_f64(rec.cfg.rejoin_wait_s);
     let mut matched_at: Option<Instant> = None;
     let mut history = Vec::new();
+    // The frames wait in the intake meanwhile (as many as are kept for a continuation), and
+    // are encoded once the decision is made, not out of the wait's time.
     while !shutdown.is_triggered() && began.elapsed() < wait {
         take_events(&mut history);
-        rec.buffer_frames();
         if matched_at.is_none() && ros.publisher_count(topics::RIG_EPISODE.name) > 0 {
             matched_at = Some(Instant::now());
         }
@@ -403,6 +409,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
     let mut status_at = Instant::now();
     let mut space_at = Instant::now();
     let mut pending = Vec::new();
+    let mut intake_died = false;
     while !shutdown.is_triggered() {
         // Events, each after the messages that arrived before it: an episode's last steps
         // are in it when it ends, and a Start sees the scene published just before it.
@@ -424,6 +431,12 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
         // Once a second, recording or not (the launcher watches it as the node's heartbeat).
         if status_at.elapsed() > Duration::from_secs(1) {
             status_at = Instant::now();
+            // Without its intake the recorder would go on recording no frames: it stops
+            // instead (an open episode is filed below), and the launcher starts it again.
+            if !rec.intake.running() {
+                intake_died = true;
+                break;
+            }
             rec.check_space();
             if let Some(ep) = &rec.episode {
                 rec.last = json!({
@@ -444,6 +457,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
             rec.end(ep, Outcome::Failure, "the recorder stopped mid-episode");
         }
     }
+    anyhow::ensure!(!intake_died, "the frame intake thread ended: no camera frames would be recorded");
     Ok(())
 }
 
@@ -514,8 +528,7 @@ impl Recorder {
         let now = Clock::Wall.now().0;
         let mut written = 0;
         for e in &buffered {
-            let before_start = e.capture_ns < ep.first_tick_ns - PREROLL_NS;
-            if before_start || !ep.takes_frame(&e.camera, e.capture_ns, e.publish_ns) {
+            if !ep.takes_frame(&e.camera, e.capture_ns, e.publish_ns) {
                 continue;
             }
             if let Err(err) = write_image(ep, e, now) {
@@ -871,7 +884,8 @@ impl Recorder {
         if dropped > self.intake_dropped {
             tracing::warn!(
                 frames = dropped - self.intake_dropped,
-                "the recorder fell {INTAKE_FRAMES_PER_CAMERA} frames behind a camera: its oldest frames were let go"
+                "the recorder fell {INTAKE_FRAMES_PER_CAMERA} frames ({} MB) behind a camera: its oldest frames were let go",
+                INTAKE_BYTES_PER_CAMERA >> 20
             );
             self.intake_dropped = dropped;
         }
