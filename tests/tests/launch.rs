@@ -140,7 +140,7 @@ fn no_node_outlives_a_killed_launcher() {
          [[node]]\nname = \"recorder\"\nprogram = \"labrig-recorder\"\nargs = [\"run\", \"--root\", \"episodes\"]\nafter = [\"sim\"]\nhealth = \"/recorder/status\"\n",
     )
     .unwrap();
-    let domain = domain_for("launch_killed_launcher");
+    let domain = domain_for("launch_orphans");
     let mut cmd = Command::new(labrig_bin());
     cmd.args(["launch", "--json", "--seconds", "120", "--domain-id", &domain.to_string()])
         .arg(&path)
