@@ -38,15 +38,13 @@ impl RosArgs {
     }
 }
 
-/// Runs the node program `name` (built beside this binary) with `args`.
+/// Runs the node program `name` (built beside this binary) with `args` in this process's
+/// place (exec): the node keeps this pid, so a signal sent to `labrig <node> ...` (SIGTERM from
+/// a supervisor, SIGKILL from a test) reaches the node, and none is left running behind a
+/// killed `labrig`. Returns only when the program cannot be started.
 pub fn node(name: &str, args: &[String]) -> anyhow::Result<ExitCode> {
+    use std::os::unix::process::CommandExt;
     let exe = sibling_binary(name)?;
-    let status = std::process::Command::new(&exe)
-        .args(args)
-        .status()
-        .map_err(|e| anyhow::anyhow!("cannot run {}: {e}", exe.display()))?;
-    Ok(match status.code() {
-        Some(c) => ExitCode::from(c.clamp(0, 255) as u8),
-        None => ExitCode::from(1),
-    })
+    let e = std::process::Command::new(&exe).args(args).exec();
+    Err(anyhow::anyhow!("cannot run {}: {e}", exe.display()))
 }
