@@ -437,6 +437,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
                 intake_died = true;
                 break;
             }
+            rec.note_intake_drops();
             rec.check_space();
             if let Some(ep) = &rec.episode {
                 rec.last = json!({
@@ -518,6 +519,20 @@ impl Recorder {
         let limit = REJOIN_FRAMES_PER_CAMERA * self.intake.cameras().len().max(1);
         while self.buffered.len() > limit {
             self.buffered.pop_front();
+        }
+    }
+
+    /// Logs the frames the intake let go since the last call (once a second, off the loop's
+    /// every iteration).
+    fn note_intake_drops(&mut self) {
+        let dropped: u64 = self.intake.dropped().iter().sum();
+        if dropped > self.intake_dropped {
+            tracing::warn!(
+                frames = dropped - self.intake_dropped,
+                "the recorder fell {INTAKE_FRAMES_PER_CAMERA} frames ({} MB) behind a camera: its oldest frames were let go",
+                INTAKE_BYTES_PER_CAMERA >> 20
+            );
+            self.intake_dropped = dropped;
         }
     }
 
@@ -879,15 +894,6 @@ impl Recorder {
                     break 'cameras;
                 }
             }
-        }
-        let dropped: u64 = self.intake.dropped().iter().sum();
-        if dropped > self.intake_dropped {
-            tracing::warn!(
-                frames = dropped - self.intake_dropped,
-                "the recorder fell {INTAKE_FRAMES_PER_CAMERA} frames ({} MB) behind a camera: its oldest frames were let go",
-                INTAKE_BYTES_PER_CAMERA >> 20
-            );
-            self.intake_dropped = dropped;
         }
         if let Some(e) = failed {
             self.errors += 1;

@@ -579,21 +579,21 @@ mod tests {
         let fmt = FrameFormat { encoding: FrameEncoding::Mono8, width: 2, height: 1 };
         let mut publisher = node.publisher(&cam, fmt).unwrap();
         let sub = |c: &str| vec![(c.to_owned(), node.subscriber(c).unwrap())];
-        let intake = FrameIntake::start("intake-test", sub(&cam), 10, 1 << 20).unwrap();
-        assert!(intake.running());
-        // Three times the subscriber's own buffer, published while the owner takes nothing;
-        // each frame is published once the intake holds (or has let go) the ones before it.
-        let n = 3 * SUBSCRIBER_BUFFER as u64;
-        let settled = |published: u64| {
+        // Each frame is published once the intake holds (or has let go) the ones before it.
+        let settled = |intake: &FrameIntake, published: u64| {
             let t0 = std::time::Instant::now();
             while intake.queued()[0] as u64 + intake.dropped()[0] < published {
                 assert!(t0.elapsed() < std::time::Duration::from_secs(10), "the intake took nothing in 10 s");
                 std::thread::sleep(std::time::Duration::from_millis(1));
             }
         };
+        let intake = FrameIntake::start("intake-test", sub(&cam), 10, 1 << 20).unwrap();
+        assert!(intake.running());
+        // Three times the subscriber's own buffer, published while the owner takes nothing.
+        let n = 3 * SUBSCRIBER_BUFFER as u64;
         for i in 0..n {
             publisher.publish(&[i as u8, 0], Nanos(i as i64), Nanos(i as i64)).unwrap();
-            settled(i + 1);
+            settled(&intake, i + 1);
         }
         let got = intake.take();
         let seq: Vec<u64> = got[0].iter().map(|f| f.header().sequence).collect();
@@ -611,11 +611,7 @@ mod tests {
         let intake = FrameIntake::start("intake-test", sub(&cam2), 100, 20).unwrap();
         for i in 0..8u64 {
             publisher.publish(&[i as u8; 4], Nanos(i as i64), Nanos(i as i64)).unwrap();
-            let t0 = std::time::Instant::now();
-            while intake.queued()[0] as u64 + intake.dropped()[0] < i + 1 {
-                assert!(t0.elapsed() < std::time::Duration::from_secs(10), "the intake took nothing in 10 s");
-                std::thread::sleep(std::time::Duration::from_millis(1));
-            }
+            settled(&intake, i + 1);
         }
         let seq: Vec<u64> = intake.take()[0].iter().map(|f| f.header().sequence).collect();
         assert_eq!((seq, intake.dropped()[0]), ((3..8).collect::<Vec<_>>(), 3));
