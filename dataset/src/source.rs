@@ -352,6 +352,8 @@ fn read_rlds(file: &Path) -> Result<Vec<Read>, String> {
             recovered: None,
             policy: None,
             calibration: None,
+            takeovers: None,
+            operator_steps: None,
         };
         meta.success = file_path.as_deref().map(|p| p.contains("/success/"));
         for (id, key) in [

@@ -210,6 +210,8 @@ pub fn parse(v: &Value) -> Result<Parsed, Invalid> {
         recovered: labrig.and_then(|l| l.get("recovered")).and_then(Value::as_str).map(str::to_owned),
         policy: labrig.and_then(|l| l.get("policy")).and_then(Value::as_str).map(str::to_owned),
         calibration: labrig.and_then(|l| l.get("calibration")).and_then(Value::as_str).map(str::to_owned),
+        takeovers: None,
+        operator_steps: None,
     };
     let action_source =
         labrig.and_then(|l| l.get("action_source")).and_then(Value::as_str).map_or(Step::SOURCE_TELEOP, source_of);

@@ -88,6 +88,61 @@ pub struct Inspection {
     /// The episode's files (more than one after a recorder restart) and the gaps between them.
     pub parts: Vec<Part>,
     pub gaps: Vec<Gap>,
+    /// A policy's rollout (any step by the policy): who acted, per step.
+    pub sources: Option<StepSources>,
+}
+
+/// Who acted in a policy's rollout, from the steps' `action_source`: the policy, or an
+/// operator who took over (the Quest: teleop; the sim's expert: scripted).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StepSources {
+    pub policy_steps: u64,
+    pub operator_steps: u64,
+    pub takeovers: u64,
+    /// Each run of operator steps.
+    pub takeover_segments: Vec<TakeoverSegment>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TakeoverSegment {
+    /// The first operator step's `step_index`, and how many steps the run has.
+    pub start_step: u64,
+    pub steps: u64,
+    /// Its `action_source` by name (`teleop`, `scripted`).
+    pub source: String,
+}
+
+/// [`StepSources`] of steps sorted by `step_index`; None unless the policy acted in any.
+pub fn step_sources(steps: &[Step]) -> Option<StepSources> {
+    if !steps.iter().any(|s| s.action_source == Step::SOURCE_POLICY) {
+        return None;
+    }
+    let mut out = StepSources { policy_steps: 0, operator_steps: 0, takeovers: 0, takeover_segments: vec![] };
+    let mut acting = false;
+    for s in steps {
+        let operator = s.action_source != Step::SOURCE_POLICY && s.action_source != Step::SOURCE_NONE;
+        out.policy_steps += u64::from(s.action_source == Step::SOURCE_POLICY);
+        if operator {
+            out.operator_steps += 1;
+            match out.takeover_segments.last_mut() {
+                Some(seg) if acting => seg.steps += 1,
+                _ => out.takeover_segments.push(TakeoverSegment {
+                    start_step: s.step_index,
+                    steps: 1,
+                    source: match s.action_source {
+                        Step::SOURCE_TELEOP => "teleop",
+                        Step::SOURCE_SCRIPTED => "scripted",
+                        Step::SOURCE_REPLAY => "replay",
+                        _ => "other",
+                    }
+                    .into(),
+                }),
+            }
+        }
+        acting = operator;
+    }
+    out.takeovers = out.takeover_segments.len() as u64;
+    Some(out)
 }
 
 struct Decodes<'a>(&'a [u8]);
@@ -472,6 +527,16 @@ fn summarise(scan: Scan) -> Inspection {
     if metadata.is_none() {
         flags.push("no DROID episode metadata".into());
     }
+    let sources = step_sources(&steps);
+    // The recorder counts takeovers as the steps come; a restart loses its count (the
+    // steps' own count here is the one to trust).
+    if let (Some(src), Some(n)) = (&sources, metadata.as_ref().and_then(|m| m.takeovers))
+        && n != src.takeovers
+        && gaps.is_empty()
+        && parts.len() <= 1
+    {
+        flags.push(format!("the metadata says {n} takeovers, the steps show {}", src.takeovers));
+    }
     Inspection {
         path,
         complete,
@@ -491,6 +556,7 @@ fn summarise(scan: Scan) -> Inspection {
         flags,
         parts,
         gaps,
+        sources,
     }
 }
 
@@ -556,6 +622,16 @@ impl Inspection {
         if let Some(p) = self.metadata.as_ref().and_then(|m| m.policy.as_ref()) {
             let _ = writeln!(s, "  policy rollout: {p}");
         }
+        if let Some(src) = &self.sources {
+            let _ = writeln!(
+                s,
+                "  steps by the policy: {}, by an operator: {} in {} takeovers",
+                src.policy_steps, src.operator_steps, src.takeovers
+            );
+            for seg in &src.takeover_segments {
+                let _ = writeln!(s, "    takeover at step {} for {} steps ({})", seg.start_step, seg.steps, seg.source);
+            }
+        }
         if self.flags.is_empty() {
             s.push_str("  OK\n");
         }
@@ -563,5 +639,33 @@ impl Inspection {
             let _ = writeln!(s, "  FLAG: {f}");
         }
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn steps(sources: &[u8]) -> Vec<Step> {
+        sources
+            .iter()
+            .enumerate()
+            .map(|(i, &s)| Step { step_index: i as u64, action_source: s, ..Step::default() })
+            .collect()
+    }
+
+    #[test]
+    fn takeovers_are_the_runs_of_operator_steps_in_a_policy_rollout() {
+        const P: u8 = Step::SOURCE_POLICY;
+        const T: u8 = Step::SOURCE_TELEOP;
+        const S: u8 = Step::SOURCE_SCRIPTED;
+        let src = step_sources(&steps(&[P, P, T, T, T, P, S, S, P])).unwrap();
+        assert_eq!((src.policy_steps, src.operator_steps, src.takeovers), (4, 5, 2));
+        let segs: Vec<(u64, u64, &str)> =
+            src.takeover_segments.iter().map(|s| (s.start_step, s.steps, s.source.as_str())).collect();
+        assert_eq!(segs, vec![(2, 3, "teleop"), (6, 2, "scripted")]);
+        // An operator from the first step on is a takeover too; a demo is no rollout.
+        assert_eq!(step_sources(&steps(&[T, P])).unwrap().takeovers, 1);
+        assert_eq!(step_sources(&steps(&[T, T, S])), None);
     }
 }

@@ -82,6 +82,12 @@ pub struct EpisodeMetadata {
     /// The rig's camera calibrations in force (JSON from `/calibration`: per camera its date,
     /// method and extrinsics; [`crate::calibration::Calibrations::summary`]).
     pub calibration: Option<String>,
+    /// A policy's rollout with operator corrections: how many times an operator took over
+    /// (a run of steps whose `action_source` is not the policy's) and how many steps the
+    /// operators acted. Absent in episodes recorded before takeovers existed, and in those
+    /// of other sources.
+    pub takeovers: Option<u64>,
+    pub operator_steps: Option<u64>,
 }
 
 impl EpisodeMetadata {
@@ -104,6 +110,8 @@ impl EpisodeMetadata {
             recovered: None,
             policy: None,
             calibration: None,
+            takeovers: None,
+            operator_steps: None,
         }
     }
 
@@ -138,6 +146,12 @@ impl EpisodeMetadata {
         if let Some(c) = &self.calibration {
             m.insert("calibration".into(), c.clone());
         }
+        if let Some(n) = self.takeovers {
+            m.insert("takeovers".into(), n.to_string());
+        }
+        if let Some(n) = self.operator_steps {
+            m.insert("operator_steps".into(), n.to_string());
+        }
         m
     }
 
@@ -168,6 +182,11 @@ impl EpisodeMetadata {
             recovered: m.get("recovered").cloned(),
             policy: m.get("policy").cloned(),
             calibration: m.get("calibration").cloned(),
+            takeovers: m.get("takeovers").map(|n| n.parse().map_err(|e| bad("takeovers")(&e))).transpose()?,
+            operator_steps: m
+                .get("operator_steps")
+                .map(|n| n.parse().map_err(|e| bad("operator_steps")(&e)))
+                .transpose()?,
         })
     }
 }
@@ -234,8 +253,16 @@ mod tests {
         m.recovered = Some("recorder restarted: 2 parts".into());
         m.policy = Some("run@600".into());
         m.calibration = Some("{\"ext1\":{\"date\":\"2026-11-25T12:00:00Z\"}}".into());
+        m.takeovers = Some(2);
+        m.operator_steps = Some(80);
         let back = EpisodeMetadata::from_record(&m.to_record()).unwrap();
         assert_eq!(back, m);
+        // Records from before takeovers existed read as none known.
+        let mut old = m.to_record();
+        old.remove("takeovers");
+        old.remove("operator_steps");
+        let back = EpisodeMetadata::from_record(&old).unwrap();
+        assert_eq!((back.takeovers, back.operator_steps), (None, None));
         assert_eq!(m.to_record()["current_task"], "put the cube in the bin");
         let mut r = m.to_record();
         r.remove("lab");

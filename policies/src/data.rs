@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
 
 /// Bumped when what a cache file holds changes.
-const CACHE_VERSION: u32 = 2;
+const CACHE_VERSION: u32 = 3;
 
 /// Why an episode cannot be trained on; every variant names it.
 #[derive(Debug, thiserror::Error)]
@@ -54,6 +54,8 @@ pub struct EpisodeTensors {
     pub action: Tensor,
     /// (T, cameras, 3, S, S) u8.
     pub frames: Tensor,
+    /// Who acted at each step (`Step::action_source`: teleop, policy, scripted, ...).
+    pub source: Vec<u8>,
 }
 
 impl EpisodeTensors {
@@ -61,9 +63,20 @@ impl EpisodeTensors {
         self.state.size()[0] as usize
     }
 
+    /// A rollout with corrections: some steps the policy's, some an operator's (the Quest's
+    /// teleop or the sim's expert standing in for one).
+    pub fn is_correction(&self) -> bool {
+        self.source.contains(&Step::SOURCE_POLICY) && self.source.iter().any(|&s| is_operator(s))
+    }
+
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+}
+
+/// An operator's step in a policy's rollout: the Quest's teleop or the scripted expert.
+pub fn is_operator(source: u8) -> bool {
+    source == Step::SOURCE_TELEOP || source == Step::SOURCE_SCRIPTED
 }
 
 /// xyz + euler xyz (DROID's `cartesian_position`) -> the rotation.
@@ -220,6 +233,7 @@ fn read_cache(file: &Path, path: &Path) -> Result<EpisodeTensors, tch::TchError>
         state: take("state")?,
         action: take("action")?,
         frames: take("frames")?,
+        source: Vec::try_from(take("source")?)?,
     })
 }
 
@@ -238,6 +252,7 @@ fn write_cache(file: &Path, ep: &EpisodeTensors) -> Result<(), DataError> {
         ("state", ep.state.shallow_clone()),
         ("action", ep.action.shallow_clone()),
         ("frames", ep.frames.shallow_clone()),
+        ("source", Tensor::from_slice(&ep.source)),
     ];
     Tensor::write_safetensors(&tensors, &tmp).map_err(|source| DataError::Cache { path: tmp.clone(), source })?;
     std::fs::rename(&tmp, file).map_err(|e| crate::FileError::at(file, "moving the cache file into place")(e).into())
@@ -419,6 +434,7 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
         } else {
             Tensor::stack(&per_camera, 1)
         },
+        source: data.steps.iter().map(|s| s.action_source).collect(),
     })
 }
 

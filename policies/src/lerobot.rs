@@ -165,6 +165,9 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
             crate::schedule::Prediction::Epsilon
         },
         gripper_state: false,
+        encoder: crate::encoder::Backbone::Resnet18,
+        encoder_width: 16,
+        image_obs_steps: 0,
     })
 }
 

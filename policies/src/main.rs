@@ -95,6 +95,13 @@ struct TrainArgs {
     /// Train on unsuccessful episodes too.
     #[arg(long)]
     include_failures: bool,
+    /// Of episodes where an operator took over from a policy (corrections), train on every
+    /// step (`all`) or only the operator's segments (`operator`, with --before-takeover).
+    #[arg(long, value_enum, default_value = "all")]
+    corrections: CorrectionsArg,
+    /// With `--corrections operator`: also the N steps before each takeover.
+    #[arg(long, default_value_t = 0)]
+    before_takeover: usize,
     /// Where decoded frames are cached (default <out>/cache).
     #[arg(long)]
     cache: Option<PathBuf>,
@@ -116,6 +123,12 @@ struct TrainArgs {
     /// Print the run's report as JSON.
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum CorrectionsArg {
+    All,
+    Operator,
 }
 
 #[derive(Debug, clap::Args)]
@@ -234,6 +247,10 @@ fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         resume: a.resume,
         include_failures: a.include_failures,
         progress: true,
+        corrections: match a.corrections {
+            CorrectionsArg::All => labrig_policies::train::Corrections::All,
+            CorrectionsArg::Operator => labrig_policies::train::Corrections::Operator { before: a.before_takeover },
+        },
     };
     let r = labrig_policies::train::run(&opts)?;
     if a.json {

@@ -7,7 +7,7 @@
 //! state (B, To, state_dim) and actions (B, Tp, action_dim) already normalised (see
 //! [`crate::normalize`]).
 
-use crate::encoder::RgbEncoder;
+use crate::encoder::{Backbone, RgbEncoder};
 use crate::schedule::{Ddim, NoiseSchedule, Prediction, ScheduleError};
 use crate::unet::{ConditionalUnet1d, UnetConfig};
 use tch::nn::{self, Module};
@@ -73,6 +73,21 @@ pub struct DiffusionConfig {
     /// clean chunk (`sample`, LeRobot's other `prediction_type`).
     #[serde(default)]
     pub prediction: Prediction,
+    /// The image encoders' trunk: the paper's ResNet-18 or a shallow conv net (this CPU's).
+    #[serde(default)]
+    pub encoder: Backbone,
+    /// The shallow trunk's first width (its last is twice that).
+    #[serde(default = "default_encoder_width")]
+    pub encoder_width: i64,
+    /// How many of the `To` observations' images are encoded, the newest ones (0: all, the
+    /// paper's). With fewer, the state keeps all `To` steps (the motion) and the encoders
+    /// run on fewer images: 1 of 2 halves their cost.
+    #[serde(default)]
+    pub image_obs_steps: i64,
+}
+
+fn default_encoder_width() -> i64 {
+    16
 }
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
@@ -118,6 +133,9 @@ impl DiffusionConfig {
             scene_relative: false,
             action_relative: false,
             prediction: Prediction::Epsilon,
+            encoder: Backbone::Resnet18,
+            encoder_width: default_encoder_width(),
+            image_obs_steps: 0,
         }
     }
 
@@ -143,6 +161,58 @@ impl DiffusionConfig {
         DiffusionConfig { cameras: vec![], state_dim: 7 + 1 + 6, scene_state: true, ..DiffusionConfig::small() }
     }
 
+    /// Pixels and proprioception for this CPU, what a real rig records and nothing else: the
+    /// wrist camera and `ext1` at 64x64 (random 58x58 crops in training), each through a
+    /// shallow conv trunk (16/32/32 channels, a 15x15 map) + 32-keypoint spatial softmax;
+    /// the state is the end-effector pose and the gripper's opening (8); U-Net 32/64/128,
+    /// step embedding 32; chunk positions relative to the TCP; sample prediction; the images of
+    /// the newest observation only (the state keeps both).
+    pub fn small_vision() -> DiffusionConfig {
+        DiffusionConfig {
+            cameras: vec!["wrist".into(), "ext1".into()],
+            image_size: 64,
+            crop_size: 58,
+            encoder: Backbone::Shallow,
+            encoder_width: 16,
+            down_dims: vec![32, 64, 128],
+            step_embed_dim: 32,
+            action_relative: true,
+            prediction: Prediction::Sample,
+            image_obs_steps: 1,
+            ..DiffusionConfig::small()
+        }
+    }
+
+    /// The inputs this config observes that only a simulator has (a real rig records camera
+    /// images and proprioception only); empty for a policy a real rig can feed.
+    pub fn sim_only_inputs(&self) -> Vec<&'static str> {
+        let mut v = Vec::new();
+        if self.scene_state {
+            v.push("scene_state (the sim scene's object and receptacle positions)");
+        }
+        if self.scene_yaw {
+            v.push("scene_yaw (the sim scene's object yaw)");
+        }
+        v
+    }
+
+    /// What the policy observes, named: `camera:<id>` per camera, the proprioception, and any
+    /// sim-only input.
+    pub fn observes(&self) -> Vec<String> {
+        let mut v: Vec<String> = self.cameras.iter().map(|c| format!("camera:{c}")).collect();
+        v.push("eef_pose".into());
+        if self.gripper_state {
+            v.push("gripper_position".into());
+        }
+        if self.scene_state {
+            v.push("sim:scene_positions".into());
+        }
+        if self.scene_yaw {
+            v.push("sim:scene_yaw".into());
+        }
+        v
+    }
+
     /// The state's width the data gives this config (pose 7, + 1 with the gripper, + 6 with
     /// the scene's positions).
     pub fn data_state_dim(&self) -> i64 {
@@ -151,7 +221,16 @@ impl DiffusionConfig {
 
     /// Width of the global conditioning: To x (state + 2 x keypoints per camera).
     pub fn global_cond_dim(&self) -> i64 {
-        self.n_obs_steps * (self.state_dim + 2 * self.keypoints * self.cameras.len() as i64)
+        self.n_obs_steps * self.state_dim + self.image_steps() * 2 * self.keypoints * self.cameras.len() as i64
+    }
+
+    /// The observations whose images are encoded (the newest ones).
+    pub fn image_steps(&self) -> i64 {
+        if self.image_obs_steps <= 0 || self.image_obs_steps > self.n_obs_steps {
+            self.n_obs_steps
+        } else {
+            self.image_obs_steps
+        }
     }
 
     fn unet(&self) -> UnetConfig {
@@ -213,7 +292,14 @@ impl DiffusionPolicy {
     /// LeRobot's names: `rgb_encoder.<k>.*` per camera, `unet.*`.
     pub fn new(vs: nn::Path<'_>, cfg: DiffusionConfig) -> Result<DiffusionPolicy, PolicyError> {
         let encoders = (0..cfg.cameras.len())
-            .map(|k| RgbEncoder::new(&vs / "rgb_encoder" / k.to_string(), cfg.keypoints))
+            .map(|k| {
+                RgbEncoder::with_backbone(
+                    &vs / "rgb_encoder" / k.to_string(),
+                    cfg.keypoints,
+                    cfg.encoder,
+                    cfg.encoder_width,
+                )
+            })
             .collect();
         let unet = ConditionalUnet1d::new(&vs / "unet", &cfg.unet());
         let schedule = NoiseSchedule::squared_cosine(cfg.train_steps)?;
@@ -267,8 +353,10 @@ impl DiffusionPolicy {
                 img,
                 &[b, c.n_obs_steps, 3, c.image_size, c.image_size],
             )?;
-            let flat = img.reshape([b * c.n_obs_steps, 3, c.image_size, c.image_size]);
-            features.push(enc.forward(&self.crop(&flat, train)).reshape([b, c.n_obs_steps, -1]));
+            let k = c.image_steps();
+            let newest = img.narrow(1, c.n_obs_steps - k, k);
+            let flat = newest.reshape([b * k, 3, c.image_size, c.image_size]);
+            features.push(enc.forward(&self.crop(&flat, train)).reshape([b, k, -1]));
         }
         Ok(features)
     }
@@ -283,6 +371,14 @@ impl DiffusionPolicy {
     }
 
     fn cond_of(state: &Tensor, features: &[Tensor]) -> Tensor {
+        if let Some(f) = features.first()
+            && f.size()[1] != state.size()[1]
+        {
+            // Fewer image steps than states: all states, then each camera's features.
+            let parts: Vec<Tensor> =
+                std::iter::once(state.flatten(1, -1)).chain(features.iter().map(|f| f.flatten(1, -1))).collect();
+            return Tensor::cat(&parts, -1);
+        }
         let per_step: Vec<Tensor> =
             std::iter::once(state.shallow_clone()).chain(features.iter().map(Tensor::shallow_clone)).collect();
         Tensor::cat(&per_step, -1).flatten(1, -1)
@@ -394,6 +490,7 @@ mod tests {
         assert_eq!(p.global_cond_dim(), 2 * (7 + 2 * 64));
         assert_eq!(p.crop_size as f64 / p.image_size as f64, 115.0 / 128.0);
         assert_eq!(DiffusionConfig::small().global_cond_dim(), 2 * (8 + 64));
+        assert_eq!(DiffusionConfig::small_vision().global_cond_dim(), 2 * 8 + 2 * 64);
         assert_eq!(DiffusionConfig::small_lowdim().data_state_dim(), 14);
         assert_eq!(DiffusionConfig::paper_dp().data_state_dim(), 7);
     }
@@ -424,6 +521,31 @@ mod tests {
         let err = policy.sample(&images, &state.narrow(1, 0, 1), &noise).unwrap_err();
         assert!(err.to_string().starts_with("observation.state: expected shape [2, 2, 7], got [2, 1, 7]"), "{err}");
         assert_eq!(policy.sample(&[], &state, &noise).unwrap_err(), PolicyError::Cameras { given: 0, wanted: 1 });
+    }
+
+    /// With `image_obs_steps = 1` only the newest observation's images are encoded: changing
+    /// the older image leaves the chunk as it was, changing the newest does not; the state's
+    /// older step still counts. The conditioning is To x state + one step of features.
+    #[test]
+    fn only_the_newest_images_are_encoded_when_asked() {
+        tch::manual_seed(4);
+        let cfg = DiffusionConfig { image_obs_steps: 1, encoder: Backbone::Shallow, ..DiffusionConfig::tiny() };
+        assert_eq!(cfg.global_cond_dim(), 2 * 7 + 2 * 8);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
+        let (images, state, _) = batch(&cfg, 1);
+        let noise = Tensor::randn([1, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let chunk = |images: &[Tensor], state: &Tensor| tch::no_grad(|| policy.sample(images, state, &noise)).unwrap();
+        let base = chunk(&images, &state);
+        let older = images[0].copy();
+        let _ = older.narrow(1, 0, 1).fill_(0.5);
+        assert_eq!((chunk(&[older], &state) - &base).abs().max().double_value(&[]), 0.0);
+        let newest = images[0].copy();
+        let _ = newest.narrow(1, 1, 1).fill_(0.5);
+        assert!((chunk(&[newest], &state) - &base).abs().max().double_value(&[]) > 0.0);
+        let moved = state.copy();
+        let _ = moved.narrow(1, 0, 1).fill_(0.9);
+        assert!((chunk(&images, &moved) - &base).abs().max().double_value(&[]) > 0.0);
     }
 
     /// The model learns: Adam on one fixed batch drives the noise-prediction loss down.

@@ -72,7 +72,7 @@ pub struct Preset {
 }
 
 impl Preset {
-    pub const NAMES: [&str; 3] = ["paper_dp", "small", "small_lowdim"];
+    pub const NAMES: [&str; 4] = ["paper_dp", "small", "small_vision", "small_lowdim"];
 
     pub fn named(name: &str) -> Option<Preset> {
         match name {
@@ -80,6 +80,10 @@ impl Preset {
             "small" => Some(Preset {
                 model: DiffusionConfig::small(),
                 train: TrainConfig { batch_size: 64, lr: 3e-4, ..TrainConfig::default() },
+            }),
+            "small_vision" => Some(Preset {
+                model: DiffusionConfig::small_vision(),
+                train: TrainConfig { batch_size: 128, lr: 1e-3, ..TrainConfig::default() },
             }),
             "small_lowdim" => Some(Preset {
                 model: DiffusionConfig::small_lowdim(),
@@ -199,8 +203,26 @@ pub struct Batch {
     pub episodes: Vec<String>,
 }
 
+/// Which samples of a correction episode (a policy's rollout in which an operator took over,
+/// [`EpisodeTensors::is_correction`]) are trained on; other episodes give every sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Corrections {
+    /// Every step, the policy's own actions too.
+    #[default]
+    All,
+    /// The windows whose newest observation is an operator's step, or lies at most `before`
+    /// steps before one (what led into the takeover; those steps' labels are still the
+    /// actions that followed, the policy's until the operator's begin).
+    Operator { before: usize },
+}
+
 impl SampleSet {
     pub fn new(episodes: &[EpisodeTensors], cfg: &DiffusionConfig) -> SampleSet {
+        SampleSet::selecting(episodes, cfg, Corrections::All)
+    }
+
+    /// The samples of `episodes`, correction episodes' chosen by `corrections`.
+    pub fn selecting(episodes: &[EpisodeTensors], cfg: &DiffusionConfig, corrections: Corrections) -> SampleSet {
         let (n_obs, horizon) = (cfg.n_obs_steps as usize, cfg.horizon as usize);
         // LeRobot's drop_n_last_frames: the last steps, whose chunks would be mostly padding,
         // are not sampled.
@@ -209,7 +231,17 @@ impl SampleSet {
         let mut offset = 0i64;
         for (e, ep) in episodes.iter().enumerate() {
             let keep = ep.len().saturating_sub(drop_last).max(1);
+            let operator: Vec<bool> = ep.source.iter().map(|&s| crate::data::is_operator(s)).collect();
             for w in windows(ep.len(), n_obs, horizon).into_iter().take(keep) {
+                if let Corrections::Operator { before } = corrections
+                    && ep.is_correction()
+                {
+                    let newest = *w.obs.last().expect("To >= 1");
+                    let upto = (newest + before).min(operator.len().saturating_sub(1));
+                    if !operator[newest..=upto].contains(&true) {
+                        continue;
+                    }
+                }
                 obs_rows.extend(w.obs.iter().map(|&i| offset + i as i64));
                 action_rows.extend(w.actions.iter().map(|&i| offset + i as i64));
                 episode_of.push(e);
@@ -328,6 +360,8 @@ pub struct RunOptions {
     pub include_failures: bool,
     pub cache: PathBuf,
     pub progress: bool,
+    /// Which samples of correction episodes are trained on.
+    pub corrections: Corrections,
 }
 
 /// The figures of a run (also `run.json`).
@@ -339,11 +373,20 @@ pub struct RunReport {
     pub val_episodes: usize,
     pub cotrain_episodes: usize,
     pub skipped_unsuccessful: usize,
+    /// Episodes (target and co-training) in which an operator took over from a policy.
+    #[serde(default)]
+    pub correction_episodes: usize,
+    /// The training samples (windows) drawn from those.
+    #[serde(default)]
+    pub correction_samples: usize,
     pub w: f64,
     pub drawn_target: u64,
     pub drawn_cotrain: u64,
     pub first_val_loss: Option<f64>,
     pub last_val_loss: Option<f64>,
+    /// The last validation's open-loop position error (mm; see [`Validation::open_loop_mm`]).
+    #[serde(default)]
+    pub last_open_loop_mm: Option<f64>,
     pub last_train_loss: f64,
     pub samples_per_s: f64,
     /// The share of a step's time spent assembling its batch.
@@ -562,6 +605,33 @@ impl Validation {
         }
         Ok(Some(sum / n as f64))
     }
+
+    /// Open loop on the held-out samples (at most the first batch, 64 samples): the EMA
+    /// policy samples each chunk from the batch's fixed noise (DDIM, centre crops); the mean
+    /// Euclidean distance (mm) between its executed rows' target positions and the recorded
+    /// ones, in the robot's units (relative chunks compare the same way: both are shifted by
+    /// the same TCP). None without validation samples or for velocity actions.
+    pub fn open_loop_mm(
+        &self,
+        policy: &DiffusionPolicy,
+        action_stats: &MinMax,
+        cfg: &DiffusionConfig,
+    ) -> Result<Option<f64>, TrainError> {
+        let Some((b, noise, _)) = self.batches.first() else { return Ok(None) };
+        if cfg.action_space != crate::policy::ActionSpace::EefAxisAngle {
+            return Ok(None);
+        }
+        let n = b.state.size()[0].min(64);
+        let images: Vec<Tensor> = b.images.iter().map(|t| t.narrow(0, 0, n)).collect();
+        let chunk = tch::no_grad(|| policy.sample(&images, &b.state.narrow(0, 0, n), &noise.narrow(0, 0, n)))?;
+        let got = action_stats.unnormalize(&policy.executed(&chunk))?;
+        let want = action_stats.unnormalize(&policy.executed(&b.action.narrow(0, 0, n)))?;
+        let d = (got.narrow(2, 0, 3) - want.narrow(2, 0, 3))
+            .square()
+            .sum_dim_intlist(&[2i64][..], false, Kind::Float)
+            .sqrt();
+        Ok(Some(d.mean(Kind::Float).double_value(&[]) * 1e3))
+    }
 }
 
 /// One row of `loss.csv`.
@@ -571,6 +641,9 @@ pub struct LossRow {
     pub train: f64,
     pub val: Option<f64>,
     pub lr: f64,
+    /// Open loop on the held-out samples: mean distance (mm) between the executed rows'
+    /// sampled and recorded target positions.
+    pub open_loop_mm: Option<f64>,
 }
 
 fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
@@ -584,6 +657,7 @@ fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
                 train: f.get(1)?.parse().ok()?,
                 val: f.get(2).and_then(|v| v.parse().ok()),
                 lr: f.get(3)?.parse().ok()?,
+                open_loop_mm: f.get(4).and_then(|v| v.parse().ok()),
             })
         })
         .filter(|r| r.step <= up_to)
@@ -591,10 +665,11 @@ fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
 }
 
 fn write_loss_csv(path: &Path, rows: &[LossRow]) -> Result<(), TrainError> {
-    let mut s = String::from("step,train_loss,val_loss,lr\n");
+    let mut s = String::from("step,train_loss,val_loss,lr,open_loop_mm\n");
     for r in rows {
         let val = r.val.map(|v| format!("{v:.6}")).unwrap_or_default();
-        s.push_str(&format!("{},{:.6},{},{:.3e}\n", r.step, r.train, val, r.lr));
+        let ol = r.open_loop_mm.map(|v| format!("{v:.2}")).unwrap_or_default();
+        s.push_str(&format!("{},{:.6},{},{:.3e},{}\n", r.step, r.train, val, r.lr, ol));
     }
     std::fs::write(path, s).map_err(io(path, "writing the loss log"))
 }
@@ -680,9 +755,16 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     if opts.resume && last.is_none() {
         eprintln!("--resume: no checkpoint in {} yet; starting from step 0", opts.out.display());
     }
-    let train_set = SampleSet::new(&train_eps, model);
+    let train_set = SampleSet::selecting(&train_eps, model, opts.corrections);
     let val_set = SampleSet::new(&val_eps, model);
-    let co_set = SampleSet::new(&cotrain, model);
+    let co_set = SampleSet::selecting(&cotrain, model, opts.corrections);
+    let corrections: Vec<&EpisodeTensors> = train_eps.iter().chain(&cotrain).filter(|e| e.is_correction()).collect();
+    let correction_episodes = corrections.len();
+    let correction_samples = corrections
+        .iter()
+        .map(|e| SampleSet::selecting(std::slice::from_ref(*e), model, opts.corrections).len())
+        .sum::<usize>();
+    drop(corrections);
     let (state_stats, action_stats, resumed_from) = match &last {
         Some(dir) => {
             let meta = trainer.restore(dir)?;
@@ -746,7 +828,8 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
 
     let first_val = if trainer.step == 0 { validation.loss(&trainer.ema)? } else { log.iter().find_map(|r| r.val) };
     if trainer.step == 0 {
-        log.push(LossRow { step: 0, train: 0.0, val: first_val, lr: 0.0 });
+        let open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
+        log.push(LossRow { step: 0, train: 0.0, val: first_val, lr: 0.0, open_loop_mm });
     }
     println!(
         "training {} ({} steps, batch {}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {w}, {} threads",
@@ -769,6 +852,7 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let (mut load_s, mut step_s, mut samples) = (0.0f64, 0.0f64, 0u64);
     let mut last_train = f64::NAN;
     let mut last_val = first_val;
+    let mut last_open_loop = log.iter().rev().find_map(|r| r.open_loop_mm);
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(tc.seed.wrapping_add(trainer.step).wrapping_mul(0x9E37_79B9));
     while trainer.step < total {
@@ -806,18 +890,21 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         samples += b as u64;
         last_train = loss;
         let at = trainer.step;
-        let mut row = LossRow { step: at, train: loss, val: None, lr };
+        let mut row = LossRow { step: at, train: loss, val: None, lr, open_loop_mm: None };
         if at % tc.val_every as u64 == 0 || at == total {
             row.val = validation.loss(&trainer.ema)?;
+            row.open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
             last_val = row.val.or(last_val);
+            last_open_loop = row.open_loop_mm.or(last_open_loop);
             let fall = match (first_val, row.val) {
                 (Some(a), Some(b)) if b > 0.0 => format!(" ({:.1}x below the start)", a / b),
                 _ => String::new(),
             };
             bar.suspend(|| {
                 println!(
-                    "step {at}/{total}: train {loss:.4}, validation {}{fall}, lr {lr:.2e}, {:.1} samples/s",
+                    "step {at}/{total}: train {loss:.4}, validation {}{fall}, open loop {} mm, lr {lr:.2e}, {:.1} samples/s",
                     row.val.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
+                    row.open_loop_mm.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into()),
                     samples as f64 / step_s.max(1e-9)
                 )
             });
@@ -848,11 +935,14 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         val_episodes: n_val,
         cotrain_episodes: n_co,
         skipped_unsuccessful: skipped_t + skipped_c,
+        correction_episodes,
+        correction_samples,
         w,
         drawn_target: sampler.drawn_target,
         drawn_cotrain: sampler.drawn_cotrain,
         first_val_loss: first_val,
         last_val_loss: last_val,
+        last_open_loop_mm: last_open_loop,
         last_train_loss: last_train,
         samples_per_s: samples as f64 / step_s.max(1e-9),
         loader_share: load_s / step_s.max(1e-9),
@@ -885,6 +975,7 @@ fn concat(mut parts: Vec<Batch>) -> Batch {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use labrig_msgs::labrig_msgs::Step;
 
     #[test]
     fn the_learning_rate_warms_up_then_follows_a_cosine() {
@@ -912,7 +1003,7 @@ mod tests {
         let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
         assert!(e.contains("image_sise"), "{e}");
         let e = Preset::resolve("big").unwrap_err().to_string();
-        assert!(e.contains("neither a preset (paper_dp, small, small_lowdim) nor a TOML file"), "{e}");
+        assert!(e.contains("neither a preset (paper_dp, small, small_vision, small_lowdim) nor a TOML file"), "{e}");
         std::fs::write(
             &f,
             "preset = \"small_lowdim\"\n[model]\naction_relative = true\naction_space = \"cartesian_velocity\"\n",
@@ -936,6 +1027,7 @@ mod tests {
             state,
             action,
             frames: Tensor::zeros([t, 0, 3, 1, 1], (Kind::Uint8, Device::Cpu)),
+            source: vec![Step::SOURCE_SCRIPTED; t as usize],
         };
         let cfg = DiffusionConfig { horizon: 4, n_action_steps: 2, ..DiffusionConfig::tiny() };
         let abs = SampleSet::new(std::slice::from_ref(&ep), &cfg);
@@ -952,6 +1044,38 @@ mod tests {
         let rows = rel.action_rows_for_stats();
         assert_eq!(rows.len(), rel.len() * 4);
         assert!(rows.iter().all(|row| row[0] >= -1.0 && row[0] <= 3.5), "{rows:?}");
+    }
+
+    /// A correction episode (policy, then the operator for steps 4..=6, then policy) gives
+    /// every window by default, and with `Operator` only those whose newest observation is an
+    /// operator's step or lies `before` steps ahead of one; a demo gives all its windows.
+    #[test]
+    fn correction_episodes_give_the_operators_windows_when_asked() {
+        let t = 10usize;
+        let mut source = vec![Step::SOURCE_POLICY; t];
+        source[4..=6].fill(Step::SOURCE_TELEOP);
+        let ep = |source: Vec<u8>| EpisodeTensors {
+            path: "ep".into(),
+            uuid: "ep".into(),
+            success: Some(true),
+            state: Tensor::zeros([t as i64, 7], (Kind::Float, Device::Cpu)),
+            action: Tensor::zeros([t as i64, 7], (Kind::Float, Device::Cpu)),
+            frames: Tensor::zeros([t as i64, 0, 3, 1, 1], (Kind::Uint8, Device::Cpu)),
+            source,
+        };
+        let cfg = DiffusionConfig { horizon: 4, n_action_steps: 3, n_obs_steps: 2, ..DiffusionConfig::tiny() };
+        let newest = |set: &SampleSet| -> Vec<i64> { (0..set.len()).map(|i| set.obs_rows[i * 2 + 1]).collect() };
+        let correction = ep(source.clone());
+        assert!(correction.is_correction());
+        let all = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::All);
+        assert_eq!(newest(&all), (0..10).collect::<Vec<_>>());
+        let op = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 0 });
+        assert_eq!(newest(&op), [4, 5, 6]);
+        let lead = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 2 });
+        assert_eq!(newest(&lead), [2, 3, 4, 5, 6]);
+        let demo = ep(vec![Step::SOURCE_SCRIPTED; t]);
+        assert!(!demo.is_correction());
+        assert_eq!(SampleSet::selecting(&[demo], &cfg, Corrections::Operator { before: 0 }).len(), 10);
     }
 
     #[test]

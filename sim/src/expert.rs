@@ -42,6 +42,9 @@ pub struct Action {
     /// 0 = open .. 1 = closed.
     pub gripper_position: f64,
     pub phase: Phase,
+    /// Where the phase leads the TCP (m, robot base frame): the end of the current phase's
+    /// straight line, which `cartesian_position` approaches a step per tick.
+    pub target: [f64; 3],
 }
 
 /// Extrinsic xyz euler angles (DROID's convention, scipy's `as_euler("xyz")`) of a rotation.
@@ -113,6 +116,8 @@ pub struct PickPlaceExpert {
     carried: Vector3<f64>,
     attempts: u32,
     last_gripper: f64,
+    /// The TCP at the reset pose: where the plan ([`Expert::plan`]) starts.
+    start: Vector3<f64>,
 }
 
 const HOVER_Z: f64 = 0.12;
@@ -130,7 +135,7 @@ const PHASE_TIMEOUT: u32 = 80;
 impl PickPlaceExpert {
     /// `sim` must be at the reset pose of the scene to solve.
     pub fn new(sim: &Sim) -> PickPlaceExpert {
-        let (_, rot) = sim.tcp_pose();
+        let (start, rot) = sim.tcp_pose();
         let down = row_major(rot);
         // The fingers close along the TCP's y axis: align it with a face of the cube. The
         // cube's symmetry lets the yaw be taken modulo 90 deg, into the smallest turn.
@@ -145,7 +150,49 @@ impl PickPlaceExpert {
             carried: Vector3::zeros(),
             attempts: 1,
             last_gripper: 0.0,
+            start: Vector3::from(start),
         }
+    }
+
+    /// This scene's expert (`self`, made at the reset pose) taking over from the state `sim`
+    /// is in now: the phase inferred from the physics, the goal led from the TCP.
+    fn resume(&self, sim: &Sim) -> PickPlaceExpert {
+        let pos = Vector3::from(sim.tcp_pose().0);
+        let obj = Vector3::from(sim.object_position());
+        let bin = Vector3::new(self.bin[0], self.bin[1], 0.0);
+        let over_bin = (obj.x - bin.x).abs() < BIN_HALF[0] && (obj.y - bin.y).abs() < BIN_HALF[1];
+        let (phase, carried) = if held(sim, obj, pos) {
+            // Over the bin it goes down; elsewhere up first, to carry it over.
+            (if over_bin { Phase::Lower } else { Phase::Lift }, pos)
+        } else if pick_place_success(sim) {
+            (Phase::Retreat, Vector3::zeros())
+        } else {
+            // Approach opens the fingers on the way up (and retries from there).
+            (Phase::Approach, Vector3::zeros())
+        };
+        PickPlaceExpert {
+            phase,
+            ticks_in_phase: 0,
+            goal: None,
+            carried,
+            attempts: 1,
+            last_gripper: sim.gripper_position(),
+            ..self.clone()
+        }
+    }
+
+    /// The path it means to take from the reset pose, through the object as it lies now.
+    fn plan(&self, sim: &Sim) -> Vec<[f64; 3]> {
+        let obj = sim.object_position();
+        let [bx, by, _] = self.bin;
+        vec![
+            self.start.into(),
+            [obj[0], obj[1], obj[2] + HOVER_Z],
+            [obj[0], obj[1], obj[2] + GRASP_ABOVE_CENTRE],
+            [obj[0], obj[1], CARRY_Z],
+            [bx, by, CARRY_Z],
+            [bx, by, RELEASE_Z],
+        ]
     }
 
     pub fn phase(&self) -> Phase {
@@ -223,6 +270,7 @@ impl PickPlaceExpert {
             cartesian_position: [next_p.x, next_p.y, next_p.z, e[0], e[1], e[2]],
             gripper_position: gripper,
             phase: self.phase,
+            target: target.into(),
         }
     }
 }
@@ -242,6 +290,8 @@ pub struct DrawerExpert {
     held: Vector3<f64>,
     attempts: u32,
     last_gripper: f64,
+    /// The TCP at the reset pose: where the plan ([`Expert::plan`]) starts.
+    start: Vector3<f64>,
 }
 
 /// The pinch point sits this far above the handle bar's centre.
@@ -253,7 +303,7 @@ impl DrawerExpert {
     /// `sim` must be at the reset pose of a scene with a drawer.
     pub fn new(sim: &Sim) -> Option<DrawerExpert> {
         let drawer = sim.scene().drawer.as_ref()?;
-        let (_, rot) = sim.tcp_pose();
+        let (start, rot) = sim.tcp_pose();
         let down = row_major(rot);
         // The handle is a bar along x: close the fingers across it (along y; a bar is
         // symmetric under a half turn).
@@ -268,7 +318,49 @@ impl DrawerExpert {
             held: Vector3::zeros(),
             attempts: 1,
             last_gripper: 0.0,
+            start: Vector3::from(start),
         })
+    }
+
+    /// This scene's expert (`self`, made at the reset pose) taking over from the state `sim`
+    /// is in now: sliding on if the fingers hold the handle, else from the approach.
+    fn resume(&self, sim: &Sim) -> DrawerExpert {
+        let pos = Vector3::from(sim.tcp_pose().0);
+        let handle = Vector3::from(sim.handle_position().expect("a drawer scene"));
+        let solved = task_success(sim);
+        let (phase, held_at) = if held(sim, handle, pos) && !solved {
+            (if self.task == Task::DrawerClose { Phase::Push } else { Phase::Pull }, pos)
+        } else if solved {
+            (Phase::Retreat, Vector3::zeros())
+        } else {
+            (Phase::Approach, Vector3::zeros())
+        };
+        DrawerExpert {
+            phase,
+            ticks_in_phase: 0,
+            goal: None,
+            held: held_at,
+            attempts: 1,
+            last_gripper: sim.gripper_position(),
+            ..self.clone()
+        }
+    }
+
+    /// The path it means to take from the reset pose: to the handle, along the slide.
+    fn plan(&self, sim: &Sim) -> Vec<[f64; 3]> {
+        let h = sim.handle_position().expect("a drawer scene");
+        let grip = [h[0], h[1], h[2] + HANDLE_GRIP_ABOVE];
+        let end_x = match self.task {
+            Task::DrawerClose => self.shut_x,
+            _ => self.shut_x - (DRAWER_TRAVEL - PULL_SHORT_OF_END),
+        };
+        vec![
+            self.start.into(),
+            [grip[0], grip[1], grip[2] + HOVER_Z],
+            grip,
+            [end_x, grip[1], grip[2]],
+            [end_x, grip[1], grip[2] + HOVER_Z],
+        ]
     }
 
     pub fn phase(&self) -> Phase {
@@ -330,6 +422,7 @@ impl DrawerExpert {
             cartesian_position: [next_p.x, next_p.y, next_p.z, e[0], e[1], e[2]],
             gripper_position: gripper,
             phase: self.phase,
+            target: target.into(),
         }
     }
 
@@ -380,6 +473,36 @@ impl Expert {
             Expert::Drawer(e) => e.phase(),
         }
     }
+
+    /// The expert taking over mid-episode from the state `sim` is in now (a policy or an
+    /// operator drove until here), `self` being the scene's expert made at its reset pose
+    /// (it keeps that one's fingers-down orientation and grasp turn). The phase is inferred
+    /// from the physics: an object (handle) held between closed fingers is carried on (slid
+    /// on), one already in the bin (a drawer already solved) is left with a retreat, anything
+    /// else starts from the approach, which opens the fingers. The goal is led from the TCP
+    /// where it is, not from where the last plan was.
+    pub fn resume(&self, sim: &Sim) -> Expert {
+        match self {
+            Expert::PickPlace(e) => Expert::PickPlace(e.resume(sim)),
+            Expert::Drawer(e) => Expert::Drawer(e.resume(sim)),
+        }
+    }
+
+    /// The whole path it plans for the scene, as a polyline through the phases' targets,
+    /// from the reset pose's TCP (m, robot base frame): how far a TCP strays from it says
+    /// how far another driver has wandered from any way this expert would go.
+    pub fn plan(&self, sim: &Sim) -> Vec<[f64; 3]> {
+        match self {
+            Expert::PickPlace(e) => e.plan(sim),
+            Expert::Drawer(e) => e.plan(sim),
+        }
+    }
+}
+
+/// Whether the fingers hold `what` (the object's centre, the handle): closed past an open
+/// hand and it is between them, within 3 cm of the pinch point.
+fn held(sim: &Sim, what: Vector3<f64>, tcp: Vector3<f64>) -> bool {
+    sim.gripper_position() > 0.2 && (what - tcp).norm() < 0.03
 }
 
 /// Whether the scene's task is solved, judged on the physics.

@@ -106,3 +106,67 @@ fn the_drawer_stays_put_untouched_and_is_not_a_success() {
         assert!(!r.success, "{r:?}");
     }
 }
+
+/// Drives `sim` with `expert` (and the crate's IK) until it is done or `max_ticks` pass.
+fn drive(sim: &mut Sim, expert: &mut expert::Expert, max_ticks: u32) -> Phase {
+    let ik = expert::CartesianIk::new(sim);
+    for _ in 0..max_ticks {
+        let a = expert.act(sim);
+        let joints = ik.solve(sim, &a.cartesian_position);
+        sim.step(&labrig_sim::ArmTarget { joints, gripper: a.gripper_position }).unwrap();
+        if a.phase == Phase::Done {
+            break;
+        }
+    }
+    let hold = labrig_sim::ArmTarget { joints: sim.joint_targets(), gripper: 0.0 };
+    for _ in 0..10 {
+        sim.step(&hold).unwrap();
+    }
+    expert.phase()
+}
+
+/// A takeover mid-episode (`Expert::resume`): from wherever another driver left the arm, the
+/// expert infers its phase from the physics and still solves the scene. From mid-air (the
+/// arm moved off to the side, nothing held), and from an object already in the fingers and
+/// lifted (it carries on, not dropping it with an approach).
+#[test]
+fn the_expert_resumed_mid_episode_solves_the_scene_from_where_it_finds_it() {
+    let spec = SceneSpec::default_pick_place();
+    for seed in [0, 1, 2] {
+        // Mid-air: the reset pose with joints 1 and 4 turned, the gripper open.
+        let mut sim = Sim::new(&assets(), &spec, seed, Nanos::from_millis(50)).unwrap();
+        let template = expert::Expert::new(&sim);
+        let mut off = labrig_sim::rig::RESET_POSE;
+        off[0] += 0.3;
+        off[3] += 0.2;
+        for _ in 0..30 {
+            sim.step(&labrig_sim::ArmTarget { joints: off, gripper: 0.0 }).unwrap();
+        }
+        let mut resumed = template.resume(&sim);
+        assert_eq!(resumed.phase(), Phase::Approach);
+        let plan = resumed.plan(&sim);
+        assert_eq!(plan.len(), 6, "{plan:?}");
+        drive(&mut sim, &mut resumed, 300);
+        assert!(expert::pick_place_success(&sim), "seed {seed}: from mid-air, ended in {:?}", resumed.phase());
+
+        // Held: the expert's own run stopped once the object is up, then a fresh expert
+        // resumed from there.
+        let mut sim = Sim::new(&assets(), &spec, seed, Nanos::from_millis(50)).unwrap();
+        let template = expert::Expert::new(&sim);
+        let mut first = template.clone();
+        let ik = expert::CartesianIk::new(&sim);
+        for _ in 0..300 {
+            let a = first.act(&sim);
+            let joints = ik.solve(&sim, &a.cartesian_position);
+            sim.step(&labrig_sim::ArmTarget { joints, gripper: a.gripper_position }).unwrap();
+            if a.phase == Phase::Carry {
+                break;
+            }
+        }
+        assert!(sim.object_position()[2] > labrig_sim::scene::OBJECT_SIZE, "seed {seed}: the object is up");
+        let mut resumed = template.resume(&sim);
+        assert_eq!(resumed.phase(), Phase::Lift, "seed {seed}: a held object is carried on");
+        drive(&mut sim, &mut resumed, 300);
+        assert!(expert::pick_place_success(&sim), "seed {seed}: from the held object, ended in {:?}", resumed.phase());
+    }
+}

@@ -94,6 +94,16 @@ pub struct BridgeConfig {
     /// gripper) and its progress (`/sim/expert/status`, JSON: phase, done, success judged on
     /// the physics): an action source for the rig loop, which decides whether to follow it.
     pub expert: bool,
+    /// With `expert`: the expert re-plans from the state it finds (`Expert::resume`) after
+    /// every step the arm was not driven by its own action, so that whenever a rig loop lets
+    /// it take over (a policy rollout's `policy.takeover = "expert"`) its action is the one
+    /// for here, not for where its own plan would have been by now. Whether the arm followed
+    /// it is judged on what reached the physics: the commanded joints' TCP within 1 cm of
+    /// its action's pose and the gripper target within 0.2 of its (the loop turns the pose
+    /// into joints with its own IK; nothing on the wire says who acted). The status then
+    /// also carries the expert's phase target and its whole plan (`Expert::plan`), which the
+    /// loop's takeover rule measures the arm against.
+    pub expert_resume: bool,
     /// Sim time on the wall clock's time line (Unix ns) instead of from 0: in realtime each
     /// step's state and frames are stamped with the wall time they were made at, as a real
     /// rig's, so a control loop on the wall clock pairs them with its ticks; time lost to a
@@ -176,6 +186,7 @@ impl Default for BridgeConfig {
             meshes: Meshes::Collision,
             cameras: true,
             expert: false,
+            expert_resume: false,
             wall_clock_origin: false,
             realtime_priority: None,
             max_ticks: None,
@@ -211,6 +222,9 @@ impl BridgeConfig {
                     format!("only_cameras names `{c}`; the rig's cameras are {}", labrig_sim::rig::CAMERAS.join(", ")),
                 ));
             }
+        }
+        if self.expert_resume && !self.expert {
+            return Err(Invalid::new("expert_resume", "expert_resume (--expert-resume) needs expert (--expert)"));
         }
         if let Some(r) = self.camera_rate_hz
             && !(r.is_finite() && r > 0.0)
@@ -318,6 +332,11 @@ pub struct BridgeFlags {
     #[arg(long)]
     #[serde(skip_serializing_if = "is_false")]
     pub expert: bool,
+    /// The expert re-plans from the state after steps it did not drive (config
+    /// `expert_resume`; needs --expert).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "is_false")]
+    pub expert_resume: bool,
     /// Sim time on the wall clock's time line (config `wall_clock_origin`).
     #[arg(long)]
     #[serde(skip_serializing_if = "is_false")]
@@ -542,6 +561,8 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     let mut expert = if a.expert {
         Some(ExpertPub {
             expert: labrig_sim::expert::Expert::new(&sim),
+            resume: a.expert_resume.then(|| (labrig_sim::expert::Expert::new(&sim), safety.ik().kinematics().clone())),
+            last_action: None,
             action: ros.publisher_on(&topics::SIM_EXPERT_ACTION, 10)?,
             status: ros.publisher_on(&topics::SIM_EXPERT_STATUS, 10)?,
             seq: 0,
@@ -616,7 +637,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     let in_force = calibration_in_force(rig.sim(), &spec, calibrations.as_ref(), &mut pubs)?;
                     publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount)?;
                     if let Some(e) = &mut expert {
-                        e.expert = labrig_sim::expert::Expert::new(rig.sim());
+                        e.new_scene(rig.sim());
                     }
                     tracing::info!(seed = req.seed, time_s = rig.sim().time().as_secs_f64(), "new scene");
                     // The new scene's first state comes with its own frames: the episode's
@@ -738,6 +759,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
             out.send(rig.sim_mut(), &pubs.camera_info)?;
         }
         if let Some(e) = &mut expert {
+            e.follow(rig.sim(), rig.state());
             e.publish(rig.sim());
         }
         idle_publish = Instant::now();
@@ -765,10 +787,22 @@ struct ResetRequest {
     seed: u64,
 }
 
+/// `expert_resume`: the arm followed the expert's action when the commanded joints' TCP is
+/// this close to its pose (m; the loop's IK lands within a millimetre, a policy's own path
+/// rarely this close to the expert's next step) ...
+const FOLLOWED_M: f64 = 0.01;
+/// ... and the gripper's target this close to its (0 open .. 1 closed).
+const FOLLOWED_GRIPPER: f64 = 0.2;
+
 /// The scripted expert as an action source on ROS: its action for the current state and its
 /// progress, after every step.
 struct ExpertPub {
     expert: labrig_sim::expert::Expert,
+    /// `expert_resume`: the scene's expert as made at its reset pose (what `resume` starts
+    /// from) and the FR3's kinematics (the commanded joints' TCP).
+    resume: Option<(labrig_sim::expert::Expert, labrig_arm::Fr3Kinematics)>,
+    /// The last action published (pose, gripper): what the arm followed or not.
+    last_action: Option<([f64; 6], f64)>,
     action: RosPublisher<ArmCommand>,
     status: RosPublisher<StringMsg>,
     seq: u64,
@@ -777,8 +811,35 @@ struct ExpertPub {
 }
 
 impl ExpertPub {
+    /// A new scene at its reset pose: a new expert (and template).
+    fn new_scene(&mut self, sim: &Sim) {
+        self.expert = labrig_sim::expert::Expert::new(sim);
+        if let Some((template, _)) = &mut self.resume {
+            *template = self.expert.clone();
+        }
+        self.last_action = None;
+    }
+
+    /// `expert_resume`, after a step: re-plans from the state unless the step's arm target was
+    /// its own last action.
+    fn follow(&mut self, sim: &Sim, state: &crate::hardware::CommandState) {
+        let Some((template, kin)) = &self.resume else { return };
+        let followed = match (self.last_action, state.arm.as_ref()) {
+            (Some((pose, gripper)), Some(target)) => {
+                let tcp = kin.tcp_pose(&target.joints).translation.vector;
+                let want = nalgebra::Vector3::new(pose[0], pose[1], pose[2]);
+                (tcp - want).norm() < FOLLOWED_M && (state.gripper - gripper).abs() < FOLLOWED_GRIPPER
+            }
+            _ => false,
+        };
+        if !followed {
+            self.expert = template.resume(sim);
+        }
+    }
+
     fn publish(&mut self, sim: &Sim) {
         let act = self.expert.act(sim);
+        self.last_action = Some((act.cartesian_position, act.gripper_position));
         self.seq += 1;
         let mut cmd = ArmCommand {
             mode: labrig_msgs::labrig_msgs::ArmCommandMode::CartesianPosition as u8,
@@ -796,6 +857,11 @@ impl ExpertPub {
             "stamp_ns": sim.time().0,
             "seed": sim.scene().seed,
         });
+        let mut status = status;
+        if self.resume.is_some() {
+            status["target"] = serde_json::json!(act.target);
+            status["plan"] = serde_json::json!(self.expert.plan(sim));
+        }
         self.last = Some((cmd, StringMsg { data: status.to_string() }));
         self.republish();
     }

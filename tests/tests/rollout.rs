@@ -154,11 +154,22 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
     let (_sim, _rec, mut server) = rig(domain, dir.path());
     let control = workspace_bin("labrig-control", "labrig-control");
     let d = domain.to_string();
-    let base = ["run", "--source", "policy", "--clock", "sim", "--episodes", "1", "--first-seed", "1000"];
+    let real = ["run", "--source", "policy", "--clock", "sim", "--episodes", "1", "--first-seed", "1000"];
+    let base = [&real[..], &["--set", "policy.sim_rig=true"]].concat();
+
+    // The tiny policy reads the sim scene's positions: a loop not configured as the sim rig
+    // (a real rig's) refuses it at start, naming the input.
+    let o = Command::new(&control).args(real).args(["--domain-id", &d]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!("the policy {POLICY_ID} observes [\"scene_state (the sim scene's object and receptacle positions)\"], which only the simulator has")),
+        "{err}"
+    );
 
     // A rig configured for another action space refuses the policy at start, by name.
     let o = Command::new(&control)
-        .args(base)
+        .args(&base)
         .args(["--domain-id", &d, "--set", "policy.action_space=\"cartesian_velocity\""])
         .output()
         .unwrap();
@@ -175,7 +186,7 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
     // asked for and timed but the arm holds: every recorded step is a hold.
     let o = Command::new(&control)
         .env(NAMESPACE_ENV, frames_namespace())
-        .args(base)
+        .args(&base)
         .args(["--max-steps", "20", "--set", "policy.deadman=true", "--domain-id", &d, "--json"])
         .output()
         .unwrap();
@@ -190,7 +201,7 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
 
     let mut cmd = Command::new(&control);
     cmd.env(NAMESPACE_ENV, frames_namespace());
-    cmd.args(base).args(["--max-steps", "400", "--set", "policy.server_timeout_s=1.0", "--domain-id", &d]);
+    cmd.args(&base).args(["--max-steps", "400", "--set", "policy.server_timeout_s=1.0", "--domain-id", &d]);
     let mut ctl = Proc::spawn("labrig-control --source policy", cmd);
     let (steps, events) = rt().block_on(async {
         let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "rollout_fault").unwrap();

@@ -8,6 +8,7 @@
 //! - [`source`]: action sources behind one trait (the sim's scripted expert, teleop).
 //! - [`policy`]: the policy server as an action source (chunks timed to ticks, blending,
 //!   asynchronous requests).
+//! - [`takeover`]: an operator (the Quest, or the sim's expert) taking over from the policy.
 //! - [`rig`]: the loop as a state machine ([`rig::RigLoop`]: begin a tick, observe, decide,
 //!   act), driven tick by tick by the node or by a test with in-memory inputs and outputs.
 //! - [`node`]: the node (`labrig-control run`) feeding the state machine from ROS 2 and shared
@@ -20,6 +21,7 @@ pub mod policy;
 pub mod rig;
 pub mod source;
 pub mod step;
+pub mod takeover;
 
 use labrig_msgs::Invalid;
 use labrig_runtime::node::{is_false, negated};

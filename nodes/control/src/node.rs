@@ -28,6 +28,7 @@ use crate::policy::{PolicySource, PolicySourceConfig};
 use crate::rig::{RigLoop, RigOutputs};
 use crate::source::RgbFrame;
 use crate::source::{ActionSource, ScriptedExpert};
+use crate::takeover::{ExpertRule, Takeover, TakeoverKind};
 use anyhow::Context;
 use labrig_arm::ik::{Ik, IkConfig, delta_to_velocity, pose_error, xyz_euler};
 use labrig_arm::safety::{SafetyConfig, SafetyFilter};
@@ -241,6 +242,10 @@ pub struct EpisodeReport {
     pub instruction: String,
     pub outcome: String,
     pub steps: u64,
+    /// A policy rollout's operator takeovers ([`crate::takeover`]) and the steps the operator
+    /// acted (0 and 0 for other sources).
+    pub takeovers: u64,
+    pub operator_steps: u64,
 }
 
 /// What a run did.
@@ -262,6 +267,9 @@ pub struct Summary {
     pub skew_us: [f64; 3],
     /// Episode starts held back because the recorder took no episode (a full disk).
     pub starts_refused: u64,
+    /// Policy rollouts: operator takeovers and the steps operators acted, over all episodes.
+    pub takeovers: u64,
+    pub operator_steps: u64,
     /// Episodes stopped because the arm node reported a fault.
     pub arm_faults: u64,
     /// On the sim's clock, ticks started by the sim's `/clock` (the rest by the arm's state).
@@ -343,7 +351,20 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             let period = Nanos::from_secs_rounded(cfg.period_s);
             let p =
                 PolicySource::connect(&mut ros, cfg.policy.clone(), cfg.clock, period, &cfg.cameras, &shutdown).await?;
-            Some(Box::new(p))
+            let teleop_age = Duration::from_secs_f64(cfg.teleop_max_age_s);
+            match cfg.policy.takeover {
+                TakeoverKind::None => Some(Box::new(p)),
+                TakeoverKind::Teleop => Some(Box::new(Takeover::new(
+                    Box::new(p),
+                    Box::new(crate::source::Teleop::new(&mut ros, teleop_age)?),
+                    None,
+                ))),
+                TakeoverKind::Expert => Some(Box::new(Takeover::new(
+                    Box::new(p),
+                    Box::new(ScriptedExpert::new(&mut ros)?),
+                    Some(ExpertRule::new(&cfg.policy)),
+                ))),
+            }
         }
     };
     // The cameras whose pixels the source observes: their newest frames, copied.
@@ -552,6 +573,15 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         }
         // 4. Episode events.
         rig.decide(source.as_deref_mut(), &mut out)?;
+        // Lockstep: what the source decides from at the tick (a takeover: the operator's status
+        // stamped at it) before it observes, so the decision does not race the sim.
+        if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, rig.recording()) {
+            let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
+            while !s.settled(Nanos(tick_ns)) && Instant::now() < deadline && !shutdown.is_triggered() {
+                tokio::time::sleep(Duration::from_micros(100)).await;
+                s.poll()?;
+            }
+        }
         // The tick as recorded, to a source that observes (the policy's request goes out here).
         if let (Some(s), Some(mut view)) = (source.as_mut(), rig.view()) {
             view.images = pixels.iter_mut().filter_map(|r| r.at(view.tick).map(|f| (r.camera.as_str(), f))).collect();
@@ -799,10 +829,40 @@ mod tests {
             instruction: String::new(),
             outcome: "success".into(),
             steps: 1,
+            takeovers: 0,
+            operator_steps: 0,
         };
         let second = episode_uuid("LAB", "op", &[report(&first)]);
         assert_ne!(first, second);
         assert!(first.starts_with("LAB+op+20"));
+    }
+
+    /// The grip cannot be both the policy's deadman and the operator's takeover; the expert
+    /// plays the operator in the sim only; the rule's numbers are checked by name.
+    #[test]
+    fn a_takeover_config_that_cannot_work_is_refused_by_key() {
+        let load = |toml: &str| -> ControlConfig {
+            labrig_runtime::config::parse_config(toml, std::path::Path::new("test.toml")).unwrap()
+        };
+        let c = load("source = \"policy\"\n[policy]\ntakeover = \"teleop\"\n");
+        assert_eq!(c.validate(), Ok(()));
+        let e = load("[policy]\ntakeover = \"teleop\"\ndeadman = true\n").validate().unwrap_err();
+        assert_eq!(e.key, "policy.takeover");
+        assert!(e.to_string().contains("cannot mean both"), "{e}");
+        let e = load("[policy]\ntakeover = \"expert\"\n").validate().unwrap_err();
+        assert!(e.to_string().contains("needs policy.sim_rig = true"), "{e}");
+        let c = load("[policy]\ntakeover = \"expert\"\nsim_rig = true\ntakeover_stall_ticks = 20\n");
+        assert_eq!(c.validate(), Ok(()));
+        assert_eq!((c.policy.takeover_stall_ticks, c.policy.takeover_ticks, c.policy.takeover_max), (20, 40, 3));
+        let e = load("[policy]\ntakeover_distance_m = -1.0\n").validate().unwrap_err();
+        assert_eq!(e.key, "policy.takeover_distance_m");
+        assert!(
+            labrig_runtime::config::parse_config::<ControlConfig>(
+                "[policy]\ntakeover = \"someone\"\n",
+                std::path::Path::new("test.toml")
+            )
+            .is_err()
+        );
     }
 
     #[test]

@@ -28,6 +28,7 @@
 use crate::node::ClockKind;
 use crate::source::{ActionSource, Proposal, RgbFrame, SourceError, TickView, Verdict};
 use crate::step::ChunkRef;
+pub use crate::takeover::TakeoverKind;
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{
     ActionChunk, ArmCommand, ArmCommandMode, PolicyObservation, PolicyRequest, Step, TeleopState,
@@ -81,6 +82,33 @@ pub struct PolicySourceConfig {
     /// On a real arm: the policy moves it only while the Quest's grip is held (`/teleop/state`
     /// from `labrig-teleop`, no older than 0.1 s), as teleop does; released, the arm holds.
     pub deadman: bool,
+    /// This rig is the simulated one. A policy that observes inputs only a simulator has (the
+    /// scene's object positions, `sim_only` in `/policy/info`) is refused unless this is set;
+    /// a real rig gives a policy only pixels and proprioception.
+    pub sim_rig: bool,
+    /// Who may take over from the policy mid-rollout, its ticks recorded as theirs
+    /// (operator corrections; [`crate::takeover`]): `"none"`, `"teleop"` (the Quest operator
+    /// while the grip is held: `/teleop/action` replaces the policy's actions) or `"expert"`
+    /// (the sim's scripted expert, by the rule `takeover_*`; needs `sim_rig` and a bridge run
+    /// with `--expert --expert-resume`).
+    ///
+    /// `"teleop"` refuses `deadman = true`: the grip cannot mean both "the policy may move"
+    /// and "the operator takes over". With a takeover the policy moves without the grip, and
+    /// the operator stops it by taking over (the grip, and the arm goes where the Quest says)
+    /// or ends the rollout (B/Y).
+    pub takeover: TakeoverKind,
+    /// `takeover = "expert"`: the stall window (ticks): less than `takeover_progress_m`
+    /// progress toward the expert's target over this many ticks, and it takes over.
+    pub takeover_stall_ticks: u32,
+    /// `takeover = "expert"`: the least progress (m) over the stall window.
+    pub takeover_progress_m: f64,
+    /// `takeover = "expert"`: the TCP farther than this (m) from the expert's plan, and it
+    /// takes over.
+    pub takeover_distance_m: f64,
+    /// `takeover = "expert"`: it hands back after this many ticks.
+    pub takeover_ticks: u32,
+    /// `takeover = "expert"`: at most this many takeovers per episode.
+    pub takeover_max: u32,
 }
 
 impl Default for PolicySourceConfig {
@@ -95,6 +123,13 @@ impl Default for PolicySourceConfig {
             action_space: String::new(),
             jpeg_quality: 90,
             deadman: false,
+            sim_rig: false,
+            takeover: TakeoverKind::None,
+            takeover_stall_ticks: 40,
+            takeover_progress_m: 0.01,
+            takeover_distance_m: 0.15,
+            takeover_ticks: 40,
+            takeover_max: 3,
         }
     }
 }
@@ -127,6 +162,33 @@ impl PolicySourceConfig {
         if !(1..=100).contains(&self.jpeg_quality) {
             return Err(Invalid::new("policy.jpeg_quality", "policy.jpeg_quality must be 1..=100"));
         }
+        if self.takeover == TakeoverKind::Teleop && self.deadman {
+            return Err(Invalid::new(
+                "policy.takeover",
+                "policy.takeover = \"teleop\" and policy.deadman = true: the Quest's grip cannot mean both \"the policy may move\" (deadman) and \"the operator takes over\"; set one",
+            ));
+        }
+        if self.takeover == TakeoverKind::Expert && !self.sim_rig {
+            return Err(Invalid::new(
+                "policy.takeover",
+                "policy.takeover = \"expert\" is the sim's scripted expert: it needs policy.sim_rig = true",
+            ));
+        }
+        for (name, v) in
+            [("policy.takeover_stall_ticks", self.takeover_stall_ticks), ("policy.takeover_ticks", self.takeover_ticks)]
+        {
+            if !(1..=100_000).contains(&v) {
+                return Err(Invalid::new(name, format!("{name} = {v} must be in 1..=100000")));
+            }
+        }
+        for (name, v) in [
+            ("policy.takeover_progress_m", self.takeover_progress_m),
+            ("policy.takeover_distance_m", self.takeover_distance_m),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 10.0) {
+                return Err(Invalid::new(name, format!("{name} = {v} must be in (0, 10] m")));
+            }
+        }
         Ok(())
     }
 }
@@ -141,12 +203,22 @@ pub struct PolicyInfo {
     pub n_action_steps: usize,
     pub action_space: String,
     pub action_dim: usize,
+    /// The inputs it observes that only a simulator has (empty: pixels and proprioception).
+    #[serde(default)]
+    pub sim_only: Vec<String>,
 }
 
 impl PolicyInfo {
     /// Whether this loop can feed and execute the policy; the mismatch named if not.
-    pub fn check(&self, rig_cameras: &[String], action_space: &str) -> Result<(), String> {
+    /// `sim_rig`: this loop runs the simulated rig (sim-only inputs allowed).
+    pub fn check(&self, rig_cameras: &[String], action_space: &str, sim_rig: bool) -> Result<(), String> {
         let id = &self.policy_id;
+        if !sim_rig && !self.sim_only.is_empty() {
+            return Err(format!(
+                "the policy {id} observes {:?}, which only the simulator has; this rig is not a sim rig (policy.sim_rig = false): a real rig gives a policy camera images and proprioception only",
+                self.sim_only
+            ));
+        }
         let missing: Vec<&String> = self.cameras.iter().filter(|c| !rig_cameras.contains(c)).collect();
         if !missing.is_empty() {
             return Err(format!(
@@ -268,7 +340,8 @@ pub struct PolicySource {
     active: Vec<Chunk>,
     in_flight: Option<InFlight>,
     next_request: u64,
-    /// Chunks answering older requests belong to an earlier episode.
+    /// Chunks answering older requests belong to an earlier episode (or to the policy's turn
+    /// before an operator took over).
     first_request_of_episode: u64,
     since_ns: i64,
     /// (stamp, success) of the newest `/sim/task`.
@@ -276,6 +349,8 @@ pub struct PolicySource {
     round_trips_ms: Vec<f64>,
     stats: PolicyStats,
     warned_images: bool,
+    /// An operator has taken over: observe, ask for nothing.
+    suspended: bool,
 }
 
 impl std::fmt::Debug for PolicySource {
@@ -330,7 +405,7 @@ impl PolicySource {
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         };
-        info.check(cameras, &cfg.action_space).map_err(PolicyStartError::Mismatch)?;
+        info.check(cameras, &cfg.action_space, cfg.sim_rig).map_err(PolicyStartError::Mismatch)?;
         let (jobs, rx) = mpsc::channel::<Job>();
         let quality = cfg.jpeg_quality;
         let encoder = std::thread::Builder::new()
@@ -361,6 +436,7 @@ impl PolicySource {
             round_trips_ms: Vec::new(),
             stats,
             warned_images: false,
+            suspended: false,
         })
     }
 
@@ -675,6 +751,18 @@ impl ActionSource for PolicySource {
         self.active.clear();
         self.in_flight = None;
         self.first_request_of_episode = self.next_request;
+        self.suspended = false;
+    }
+
+    /// Either way what it has is dropped: the chunks (for other states than the arm's now)
+    /// and the request in flight, whose answer, when it comes, is older than
+    /// `first_request_of_episode` and ignored as an earlier episode's is. Resumed, the next
+    /// `observe` asks at once (nothing is active), from the observations kept meanwhile.
+    fn suspend(&mut self, on: bool) {
+        self.suspended = on;
+        self.active.clear();
+        self.in_flight = None;
+        self.first_request_of_episode = self.next_request;
     }
 
     fn cameras(&self) -> &[String] {
@@ -699,7 +787,7 @@ impl ActionSource for PolicySource {
         while self.history.len() > self.info.n_obs_steps {
             self.history.pop_front();
         }
-        if self.in_flight.is_some() {
+        if self.in_flight.is_some() || self.suspended {
             return;
         }
         let lead = self.lead_steps();
@@ -738,22 +826,42 @@ mod tests {
             n_action_steps: 8,
             action_space: "eef_axis_angle".into(),
             action_dim: 7,
+            sim_only: vec![],
         }
     }
 
     #[test]
     fn a_policy_the_rig_cannot_serve_is_refused_by_name() {
         let rig: Vec<String> = ["ext1", "wrist"].map(String::from).to_vec();
-        assert_eq!(info().check(&rig, ""), Ok(()));
-        assert_eq!(info().check(&rig, "eef_axis_angle"), Ok(()));
-        let e = info().check(&["wrist".to_string()], "").unwrap_err();
+        assert_eq!(info().check(&rig, "", false), Ok(()));
+        assert_eq!(info().check(&rig, "eef_axis_angle", false), Ok(()));
+        let e = info().check(&["wrist".to_string()], "", false).unwrap_err();
         assert!(e.contains("run@600 observes cameras [\"ext1\"], which this rig does not record"), "{e}");
-        let e = PolicyInfo { action_space: "joint_velocity".into(), ..info() }.check(&rig, "").unwrap_err();
+        let e = PolicyInfo { action_space: "joint_velocity".into(), ..info() }.check(&rig, "", false).unwrap_err();
         assert!(e.contains("predicts \"joint_velocity\" actions, which the loop cannot execute"), "{e}");
-        let e = info().check(&rig, "cartesian_velocity").unwrap_err();
+        let e = info().check(&rig, "cartesian_velocity", false).unwrap_err();
         assert!(e.contains("this rig is configured for \"cartesian_velocity\""), "{e}");
-        let e = PolicyInfo { action_dim: 10, ..info() }.check(&rig, "").unwrap_err();
+        let e = PolicyInfo { action_dim: 10, ..info() }.check(&rig, "", false).unwrap_err();
         assert!(e.contains("10-wide"), "{e}");
+    }
+
+    /// A policy that reads the sim scene's positions runs on the sim rig only; the refusal
+    /// names the input. Old servers' info (no `sim_only`) reads as observing none.
+    #[test]
+    fn a_sim_only_policy_is_refused_on_a_real_rig_naming_its_input() {
+        let rig: Vec<String> = ["ext1", "wrist"].map(String::from).to_vec();
+        let sim_only = PolicyInfo {
+            sim_only: vec!["scene_state (the sim scene's object and receptacle positions)".into()],
+            ..info()
+        };
+        assert_eq!(sim_only.check(&rig, "", true), Ok(()));
+        let e = sim_only.check(&rig, "", false).unwrap_err();
+        assert!(e.contains("run@600 observes [\"scene_state (the sim scene's object and receptacle positions)\"], which only the simulator has"), "{e}");
+        let old: PolicyInfo = serde_json::from_str(
+            r#"{"policy_id": "a@1", "cameras": [], "n_obs_steps": 2, "horizon": 16, "n_action_steps": 8, "action_space": "eef_axis_angle", "action_dim": 7}"#,
+        )
+        .unwrap();
+        assert!(old.sim_only.is_empty());
     }
 
     #[test]

@@ -17,7 +17,9 @@
 
 use crate::episode::{Effect, Ending, Episodes, State};
 use crate::frames::{FrameBook, FrameTimes};
-use crate::node::{ClockKind, ControlConfig, EpisodeReport, Summary, action_dict, episode_uuid, percentiles_us};
+use crate::node::{
+    ClockKind, ControlConfig, EpisodeReport, SourceKind, Summary, action_dict, episode_uuid, percentiles_us,
+};
 use crate::source::{ActionSource, Proposal, TickView, Verdict};
 use crate::step::{Decision, Observation, TickTimes, make_step};
 use labrig_arm::safety::{ArmView, Refusal, SafetyFilter};
@@ -151,6 +153,11 @@ pub struct RigLoop {
     end_note: String,
     /// Consecutive ticks the arm node has reported a fault.
     fault_ticks: u32,
+    /// A policy rollout: the last recorded step was an operator's (a takeover,
+    /// [`crate::takeover`]); the episode's takeovers and operator steps so far.
+    operator_acting: bool,
+    episode_takeovers: u64,
+    episode_operator_steps: u64,
 }
 
 /// An arm fault reported this many ticks in a row (a quarter second) stops the episode; a
@@ -194,6 +201,9 @@ impl RigLoop {
             refused_episode: None,
             end_note: String::new(),
             fault_ticks: 0,
+            operator_acting: false,
+            episode_takeovers: 0,
+            episode_operator_steps: 0,
         }
     }
 
@@ -542,6 +552,7 @@ impl RigLoop {
             Ok(Effect::StartRecording) => {
                 self.episode_id = episode_uuid(&self.cfg.lab, &self.cfg.user, &self.summary.episodes);
                 self.episode_seed = self.scene.seed;
+                (self.operator_acting, self.episode_takeovers, self.episode_operator_steps) = (false, 0, 0);
                 if let Some(s) = source {
                     s.restart(Nanos(tick_ns));
                 }
@@ -565,7 +576,10 @@ impl RigLoop {
                     instruction: self.episode_instruction.clone(),
                     outcome: outcome.into(),
                     steps: self.episodes.steps,
+                    takeovers: self.episode_takeovers,
+                    operator_steps: self.episode_operator_steps,
                 });
+                self.operator_acting = false;
                 self.reset_started = tick_ns;
                 if self.cfg.reseed {
                     self.next_seed += 1;
@@ -592,6 +606,7 @@ impl RigLoop {
         let tick = self.tick();
         let tick_ns = tick.ns;
         let policy_start = tick.now();
+        let mut acting_changed = false;
         let robot = &self.robot;
         let view =
             ArmView { measured: robot.joint_positions, commanded: self.commanded.unwrap_or(robot.joint_positions) };
@@ -689,9 +704,27 @@ impl RigLoop {
             let decision = Decision { action, source: source_kind, movement_enabled: moving, chunk };
             out.step(make_step(&self.episode_id, self.episodes.steps, &obs, &decision, &times))?;
             self.episodes.tick();
+            // A policy rollout's step by another source is an operator's (a takeover).
+            let operator = self.cfg.source == SourceKind::Policy
+                && source_kind != Step::SOURCE_POLICY
+                && source_kind != Step::SOURCE_NONE;
+            if operator && !self.operator_acting {
+                self.episode_takeovers += 1;
+                self.summary.takeovers += 1;
+            }
+            self.episode_operator_steps += u64::from(operator);
+            self.summary.operator_steps += u64::from(operator);
+            acting_changed = operator != self.operator_acting;
+            self.operator_acting = operator;
         }
-        if self.summary.ticks.is_multiple_of(20) {
+        // Who acts goes out at once when it changes (the station shows the operator's turn).
+        if self.summary.ticks.is_multiple_of(20) || acting_changed {
+            let acting = (self.cfg.source == SourceKind::Policy && self.episodes.recording())
+                .then_some(if self.operator_acting { "operator" } else { "policy" });
             let status = json!({
+                "acting": acting,
+                "takeovers": self.episode_takeovers,
+                "operator_steps": self.episode_operator_steps,
                 "state": format!("{:?}", self.episodes.state()),
                 "recorder_refusal": self.recorder_refusal,
                 "episode": self.episode_id,
@@ -748,6 +781,7 @@ mod tests {
         steps: Vec<Step>,
         events: Vec<EpisodeEvent>,
         resets: Vec<u64>,
+        statuses: Vec<serde_json::Value>,
     }
 
     impl Sent {
@@ -777,7 +811,8 @@ mod tests {
             self.resets.push(seed);
             Ok(())
         }
-        fn status(&mut self, _json: String) -> Result<(), RosError> {
+        fn status(&mut self, json: String) -> Result<(), RosError> {
+            self.statuses.push(serde_json::from_str(&json).unwrap());
             Ok(())
         }
     }
@@ -788,6 +823,9 @@ mod tests {
         actions: VecDeque<Result<Proposal, SourceError>>,
         verdict: Option<Verdict>,
         restarts: u32,
+        /// Who acts, per action asked for (a takeover's source); the scripted expert when none.
+        kinds: VecDeque<u8>,
+        kind: Option<u8>,
     }
 
     impl ActionSource for Queue {
@@ -795,7 +833,7 @@ mod tests {
             "test queue"
         }
         fn kind(&self) -> u8 {
-            Step::SOURCE_SCRIPTED
+            self.kind.unwrap_or(Step::SOURCE_SCRIPTED)
         }
         fn poll(&mut self) -> Result<(), RosError> {
             Ok(())
@@ -804,6 +842,9 @@ mod tests {
             true
         }
         fn action(&mut self, _tick: Nanos, _max_age: Nanos) -> Result<Proposal, SourceError> {
+            if let Some(k) = self.kinds.pop_front() {
+                self.kind = Some(k);
+            }
             self.actions.pop_front().unwrap_or(Err(SourceError::Silent { from: "test queue" }))
         }
         fn verdict(&self, _tick: Nanos) -> Verdict {
@@ -864,6 +905,36 @@ mod tests {
 
     fn request(rig: &mut RigLoop, kind: EpisodeEventKind, note: &str) {
         rig.push_request(&EpisodeEvent { kind: kind as u8, note: note.into(), ..Default::default() });
+    }
+
+    /// A policy rollout: a run of steps by another source is an operator's takeover; the
+    /// loop counts them and their steps per episode and in the run, and its status says who
+    /// acts the tick it changes.
+    #[test]
+    fn a_policy_rollouts_operator_steps_and_takeovers_are_counted_and_reported() {
+        let mut rig = rig(100);
+        rig.cfg.source = SourceKind::Policy;
+        let (mut src, mut out) = (Queue::default(), Sent::default());
+        tick(&mut rig, 0, &mut src, &mut out);
+        request(&mut rig, EpisodeEventKind::Start, "");
+        const P: u8 = Step::SOURCE_POLICY;
+        const T: u8 = Step::SOURCE_TELEOP;
+        let who = [P, P, T, T, P, T, P];
+        for (k, &w) in who.iter().enumerate() {
+            src.kinds.push_back(w);
+            src.actions.push_back(go(joints_at(0.001 * k as f64)));
+            tick(&mut rig, 1 + k as i64, &mut src, &mut out);
+        }
+        assert_eq!(out.steps.iter().map(|s| s.action_source).collect::<Vec<_>>(), who);
+        let acting: Vec<&str> = out.statuses.iter().filter_map(|s| s["acting"].as_str()).collect();
+        assert_eq!(acting, ["operator", "policy", "operator", "policy"], "one status per change: {:?}", out.statuses);
+        let last = out.statuses.last().unwrap();
+        assert_eq!((last["takeovers"].as_u64(), last["operator_steps"].as_u64()), (Some(2), Some(3)));
+        src.verdict = Some(Verdict::Succeeded);
+        tick(&mut rig, 9, &mut src, &mut out);
+        let report = &rig.summary().episodes[0];
+        assert_eq!((report.takeovers, report.operator_steps), (2, 3));
+        assert_eq!((rig.summary().takeovers, rig.summary().operator_steps), (2, 3));
     }
 
     #[test]

@@ -57,6 +57,19 @@ pub struct RgbFrame {
     pub capture_ns: i64,
 }
 
+/// The scripted expert's plan at a tick (`/sim/expert/status` from a bridge run with
+/// `--expert-resume`), what the expert takeover rule measures the arm against.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Guidance {
+    pub stamp_ns: i64,
+    /// The current phase's target for the TCP (m, base frame).
+    pub target: [f64; 3],
+    /// Its whole path for the scene: a polyline from the reset pose's TCP.
+    pub plan: Vec<[f64; 3]>,
+    /// The task is solved (judged on the physics).
+    pub success: bool,
+}
+
 /// Why a source had no action for a tick.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SourceError {
@@ -97,6 +110,23 @@ pub trait ActionSource: Send {
     fn stats(&self) -> Option<serde_json::Value> {
         None
     }
+    /// Whether what [`ActionSource::observe`] decides from has arrived for the tick (lockstep
+    /// waits for it before observing, as for the action before acting): an operator's status
+    /// for a takeover ([`crate::takeover`]).
+    fn settled(&self, _tick: Nanos) -> bool {
+        true
+    }
+    /// An operator: whether it holds control at the tick (the Quest's grip).
+    fn engaged(&self, _tick: Nanos) -> bool {
+        false
+    }
+    /// The scripted expert: its target and plan at the tick, when its bridge sends them.
+    fn guidance(&self, _tick: Nanos) -> Option<Guidance> {
+        None
+    }
+    /// A policy: an operator takes over (`true`: drop what it has and asks for, ask for
+    /// nothing) or hands back (`false`: drop what it has, ask afresh).
+    fn suspend(&mut self, _on: bool) {}
 }
 
 /// The sim bridge's scripted expert (`labrig sim run --expert`): its action for every sim
@@ -108,6 +138,8 @@ pub struct ScriptedExpert {
     latest: Option<ArmCommand>,
     /// (stamp, done, success) of the newest status.
     progress: Option<(i64, bool, bool)>,
+    /// Its target and plan, when the status has them (`--expert-resume`).
+    guidance: Option<Guidance>,
     /// The current episode's first tick: older verdicts are the last episode's.
     since_ns: i64,
 }
@@ -125,6 +157,7 @@ impl ScriptedExpert {
             status: ros.subscription_on(&topics::SIM_EXPERT_STATUS, 100)?,
             latest: None,
             progress: None,
+            guidance: None,
             since_ns: i64::MIN,
         })
     }
@@ -154,6 +187,17 @@ impl ActionSource for ScriptedExpert {
             };
             let stamp = v["stamp_ns"].as_i64().unwrap_or(i64::MIN);
             self.progress = Some((stamp, v["done"] == true, v["success"] == true));
+            let point = |p: &serde_json::Value| -> Option<[f64; 3]> {
+                let a = p.as_array().filter(|a| a.len() == 3)?;
+                Some([a[0].as_f64()?, a[1].as_f64()?, a[2].as_f64()?])
+            };
+            let plan: Option<Vec<[f64; 3]>> = v["plan"].as_array().map(|a| a.iter().filter_map(point).collect());
+            self.guidance = point(&v["target"]).zip(plan).map(|(target, plan)| Guidance {
+                stamp_ns: stamp,
+                target,
+                plan,
+                success: v["success"] == true,
+            });
         }
         Ok(())
     }
@@ -197,6 +241,14 @@ impl ActionSource for ScriptedExpert {
     fn restart(&mut self, start: Nanos) {
         self.since_ns = start.0;
     }
+
+    fn settled(&self, tick: Nanos) -> bool {
+        self.progress.is_some_and(|(t, _, _)| t >= tick.0)
+    }
+
+    fn guidance(&self, _tick: Nanos) -> Option<Guidance> {
+        self.guidance.clone()
+    }
 }
 
 /// The Quest teleop node (`labrig-teleop`): its DROID cartesian-velocity action on
@@ -213,9 +265,14 @@ pub struct Teleop {
     states: RosSubscription<TeleopState>,
     /// The newest action and when it was sent (wall ns).
     latest: Option<(ArmCommand, i64)>,
-    state: Option<TeleopState>,
+    /// The newest state and when it arrived.
+    state: Option<(TeleopState, std::time::Instant)>,
     max_age: std::time::Duration,
 }
+
+/// A takeover holds while the Quest's state is this fresh (the node sends one per reading,
+/// and at least every 100 ms), as the policy's deadman does.
+pub const TELEOP_STATE_MAX_AGE: std::time::Duration = std::time::Duration::from_millis(100);
 
 impl std::fmt::Debug for Teleop {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -250,7 +307,7 @@ impl ActionSource for Teleop {
             self.latest = Some((a.msg, sent));
         }
         while let Some(s) = self.states.try_take()? {
-            self.state = Some(s.msg);
+            self.state = Some((s.msg, std::time::Instant::now()));
         }
         Ok(())
     }
@@ -269,7 +326,7 @@ impl ActionSource for Teleop {
         if age > limit {
             return Err(SourceError::Stale { from: source, age_ms: age as f64 / 1e6, limit_ms: limit as f64 / 1e6 });
         }
-        let enabled = self.state.as_ref().is_some_and(|s| s.movement_enabled && s.controller_connected);
+        let enabled = self.state.as_ref().is_some_and(|(s, _)| s.movement_enabled && s.controller_connected);
         Ok(Proposal { command: a.clone(), movement_enabled: enabled, chunk: None })
     }
 
@@ -278,4 +335,11 @@ impl ActionSource for Teleop {
     }
 
     fn restart(&mut self, _start: Nanos) {}
+
+    /// The grip held on a connected controller, the state fresh.
+    fn engaged(&self, _tick: Nanos) -> bool {
+        self.state
+            .as_ref()
+            .is_some_and(|(s, at)| s.movement_enabled && s.controller_connected && at.elapsed() <= TELEOP_STATE_MAX_AGE)
+    }
 }

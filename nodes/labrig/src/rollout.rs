@@ -9,6 +9,13 @@
 //! success rate with its 95% (Wilson) interval, each rollout's outcome, length and reason,
 //! the chunks' inference time (p50/p99) and the ticks the arm held for lack of an action;
 //! it writes `rollouts.json`, a contact sheet per rollout and `summary.png`.
+//!
+//! `--intervene expert`: operator corrections (human-gated DAgger) played by the sim's
+//! scripted expert. The bridge publishes the expert's plan, re-planned from the state it finds
+//! (`--expert --expert-resume`), and the loop lets it take over by its rule
+//! (`policy.takeover = "expert"`, `--takeover-*`; see labrig-control's `takeover` module).
+//! Each rollout reports its takeovers and operator steps, counted from the steps' action
+//! source; "without help" counts the successes no operator touched.
 
 use crate::demo::{SimRig, contact_sheet, progress, set_arg};
 use crate::launch::LaunchConfig;
@@ -85,6 +92,26 @@ pub struct RolloutArgs {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Who may take over from the policy: `expert` (the sim's scripted expert, by the loop's
+    /// takeover rule).
+    #[arg(long, value_enum)]
+    pub intervene: Option<InterveneArg>,
+    /// `--intervene expert`: the stall window in ticks (`policy.takeover_stall_ticks`).
+    #[arg(long, requires = "intervene")]
+    pub takeover_stall_ticks: Option<u32>,
+    /// `--intervene expert`: the distance from the expert's plan that triggers a takeover
+    /// (m, `policy.takeover_distance_m`).
+    #[arg(long, requires = "intervene")]
+    pub takeover_distance_m: Option<f64>,
+    /// `--intervene expert`: ticks before the expert hands back (`policy.takeover_ticks`).
+    #[arg(long, requires = "intervene")]
+    pub takeover_ticks: Option<u32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum InterveneArg {
+    /// The sim's scripted expert.
+    Expert,
 }
 
 /// One rollout as the run saw it.
@@ -104,6 +131,9 @@ pub struct Rollout {
     pub skipped_rows: u64,
     pub dir: Option<PathBuf>,
     pub contact_sheet: Option<PathBuf>,
+    /// `--intervene`: times an operator took over, and the steps it acted.
+    pub takeovers: u64,
+    pub operator_steps: u64,
 }
 
 /// The run's report.
@@ -122,6 +152,12 @@ pub struct RolloutReport {
     pub inference_ms_p99: f64,
     pub chunks: u64,
     pub held_steps: u64,
+    /// `--intervene`: who played the operator (None: nobody could take over).
+    pub intervene: Option<&'static str>,
+    /// Takeovers and operator steps over all rollouts, and the successes without any.
+    pub takeovers: u64,
+    pub operator_steps: u64,
+    pub successes_without_help: u64,
     /// The control loop's figures for the run (`--stats-out`): ticks, missed ticks, jitter
     /// and tick lateness (us, p50/p99/max), the policy source's requests, chunks, skipped rows
     /// and round trips.
@@ -160,6 +196,9 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         if args.realtime {
             sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
         }
+        if args.intervene == Some(InterveneArg::Expert) {
+            sim.args.extend(["--expert".into(), "--expert-resume".into()]);
+        }
         let rec = cfg.node_mut("recorder").context("sim_rollout.toml has no `recorder` node")?;
         set_arg(&mut rec.args, "--root", &root.display().to_string());
         let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
@@ -182,6 +221,19 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         }
         if let Some(e) = args.execute_steps {
             set(format!("policy.execute_steps={e}"));
+        }
+        if args.intervene == Some(InterveneArg::Expert) {
+            // (sim_rollout.toml sets policy.sim_rig, which the expert takeover needs too.)
+            set("policy.takeover=\"expert\"".into());
+            if let Some(n) = args.takeover_stall_ticks {
+                set(format!("policy.takeover_stall_ticks={n}"));
+            }
+            if let Some(d) = args.takeover_distance_m {
+                set(format!("policy.takeover_distance_m={d}"));
+            }
+            if let Some(n) = args.takeover_ticks {
+                set(format!("policy.takeover_ticks={n}"));
+            }
         }
     }
     // The camera frames of this rig alone (another rig may run on the machine), unless the
@@ -218,10 +270,17 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
             skipped_rows: ep.chunks.values().map(|&r| u64::from(r)).sum(),
             dir: dir.clone(),
             contact_sheet: None,
+            takeovers: ep.takeovers,
+            operator_steps: ep.operator_steps,
         };
         match &dir {
             Some(d) => match labrig_episode::inspect::inspect(d) {
                 Ok(i) => {
+                    // The recording's steps are the count to trust (this run may have missed a
+                    // step on the wire).
+                    if let Some(src) = &i.sources {
+                        (r.takeovers, r.operator_steps) = (src.takeovers, src.operator_steps);
+                    }
                     let sheet = out.join(format!("rollout_{k:02}_cameras.png"));
                     match contact_sheet(&i.path, &sheet) {
                         Ok(()) => r.contact_sheet = Some(sheet),
@@ -254,6 +313,10 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         inference_ms_p99: lat.as_ref().map_or(f64::NAN, |p| p.p99),
         chunks: seen.inference_ms.len() as u64,
         held_steps: rollouts.iter().map(|r| r.held_steps).sum(),
+        intervene: args.intervene.map(|_| "expert"),
+        takeovers: rollouts.iter().map(|r| r.takeovers).sum(),
+        operator_steps: rollouts.iter().map(|r| r.operator_steps).sum(),
+        successes_without_help: rollouts.iter().filter(|r| r.success && r.takeovers == 0).count() as u64,
         rollouts,
         control: std::fs::read_to_string(out.join("control_stats.json"))
             .ok()
@@ -313,6 +376,13 @@ fn report_text(r: &RolloutReport) -> String {
         "inference per chunk p50 {:.1} ms / p99 {:.1} ms over {} chunks; {} steps held for lack of an action",
         r.inference_ms_p50, r.inference_ms_p99, r.chunks, r.held_steps
     );
+    if let Some(who) = r.intervene {
+        let _ = writeln!(
+            s,
+            "operator corrections ({who}): {} takeovers, {} operator steps; {} of {} successes without help",
+            r.takeovers, r.operator_steps, r.successes_without_help, r.successes
+        );
+    }
     if let Some(c) = &r.control {
         let us = |k: &str, i: usize| c[k][i].as_f64().unwrap_or(f64::NAN);
         let _ = writeln!(
@@ -329,17 +399,19 @@ fn report_text(r: &RolloutReport) -> String {
         );
     }
     let _ = writeln!(s);
-    let _ = writeln!(s, "  #  seed  outcome  steps  held  chunks  skipped  reason");
+    let _ = writeln!(s, "  #  seed  outcome  steps  held  chunks  skipped  takeovers  operator  reason");
     for (k, o) in r.rollouts.iter().enumerate() {
         let _ = writeln!(
             s,
-            "{k:>3} {:>5}  {:<7}  {:>5}  {:>4}  {:>6}  {:>7}  {}",
+            "{k:>3} {:>5}  {:<7}  {:>5}  {:>4}  {:>6}  {:>7}  {:>9}  {:>8}  {}",
             o.seed.map_or("-".into(), |v| v.to_string()),
             if o.success { "success" } else { "failure" },
             o.steps,
             o.held_steps,
             o.chunks,
             o.skipped_rows,
+            o.takeovers,
+            o.operator_steps,
             o.reason
         );
     }
@@ -361,6 +433,11 @@ struct EpisodeSeen {
     held: u64,
     /// Chunk id -> the first row executed from it.
     chunks: BTreeMap<u64, u32>,
+    /// Runs of steps by an operator (not the policy), their steps, and whether the last
+    /// step was one.
+    takeovers: u64,
+    operator_steps: u64,
+    operator_acting: bool,
 }
 
 #[derive(Debug, Default)]
@@ -427,6 +504,10 @@ async fn run_rig(args: &RolloutArgs, cfg: LaunchConfig, order: Vec<usize>, seen:
             if s.action_source == Step::SOURCE_POLICY && !s.movement_enabled {
                 ep.held += 1;
             }
+            let operator = s.action_source != Step::SOURCE_POLICY && s.action_source != Step::SOURCE_NONE;
+            ep.takeovers += u64::from(operator && !ep.operator_acting);
+            ep.operator_steps += u64::from(operator);
+            ep.operator_acting = operator;
             if s.chunk_id != 0 {
                 ep.chunks.entry(s.chunk_id).or_insert(s.chunk_row);
             }

@@ -81,10 +81,13 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     let server = Server::load(&dir)?;
     server.check_rig(&cfg.rig_cameras)?;
     let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
+    tch::set_num_threads(threads);
+    let warm_up_ms = server.warm_up()?;
     tracing::info!(
         policy = server.id(),
         cameras = ?server.config().cameras,
         threads,
+        warm_up_ms,
         "serving {} on /policy/chunk",
         dir.display()
     );

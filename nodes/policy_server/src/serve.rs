@@ -50,6 +50,22 @@ impl Server {
         Ok(Server { _vs: vs, policy, meta, id })
     }
 
+    /// One chunk from a blank observation, before the first request: libtorch's first call
+    /// sets up its thread pool and buffers, which took over a second on a busy machine (past
+    /// the loop's default 1 s server timeout, failing a rollout's first episode). Its time, ms.
+    pub fn warm_up(&self) -> Result<f64, ServeError> {
+        let c = &self.meta.config;
+        let opts = (Kind::Float, Device::Cpu);
+        let images: Vec<Tensor> =
+            c.cameras.iter().map(|_| Tensor::zeros([1, c.n_obs_steps, 3, c.image_size, c.image_size], opts)).collect();
+        let state = Tensor::zeros([1, c.n_obs_steps, c.state_dim], opts);
+        let noise = Tensor::zeros([1, c.horizon, c.action_dim], opts);
+        let started = Instant::now();
+        let _chunk = tch::no_grad(|| self.policy.sample(&images, &state, &noise))
+            .map_err(|e| ServeError::Mismatch { checkpoint: self.id.clone(), what: e.to_string() })?;
+        Ok(started.elapsed().as_secs_f64() * 1e3)
+    }
+
     /// The checkpoint's id in chunks and episode metadata (`<run>@<step>`).
     pub fn id(&self) -> &str {
         &self.id
@@ -129,6 +145,9 @@ impl Server {
             "action_relative": c.action_relative,
             "prediction": c.prediction,
             "gripper_state": c.gripper_state,
+            "encoder": c.encoder,
+            "observes": c.observes(),
+            "sim_only": c.sim_only_inputs(),
             "step": self.meta.step,
         })
     }

@@ -205,6 +205,13 @@ struct Episode {
     /// The Start's stamp (the loop's first tick, on the rig's clock): frames captured more than
     /// [`PREROLL_NS`] before it are not the episode's.
     first_tick_ns: i64,
+    /// Operator corrections in a policy's rollout, from the steps' `action_source`: whether
+    /// the last step was an operator's (not the policy's), the runs of such steps (takeovers)
+    /// and their steps. This part's only: a continuation after a recorder restart starts
+    /// them at 0 (`labrig inspect` counts from all the steps).
+    operator_acting: bool,
+    takeovers: u64,
+    operator_steps: u64,
 }
 
 impl Episode {
@@ -222,7 +229,19 @@ impl Episode {
             prior_parts: 0,
             resume_after: BTreeMap::new(),
             first_tick_ns,
+            operator_acting: false,
+            takeovers: 0,
+            operator_steps: 0,
         }
+    }
+
+    /// A step's `action_source`, for the takeover counts.
+    fn count_source(&mut self, source: u8) {
+        use labrig_msgs::labrig_msgs::Step;
+        let operator = source != Step::SOURCE_POLICY && source != Step::SOURCE_NONE;
+        self.takeovers += u64::from(operator && !self.operator_acting);
+        self.operator_steps += u64::from(operator);
+        self.operator_acting = operator;
     }
 
     /// Whether a camera frame belongs in this part: captured at most [`PREROLL_NS`] before the
@@ -960,10 +979,15 @@ impl Recorder {
 
     /// Finishes an episode and moves it into DROID's layout.
     fn end(&mut self, ep: Episode, outcome: Outcome, why: &str) {
-        let Episode { mut writer, staging, prior_steps, .. } = ep;
+        let Episode { mut writer, staging, prior_steps, takeovers, operator_steps, .. } = ep;
         let start_ns = writer.metadata_mut().start_ns;
         let uuid = writer.metadata().uuid.clone();
         writer.metadata_mut().trajectory_length = prior_steps + writer.count(topics::RIG_STEP.name);
+        // A policy's rollout says how much of it was operator corrections (none: 0 and 0).
+        if writer.metadata().policy.is_some() {
+            writer.metadata_mut().takeovers = Some(takeovers);
+            writer.metadata_mut().operator_steps = Some(operator_steps);
+        }
         self.last = match writer.finish() {
             Ok(summary) => {
                 self.sizes.push(dir_bytes(&staging));
@@ -1142,13 +1166,15 @@ fn drain_topics(
                 if !ep.takes(&r.spec.topic, publish) {
                     continue;
                 }
-                // A policy's rollout: the checkpoint its steps executed goes into the metadata.
+                // A policy's rollout: the checkpoint its steps executed goes into the metadata,
+                // and who acted each step into the takeover counts.
                 if r.spec.topic == topics::RIG_STEP.name
-                    && ep.writer.metadata().policy.is_none()
                     && let Ok(step) = labrig_msgs::decode::<labrig_msgs::labrig_msgs::Step>(&cdr)
-                    && !step.policy_id.is_empty()
                 {
-                    ep.writer.metadata_mut().policy = Some(step.policy_id);
+                    ep.count_source(step.action_source);
+                    if ep.writer.metadata().policy.is_none() && !step.policy_id.is_empty() {
+                        ep.writer.metadata_mut().policy = Some(step.policy_id);
+                    }
                 }
                 let reliability = if r.spec.reliable { Reliability::Reliable } else { Reliability::BestEffort };
                 let ty = RawType { name: &r.spec.type_name, schema: &r.schema };
