@@ -133,6 +133,18 @@ impl Preset {
                 }
             )));
         }
+        let w = p.model.encoder_width;
+        if !((1..8).contains(&w) || (w % 8 == 0 && (8..=256).contains(&w))) {
+            return Err(bad(format!(
+                "encoder_width = {w}: the shallow trunk's GroupNorms take width / 8 groups, so it must be 1..=7 or a multiple of 8 up to 256"
+            )));
+        }
+        if !(0..=p.model.n_obs_steps).contains(&p.model.image_obs_steps) {
+            return Err(bad(format!(
+                "image_obs_steps = {} must be in 0..={} (n_obs_steps; 0: all)",
+                p.model.image_obs_steps, p.model.n_obs_steps
+            )));
+        }
         if p.model.action_relative && p.model.action_space != crate::policy::ActionSpace::EefAxisAngle {
             return Err(bad(format!(
                 "action_relative applies to eef_axis_angle targets; {:?} actions are velocities already",
@@ -211,8 +223,9 @@ pub enum Corrections {
     #[default]
     All,
     /// The windows whose newest observation is an operator's step, or lies at most `before`
-    /// steps before one (what led into the takeover; those steps' labels are still the
-    /// actions that followed, the policy's until the operator's begin).
+    /// steps before one. A window's labels are its Tp recorded actions: near a hand-back they
+    /// include the policy's own rows after the operator's, and with `before` > 0 the rows the
+    /// policy executed before the takeover (what led into it); 0 keeps those out at the start.
     Operator { before: usize },
 }
 
@@ -1011,6 +1024,13 @@ mod tests {
         .unwrap();
         let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
         assert!(e.contains("action_relative applies to eef_axis_angle"), "{e}");
+        std::fs::write(&f, "preset = \"small_vision\"\n[model]\nencoder_width = 13\n").unwrap();
+        let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
+        assert!(e.contains("encoder_width = 13"), "{e}");
+        std::fs::write(&f, "preset = \"small_vision\"\n[model]\nimage_obs_steps = 3\n").unwrap();
+        let e = Preset::resolve(f.to_str().unwrap()).unwrap_err().to_string();
+        assert!(e.contains("image_obs_steps = 3 must be in 0..=2"), "{e}");
+        assert_eq!(Preset::resolve("small_vision").unwrap().model, DiffusionConfig::small_vision());
     }
 
     /// A batch holding NaN is refused: the weights are untouched and the episodes named.

@@ -120,6 +120,11 @@ pub trait ActionSource: Send {
     fn engaged(&self, _tick: Nanos) -> bool {
         false
     }
+    /// An operator's link: whether it could take over now (the Quest: a state at most 100 ms
+    /// old with the controller connected). A source without one is always linked.
+    fn linked(&self, _tick: Nanos) -> bool {
+        true
+    }
     /// The scripted expert: its target and plan at the tick, when its bridge sends them.
     fn guidance(&self, _tick: Nanos) -> Option<Guidance> {
         None
@@ -341,5 +346,9 @@ impl ActionSource for Teleop {
         self.state
             .as_ref()
             .is_some_and(|(s, at)| s.movement_enabled && s.controller_connected && at.elapsed() <= TELEOP_STATE_MAX_AGE)
+    }
+
+    fn linked(&self, _tick: Nanos) -> bool {
+        self.state.as_ref().is_some_and(|(s, at)| s.controller_connected && at.elapsed() <= TELEOP_STATE_MAX_AGE)
     }
 }

@@ -191,6 +191,7 @@ pub struct Takeover {
     rule: Option<ExpertRule>,
     engaged: bool,
     warned_guidance: bool,
+    warned_link: bool,
 }
 
 impl std::fmt::Debug for Takeover {
@@ -201,7 +202,7 @@ impl std::fmt::Debug for Takeover {
 
 impl Takeover {
     pub fn new(policy: Box<dyn ActionSource>, operator: Box<dyn ActionSource>, rule: Option<ExpertRule>) -> Takeover {
-        Takeover { policy, operator, rule, engaged: false, warned_guidance: false }
+        Takeover { policy, operator, rule, engaged: false, warned_guidance: false, warned_link: false }
     }
 
     fn actor(&self) -> &dyn ActionSource {
@@ -227,8 +228,24 @@ impl ActionSource for Takeover {
         self.actor().has(tick)
     }
 
+    /// The operator's, while engaged; else the policy's, which holds (movement disabled, the
+    /// chunk's timing going on) while a Quest operator's link is gone: with no fresh state, or
+    /// the controller off, nobody could take over, so the policy does not move the arm either.
     fn action(&mut self, tick: Nanos, max_age: Nanos) -> Result<Proposal, SourceError> {
-        if self.engaged { self.operator.action(tick, max_age) } else { self.policy.action(tick, max_age) }
+        if self.engaged {
+            return self.operator.action(tick, max_age);
+        }
+        let mut p = self.policy.action(tick, max_age)?;
+        if self.rule.is_none() && !self.operator.linked(tick) {
+            if p.movement_enabled && !self.warned_link {
+                tracing::warn!("no fresh state from the operator's Quest: the policy holds the arm until it returns");
+                self.warned_link = true;
+            }
+            p.movement_enabled = false;
+        } else {
+            self.warned_link = false;
+        }
+        Ok(p)
     }
 
     /// The policy's (in the sim, `/sim/task`): the operator's opinion of the task is not the
@@ -297,7 +314,7 @@ impl ActionSource for Takeover {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_msgs::labrig_msgs::Step;
+    use labrig_msgs::labrig_msgs::{ArmCommand, Step};
 
     fn rule() -> ExpertRule {
         ExpertRule::new(&PolicySourceConfig::default())
@@ -407,6 +424,8 @@ mod tests {
         kind: u8,
         /// Ticks [from, to) the operator's grip is held.
         engaged_from: Option<(i64, i64)>,
+        /// The operator's link lost from this tick on.
+        linked_until: Option<i64>,
         log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
     }
 
@@ -424,7 +443,10 @@ mod tests {
             true
         }
         fn action(&mut self, _tick: Nanos, _max_age: Nanos) -> Result<Proposal, SourceError> {
-            Err(SourceError::Silent { from: "fake" })
+            Ok(Proposal { command: ArmCommand::default(), movement_enabled: true, chunk: None })
+        }
+        fn linked(&self, tick: Nanos) -> bool {
+            self.linked_until.is_none_or(|end| tick.0 < end)
         }
         fn verdict(&self, _tick: Nanos) -> Verdict {
             Verdict::Running
@@ -459,8 +481,9 @@ mod tests {
     #[test]
     fn the_grip_switches_who_acts_and_suspends_and_resumes_the_policy() {
         let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
-        let policy = Fake { kind: Step::SOURCE_POLICY, engaged_from: None, log: log.clone() };
-        let operator = Fake { kind: Step::SOURCE_TELEOP, engaged_from: Some((3, 6)), log: Default::default() };
+        let policy = Fake { kind: Step::SOURCE_POLICY, engaged_from: None, linked_until: None, log: log.clone() };
+        let operator =
+            Fake { kind: Step::SOURCE_TELEOP, engaged_from: Some((3, 6)), linked_until: None, log: Default::default() };
         let mut t = Takeover::new(Box::new(policy), Box::new(operator), None);
         let mut kinds = vec![];
         for k in 0..8 {
@@ -481,5 +504,27 @@ mod tests {
         assert_eq!(log, want, "suspended at the takeover's tick, resumed at the hand-back's, observing every tick");
         t.restart(Nanos(100));
         assert_eq!(t.kind(), P);
+    }
+
+    /// With a Quest operator whose link is gone (no fresh state, controller off) the policy's
+    /// rows still come but the arm holds: nobody could take over. The link back, it moves.
+    #[test]
+    fn the_policy_holds_while_the_operators_link_is_gone() {
+        let policy =
+            Fake { kind: Step::SOURCE_POLICY, engaged_from: None, linked_until: None, log: Default::default() };
+        let operator =
+            Fake { kind: Step::SOURCE_TELEOP, engaged_from: None, linked_until: Some(4), log: Default::default() };
+        let mut t = Takeover::new(Box::new(policy), Box::new(operator), None);
+        let moves: Vec<bool> =
+            (0..6).map(|k| t.action(Nanos(k), Nanos(1_000_000_000)).unwrap().movement_enabled).collect();
+        assert_eq!(moves, [true, true, true, true, false, false]);
+        // The expert (a rule) has no link to lose: its policy is never held for it.
+        let rule = ExpertRule::new(&PolicySourceConfig::default());
+        let policy =
+            Fake { kind: Step::SOURCE_POLICY, engaged_from: None, linked_until: None, log: Default::default() };
+        let operator =
+            Fake { kind: Step::SOURCE_SCRIPTED, engaged_from: None, linked_until: Some(0), log: Default::default() };
+        let mut t = Takeover::new(Box::new(policy), Box::new(operator), Some(rule));
+        assert!(t.action(Nanos(3), Nanos(1_000_000_000)).unwrap().movement_enabled);
     }
 }

@@ -81,21 +81,15 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     let server = Server::load(&dir)?;
     server.check_rig(&cfg.rig_cameras)?;
     let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
-    tch::set_num_threads(threads);
-    let warm_up_ms = server.warm_up()?;
-    tracing::info!(
-        policy = server.id(),
-        cameras = ?server.config().cameras,
-        threads,
-        warm_up_ms,
-        "serving {} on /policy/chunk",
-        dir.display()
-    );
+    let (id, cameras, info_json) = (server.id().to_owned(), server.config().cameras.clone(), server.info().to_string());
     let mut ros = Ros::new(&cfg.ros, "labrig_policy")?;
     let requests = ros.subscription_on(&topics::POLICY_REQUEST, 10)?;
     let chunks = ros.publisher_on(&topics::POLICY_CHUNK, 10)?;
     let info = ros.publisher_on(&topics::POLICY_INFO, 1)?;
-    info.publish(labrig_msgs::std_msgs::StringMsg { data: server.info().to_string() })?;
+    // The inference thread warms up (one chunk on a blank observation) before /policy/info
+    // goes out: libtorch's first call on a thread sets up its pool and buffers, which took over
+    // a second on a busy machine, past the loop's default 1 s server timeout.
+    let (warm_tx, warm_rx) = std::sync::mpsc::channel::<Result<f64, String>>();
 
     let waiting = Arc::new((Mutex::new(Waiting::default()), Condvar::new()));
     let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<Result<ActionChunk, String>>();
@@ -103,6 +97,7 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
         let waiting = Arc::clone(&waiting);
         std::thread::Builder::new().name("inference".into()).spawn(move || {
             tch::set_num_threads(threads);
+            let _ = warm_tx.send(server.warm_up().map_err(|e| e.to_string()));
             loop {
                 let req = {
                     let (lock, cv) = &*waiting;
@@ -122,6 +117,13 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
             }
         })?
     };
+    let warm_up_ms = match warm_rx.recv() {
+        Ok(Ok(ms)) => ms,
+        Ok(Err(e)) => anyhow::bail!("{id}: the warm-up chunk failed: {e}"),
+        Err(_) => anyhow::bail!("{id}: the inference thread ended before its warm-up"),
+    };
+    tracing::info!(policy = %id, ?cameras, threads, warm_up_ms, "serving {} on /policy/chunk", dir.display());
+    info.publish(labrig_msgs::std_msgs::StringMsg { data: info_json })?;
 
     let mut latencies: Vec<f64> = Vec::new();
     while !shutdown.is_triggered() {
