@@ -143,7 +143,7 @@ pub enum Backbone {
 
 #[derive(Debug)]
 enum Trunk {
-    Resnet18(ResNet18Gn),
+    Resnet18(Box<ResNet18Gn>),
     Shallow(ShallowConv),
 }
 
@@ -166,7 +166,7 @@ impl RgbEncoder {
     pub fn with_backbone(vs: nn::Path<'_>, keypoints: i64, backbone: Backbone, width: i64) -> RgbEncoder {
         let features = 2 * keypoints;
         let (trunk, channels) = match backbone {
-            Backbone::Resnet18 => (Trunk::Resnet18(ResNet18Gn::new(&vs / "backbone")), 512),
+            Backbone::Resnet18 => (Trunk::Resnet18(Box::new(ResNet18Gn::new(&vs / "backbone"))), 512),
             Backbone::Shallow => {
                 (Trunk::Shallow(ShallowConv::new(&vs / "backbone", width)), ShallowConv::out_channels(width))
             }

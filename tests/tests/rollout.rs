@@ -23,11 +23,21 @@ fn tiny() -> PathBuf {
     repo_root().join("tests/fixtures/policies/tiny_lowdim")
 }
 
+/// The committed pixels-and-proprioception checkpoint (`small_vision`, the README's recipe).
+fn vision() -> PathBuf {
+    repo_root().join("tests/fixtures/policies/small_vision")
+}
+
 /// `labrig rollout --json` with the tiny checkpoint; its report.
 fn rollout(key: &str, out: &Path, extra: &[&str]) -> Value {
+    rollout_of(&tiny(), key, out, extra)
+}
+
+/// `labrig rollout --json` with `policy`; its report.
+fn rollout_of(policy: &Path, key: &str, out: &Path, extra: &[&str]) -> Value {
     let o = Command::new(labrig_bin())
         .args(["rollout", "--threads", "1", "--json", "--domain-id", &domain_for(key).to_string(), "--policy"])
-        .arg(tiny())
+        .arg(policy)
         .arg("--out")
         .arg(out)
         .args(extra)
@@ -97,6 +107,40 @@ fn rollouts_execute_chunks_in_order_and_are_recorded_as_the_policys() {
             assert_eq!(o["reason"], "the step budget (40 steps) was spent");
         }
         assert!(Path::new(o["contact_sheet"].as_str().unwrap()).is_file());
+    }
+}
+
+/// The committed vision checkpoint on the sim rig: it observes the wrist camera and ext1, so
+/// every request carries their frames for every observation (none goes out without them, and
+/// each is answered), its chunks execute from the first on, and the episode records it as
+/// the policy. The mechanics, not a success rate.
+#[test]
+fn the_committed_vision_policy_runs_on_the_rig_from_its_cameras() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = rollout_of(&vision(), "rollout_pixels", dir.path(), &["--episodes", "1", "--max-steps", "40"]);
+    let rollouts = r["rollouts"].as_array().unwrap();
+    assert_eq!(rollouts.len(), 1, "{r:#}");
+    assert!(r["errors"].as_array().unwrap().is_empty(), "{r:#}");
+    // The arm holds only on the first ticks, before both cameras' first frames are there (no
+    // request goes out without every observation's frames: the server would refuse it).
+    let held = r["held_steps"].as_u64().unwrap();
+    assert!(held <= 3, "{r:#}");
+    let source = &r["control"]["source"];
+    let requests = source["requests"].as_u64().expect("the loop's policy stats");
+    assert!(requests >= 3, "{source:#}");
+    assert_eq!(source["requests_without_images"].as_u64().unwrap(), held, "{source:#}");
+    assert_eq!(source["chunks"].as_u64().unwrap(), requests, "every request answered: {source:#}");
+    let (steps, meta) = steps(&rollouts[0]["dir"]);
+    let id = meta.policy.expect("the checkpoint in the metadata");
+    assert!(id.starts_with("small_vision@"), "{id}");
+    assert!(steps.iter().all(|s| s.action_source == Step::SOURCE_POLICY));
+    assert!(steps[held as usize..].iter().all(|s| s.movement_enabled), "every step after the first chunk moves");
+    // The frames the policy saw are recorded: each step it acted on names a wrist and an ext1
+    // frame.
+    for s in &steps[held as usize..] {
+        for cam in ["wrist", "ext1"] {
+            assert!(s.cameras.iter().any(|c| c.camera_id == cam), "step {} lacks {cam}", s.step_index);
+        }
     }
 }
 

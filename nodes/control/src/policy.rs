@@ -377,6 +377,10 @@ pub enum PolicyStartError {
 }
 
 impl PolicySource {
+    fn timeout_s(&self) -> f64 {
+        self.cfg.server_timeout_s
+    }
+
     /// Connects to the server: waits for its `/policy/info` and checks the policy against
     /// this loop (`cameras` it records).
     pub async fn connect(
@@ -669,9 +673,8 @@ impl ActionSource for PolicySource {
 
     /// Lockstep: the tick a chunk is due at waits for it (until the server's timeout).
     fn has(&self, tick: Nanos) -> bool {
-        !self
-            .in_flight
-            .is_some_and(|f| f.due_ns <= tick.0 && f.sent.elapsed().as_secs_f64() < self.cfg.server_timeout_s)
+        let timeout = self.timeout_s();
+        !self.in_flight.is_some_and(|f| f.due_ns <= tick.0 && f.sent.elapsed().as_secs_f64() < timeout)
     }
 
     fn action(&mut self, tick: Nanos, _max_age: Nanos) -> Result<Proposal, SourceError> {
@@ -727,7 +730,7 @@ impl ActionSource for PolicySource {
     /// process) and the loop's time (in lockstep the ticks go on after the wait gives up,
     /// executing the rows left and then holding, as they would on the wall clock).
     fn verdict(&self, tick: Nanos) -> Verdict {
-        let timeout = self.cfg.server_timeout_s;
+        let timeout = self.timeout_s();
         if let Some(f) = self.in_flight
             && f.sent.elapsed().as_secs_f64() >= timeout
             && (tick.0 - f.sent_ns) as f64 / 1e9 >= timeout
@@ -735,7 +738,7 @@ impl ActionSource for PolicySource {
             return Verdict::Failed {
                 why: Some(format!(
                     "the policy server ({}) did not answer request {} within {:.1} s",
-                    self.info.policy_id, f.id, self.cfg.server_timeout_s
+                    self.info.policy_id, f.id, timeout
                 )),
             };
         }
@@ -782,11 +785,14 @@ impl ActionSource for PolicySource {
         let tick = view.tick.0;
         let images: Vec<(String, Arc<RgbFrame>)> =
             view.images.iter().map(|(c, f)| (c.to_string(), Arc::clone(f))).collect();
-        let complete = self.info.cameras.iter().all(|c| images.iter().any(|(n, _)| n == c));
         self.history.push_back(Obs { step_index: view.step_index, tick_ns: tick, robot: view.robot.clone(), images });
         while self.history.len() > self.info.n_obs_steps {
             self.history.pop_front();
         }
+        // Every observation the request carries needs every policy camera's frame (the server
+        // refuses a step without one): a camera's first frame may come a tick after another's.
+        let complete =
+            self.history.iter().all(|o| self.info.cameras.iter().all(|c| o.images.iter().any(|(n, _)| n == c)));
         if self.in_flight.is_some() || self.suspended {
             return;
         }
