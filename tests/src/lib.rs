@@ -257,3 +257,20 @@ pub fn output_text(out: &std::process::Output) -> String {
         String::from_utf8_lossy(&out.stderr)
     )
 }
+
+/// Episode directories (holding an .mcap) under `root`.
+pub fn episode_dirs(root: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    let Ok(rd) = std::fs::read_dir(root) else { return out };
+    for e in rd.flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            if std::fs::read_dir(&p).unwrap().flatten().any(|f| f.path().extension().is_some_and(|x| x == "mcap")) {
+                out.push(p);
+            } else {
+                out.extend(episode_dirs(&p));
+            }
+        }
+    }
+    out
+}

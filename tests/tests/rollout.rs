@@ -293,7 +293,7 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
     assert_eq!(ctl.wait_exit(Duration::from_secs(60)), Some(0), "the loop finishes its one episode");
     // The recorder filed both as failures: the deadman's, whose steps all held (no action of
     // the policy executed, so no policy in its metadata), and this one, the policy named.
-    let mut recorded: Vec<PathBuf> = walk(&dir.path().join("failure"));
+    let mut recorded: Vec<PathBuf> = labrig_tests::episode_dirs(&dir.path().join("failure"));
     recorded.sort();
     assert_eq!(recorded.len(), 2, "{recorded:?}");
     let held = labrig_episode::read_episode(&recorded[0]).unwrap();
@@ -301,21 +301,4 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
     assert_eq!(held.metadata.unwrap().policy, None);
     let meta = labrig_episode::read_episode(&recorded[1]).unwrap().metadata.unwrap();
     assert_eq!((meta.success, meta.policy.as_deref()), (Some(false), Some(POLICY_ID)));
-}
-
-/// Episode directories (holding an .mcap) under `root`.
-fn walk(root: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    let Ok(rd) = std::fs::read_dir(root) else { return out };
-    for e in rd.flatten() {
-        let p = e.path();
-        if p.is_dir() {
-            if std::fs::read_dir(&p).unwrap().flatten().any(|f| f.path().extension().is_some_and(|x| x == "mcap")) {
-                out.push(p);
-            } else {
-                out.extend(walk(&p));
-            }
-        }
-    }
-    out
 }

@@ -59,23 +59,6 @@ fn assert_fresh_chunk_after_each_hand_back(steps: &[Step], operator: u8) {
     assert!(handed_back >= 1, "no hand-back in {:?}", runs(steps));
 }
 
-/// Episode directories (holding an .mcap) under `root`.
-fn walk(root: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    let Ok(rd) = std::fs::read_dir(root) else { return out };
-    for e in rd.flatten() {
-        let p = e.path();
-        if p.is_dir() {
-            if std::fs::read_dir(&p).unwrap().flatten().any(|f| f.path().extension().is_some_and(|x| x == "mcap")) {
-                out.push(p);
-            } else {
-                out.extend(walk(&p));
-            }
-        }
-    }
-    out
-}
-
 /// `labrig inspect --json` of an episode directory.
 fn inspect(dir: &Path) -> Value {
     let o = Command::new(labrig_bin()).arg("inspect").arg(dir).arg("--json").output().unwrap();
@@ -191,7 +174,7 @@ fn a_quest_operator_takes_over_mid_rollout_and_the_policy_resumes_with_a_fresh_c
     let stats: Value = serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap()).unwrap();
 
     // The recorded episode: policy -> teleop -> policy, the teleop run where the grip was.
-    let recorded = walk(dir.path());
+    let recorded = labrig_tests::episode_dirs(dir.path());
     assert_eq!(recorded.len(), 1, "{recorded:?}");
     let ep = labrig_episode::read_episode(&recorded[0]).unwrap();
     let steps = ep.steps;
