@@ -51,7 +51,7 @@ pub fn inference(cfg: &DiffusionConfig, runs: usize, warmup: usize) -> Result<In
     let parameters = vs.variables().values().map(|t| t.numel() as i64).sum();
     let (images, state) = observation(cfg, 1);
     let noise = Tensor::randn([1, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
-    let cond = tch::no_grad(|| policy.global_cond(&images, &state, false))?;
+    let (cond, _) = tch::no_grad(|| policy.global_cond(&images, &state, false))?;
     let encoder_ms = time_ms(runs, warmup, || {
         let _ = tch::no_grad(|| policy.encode(&images, 1, false));
     });
@@ -75,6 +75,7 @@ pub fn training(preset: &Preset, steps: usize) -> Result<f64, TrainError> {
         images,
         state,
         action: Tensor::rand([b, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu)) * 2.0 - 1.0,
+        waypoint: Tensor::rand([b, 3], (Kind::Float, Device::Cpu)) * 0.2 - 0.1,
         episodes: vec!["synthetic".into()],
     };
     let noise = Tensor::randn([b, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));

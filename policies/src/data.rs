@@ -141,6 +141,33 @@ pub fn tcp_offset(state: &Tensor, action_dim: i64, kind: tch::Kind) -> Tensor {
     Tensor::cat(&[tcp, rest], 1).unsqueeze(1)
 }
 
+/// Each step's waypoint (T, 3), in the base frame: the TCP position (`state`'s first three
+/// values) at the episode's next gripper event after the step, an event being a step whose
+/// recorded gripper command (`action`'s column 6) is on the other side of one half from the
+/// step's; after the last event, the episode's last TCP position. For a pick-and-place demo:
+/// the grasp point until the gripper closes, then where it lets go, then where it ends.
+/// Proprioception and commands only: a real rig's episodes give the same labels.
+pub fn waypoints(state: &Tensor, action: &Tensor) -> Tensor {
+    let n = state.size()[0];
+    if n == 0 {
+        return Tensor::zeros([0, 3], (Kind::Float, tch::Device::Cpu));
+    }
+    let tcp: Vec<f32> =
+        Vec::try_from(state.narrow(1, 0, 3).to_kind(Kind::Float).contiguous().view([-1])).unwrap_or_default();
+    let closed: Vec<bool> = Vec::<f32>::try_from(action.select(1, 6).to_kind(Kind::Float).contiguous())
+        .unwrap_or_default()
+        .into_iter()
+        .map(|g| g > 0.5)
+        .collect();
+    let n = n as usize;
+    let mut at = vec![n - 1; n];
+    for t in (0..n.saturating_sub(1)).rev() {
+        at[t] = if closed[t + 1] != closed[t] { t + 1 } else { at[t + 1] };
+    }
+    let rows: Vec<f32> = at.iter().flat_map(|&k| tcp[3 * k..3 * k + 3].to_vec()).collect();
+    Tensor::from_slice(&rows).view([n as i64, 3])
+}
+
 /// The recorded action in `space`: for `eef_axis_angle`, the target position and its
 /// rotation as a [`canonical_axis_angle`].
 pub fn action_of(a: &ActionDict, space: ActionSpace) -> [f32; 7] {
@@ -499,6 +526,27 @@ mod tests {
         bad.robot_state.cartesian_position[4] = f64::INFINITY;
         let e = rows(path, &[bad], ActionSpace::CartesianVelocity).unwrap_err();
         assert!(e.to_string().contains("step 2: robot_state.cartesian_position"), "{e}");
+    }
+
+    /// A pick and place of six steps: the gripper closes at step 2 and opens at step 4. Steps
+    /// 0..=1 point at the grasp (step 2's TCP), 2..=3 at the release (step 4's), 4..=5 at the
+    /// last pose; an episode with no event points at its last pose throughout.
+    #[test]
+    fn waypoints_are_the_tcp_at_the_next_gripper_event() {
+        let tcp =
+            [[0.0f32, 0.0, 0.5], [0.1, 0.0, 0.4], [0.2, 0.1, 0.1], [0.3, 0.2, 0.3], [0.4, 0.3, 0.2], [0.4, 0.3, 0.4]];
+        let grip = [0.0f32, 0.0, 1.0, 1.0, 0.0, 0.0];
+        let state: Vec<f32> = tcp.iter().flat_map(|p| [p[0], p[1], p[2], 1.0, 0.0, 0.0, 0.0]).collect();
+        let action: Vec<f32> = grip.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
+        let state = Tensor::from_slice(&state).view([6, 7]);
+        let w = waypoints(&state, &Tensor::from_slice(&action).view([6, 7]));
+        let rows: Vec<f32> = Vec::try_from(w.view([-1])).unwrap();
+        let want: Vec<f32> = [2, 2, 4, 4, 5, 5].iter().flat_map(|&k| tcp[k]).collect();
+        assert_eq!(rows, want);
+        let none = waypoints(&state, &Tensor::zeros([6, 7], (Kind::Float, tch::Device::Cpu)));
+        let rows: Vec<f32> = Vec::try_from(none.view([-1])).unwrap();
+        assert_eq!(rows, tcp.iter().flat_map(|_| tcp[5]).collect::<Vec<_>>());
+        assert_eq!(waypoints(&state.narrow(0, 0, 0), &state.narrow(0, 0, 0)).size(), [0, 3]);
     }
 
     #[test]

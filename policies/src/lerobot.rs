@@ -168,6 +168,8 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
         encoder: crate::encoder::Backbone::Resnet18,
         encoder_width: 16,
         image_obs_steps: 0,
+        waypoint: false,
+        waypoint_weight: 1.0,
     })
 }
 

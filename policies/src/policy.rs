@@ -84,11 +84,32 @@ pub struct DiffusionConfig {
     /// run on fewer images: 1 of 2 halves their cost.
     #[serde(default)]
     pub image_obs_steps: i64,
+    /// A waypoint head: from the observation (state + image features) the model predicts
+    /// where the TCP will be at the episode's next gripper event (the next close or open of
+    /// the recorded gripper command; after the last one, the episode's last pose), relative
+    /// to the TCP, and the U-Net is conditioned on that prediction. Trained with its own
+    /// squared error beside the diffusion loss. The label comes from the recorded
+    /// proprioception and gripper commands, which a real rig's episodes hold as well: the
+    /// images must say where the grasp will be, at every step, not only through the chunk's
+    /// first centimetres.
+    #[serde(default)]
+    pub waypoint: bool,
+    /// The waypoint loss's weight beside the diffusion loss (positions in units of
+    /// [`WAYPOINT_SCALE`]).
+    #[serde(default = "default_waypoint_weight")]
+    pub waypoint_weight: f64,
 }
 
 fn default_encoder_width() -> i64 {
     16
 }
+
+fn default_waypoint_weight() -> f64 {
+    1.0
+}
+
+/// Waypoints (metres, relative to the TCP) are divided by this before the head sees them.
+pub const WAYPOINT_SCALE: f64 = 0.2;
 
 /// The action a policy outputs, taken from the episodes' recorded `action` dictionary.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -136,6 +157,8 @@ impl DiffusionConfig {
             encoder: Backbone::Resnet18,
             encoder_width: default_encoder_width(),
             image_obs_steps: 0,
+            waypoint: false,
+            waypoint_weight: default_waypoint_weight(),
         }
     }
 
@@ -219,8 +242,14 @@ impl DiffusionConfig {
         7 + i64::from(self.gripper_state) + i64::from(self.scene_state) * (6 + 2 * i64::from(self.scene_yaw))
     }
 
-    /// Width of the global conditioning: To x (state + 2 x keypoints per camera).
+    /// Width of the global conditioning: To x state + the encoded steps x 2 x keypoints per
+    /// camera (+ 3, the predicted waypoint, with `waypoint`).
     pub fn global_cond_dim(&self) -> i64 {
+        self.observation_dim() + 3 * i64::from(self.waypoint)
+    }
+
+    /// Width of the encoded observation (what the waypoint head reads).
+    pub fn observation_dim(&self) -> i64 {
         self.n_obs_steps * self.state_dim + self.image_steps() * 2 * self.keypoints * self.cameras.len() as i64
     }
 
@@ -270,6 +299,8 @@ pub enum PolicyError {
 pub struct Trace {
     /// Per camera (B, To, features).
     pub features: Vec<Tensor>,
+    /// The waypoint head's prediction (B, 3), metres relative to the TCP (with `waypoint`).
+    pub waypoint: Option<Tensor>,
     pub global_cond: Tensor,
     /// The U-Net's noise estimate at the first and the last DDIM timestep (with the timestep).
     pub eps_first: (i64, Tensor),
@@ -283,9 +314,33 @@ pub struct Trace {
 pub struct DiffusionPolicy {
     cfg: DiffusionConfig,
     encoders: Vec<RgbEncoder>,
+    waypoint: Option<WaypointHead>,
     unet: ConditionalUnet1d,
     schedule: NoiseSchedule,
     ddim: Ddim,
+}
+
+/// Observation -> the next gripper event's TCP position relative to the TCP, in units of
+/// [`WAYPOINT_SCALE`]: Linear + ReLU + Linear.
+#[derive(Debug)]
+struct WaypointHead {
+    hidden: nn::Linear,
+    out: nn::Linear,
+}
+
+impl WaypointHead {
+    const HIDDEN: i64 = 128;
+
+    fn new(vs: nn::Path<'_>, input: i64) -> WaypointHead {
+        WaypointHead {
+            hidden: nn::linear(&vs / "hidden", input, Self::HIDDEN, Default::default()),
+            out: nn::linear(&vs / "out", Self::HIDDEN, 3, Default::default()),
+        }
+    }
+
+    fn forward(&self, obs: &Tensor) -> Tensor {
+        obs.apply(&self.hidden).relu().apply(&self.out)
+    }
 }
 
 impl DiffusionPolicy {
@@ -301,10 +356,11 @@ impl DiffusionPolicy {
                 )
             })
             .collect();
+        let waypoint = cfg.waypoint.then(|| WaypointHead::new(&vs / "waypoint", cfg.observation_dim()));
         let unet = ConditionalUnet1d::new(&vs / "unet", &cfg.unet());
         let schedule = NoiseSchedule::squared_cosine(cfg.train_steps)?;
         let ddim = Ddim::new(schedule.clone(), cfg.inference_steps, cfg.clip)?.predicting(cfg.prediction);
-        Ok(DiffusionPolicy { cfg, encoders, unet, schedule, ddim })
+        Ok(DiffusionPolicy { cfg, encoders, waypoint, unet, schedule, ddim })
     }
 
     pub fn config(&self) -> &DiffusionConfig {
@@ -362,12 +418,28 @@ impl DiffusionPolicy {
     }
 
     /// The observation as the U-Net's conditioning: per step [state, camera 0's features, ...],
-    /// the `To` steps concatenated: (B, global_cond_dim).
-    pub fn global_cond(&self, images: &[Tensor], state: &Tensor, train: bool) -> Result<Tensor, PolicyError> {
+    /// the `To` steps concatenated, then with `waypoint` the head's prediction (in units of
+    /// [`WAYPOINT_SCALE`]): (B, global_cond_dim), and that prediction.
+    pub fn global_cond(
+        &self,
+        images: &[Tensor],
+        state: &Tensor,
+        train: bool,
+    ) -> Result<(Tensor, Option<Tensor>), PolicyError> {
         let c = &self.cfg;
         Self::expect("observation.state", state, &[-1, c.n_obs_steps, c.state_dim])?;
         let features = self.encode(images, state.size()[0], train)?;
-        Ok(Self::cond_of(state, &features))
+        Ok(self.with_waypoint(Self::cond_of(state, &features)))
+    }
+
+    fn with_waypoint(&self, obs: Tensor) -> (Tensor, Option<Tensor>) {
+        match &self.waypoint {
+            Some(head) => {
+                let w = head.forward(&obs);
+                (Tensor::cat(&[obs, w.shallow_clone()], -1), Some(w))
+            }
+            None => (obs, None),
+        }
     }
 
     fn cond_of(state: &Tensor, features: &[Tensor]) -> Tensor {
@@ -386,27 +458,49 @@ impl DiffusionPolicy {
 
     /// Training's loss for a batch: the noise added at timesteps `t` (B) to the action chunk
     /// (B, Tp, action_dim), or with `prediction = "sample"` the chunk itself, predicted by the
-    /// U-Net from the noisy chunk; mean squared error. `train`: random crops
-    /// (validation takes the centre ones).
+    /// U-Net from the noisy chunk; mean squared error. With `waypoint`, plus `waypoint_weight`
+    /// x the head's squared error against `waypoint` (B, 3), metres relative to the TCP (the
+    /// data's [`crate::data::waypoints`]). `train`: random crops (validation takes the centre
+    /// ones).
+    #[allow(clippy::too_many_arguments)]
     pub fn loss(
         &self,
         images: &[Tensor],
         state: &Tensor,
         actions: &Tensor,
+        waypoint: Option<&Tensor>,
         noise: &Tensor,
         t: &[i64],
         train: bool,
     ) -> Result<Tensor, PolicyError> {
         let c = &self.cfg;
         Self::expect("action", actions, &[-1, c.horizon, c.action_dim])?;
-        let cond = self.global_cond(images, state, train)?;
+        let (cond, predicted) = self.global_cond(images, state, train)?;
         let noisy = self.schedule.add_noise(actions, noise, t)?;
         let pred = self.unet.forward(&noisy, &Tensor::from_slice(t).to_device(actions.device()), &cond);
         let target = match c.prediction {
             Prediction::Epsilon => noise,
             Prediction::Sample => actions,
         };
-        Ok(pred.mse_loss(target, tch::Reduction::Mean))
+        let loss = pred.mse_loss(target, tch::Reduction::Mean);
+        match (predicted, waypoint) {
+            (Some(p), Some(w)) => {
+                Self::expect("waypoint", w, &[actions.size()[0], 3])?;
+                let w = w.to_kind(p.kind()) / WAYPOINT_SCALE;
+                Ok(loss + p.mse_loss(&w, tch::Reduction::Mean) * c.waypoint_weight)
+            }
+            (Some(_), None) => Err(PolicyError::Shape {
+                what: "waypoint (the config has a waypoint head)".into(),
+                want: vec![-1, 3],
+                got: vec![],
+            }),
+            (None, _) => Ok(loss),
+        }
+    }
+
+    /// The waypoint head's prediction (B, 3), metres relative to the TCP; None without one.
+    pub fn predict_waypoint(&self, images: &[Tensor], state: &Tensor) -> Result<Option<Tensor>, PolicyError> {
+        Ok(self.global_cond(images, state, false)?.1.map(|w| w * WAYPOINT_SCALE))
     }
 
     /// One action chunk (B, Tp, action_dim), normalised, from the initial `noise` (DDIM,
@@ -422,7 +516,8 @@ impl DiffusionPolicy {
         Self::expect("noise", noise, &[-1, c.horizon, c.action_dim])?;
         Self::expect("observation.state", state, &[noise.size()[0], c.n_obs_steps, c.state_dim])?;
         let features = self.encode(images, noise.size()[0], false)?;
-        let global_cond = Self::cond_of(state, &features);
+        let (global_cond, waypoint) = self.with_waypoint(Self::cond_of(state, &features));
+        let waypoint = waypoint.map(|w| w * WAYPOINT_SCALE);
         let mut first: Option<(i64, Tensor)> = None;
         let mut last: Option<(i64, Tensor)> = None;
         let chunk = self.ddim.sample(noise, |x, t| {
@@ -434,7 +529,7 @@ impl DiffusionPolicy {
             e
         })?;
         let (eps_first, eps_last) = (first.expect("DDIM takes >= 1 step"), last.expect("DDIM takes >= 1 step"));
-        Ok(Trace { features, global_cond, eps_first, eps_last, chunk })
+        Ok(Trace { features, waypoint, global_cond, eps_first, eps_last, chunk })
     }
 
     /// The U-Net's noise estimate for `x` at timestep `t` (one DDIM step's network call).
@@ -548,6 +643,41 @@ mod tests {
         assert!((chunk(&images, &moved) - &base).abs().max().double_value(&[]) > 0.0);
     }
 
+    /// With a waypoint head the conditioning grows by its 3 values, the loss asks for the
+    /// label (named when missing), and training on a fixed batch brings the head's prediction
+    /// to the label; a sampled chunk's trace carries the prediction.
+    #[test]
+    fn the_waypoint_head_learns_its_label_and_conditions_the_chunk() {
+        tch::manual_seed(6);
+        let cfg = DiffusionConfig { waypoint: true, encoder: Backbone::Shallow, ..DiffusionConfig::tiny() };
+        assert_eq!(cfg.global_cond_dim(), DiffusionConfig::tiny().global_cond_dim() + 3);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
+        assert!(vs.variables().contains_key("waypoint.out.weight"));
+        let mut opt = nn::Adam::default().build(&vs, 3e-3).unwrap();
+        let (images, state, actions) = batch(&cfg, 4);
+        let label =
+            Tensor::from_slice(&[0.1f32, -0.05, -0.2, 0.0, 0.1, -0.1, -0.1, 0.0, -0.3, 0.05, 0.05, 0.0]).view([4, 3]);
+        let noise = Tensor::randn([4, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let t = [5i64, 30, 60, 95];
+        let err = |p: &DiffusionPolicy| {
+            let w = tch::no_grad(|| p.predict_waypoint(&images, &state)).unwrap().unwrap();
+            (w - &label).abs().max().double_value(&[])
+        };
+        let before = err(&policy);
+        let missing = policy.loss(&images, &state, &actions, None, &noise, &t, true).unwrap_err();
+        assert!(missing.to_string().starts_with("waypoint"), "{missing}");
+        for _ in 0..150 {
+            let loss = policy.loss(&images, &state, &actions, Some(&label), &noise, &t, true).unwrap();
+            opt.backward_step(&loss);
+        }
+        let after = err(&policy);
+        assert!(after < 0.2 * before && after < 0.02, "waypoint error {before:.3} -> {after:.3} m");
+        let trace = tch::no_grad(|| policy.sample_traced(&images, &state, &noise)).unwrap();
+        assert_eq!(trace.waypoint.as_ref().unwrap().size(), [4, 3]);
+        assert_eq!(trace.global_cond.size(), [4, cfg.global_cond_dim()]);
+    }
+
     /// The model learns: Adam on one fixed batch drives the noise-prediction loss down.
     #[test]
     fn training_steps_lower_the_loss_on_a_fixed_batch() {
@@ -559,10 +689,10 @@ mod tests {
         let (images, state, actions) = batch(&cfg, 4);
         let noise = Tensor::randn([4, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
         let t = [5i64, 30, 60, 95];
-        let first = policy.loss(&images, &state, &actions, &noise, &t, true).unwrap().double_value(&[]);
+        let first = policy.loss(&images, &state, &actions, None, &noise, &t, true).unwrap().double_value(&[]);
         let mut last = first;
         for _ in 0..40 {
-            let loss = policy.loss(&images, &state, &actions, &noise, &t, true).unwrap();
+            let loss = policy.loss(&images, &state, &actions, None, &noise, &t, true).unwrap();
             opt.backward_step(&loss);
             last = loss.double_value(&[]);
         }

@@ -145,6 +145,9 @@ impl Preset {
                 p.model.image_obs_steps, p.model.n_obs_steps
             )));
         }
+        if !(p.model.waypoint_weight.is_finite() && p.model.waypoint_weight >= 0.0) {
+            return Err(bad(format!("waypoint_weight = {} must be a finite number >= 0", p.model.waypoint_weight)));
+        }
         if p.model.action_relative && p.model.action_space != crate::policy::ActionSpace::EefAxisAngle {
             return Err(bad(format!(
                 "action_relative applies to eef_axis_angle targets; {:?} actions are velocities already",
@@ -196,6 +199,11 @@ pub struct SampleSet {
     frames: Tensor,
     state: Tensor,
     action: Tensor,
+    /// Each row's waypoint in the base frame ([`crate::data::waypoints`]).
+    waypoint: Tensor,
+    /// The sample of each episode's first step (the arm at its start, where only the
+    /// images can say where the object is).
+    pub first_samples: Vec<usize>,
     /// (samples, To) and (samples, Tp) row indices.
     obs_rows: Vec<i64>,
     action_rows: Vec<i64>,
@@ -211,6 +219,9 @@ pub struct Batch {
     pub images: Vec<Tensor>,
     pub state: Tensor,
     pub action: Tensor,
+    /// The next gripper event's TCP position relative to the newest observed TCP (B, 3),
+    /// metres: the waypoint head's label.
+    pub waypoint: Tensor,
     /// The episodes (uuids) the samples came from.
     pub episodes: Vec<String>,
 }
@@ -241,11 +252,15 @@ impl SampleSet {
         // are not sampled.
         let drop_last = (cfg.horizon - cfg.n_action_steps - cfg.n_obs_steps + 1).max(0) as usize;
         let (mut obs_rows, mut action_rows, mut episode_of) = (Vec::new(), Vec::new(), Vec::new());
+        let mut first_samples = Vec::new();
         let mut offset = 0i64;
         for (e, ep) in episodes.iter().enumerate() {
             let keep = ep.len().saturating_sub(drop_last).max(1);
             let operator: Vec<bool> = ep.source.iter().map(|&s| crate::data::is_operator(s)).collect();
             for w in windows(ep.len(), n_obs, horizon).into_iter().take(keep) {
+                if w.t == 0 && !ep.is_correction() {
+                    first_samples.push(episode_of.len());
+                }
                 if let Corrections::Operator { before } = corrections
                     && ep.is_correction()
                 {
@@ -273,6 +288,8 @@ impl SampleSet {
             frames: cat(&|e| e.frames.shallow_clone()),
             state: cat(&|e| e.state.shallow_clone()),
             action: cat(&|e| e.action.shallow_clone()),
+            waypoint: cat(&|e| crate::data::waypoints(&e.state, &e.action)),
+            first_samples,
             obs_rows,
             action_rows,
             episode_of,
@@ -334,10 +351,14 @@ impl SampleSet {
         let images = (0..cams).map(|k| frames.select(2, k)).collect();
         let state = stats.0.normalize(&self.state.index_select(0, &obs).view([b, self.n_obs as i64, -1]))?;
         let action = stats.1.normalize(&self.actions(idx))?;
+        let newest: Vec<i64> = idx.iter().map(|&i| self.obs_rows[(i + 1) * self.n_obs - 1]).collect();
+        let newest = Tensor::from_slice(&newest);
+        let waypoint = self.waypoint.index_select(0, &newest)
+            - self.state.index_select(0, &newest).narrow(1, 0, 3).to_kind(Kind::Float);
         let mut episodes: Vec<String> = idx.iter().map(|&i| self.uuids[self.episode_of[i]].clone()).collect();
         episodes.sort();
         episodes.dedup();
-        Ok(Batch { images, state, action, episodes })
+        Ok(Batch { images, state, action, waypoint, episodes })
     }
 
     /// Every state and action row (for the normaliser's statistics).
@@ -400,6 +421,12 @@ pub struct RunReport {
     /// The last validation's open-loop position error (mm; see [`Validation::open_loop_mm`]).
     #[serde(default)]
     pub last_open_loop_mm: Option<f64>,
+    /// The last validation's waypoint errors (mm; see [`Validation::waypoint_mm`]): held-out
+    /// samples, and the held-out episodes' first steps.
+    #[serde(default)]
+    pub last_waypoint_mm: Option<f64>,
+    #[serde(default)]
+    pub last_first_waypoint_mm: Option<f64>,
     pub last_train_loss: f64,
     pub samples_per_s: f64,
     /// The share of a step's time spent assembling its batch.
@@ -534,12 +561,16 @@ impl Trainer {
         t: &[i64],
     ) -> Result<f64, (&'static str, Vec<String>)> {
         let finite = |x: &Tensor| x.isfinite().all().int64_value(&[]) == 1;
-        if !batch.images.iter().all(finite) || !finite(&batch.state) || !finite(&batch.action) {
+        if !batch.images.iter().all(finite)
+            || !finite(&batch.state)
+            || !finite(&batch.action)
+            || !finite(&batch.waypoint)
+        {
             return Err(("the batch", batch.episodes.clone()));
         }
         let loss = self
             .policy
-            .loss(&batch.images, &batch.state, &batch.action, rng_noise, t, true)
+            .loss(&batch.images, &batch.state, &batch.action, Some(&batch.waypoint), rng_noise, t, true)
             .map_err(|_| ("the batch's shape", batch.episodes.clone()))?;
         let value = loss.double_value(&[]);
         if !value.is_finite() {
@@ -577,6 +608,8 @@ impl Trainer {
 #[derive(Debug)]
 pub struct Validation {
     batches: Vec<(Batch, Tensor, Vec<i64>)>,
+    /// Each held-out episode's first step (at most 64).
+    first: Option<Batch>,
 }
 
 impl Validation {
@@ -590,7 +623,7 @@ impl Validation {
     ) -> Result<Validation, TrainError> {
         use rand::{Rng, SeedableRng};
         if set.is_empty() {
-            return Ok(Validation { batches: Vec::new() });
+            return Ok(Validation { batches: Vec::new(), first: None });
         }
         let n = n.min(set.len()).max(1);
         let idx: Vec<usize> = (0..n).map(|k| k * set.len() / n).collect();
@@ -603,7 +636,35 @@ impl Validation {
             let t: Vec<i64> = chunk.iter().map(|_| rng.random_range(0..cfg.train_steps as i64)).collect();
             batches.push((b, noise, t));
         }
-        Ok(Validation { batches })
+        let first: Vec<usize> = set.first_samples.iter().copied().take(64).collect();
+        let first = if first.is_empty() { None } else { Some(set.batch(&first, stats)?) };
+        Ok(Validation { batches, first })
+    }
+
+    /// The waypoint head's error (mm, mean Euclidean distance) on the first validation batch's
+    /// samples (at most 64, spread over the held-out steps) and on each held-out episode's
+    /// first step (the arm at home: the images alone place the grasp). None without a head or
+    /// validation samples.
+    pub fn waypoint_mm(&self, policy: &DiffusionPolicy) -> Result<(Option<f64>, Option<f64>), TrainError> {
+        let err = |b: &Batch| -> Result<Option<f64>, TrainError> {
+            let n = b.state.size()[0].min(64);
+            let images: Vec<Tensor> = b.images.iter().map(|t| t.narrow(0, 0, n)).collect();
+            let got = tch::no_grad(|| policy.predict_waypoint(&images, &b.state.narrow(0, 0, n)))?;
+            Ok(got.map(|w| {
+                let d =
+                    (w - b.waypoint.narrow(0, 0, n)).square().sum_dim_intlist(&[1i64][..], false, Kind::Float).sqrt();
+                d.mean(Kind::Float).double_value(&[]) * 1e3
+            }))
+        };
+        let all = match self.batches.first() {
+            Some((b, _, _)) => err(b)?,
+            None => None,
+        };
+        let first = match &self.first {
+            Some(b) => err(b)?,
+            None => None,
+        };
+        Ok((all, first))
     }
 
     pub fn loss(&self, policy: &DiffusionPolicy) -> Result<Option<f64>, TrainError> {
@@ -612,7 +673,7 @@ impl Validation {
         }
         let (mut sum, mut n) = (0.0, 0usize);
         for (b, noise, t) in &self.batches {
-            let l = tch::no_grad(|| policy.loss(&b.images, &b.state, &b.action, noise, t, false))?;
+            let l = tch::no_grad(|| policy.loss(&b.images, &b.state, &b.action, Some(&b.waypoint), noise, t, false))?;
             sum += l.double_value(&[]) * t.len() as f64;
             n += t.len();
         }
@@ -657,6 +718,10 @@ pub struct LossRow {
     /// Open loop on the held-out samples: mean distance (mm) between the executed rows'
     /// sampled and recorded target positions.
     pub open_loop_mm: Option<f64>,
+    /// The waypoint head's error (mm) on held-out samples, and on the held-out episodes'
+    /// first steps ([`Validation::waypoint_mm`]).
+    pub waypoint_mm: Option<f64>,
+    pub first_waypoint_mm: Option<f64>,
 }
 
 fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
@@ -671,6 +736,8 @@ fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
                 val: f.get(2).and_then(|v| v.parse().ok()),
                 lr: f.get(3)?.parse().ok()?,
                 open_loop_mm: f.get(4).and_then(|v| v.parse().ok()),
+                waypoint_mm: f.get(5).and_then(|v| v.parse().ok()),
+                first_waypoint_mm: f.get(6).and_then(|v| v.parse().ok()),
             })
         })
         .filter(|r| r.step <= up_to)
@@ -678,11 +745,20 @@ fn read_loss_csv(path: &Path, up_to: u64) -> Vec<LossRow> {
 }
 
 fn write_loss_csv(path: &Path, rows: &[LossRow]) -> Result<(), TrainError> {
-    let mut s = String::from("step,train_loss,val_loss,lr,open_loop_mm\n");
+    let mut s = String::from("step,train_loss,val_loss,lr,open_loop_mm,waypoint_mm,first_waypoint_mm\n");
+    let mm = |v: Option<f64>| v.map(|v| format!("{v:.2}")).unwrap_or_default();
     for r in rows {
         let val = r.val.map(|v| format!("{v:.6}")).unwrap_or_default();
-        let ol = r.open_loop_mm.map(|v| format!("{v:.2}")).unwrap_or_default();
-        s.push_str(&format!("{},{:.6},{},{:.3e},{}\n", r.step, r.train, val, r.lr, ol));
+        s.push_str(&format!(
+            "{},{:.6},{},{:.3e},{},{},{}\n",
+            r.step,
+            r.train,
+            val,
+            r.lr,
+            mm(r.open_loop_mm),
+            mm(r.waypoint_mm),
+            mm(r.first_waypoint_mm)
+        ));
     }
     std::fs::write(path, s).map_err(io(path, "writing the loss log"))
 }
@@ -842,7 +918,16 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let first_val = if trainer.step == 0 { validation.loss(&trainer.ema)? } else { log.iter().find_map(|r| r.val) };
     if trainer.step == 0 {
         let open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
-        log.push(LossRow { step: 0, train: 0.0, val: first_val, lr: 0.0, open_loop_mm });
+        let (waypoint_mm, first_waypoint_mm) = validation.waypoint_mm(&trainer.ema)?;
+        log.push(LossRow {
+            step: 0,
+            train: 0.0,
+            val: first_val,
+            lr: 0.0,
+            open_loop_mm,
+            waypoint_mm,
+            first_waypoint_mm,
+        });
     }
     println!(
         "training {} ({} steps, batch {}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {w}, {} threads",
@@ -866,6 +951,8 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let mut last_train = f64::NAN;
     let mut last_val = first_val;
     let mut last_open_loop = log.iter().rev().find_map(|r| r.open_loop_mm);
+    let mut last_waypoint = log.iter().rev().find_map(|r| r.waypoint_mm);
+    let mut last_first_waypoint = log.iter().rev().find_map(|r| r.first_waypoint_mm);
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(tc.seed.wrapping_add(trainer.step).wrapping_mul(0x9E37_79B9));
     while trainer.step < total {
@@ -903,21 +990,41 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         samples += b as u64;
         last_train = loss;
         let at = trainer.step;
-        let mut row = LossRow { step: at, train: loss, val: None, lr, open_loop_mm: None };
+        let mut row = LossRow {
+            step: at,
+            train: loss,
+            val: None,
+            lr,
+            open_loop_mm: None,
+            waypoint_mm: None,
+            first_waypoint_mm: None,
+        };
         if at % tc.val_every as u64 == 0 || at == total {
             row.val = validation.loss(&trainer.ema)?;
             row.open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
+            (row.waypoint_mm, row.first_waypoint_mm) = validation.waypoint_mm(&trainer.ema)?;
             last_val = row.val.or(last_val);
             last_open_loop = row.open_loop_mm.or(last_open_loop);
+            last_waypoint = row.waypoint_mm.or(last_waypoint);
+            last_first_waypoint = row.first_waypoint_mm.or(last_first_waypoint);
             let fall = match (first_val, row.val) {
                 (Some(a), Some(b)) if b > 0.0 => format!(" ({:.1}x below the start)", a / b),
                 _ => String::new(),
             };
             bar.suspend(|| {
+                let mm = |v: Option<f64>| v.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
+                let waypoint = match row.waypoint_mm {
+                    Some(_) => format!(
+                        ", waypoint {} mm ({} mm at the first steps)",
+                        mm(row.waypoint_mm),
+                        mm(row.first_waypoint_mm)
+                    ),
+                    None => String::new(),
+                };
                 println!(
-                    "step {at}/{total}: train {loss:.4}, validation {}{fall}, open loop {} mm, lr {lr:.2e}, {:.1} samples/s",
+                    "step {at}/{total}: train {loss:.4}, validation {}{fall}, open loop {} mm{waypoint}, lr {lr:.2e}, {:.1} samples/s",
                     row.val.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
-                    row.open_loop_mm.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into()),
+                    mm(row.open_loop_mm),
                     samples as f64 / step_s.max(1e-9)
                 )
             });
@@ -956,6 +1063,8 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         first_val_loss: first_val,
         last_val_loss: last_val,
         last_open_loop_mm: last_open_loop,
+        last_waypoint_mm: last_waypoint,
+        last_first_waypoint_mm: last_first_waypoint,
         last_train_loss: last_train,
         samples_per_s: samples as f64 / step_s.max(1e-9),
         loader_share: load_s / step_s.max(1e-9),
@@ -982,7 +1091,13 @@ fn concat(mut parts: Vec<Batch>) -> Batch {
     let mut episodes: Vec<String> = parts.iter().flat_map(|p| p.episodes.iter().cloned()).collect();
     episodes.sort();
     episodes.dedup();
-    Batch { images, state: cat(&|p| p.state.shallow_clone()), action: cat(&|p| p.action.shallow_clone()), episodes }
+    Batch {
+        images,
+        state: cat(&|p| p.state.shallow_clone()),
+        action: cat(&|p| p.action.shallow_clone()),
+        waypoint: cat(&|p| p.waypoint.shallow_clone()),
+        episodes,
+    }
 }
 
 #[cfg(test)]
@@ -1108,6 +1223,7 @@ mod tests {
             images: vec![Tensor::rand([b, 2, 3, 32, 32], (Kind::Float, Device::Cpu))],
             state: Tensor::zeros([b, 2, 7], (Kind::Float, Device::Cpu)),
             action: Tensor::zeros([b, 16, 7], (Kind::Float, Device::Cpu)),
+            waypoint: Tensor::zeros([b, 3], (Kind::Float, Device::Cpu)),
             episodes: vec!["ep-a".into()],
         };
         let noise = Tensor::randn([b, 16, 7], (Kind::Float, Device::Cpu));
