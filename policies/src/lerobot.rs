@@ -170,6 +170,7 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
         image_obs_steps: 0,
         waypoint: false,
         waypoint_weight: 1.0,
+        mask_state_xy: false,
     })
 }
 

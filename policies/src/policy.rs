@@ -98,6 +98,13 @@ pub struct DiffusionConfig {
     /// [`WAYPOINT_SCALE`]).
     #[serde(default = "default_waypoint_weight")]
     pub waypoint_weight: f64,
+    /// Leave the TCP's x and y out of what the model sees (the state's first two values,
+    /// zeroed after normalisation, every observed step): with `action_relative` chunks and the
+    /// waypoint head, where to go in the table plane must then come from the images, as it
+    /// must on a table the demos did not cover; height, orientation and the gripper stay.
+    /// (With them, a policy can follow the demos' motion from home instead of looking.)
+    #[serde(default)]
+    pub mask_state_xy: bool,
 }
 
 fn default_encoder_width() -> i64 {
@@ -159,6 +166,7 @@ impl DiffusionConfig {
             image_obs_steps: 0,
             waypoint: false,
             waypoint_weight: default_waypoint_weight(),
+            mask_state_xy: false,
         }
     }
 
@@ -429,7 +437,7 @@ impl DiffusionPolicy {
         let c = &self.cfg;
         Self::expect("observation.state", state, &[-1, c.n_obs_steps, c.state_dim])?;
         let features = self.encode(images, state.size()[0], train)?;
-        Ok(self.with_waypoint(Self::cond_of(state, &features)))
+        Ok(self.with_waypoint(Self::cond_of(&self.seen_state(state), &features)))
     }
 
     fn with_waypoint(&self, obs: Tensor) -> (Tensor, Option<Tensor>) {
@@ -440,6 +448,16 @@ impl DiffusionPolicy {
             }
             None => (obs, None),
         }
+    }
+
+    /// The state as the model sees it: with `mask_state_xy`, the TCP's x and y zeroed.
+    fn seen_state(&self, state: &Tensor) -> Tensor {
+        if !self.cfg.mask_state_xy {
+            return state.shallow_clone();
+        }
+        let keep = Tensor::ones([self.cfg.state_dim], (state.kind(), state.device()));
+        let _ = keep.narrow(0, 0, 2).fill_(0.0);
+        state * keep
     }
 
     fn cond_of(state: &Tensor, features: &[Tensor]) -> Tensor {
@@ -516,7 +534,7 @@ impl DiffusionPolicy {
         Self::expect("noise", noise, &[-1, c.horizon, c.action_dim])?;
         Self::expect("observation.state", state, &[noise.size()[0], c.n_obs_steps, c.state_dim])?;
         let features = self.encode(images, noise.size()[0], false)?;
-        let (global_cond, waypoint) = self.with_waypoint(Self::cond_of(state, &features));
+        let (global_cond, waypoint) = self.with_waypoint(Self::cond_of(&self.seen_state(state), &features));
         let waypoint = waypoint.map(|w| w * WAYPOINT_SCALE);
         let mut first: Option<(i64, Tensor)> = None;
         let mut last: Option<(i64, Tensor)> = None;
@@ -676,6 +694,26 @@ mod tests {
         let trace = tch::no_grad(|| policy.sample_traced(&images, &state, &noise)).unwrap();
         assert_eq!(trace.waypoint.as_ref().unwrap().size(), [4, 3]);
         assert_eq!(trace.global_cond.size(), [4, cfg.global_cond_dim()]);
+    }
+
+    /// With `mask_state_xy` the TCP's x and y do not reach the model (any value gives the
+    /// same chunk) while its height does.
+    #[test]
+    fn a_masked_state_hides_the_tcps_x_and_y() {
+        tch::manual_seed(7);
+        let cfg = DiffusionConfig { mask_state_xy: true, ..DiffusionConfig::tiny() };
+        let vs = nn::VarStore::new(Device::Cpu);
+        let policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
+        let (images, state, _) = batch(&cfg, 1);
+        let noise = Tensor::randn([1, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let chunk = |state: &Tensor| tch::no_grad(|| policy.sample(&images, state, &noise)).unwrap();
+        let base = chunk(&state);
+        let moved = state.copy();
+        let _ = moved.narrow(2, 0, 2).fill_(0.7);
+        assert_eq!((chunk(&moved) - &base).abs().max().double_value(&[]), 0.0);
+        let lifted = state.copy();
+        let _ = lifted.narrow(2, 2, 1).fill_(0.7);
+        assert!((chunk(&lifted) - &base).abs().max().double_value(&[]) > 0.0);
     }
 
     /// The model learns: Adam on one fixed batch drives the noise-prediction loss down.

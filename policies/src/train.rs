@@ -145,6 +145,11 @@ impl Preset {
                 p.model.image_obs_steps, p.model.n_obs_steps
             )));
         }
+        if p.model.mask_state_xy && !p.model.action_relative {
+            return Err(bad(
+                "mask_state_xy hides the TCP's x and y, so the chunk's targets must be relative to it: set action_relative = true".into(),
+            ));
+        }
         if !(p.model.waypoint_weight.is_finite() && p.model.waypoint_weight >= 0.0) {
             return Err(bad(format!("waypoint_weight = {} must be a finite number >= 0", p.model.waypoint_weight)));
         }
