@@ -14,6 +14,9 @@
 //!   composed with `<serial>_left_gripper_offset` (its pose in the TCP frame), as DROID does.
 //! - `observation/camera_intrinsics/<serial>_left`: 3x3 K.
 //! - `observation/controller_info/movement_enabled`: bool.
+//! - `observation/controller_info/labrig_action_source`: int64, who acted at the step (labrig's
+//!   `Step::action_source`: teleop, policy, scripted, ...; a labrig extension DROID's readers
+//!   skip). An import without it reads every step as teleop, as DROID's data is.
 //! - `action/*`: DROID's eight action keys (float64).
 //!
 //! labrig's cameras are monocular, so only `_left` keys exist (the one image is the "left").
@@ -33,6 +36,9 @@ use std::collections::BTreeMap;
 pub const HAND_CAMERA: &str = "wrist";
 
 const NS_PER_MS: i64 = 1_000_000;
+
+/// Where an export keeps each step's `action_source` (not a DROID key).
+pub const ACTION_SOURCE_KEY: &str = "observation/controller_info/labrig_action_source";
 
 /// DROID's control timestamp keys, in ControlTiming's order.
 pub const CONTROL_KEYS: [&str; 5] = ["step_start", "policy_start", "sleep_start", "control_start", "step_end"];
@@ -197,6 +203,7 @@ pub fn to_droid(ep: &Episode) -> H5Doc {
         }
     }
     c.bool("observation/controller_info/movement_enabled", steps.iter().map(|s| s.movement_enabled));
+    c.i64(ACTION_SOURCE_KEY, steps.iter().map(|s| i64::from(s.action_source)));
 
     let a = |f: fn(&ActionDict) -> f64| steps.iter().map(move |s| f(&s.action));
     c.rows("action/cartesian_velocity", steps.iter().map(|s| s.action.cartesian_velocity));
@@ -407,6 +414,20 @@ pub fn from_droid(
     let frames: Vec<(Vec<i64>, Vec<i64>)> = order.iter().map(|&i| frames[i].clone()).collect();
 
     let enabled = bools(doc, "observation/controller_info/movement_enabled", n)?.unwrap_or_else(|| vec![true; n]);
+    let sources: Vec<u8> = match ints(doc, ACTION_SOURCE_KEY, n)? {
+        Some(v) => v
+            .iter()
+            .map(|&x| {
+                u8::try_from(x).map_err(|_| {
+                    Invalid::new(
+                        ACTION_SOURCE_KEY,
+                        format!("trajectory.h5 `{ACTION_SOURCE_KEY}` holds {x}, not a source (0..=255)"),
+                    )
+                })
+            })
+            .collect::<Result<_, _>>()?,
+        None => vec![Step::SOURCE_TELEOP; n],
+    };
     let acart_v = rows::<6>(doc, "action/cartesian_velocity", n)?;
     let acart = rows::<6>(doc, "action/cartesian_position", n)?;
     let aq_v = rows::<7>(doc, "action/joint_velocity", n)?;
@@ -482,7 +503,7 @@ pub fn from_droid(
                     target_gripper_position: at_g[i],
                     ..ActionDict::default()
                 },
-                action_source: Step::SOURCE_TELEOP,
+                action_source: sources[i],
                 movement_enabled: enabled[i],
                 ..Step::default()
             }
@@ -529,6 +550,27 @@ mod tests {
             assert_eq!(t.success, success);
             assert_eq!(t.steps.len(), 3);
         }
+    }
+
+    /// Who acted at each step survives an export and an import (a correction rollout's policy
+    /// and operator steps); DROID's own data, without the key, reads as teleop; a value that is
+    /// no source is named.
+    #[test]
+    fn each_steps_source_round_trips() {
+        let mut ep = episode(Some(true));
+        let sources = [Step::SOURCE_POLICY, Step::SOURCE_SCRIPTED, Step::SOURCE_POLICY];
+        for (s, src) in ep.steps.iter_mut().zip(sources) {
+            s.action_source = src;
+        }
+        let mut doc = to_droid(&ep);
+        let t = from_droid(&doc, "x", &BTreeMap::new()).unwrap();
+        assert_eq!(t.steps.iter().map(|s| s.action_source).collect::<Vec<_>>(), sources);
+        doc.datasets.get_mut(ACTION_SOURCE_KEY).unwrap().data = Data::I64(vec![1, 300, 1]);
+        let e = from_droid(&doc, "x", &BTreeMap::new()).unwrap_err().to_string();
+        assert!(e.contains("holds 300"), "{e}");
+        doc.datasets.remove(ACTION_SOURCE_KEY);
+        let t = from_droid(&doc, "x", &BTreeMap::new()).unwrap();
+        assert!(t.steps.iter().all(|s| s.action_source == Step::SOURCE_TELEOP));
     }
 
     #[test]
