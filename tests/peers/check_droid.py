@@ -107,6 +107,8 @@ def check_episode(root, h5_path, problems):
         for s in hand:
             expected[f"observation/camera_extrinsics/{s}_left_gripper_offset"] = ((n, 6), "float64")
         expected["observation/controller_info/movement_enabled"] = ((n,), "bool")
+        # labrig's own key (who acted at each step), not DROID's: its readers skip it
+        expected["observation/controller_info/labrig_action_source"] = ((n,), "int64")
         for k in sorted(set(expected) - set(datasets)):
             problems.append(f"{h5_path}: missing {k}")
         for k in sorted(set(datasets) - set(expected)):
