@@ -314,8 +314,7 @@ impl SampleSet {
         if !self.action_relative {
             return a;
         }
-        let newest: Vec<i64> = idx.iter().map(|&i| self.obs_rows[(i + 1) * self.n_obs - 1]).collect();
-        let newest = self.state.index_select(0, &Tensor::from_slice(&newest));
+        let newest = self.state.index_select(0, &self.newest_rows(idx));
         let shift = crate::data::tcp_offset(&newest, a.size()[2], a.kind());
         a - shift
     }
@@ -338,6 +337,12 @@ impl SampleSet {
         self.episode_of.is_empty()
     }
 
+    /// The row of each of `idx`'s windows' newest observation.
+    fn newest_rows(&self, idx: &[usize]) -> Tensor {
+        let rows: Vec<i64> = idx.iter().map(|&i| self.obs_rows[(i + 1) * self.n_obs - 1]).collect();
+        Tensor::from_slice(&rows)
+    }
+
     /// The rows of `idx`'s windows (`per` rows each).
     fn rows(all: &[i64], per: usize, idx: &[usize]) -> Tensor {
         let v: Vec<i64> = idx.iter().flat_map(|&i| all[i * per..(i + 1) * per].iter().copied()).collect();
@@ -356,8 +361,7 @@ impl SampleSet {
         let images = (0..cams).map(|k| frames.select(2, k)).collect();
         let state = stats.0.normalize(&self.state.index_select(0, &obs).view([b, self.n_obs as i64, -1]))?;
         let action = stats.1.normalize(&self.actions(idx))?;
-        let newest: Vec<i64> = idx.iter().map(|&i| self.obs_rows[(i + 1) * self.n_obs - 1]).collect();
-        let newest = Tensor::from_slice(&newest);
+        let newest = self.newest_rows(idx);
         let waypoint = self.waypoint.index_select(0, &newest)
             - self.state.index_select(0, &newest).narrow(1, 0, 3).to_kind(Kind::Float);
         let mut episodes: Vec<String> = idx.iter().map(|&i| self.uuids[self.episode_of[i]].clone()).collect();
