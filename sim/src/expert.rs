@@ -118,9 +118,17 @@ pub struct PickPlaceExpert {
     last_gripper: f64,
     /// The TCP at the reset pose: where the plan ([`Expert::plan`]) starts.
     start: Vector3<f64>,
+    /// [`PickPlaceExpert::with_aim_error`]: where the first approach and the first descent
+    /// stop short (offsets in the table plane from the object), each taken out when reached.
+    aim: [Option<Vector3<f64>>; 2],
 }
 
 const HOVER_Z: f64 = 0.12;
+/// With an aim error, the descent pauses this far above the grasp point to correct its
+/// smaller offset (the finger tips stay clear of the cube's top).
+const LOOK_ABOVE_GRASP: f64 = 0.05;
+/// The descent's aim error, as a fraction of the approach's.
+const LOW_AIM_FRACTION: f64 = 1.0 / 3.0;
 const CARRY_Z: f64 = 0.18;
 const RELEASE_Z: f64 = 0.11;
 /// The fingers take a tick to start moving, so stillness before this is not the end of a grasp.
@@ -151,7 +159,30 @@ impl PickPlaceExpert {
             attempts: 1,
             last_gripper: 0.0,
             start: Vector3::from(start),
+            aim: [None, None],
         }
+    }
+
+    /// Demos that look and correct (DART-like, but every recorded action is the expert's):
+    /// the first approach goes to a hover point `max_m` or less beside the object (at least
+    /// 0.4 `max_m`, in a direction drawn from the scene's seed), then corrects over it; the
+    /// first descent stops [`LOOK_ABOVE_GRASP`] above the grasp point a third as far off and
+    /// corrects again before going down. A policy trained on them sees the object off-centre
+    /// in its cameras with the motion that centres it, and a grasp that waits for that,
+    /// where an exact expert shows only straight lines at one pace. 0 = the exact expert.
+    pub fn with_aim_error(mut self, seed: u64, max_m: f64) -> PickPlaceExpert {
+        use rand::{Rng, SeedableRng};
+        if max_m <= 0.0 {
+            self.aim = [None, None];
+            return self;
+        }
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0xA1A1_E440);
+        let mut draw = |r: f64| {
+            let (len, dir) = (rng.random_range(0.4 * r..=r), rng.random_range(0.0..std::f64::consts::TAU));
+            Some(Vector3::new(len * dir.cos(), len * dir.sin(), 0.0))
+        };
+        self.aim = [draw(max_m), draw(max_m * LOW_AIM_FRACTION)];
+        self
     }
 
     /// This scene's expert (`self`, made at the reset pose) taking over from the state `sim`
@@ -177,6 +208,7 @@ impl PickPlaceExpert {
             carried,
             attempts: 1,
             last_gripper: sim.gripper_position(),
+            aim: [None, None],
             ..self.clone()
         }
     }
@@ -223,8 +255,18 @@ impl PickPlaceExpert {
         let bin = Vector3::new(self.bin[0], self.bin[1], 0.0);
         // Each phase: where the TCP should end up, and the gripper command.
         let (target, target_rot, gripper) = match self.phase {
-            Phase::Approach => (Vector3::new(obj.x, obj.y, obj.z + HOVER_Z), grasp_rot, 0.0),
-            Phase::Descend => (Vector3::new(obj.x, obj.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0),
+            Phase::Approach => {
+                let off = self.aim[0].unwrap_or_default();
+                (Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + HOVER_Z), grasp_rot, 0.0)
+            }
+            Phase::Descend => match self.aim[1] {
+                Some(off) => (
+                    Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + GRASP_ABOVE_CENTRE + LOOK_ABOVE_GRASP),
+                    grasp_rot,
+                    0.0,
+                ),
+                None => (Vector3::new(obj.x, obj.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0),
+            },
             Phase::Grasp => {
                 self.carried = pos;
                 (pos, grasp_rot, 1.0)
@@ -250,7 +292,19 @@ impl PickPlaceExpert {
         };
         self.last_gripper = sim.gripper_position();
         // A grasp that did not lift the object is retried from the approach.
-        if self.phase == Phase::Lift && done && obj.z < OBJECT_SIZE && self.attempts < MAX_ATTEMPTS {
+        let aiming = match self.phase {
+            Phase::Approach => Some(0),
+            Phase::Descend => Some(1),
+            _ => None,
+        }
+        .filter(|&k| self.aim[k].is_some());
+        if let Some(k) = aiming
+            && done
+        {
+            // The aimed-off point is reached: now over (down to) the object itself.
+            self.aim[k] = None;
+            self.ticks_in_phase = 0;
+        } else if self.phase == Phase::Lift && done && obj.z < OBJECT_SIZE && self.attempts < MAX_ATTEMPTS {
             tracing::debug!(attempt = self.attempts, "expert: the object did not come up; retrying the grasp");
             self.attempts += 1;
             self.phase = Phase::Approach;
@@ -460,6 +514,15 @@ impl Expert {
         }
     }
 
+    /// Pick-and-place demos that look and correct: [`PickPlaceExpert::with_aim_error`], its
+    /// offsets drawn from `sim`'s scene seed. The drawer experts stay exact.
+    pub fn with_aim_error(self, sim: &Sim, max_m: f64) -> Expert {
+        match self {
+            Expert::PickPlace(e) => Expert::PickPlace(e.with_aim_error(sim.scene().seed, max_m)),
+            drawer => drawer,
+        }
+    }
+
     pub fn act(&mut self, sim: &Sim) -> Action {
         match self {
             Expert::PickPlace(e) => e.act(sim),
@@ -609,9 +672,20 @@ pub struct EpisodeResult {
 pub fn run_episode(
     sim: &mut Sim,
     max_ticks: u64,
+    on_tick: impl FnMut(&mut Sim, &Action) -> Result<(), SimError>,
+) -> Result<EpisodeResult, SimError> {
+    let expert = Expert::new(sim);
+    run_episode_with(sim, expert, max_ticks, on_tick)
+}
+
+/// [`run_episode`] with a given expert (e.g. [`Expert::with_aim_error`]), made at `sim`'s
+/// reset pose.
+pub fn run_episode_with(
+    sim: &mut Sim,
+    mut expert: Expert,
+    max_ticks: u64,
     mut on_tick: impl FnMut(&mut Sim, &Action) -> Result<(), SimError>,
 ) -> Result<EpisodeResult, SimError> {
-    let mut expert = Expert::new(sim);
     let ik = CartesianIk::new(sim);
     let opening_at_start = sim.drawer_opening();
     let mut ticks = 0;

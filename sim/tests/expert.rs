@@ -170,3 +170,45 @@ fn the_expert_resumed_mid_episode_solves_the_scene_from_where_it_finds_it() {
         assert!(expert::pick_place_success(&sim), "seed {seed}: from the held object, ended in {:?}", resumed.phase());
     }
 }
+
+#[test]
+fn the_expert_that_aims_off_stops_beside_the_object_corrects_over_it_and_still_solves() {
+    let spec = SceneSpec::default_pick_place();
+    let max_m = 0.06;
+    let mut successes = 0;
+    for seed in 0..10 {
+        let mut sim = Sim::new(&assets(), &spec, seed, Nanos::from_millis(50)).unwrap();
+        let obj = sim.object_position();
+        let aimed = expert::Expert::new(&sim).with_aim_error(&sim, max_m);
+        // Where the approach first heads: its phase target on the first tick.
+        let first_target = aimed.clone().act(&sim).target;
+        let off = ((first_target[0] - obj[0]).powi(2) + (first_target[1] - obj[1]).powi(2)).sqrt();
+        assert!(
+            (0.4 * max_m - 1e-9..=max_m + 1e-9).contains(&off),
+            "seed {seed}: the first hover point is {off:.4} m off the object, not 0.4..1 x {max_m}"
+        );
+        // The same seed draws the same offset; the exact expert heads straight over the object.
+        assert_eq!(expert::Expert::new(&sim).with_aim_error(&sim, max_m).act(&sim).target, first_target);
+        let exact = expert::Expert::new(&sim).act(&sim).target;
+        assert!((exact[0] - obj[0]).abs() < 1e-9 && (exact[1] - obj[1]).abs() < 1e-9, "{exact:?} {obj:?}");
+        // Over the run the phase target moves from the aimed-off point to the object itself
+        // before the fingers close: the grasp waits for the correction.
+        let mut targets_before_grasp = Vec::new();
+        let mut closed = false;
+        let r = expert::run_episode_with(&mut sim, aimed, 400, |_, a| {
+            closed |= a.gripper_position >= 0.5;
+            if !closed {
+                targets_before_grasp.push(a.target);
+            }
+            Ok(())
+        })
+        .unwrap();
+        let last = targets_before_grasp.last().unwrap();
+        assert!(
+            (last[0] - obj[0]).abs() < 1e-6 && (last[1] - obj[1]).abs() < 1e-6,
+            "seed {seed}: the last target before the grasp {last:?} is not over the object {obj:?}"
+        );
+        successes += r.success as u32;
+    }
+    assert!(successes >= 9, "the aiming expert succeeded on {successes}/10 scenes");
+}

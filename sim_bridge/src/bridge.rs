@@ -104,6 +104,12 @@ pub struct BridgeConfig {
     /// also carries the expert's phase target and its whole plan (`Expert::plan`), which the
     /// loop's takeover rule measures the arm against.
     pub expert_resume: bool,
+    /// With `expert`, on pick-and-place: demos that look and correct. The expert's first
+    /// approach stops up to this far (m) beside the object (at least 0.4 of it, the direction
+    /// drawn from the scene's seed) and then corrects over it; its first descent pauses 5 cm
+    /// above the grasp a third as far off and corrects again (`PickPlaceExpert::with_aim_error`).
+    /// Every recorded action is still the expert's. 0 (default): the exact expert.
+    pub expert_aim_error_m: f64,
     /// Sim time on the wall clock's time line (Unix ns) instead of from 0: in realtime each
     /// step's state and frames are stamped with the wall time they were made at, as a real
     /// rig's, so a control loop on the wall clock pairs them with its ticks; time lost to a
@@ -187,6 +193,7 @@ impl Default for BridgeConfig {
             cameras: true,
             expert: false,
             expert_resume: false,
+            expert_aim_error_m: 0.0,
             wall_clock_origin: false,
             realtime_priority: None,
             max_ticks: None,
@@ -225,6 +232,18 @@ impl BridgeConfig {
         }
         if self.expert_resume && !self.expert {
             return Err(Invalid::new("expert_resume", "expert_resume (--expert-resume) needs expert (--expert)"));
+        }
+        if !(self.expert_aim_error_m.is_finite() && (0.0..=0.15).contains(&self.expert_aim_error_m)) {
+            return Err(Invalid::new(
+                "expert_aim_error_m",
+                format!("expert_aim_error_m = {} must be in 0..=0.15 (m)", self.expert_aim_error_m),
+            ));
+        }
+        if self.expert_aim_error_m > 0.0 && !self.expert {
+            return Err(Invalid::new(
+                "expert_aim_error_m",
+                "expert_aim_error_m (--expert-aim-error-m) needs expert (--expert)",
+            ));
         }
         if let Some(r) = self.camera_rate_hz
             && !(r.is_finite() && r > 0.0)
@@ -337,6 +356,11 @@ pub struct BridgeFlags {
     #[arg(long)]
     #[serde(skip_serializing_if = "is_false")]
     pub expert_resume: bool,
+    /// Demos that look and correct: the expert's first approach stops up to this far (m)
+    /// beside the object, then corrects (config `expert_aim_error_m`; needs --expert).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub expert_aim_error_m: Option<f64>,
     /// Sim time on the wall clock's time line (config `wall_clock_origin`).
     #[arg(long)]
     #[serde(skip_serializing_if = "is_false")]
@@ -560,7 +584,8 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     };
     let mut expert = if a.expert {
         Some(ExpertPub {
-            expert: labrig_sim::expert::Expert::new(&sim),
+            expert: labrig_sim::expert::Expert::new(&sim).with_aim_error(&sim, a.expert_aim_error_m),
+            aim_error_m: a.expert_aim_error_m,
             resume: a.expert_resume.then(|| (labrig_sim::expert::Expert::new(&sim), safety.ik().kinematics().clone())),
             last_action: None,
             action: ros.publisher_on(&topics::SIM_EXPERT_ACTION, 10)?,
@@ -801,6 +826,8 @@ struct ExpertPub {
     /// `expert_resume`: the scene's expert as made at its reset pose (what `resume` starts
     /// from) and the FR3's kinematics (the commanded joints' TCP).
     resume: Option<(labrig_sim::expert::Expert, labrig_arm::Fr3Kinematics)>,
+    /// `expert_aim_error_m`, for each new scene's expert.
+    aim_error_m: f64,
     /// The last action published (pose, gripper): what the arm followed or not.
     last_action: Option<([f64; 6], f64)>,
     action: RosPublisher<ArmCommand>,
@@ -813,7 +840,7 @@ struct ExpertPub {
 impl ExpertPub {
     /// A new scene at its reset pose: a new expert (and template).
     fn new_scene(&mut self, sim: &Sim) {
-        self.expert = labrig_sim::expert::Expert::new(sim);
+        self.expert = labrig_sim::expert::Expert::new(sim).with_aim_error(sim, self.aim_error_m);
         if let Some((template, _)) = &mut self.resume {
             *template = self.expert.clone();
         }

@@ -117,6 +117,10 @@ struct EvalArgs {
     /// Exit non-zero when the success rate is below this (0..1).
     #[arg(long)]
     min_success: Option<f64>,
+    /// The expert that looks and corrects (`expert_aim_error_m`): its first approach stops up
+    /// to this far (m) beside the object. 0 = the exact expert.
+    #[arg(long, default_value_t = 0.0)]
+    aim_error_m: f64,
 }
 
 /// Exit status when the replay deviates beyond the tolerances.
@@ -194,7 +198,8 @@ fn eval(a: EvalArgs) -> anyhow::Result<ExitCode> {
     let mut results: Vec<EpisodeResult> = Vec::new();
     for seed in a.first_seed..a.first_seed + a.episodes {
         let mut sim = Sim::new(&assets, &spec, seed, Nanos::from_millis(50)).with_context(|| format!("seed {seed}"))?;
-        let r = expert::run_episode(&mut sim, a.max_ticks, |_, _| Ok(()))?;
+        let e = expert::Expert::new(&sim).with_aim_error(&sim, a.aim_error_m);
+        let r = expert::run_episode_with(&mut sim, e, a.max_ticks, |_, _| Ok(()))?;
         results.push(r);
         let ok = results.iter().filter(|r| r.success).count();
         bar.set_message(format!("{ok} succeeded"));

@@ -51,6 +51,13 @@ pub struct DemoArgs {
     /// at start for cameras without a current one.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
+    /// Demos that look and correct (pick-and-place): the expert's first approach stops up to
+    /// this far (m) beside the cube, in a direction drawn from the seed, then corrects over it;
+    /// its descent pauses 5 cm above the grasp a third as far off and corrects again. Every
+    /// recorded action is still the expert's. Image policies learn from these to centre the
+    /// cube in the wrist camera before they grasp. 0 = the exact expert.
+    #[arg(long, default_value_t = 0.0)]
+    pub expert_aim_error_m: f64,
 }
 
 /// Sets `flag`'s value in `args` (appended when absent).
@@ -92,6 +99,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         set_arg(&mut sim.args, "--scene", &scene);
         if let Some(dir) = &calibration {
             set_arg(&mut sim.args, "--calibration", dir);
+        }
+        if args.expert_aim_error_m != 0.0 {
+            set_arg(&mut sim.args, "--expert-aim-error-m", &args.expert_aim_error_m.to_string());
         }
         if args.realtime {
             sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
