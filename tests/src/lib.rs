@@ -88,10 +88,97 @@ pub fn watchdog_silence_ms(fault: &str) -> f64 {
         .unwrap_or_else(|| panic!("unexpected hold report: {fault}"))
 }
 
-/// A DDS domain for one test, so tests running in parallel do not see each other's topics.
-pub fn domain_for(test: &str) -> u16 {
-    let h = test.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
-    (10 + h % 200) as u16
+/// Every DDS domain the suite uses: (key, first domain, how many in a row). Tests run in
+/// parallel, each rig on its own domain, so that no test sees another's nodes (it happened: the
+/// recorder test and the lockstep test once shared a domain and the lockstep run stalled).
+/// [`domain_for`] and [`domains_for`] are the only way a test gets a domain and panic on a key
+/// missing here; `tests/tests/domains.rs` checks that no two entries overlap and that none
+/// meets a domain labrig's commands use by default (0, `labrig demo`'s 42, 43, 44, and
+/// `labrig bench faults`' 70 onward), so a developer's demo beside the suite stays apart too.
+pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
+    ("calibration_reaches_the_metadata", 100, 1),
+    ("calibration_live_rig", 101, 1),
+    ("cameras_stream", 102, 1),
+    ("cameras_refusals", 103, 1),
+    ("cameras_bench_rig", 104, 1),
+    ("cameras_realsense", 105, 1),
+    ("cdr", 106, 1),
+    ("demo_records_expert_episodes", 107, 1),
+    ("sigint", 108, 1),
+    ("control_loop_vs_lockstep_bridge", 109, 1),
+    ("control_loop_operator_events", 110, 1),
+    ("dataset_sim_c0o0", 111, 1),
+    ("dataset_sim_c0o1", 112, 1),
+    ("dataset_sim_c1o0", 113, 1),
+    ("dataset_sim_c1o1", 114, 1),
+    ("fault_dds_stop_continue", 115, 1),
+    ("fault_participant_limit", 116, 1),
+    ("the_fci_backend_moves_franka_sims_fr3_along_commanded_paths", 117, 1),
+    ("a_reflex_and_a_killed_franka_sim_are_reported_as_faults", 118, 1),
+    ("the_franka_bench_reports_command_latencies", 119, 1),
+    ("the_sim_backend_drives_the_sim_bridge_through_the_node", 120, 1),
+    ("the_gripper_node_drives_an_emulated_2f85", 121, 1),
+    ("the_gripper_node_drives_the_sim_bridges_2f85", 122, 1),
+    ("launch_sim_droid_rig", 123, 1),
+    ("launch_broken_rig", 124, 1),
+    ("launch_orphans", 125, 1),
+    ("joint_states_100hz", 126, 1),
+    ("pose_stamped_from_rclpy", 127, 1),
+    ("rclpy_calls_labrig", 128, 1),
+    ("labrig_calls_rclpy", 129, 1),
+    ("topic_echo_rclpy", 130, 1),
+    ("missing_topic", 131, 1),
+    ("loopback_capture", 132, 1),
+    ("policy_server_demo", 133, 1),
+    ("policy_server_node_serves", 134, 1),
+    ("recorder_node_vs_sim_bridge", 135, 1),
+    ("recorder_orphan_unjudged", 136, 1),
+    ("rollout_lockstep", 137, 1),
+    ("rollout_pixels", 138, 1),
+    ("rollout_delay", 139, 1),
+    ("rollout_server_faults", 140, 1),
+    ("rclpy_sees_the_bridges_joint_states_and_camera_info", 141, 1),
+    ("lockstep_a", 142, 1),
+    ("lockstep_b", 143, 1),
+    ("refused_nan", 144, 1),
+    ("refused_limit", 145, 1),
+    ("refused_then_ok", 146, 1),
+    ("the_watchdog_holds_the_arm_when_commands_stop", 147, 1),
+    ("following_the_expert_over_ros", 148, 1),
+    ("station_sim_droid", 149, 1),
+    ("station_browser", 150, 1),
+    ("bench_station", 151, 1),
+    ("takeover_grip", 152, 1),
+    ("takeover_expert", 153, 1),
+    ("teleop_square_trace_drives_the_rig", 154, 1),
+    ("teleop_vanished_controller_holds", 155, 1),
+    ("teleop_b_records_a_failure", 156, 1),
+    ("teleop_adb_reconnects", 157, 1),
+    ("train_demo_episodes", 158, 1),
+    ("fault_bench_recorder_kill", 159, 3),
+    ("fault_bench_disk_full", 162, 2),
+    ("fault_bench_dds_stop", 164, 1),
+    ("fault_bench_bridge_kill", 165, 1),
+    ("fault_bench_camera_stall", 166, 1),
+];
+
+/// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
+pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 70..=79];
+
+/// The DDS domain registered for `key` in [`TEST_DOMAINS`].
+pub fn domain_for(key: &str) -> u16 {
+    let (first, count) = domains_for(key);
+    assert_eq!(count, 1, "test key `{key}` has {count} domains in TEST_DOMAINS: use domains_for");
+    first
+}
+
+/// The first of the consecutive domains registered for `key` in [`TEST_DOMAINS`] (a command
+/// that counts up from a given domain, such as `labrig bench faults`), and how many.
+pub fn domains_for(key: &str) -> (u16, u16) {
+    match TEST_DOMAINS.iter().find(|(k, _, _)| *k == key) {
+        Some(&(_, first, count)) => (first, count),
+        None => panic!("test key `{key}` has no DDS domain: add it to TEST_DOMAINS in tests/src/lib.rs"),
+    }
 }
 
 /// The processes started for DDS domain `domain` by `labrig launch` (their command lines end

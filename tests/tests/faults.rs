@@ -19,6 +19,12 @@ use std::time::{Duration, Instant};
 /// A node stopped (SIGSTOP, as Ctrl-Z or a debugger do) and continued loses its DDS event
 /// loops; it notices within a fraction of a second, names the cause and exits with status 1
 /// (the launcher's cue to restart it) instead of running on deaf.
+
+/// The first of the domains registered for `key` (the bench counts up from it, one a run).
+fn first_domain(key: &str) -> String {
+    labrig_tests::domains_for(key).0.to_string()
+}
+
 #[test]
 fn a_node_stopped_and_continued_notices_its_dds_died_and_exits() {
     let domain = domain_for("fault_dds_stop_continue");
@@ -109,14 +115,15 @@ fn bench_faults(args: &[&str]) -> Value {
     serde_json::from_str(stdout.lines().last().unwrap_or_default()).unwrap_or_else(|e| panic!("{e}: {stdout}"))
 }
 
-// The rig runs below use DDS domains above `domain_for`'s range (10..210), one per fault run.
+// The rig runs below count DDS domains up from their key's first (`TEST_DOMAINS` registers
+// one per fault run).
 
 /// The recorder SIGKILLed at an episode's start, in its middle and on its end event: the
 /// launcher restarts it, it rejoins, and every step the loop published is in the filed
 /// episode (the middle and end kills as a second part of the same episode).
 #[test]
 fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
-    let v = bench_faults(&["--faults", "recorder-kill", "--domain-id", "215"]);
+    let v = bench_faults(&["--faults", "recorder-kill", "--domain-id", &first_domain("fault_bench_recorder_kill")]);
     let runs = v["faults"].as_array().unwrap();
     assert_eq!(runs.len(), 3, "{v}");
     for r in runs {
@@ -140,7 +147,14 @@ fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
 /// that episode ends early, finished and filed. Either way earlier episodes are whole.
 #[test]
 fn a_full_disk_keeps_earlier_episodes_names_the_refusal_and_holds_the_rig_idle() {
-    let v = bench_faults(&["--faults", "disk-full,disk-full-nomargin", "--disk-mb", "4", "--domain-id", "220"]);
+    let v = bench_faults(&[
+        "--faults",
+        "disk-full,disk-full-nomargin",
+        "--disk-mb",
+        "4",
+        "--domain-id",
+        &first_domain("fault_bench_disk_full"),
+    ]);
     for r in v["faults"].as_array().unwrap() {
         let name = r["fault"].as_str().unwrap();
         assert!(r["episodes"].as_u64().unwrap() >= 1, "{name}: an episode fits in 4 MB: {r}");
@@ -158,7 +172,7 @@ fn a_full_disk_keeps_earlier_episodes_names_the_refusal_and_holds_the_rig_idle()
 /// launcher restarts it, and the episode continues as a second part with no step lost.
 #[test]
 fn a_recorder_stopped_and_continued_mid_episode_is_restarted_and_loses_no_step() {
-    let v = bench_faults(&["--faults", "dds-stop", "--domain-id", "225"]);
+    let v = bench_faults(&["--faults", "dds-stop", "--domain-id", &first_domain("fault_bench_dds_stop")]);
     let r = &v["faults"][0];
     assert_eq!((r["steps_lost"].as_u64(), r["parts"].as_u64()), (Some(0), Some(2)), "{r}");
     assert_eq!(r["all_filed"], true, "{r}");
@@ -169,7 +183,7 @@ fn a_recorder_stopped_and_continued_mid_episode_is_restarted_and_loses_no_step()
 /// stops the episode naming why, and the recorder files every step recorded before.
 #[test]
 fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
-    let v = bench_faults(&["--faults", "bridge-kill", "--domain-id", "228"]);
+    let v = bench_faults(&["--faults", "bridge-kill", "--domain-id", &first_domain("fault_bench_bridge_kill")]);
     let r = &v["faults"][0];
     let outcome = r["outcome"].as_str().unwrap();
     assert!(
@@ -187,7 +201,14 @@ fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
 /// carries the wrist's last frame again (with its old capture time), no other camera's.
 #[test]
 fn a_stalled_camera_is_named_by_the_steps_that_missed_it() {
-    let v = bench_faults(&["--faults", "camera-stall", "--stall-s", "2", "--domain-id", "231"]);
+    let v = bench_faults(&[
+        "--faults",
+        "camera-stall",
+        "--stall-s",
+        "2",
+        "--domain-id",
+        &first_domain("fault_bench_camera_stall"),
+    ]);
     let r = &v["faults"][0];
     assert_eq!(r["steps_lost"], 0, "{r}");
     let stalled = r["stalled_steps"].as_u64().unwrap();
