@@ -121,6 +121,10 @@ pub const POLICY_CHUNK: Topic<ActionChunk> = Topic::new("/policy/chunk", Reliabl
 /// n_action_steps, action_space, action_dim), latched: the loop reads it before it sends a
 /// request and refuses a policy it cannot feed or execute.
 pub const POLICY_INFO: Topic<StringMsg> = Topic::new("/policy/info", Latched);
+/// A request the server could not answer (JSON: request_id, policy_id, error naming why, e.g.
+/// a camera's image missing): the asker learns it was refused, and why, instead of waiting
+/// out its timeout for a chunk that will not come.
+pub const POLICY_REFUSED: Topic<StringMsg> = Topic::new("/policy/refused", Reliable);
 
 // --- the simulated rig ---
 /// Sim time (rosgraph_msgs/Clock).

@@ -144,6 +144,7 @@ fn the_policy_server_answers_requests_with_chunks() {
         };
         // What it serves, latched for the loop.
         let info = ros.subscription_on(&topics::POLICY_INFO, 1).unwrap();
+        let refused = ros.subscription_on(&topics::POLICY_REFUSED, 10).unwrap();
         requests.publish(request(1, obs.clone())).unwrap();
         let a = next_chunk(&chunks, Duration::from_secs(60)).await.expect("a chunk");
         assert_eq!(a.policy_id, "run@3");
@@ -173,17 +174,30 @@ fn the_policy_server_answers_requests_with_chunks() {
         // The same request, the same chunk (the initial noise is seeded by the seed and step).
         requests.publish(request(2, obs.clone())).unwrap();
         let b = next_chunk(&chunks, Duration::from_secs(60)).await.expect("a second chunk");
+        assert_eq!(b.request_id, 2);
         assert_eq!(a.actions, b.actions);
 
-        // A request without the camera's image gets no chunk; the server goes on serving.
+        // A request without the camera's image is refused, by id and naming the camera, on
+        // /policy/refused (not left to a timeout); no chunk answers it; the server goes on.
         let mut blind = obs.clone();
         blind[1].images.clear();
         requests.publish(request(3, blind)).unwrap();
-        assert!(next_chunk(&chunks, Duration::from_secs(3)).await.is_none(), "no chunk for a request without ext1");
+        let until = Instant::now() + Duration::from_secs(60);
+        let refusal = loop {
+            if let Some(m) = refused.try_take().unwrap() {
+                break serde_json::from_str::<serde_json::Value>(&m.msg.data).unwrap();
+            }
+            assert!(Instant::now() < until, "no /policy/refused for a request without ext1");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        };
+        assert_eq!((refusal["request_id"].as_u64(), refusal["policy_id"].as_str()), (Some(3), Some("run@3")));
+        assert!(refusal["error"].as_str().is_some_and(|e| e.contains("ext1")), "{refusal}");
         let one = vec![obs[1].clone()];
         requests.publish(request(4, one)).unwrap();
         let c = next_chunk(&chunks, Duration::from_secs(60)).await.expect("served after the bad request");
+        assert_eq!(c.request_id, 4, "the chunk after the refusal answers request 4, not 3");
         assert_eq!(c.observation_step, 11);
         assert_ne!(c.actions, a.actions, "one observation (repeated) is another input than two");
+        assert!(refused.try_take().unwrap().is_none(), "one refusal only");
     });
 }

@@ -116,6 +116,11 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         set_arg(&mut ctl.args, "--first-seed", &args.first_seed.to_string());
         if args.realtime {
             set_arg(&mut ctl.args, "--clock", "wall");
+        } else {
+            // In lockstep the sim keeps no pace of its own: a scene rebuild between episodes on
+            // a busy machine took over the loop's default 2 s and ended two 100-episode demos
+            // early (as sim_rollout.toml says for rollouts). A bridge that is gone still ends it.
+            ctl.args.extend(["--set".into(), "tick_timeout_s=15".into()]);
         }
     }
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;

@@ -58,7 +58,7 @@ pub struct ServeStats {
     pub chunks: u64,
     /// Requests replaced by a newer one before inference took them.
     pub superseded: u64,
-    /// Requests that could not be answered (named in the log).
+    /// Requests that could not be answered (each named in the log and on `/policy/refused`).
     pub failed: u64,
     pub inference_ms_p50: f64,
     pub inference_ms_p99: f64,
@@ -86,13 +86,14 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     let requests = ros.subscription_on(&topics::POLICY_REQUEST, 10)?;
     let chunks = ros.publisher_on(&topics::POLICY_CHUNK, 10)?;
     let info = ros.publisher_on(&topics::POLICY_INFO, 1)?;
+    let refused = ros.publisher_on(&topics::POLICY_REFUSED, 10)?;
     // The inference thread warms up (one chunk on a blank observation) before /policy/info
     // goes out: libtorch's first call on a thread sets up its pool and buffers, which took over
     // a second on a busy machine, past the loop's default 1 s server timeout.
     let (warm_tx, warm_rx) = std::sync::mpsc::channel::<Result<f64, String>>();
 
     let waiting = Arc::new((Mutex::new(Waiting::default()), Condvar::new()));
-    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<Result<ActionChunk, String>>();
+    let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<Result<ActionChunk, (u64, String)>>();
     let worker = {
         let waiting = Arc::clone(&waiting);
         std::thread::Builder::new().name("inference".into()).spawn(move || {
@@ -110,7 +111,7 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
                     }
                     w.request.take().expect("checked")
                 };
-                let answer = server.chunk(&req).map_err(|e| e.to_string());
+                let answer = server.chunk(&req).map_err(|e| (req.request_id, e.to_string()));
                 if done_tx.send(answer).is_err() {
                     return;
                 }
@@ -143,9 +144,11 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
                     chunks.publish(chunk)?;
                     stats.chunks += 1;
                 }
-                Err(e) => {
+                Err((request_id, error)) => {
                     stats.failed += 1;
-                    tracing::warn!("{e}");
+                    tracing::warn!(request_id, "request refused: {error}");
+                    let data = serde_json::json!({ "request_id": request_id, "policy_id": id, "error": error });
+                    refused.publish(labrig_msgs::std_msgs::StringMsg { data: data.to_string() })?;
                 }
             }
         }
