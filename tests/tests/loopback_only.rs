@@ -11,8 +11,11 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// RTPS packets start with the bytes "RTPS" right after the UDP header.
-const RTPS_FILTER: &str = "udp and udp[8:4] = 0x52545053";
+/// RTPS packets start with the bytes "RTPS" right after the UDP header. BPF's `udp[]` reads
+/// IPv4 only, so IPv6 is matched on its own: next header UDP (17) and the payload after the
+/// 40-byte IPv6 header and the 8-byte UDP header. `scripts/test.sh` uses the same filter
+/// (checked below).
+const RTPS_FILTER: &str = "(ip and udp and udp[8:4] = 0x52545053) or (ip6 and ip6[6] = 17 and ip6[48:4] = 0x52545053)";
 
 /// Splits `tcpdump -nn -r` lines into (loopback, elsewhere) by source and destination address.
 fn classify(lines: &str) -> (usize, Vec<String>) {
@@ -40,6 +43,17 @@ fn classify_tells_loopback_from_elsewhere() {
     let (lo, other) = classify(text);
     assert_eq!(lo, 1);
     assert_eq!(other.len(), 1);
+    let text6 = "12:00:00.1 lo In IP6 ::1.7412 > ::1.7410: UDP, length 84\n\
+                 12:00:00.2 eth0 Out IP6 fe80::1.7412 > ff02::1.7400: UDP, length 84\n";
+    let (lo, other) = classify(text6);
+    assert_eq!((lo, other.len()), (1, 1));
+}
+
+#[test]
+fn the_suite_wide_capture_uses_the_same_filter_and_fails_on_an_empty_capture() {
+    let script = std::fs::read_to_string(labrig_tests::repo_root().join("scripts/test.sh")).unwrap();
+    assert!(script.contains(&format!("'{RTPS_FILTER}'")), "scripts/test.sh must capture with {RTPS_FILTER:?}");
+    assert!(script.contains("saw no RTPS packet"), "scripts/test.sh must fail a capture that saw nothing");
 }
 
 #[test]
@@ -70,6 +84,13 @@ fn no_dds_packet_leaves_loopback_during_a_labrig_rclpy_exchange() {
             Ok(line) => said.push(line),
             Err(_) => panic!("tcpdump did not start capturing: {said:?}"),
         }
+    }
+
+    // An RTPS-looking datagram over IPv6 loopback: the capture must see IPv6 too (on ::1 only:
+    // nothing is sent to any other address).
+    let v6 = std::net::UdpSocket::bind("[::1]:0").expect("IPv6 loopback (::1) must be up");
+    for _ in 0..3 {
+        v6.send_to(b"RTPS\x02\x03\x01\x0f labrig loopback test", "[::1]:7399").unwrap();
     }
 
     let test = "loopback_capture";
@@ -109,7 +130,10 @@ fn no_dds_packet_leaves_loopback_during_a_labrig_rclpy_exchange() {
     let _ = Command::new("kill").args(["-INT", &tcpdump.id().to_string()]).status();
     let _ = tcpdump.wait();
     let read = Command::new("tcpdump").args(["-nn", "-r"]).arg(&pcap).output().unwrap();
-    let (loopback, elsewhere) = classify(&String::from_utf8_lossy(&read.stdout));
+    let text = String::from_utf8_lossy(&read.stdout);
+    let (loopback, elsewhere) = classify(&text);
     assert!(loopback > 50, "the capture saw only {loopback} RTPS packets on loopback: is it capturing?");
+    let ip6 = text.lines().filter(|l| l.contains(" IP6 ::1.") && l.contains("> ::1.7399")).count();
+    assert!(ip6 >= 3, "the capture missed the RTPS datagrams sent over IPv6 ({ip6} of 3 seen)");
     assert!(elsewhere.is_empty(), "{} RTPS packets left loopback:\n{}", elsewhere.len(), elsewhere.join("\n"));
 }
