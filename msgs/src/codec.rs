@@ -58,8 +58,11 @@ pub fn encode<T: RosMessage>(msg: &T) -> Result<Vec<u8>, CodecError> {
     Ok(out)
 }
 
-/// Decodes a buffer with its encapsulation header (what `serialize_message` returns, what an
-/// MCAP `cdr` message holds). Trailing bytes beyond the declared alignment padding are an error.
+/// Decodes a buffer with its encapsulation header (what an MCAP `cdr` message or a DDS sample
+/// holds). Trailing bytes beyond the declared alignment padding are an error. rclpy's
+/// `serialize_message` can return more: its buffer is sized by rmw's estimate (4 bytes past the
+/// data for a JointState with an empty `effort`) and the excess is not zeroed; cut such a
+/// buffer at its data first (tests/tests/cdr_rclpy.rs shows how its written bytes are found).
 pub fn decode<T: RosMessage>(bytes: &[u8]) -> Result<T, CodecError> {
     let type_name = T::TYPE_NAME;
     if bytes.len() < 4 {

@@ -18,15 +18,19 @@ stream. Non-finite floats are written as the strings "NaN", "Infinity", "-Infini
 
 Subcommands (exit codes: 0 ok, 2 usage, 3 no loopback profile, 4 peer not found):
   cdr serialize          stdin: {"type": "sensor_msgs/msg/JointState", "value": {...}}
-                         stdout: {"hex": "...", "wire_hex": "..."} | {"error": "..."}
-                         hex = rclpy.serialization.serialize_message() as is: its
-                         alignment padding bytes are uninitialised (random) and it may
-                         carry a few junk bytes at the end; wire_hex = the same CDR as
-                         Fast DDS sends it: padding zeroed, cut at the real end, zero
-                         padded to a multiple of 4. Compare Rust output with wire_hex.
+                         stdout: {"hex": "..."} | {"error": "..."}
+                         hex = rclpy.serialization.serialize_message() exactly as
+                         returned, encapsulation header included. rmw_serialize never
+                         writes the alignment padding and sizes its buffer by an
+                         estimate, so those bytes are whatever malloc handed out: run
+                         this under glibc's malloc perturb tunable (see
+                         tests/tests/cdr_rclpy.rs) to tell them from the data.
   cdr deserialize        stdin: {"type": ..., "hex": ...}
                          stdout: {"value": {...}} | {"error": "..."}
   listen-joint-states --topic T --count N --timeout S
+                         one line per message; recv_mono_ns = time.monotonic_ns() when
+                         rclpy's callback got it (for arrival rates), recv_ns = wall clock
+  listen --topic T --type TYPE --count N --timeout S    (same, any standard type)
   talk-pose --topic T --count N --rate HZ
   talk-string-forever --topic T --rate HZ --max-seconds S
   serve-addtwoints --service S --max-seconds X     (std_srvs/srv/SetBool server)
@@ -291,78 +295,6 @@ def msg_to_dict(msg):
     return out
 
 
-_PRIM_SIZE = {"boolean": 1, "octet": 1, "byte": 1, "char": 1, "int8": 1, "uint8": 1,
-              "int16": 2, "uint16": 2, "int32": 4, "uint32": 4, "float": 4,
-              "int64": 8, "uint64": 8, "double": 8}
-
-
-def wire_bytes(msg, raw):
-    """What Fast DDS puts on the wire for `msg`, derived from `raw`
-    (= serialize_message(msg)).
-
-    rmw_serialize (rclpy.serialization) leaves CDR alignment padding uninitialised
-    (random bytes) and may report a length a few bytes too long (it sizes an empty
-    float64[] as if it were aligned to 8, the encoder does not align empty
-    sequences). Fast DDS on the wire sends the same encoding with zeroed padding,
-    cut at the real end and padded with zeros to a multiple of 4 (encapsulation
-    options stay 00 00). This walks the plain-CDR (XCDR1, little endian) layout,
-    keeps only the bytes that carry data, and rebuilds that wire form.
-    """
-    from rosidl_parser import definition as d
-    keep = bytearray(len(raw))
-    keep[0:4] = b"\x01" * 4  # encapsulation header
-    pos = 4  # alignment is relative to the end of the encapsulation header
-
-    def take(n, align):
-        nonlocal pos
-        if align > 1:
-            pos = 4 + (((pos - 4) + align - 1) // align) * align
-        if pos + n > len(raw):
-            raise ValueError("CDR walk ran past the serialized buffer")
-        keep[pos:pos + n] = b"\x01" * n
-        pos += n
-
-    def prim(t):
-        if t not in _PRIM_SIZE:
-            raise TypeError(f"unsupported primitive {t}")
-        return _PRIM_SIZE[t]
-
-    def walk(slot, v):
-        if isinstance(slot, d.NamespacedType):
-            fields = v.get_fields_and_field_types()
-            if not fields:
-                # rosidl gives an empty message one uint8 member
-                # (structure_needs_at_least_one_member), serialized as one byte.
-                take(1, 1)
-            for fslot, fname in zip(type(v).SLOT_TYPES, fields):
-                walk(fslot, getattr(v, fname))
-        elif isinstance(slot, d.AbstractString):
-            take(4, 4)
-            take(len(v.encode("utf-8")) + 1, 1)
-        elif isinstance(slot, d.BasicType):
-            s = prim(slot.typename)
-            take(s, s)
-        elif isinstance(slot, d.AbstractNestedType):
-            n = len(v)
-            if isinstance(slot, d.AbstractSequence):
-                take(4, 4)
-            vt = slot.value_type
-            if isinstance(vt, d.BasicType):
-                if n:
-                    s = prim(vt.typename)
-                    take(s * n, s)
-            else:
-                for x in v:
-                    walk(vt, x)
-        else:
-            raise TypeError(f"unsupported slot type {slot!r}")
-
-    walk(d.NamespacedType(type(msg).__module__.split(".")[:2], type(msg).__name__), msg)
-    out = bytearray(b if k else 0 for b, k in zip(raw[:pos], keep[:pos]))
-    out += b"\x00" * (-len(out) % 4)
-    return bytes(out)
-
-
 def cmd_cdr(args):
     from rclpy.serialization import deserialize_message, serialize_message
     for line in sys.stdin:
@@ -374,8 +306,7 @@ def cmd_cdr(args):
             cls = resolve_type(req["type"])
             if args.direction == "serialize":
                 msg = dict_to_msg(cls, req.get("value", {}))
-                data = serialize_message(msg)
-                emit({"hex": data.hex(), "wire_hex": wire_bytes(msg, data).hex()})
+                emit({"hex": serialize_message(msg).hex()})
             else:
                 msg = deserialize_message(bytes.fromhex(req["hex"]), cls)
                 emit({"value": msg_to_dict(msg)})
@@ -424,9 +355,12 @@ def _listen(topic, cls, to_json, count, timeout):
 
     def on_msg(m):
         nonlocal received
+        # Taken first thing in the callback: when this rclpy node got the message. Monotonic,
+        # so that gaps between arrivals are real durations (tests assert receive rates on it).
+        recv_mono_ns = time.monotonic_ns()
         recv_ns = time.time_ns()
         received += 1
-        emit({**to_json(m), "recv_ns": recv_ns})
+        emit({**to_json(m), "recv_ns": recv_ns, "recv_mono_ns": recv_mono_ns})
 
     node.create_subscription(cls, topic, on_msg, qos(1000))
     emit({"ready": True})

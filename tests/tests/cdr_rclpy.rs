@@ -18,11 +18,18 @@ fn samples() -> BTreeMap<String, Value> {
     serde_json::from_str(&text).unwrap()
 }
 
-/// Runs the rclpy peer's `cdr <direction>` over JSON lines; one answer per request.
-fn rclpy_cdr(direction: &str, requests: &[Value]) -> Vec<Value> {
+/// Runs the rclpy peer's `cdr <direction>` over JSON lines; one answer per request. With
+/// `fill`, glibc's malloc hands the peer every block filled with that byte (see
+/// [`rclpy_serialize`]).
+fn rclpy_cdr(direction: &str, requests: &[Value], fill: Option<u8>) -> Vec<Value> {
     let mut cmd = std::process::Command::new(labrig_tests::ros_python());
     cmd.arg(labrig_tests::repo_root().join("tests/peers/ros_peer.py")).args(["cdr", direction]);
     labrig_tests::ros_env(&mut cmd, labrig_tests::domain_for("cdr"));
+    if let Some(fill) = fill {
+        // glibc's perturb tunable fills each block malloc returns with the complement of its
+        // value; tcache is off because blocks taken from it skip that fill.
+        cmd.env("GLIBC_TUNABLES", format!("glibc.malloc.tcache_count=0:glibc.malloc.perturb={}", !fill));
+    }
     cmd.stdin(std::process::Stdio::piped()).stdout(std::process::Stdio::piped());
     let mut proc = cmd.spawn().expect("rclpy peer");
     let mut stdin = proc.stdin.take().unwrap();
@@ -36,6 +43,67 @@ fn rclpy_cdr(direction: &str, requests: &[Value]) -> Vec<Value> {
         String::from_utf8(out.stdout).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(answers.len(), requests.len(), "one answer per request");
     answers
+}
+
+/// What `rclpy.serialization.serialize_message` returned for one message, and which of those
+/// bytes it wrote.
+struct RclpyBytes {
+    /// serialize_message's bytes as returned (encapsulation header included), from the run
+    /// where the bytes it does not write are 0x00.
+    bytes: Vec<u8>,
+    /// Per byte: serialize_message wrote it (the same in both runs).
+    written: Vec<bool>,
+}
+
+impl RclpyBytes {
+    /// One past the last byte serialize_message wrote: where its CDR data ends.
+    fn end(&self) -> usize {
+        self.written.iter().rposition(|&w| w).map_or(0, |i| i + 1)
+    }
+
+    /// The bytes labrig must send for this message: serialize_message's bytes up to the end
+    /// of its data, the bytes it did not write (alignment padding) as zeros, and zero padding
+    /// to a multiple of 4, which is the form Fast DDS puts on the wire.
+    fn on_the_wire(&self) -> Vec<u8> {
+        let mut out: Vec<u8> = self.bytes[..self.end()].to_vec();
+        out.resize(self.end().next_multiple_of(4), 0);
+        out
+    }
+
+    /// serialize_message's bytes in hex, `__` where it wrote nothing (for failure messages).
+    fn annotated(&self) -> String {
+        self.bytes.iter().zip(&self.written).map(|(b, &w)| if w { format!("{b:02x}") } else { "__".into() }).collect()
+    }
+}
+
+/// rclpy's `serialize_message` of every request, run twice. rmw_serialize (what it calls) never
+/// writes the CDR alignment padding, and sizes its freshly malloc'd buffer by an estimate that
+/// can exceed the data, so those bytes hold whatever malloc left there (garbage that was
+/// seen to differ from run to run). The peer runs once with malloc filling every block with 0x00 and
+/// once with 0xAA: a byte equal in both runs is one serialize_message wrote, and every other
+/// byte must be 0x00 in the first run and 0xAA in the second (else the fill did not reach it,
+/// and nothing could tell it from data). No CDR layout knowledge goes into this split.
+fn rclpy_serialize(types: &[String], samples: &BTreeMap<String, Value>) -> Vec<RclpyBytes> {
+    let requests: Vec<Value> = types.iter().map(|t| json!({"type": t, "value": samples[t]})).collect();
+    let zeros = rclpy_cdr("serialize", &requests, Some(0x00));
+    let aas = rclpy_cdr("serialize", &requests, Some(0xAA));
+    let mut out = Vec::new();
+    for ((t, z), a) in types.iter().zip(&zeros).zip(&aas) {
+        for answer in [z, a] {
+            assert!(answer.get("error").is_none(), "rclpy could not serialize {t}: {answer}");
+        }
+        let (z, a) = (unhex(z["hex"].as_str().unwrap()), unhex(a["hex"].as_str().unwrap()));
+        assert_eq!(z.len(), a.len(), "{t}: serialize_message returned different lengths for the same message");
+        let written: Vec<bool> = z.iter().zip(&a).map(|(x, y)| x == y).collect();
+        for (i, (&x, &y)) in z.iter().zip(&a).enumerate() {
+            assert!(
+                x == y || (x, y) == (0x00, 0xAA),
+                "{t}: byte {i} is neither written nor malloc's fill: {x:02x} / {y:02x}"
+            );
+        }
+        out.push(RclpyBytes { bytes: z, written });
+    }
+    out
 }
 
 struct Encode(Value);
@@ -70,20 +138,26 @@ fn labrig_bytes_equal_ros2_bytes_for_every_standard_type() {
     let samples = samples();
     let types = ros_types(&samples);
     assert!(types.len() >= 20, "expected every standard type, got {types:?}");
-    let requests: Vec<Value> = types.iter().map(|t| json!({"type": t, "value": samples[t]})).collect();
-    let answers = rclpy_cdr("serialize", &requests);
-    for (t, a) in types.iter().zip(&answers) {
-        assert!(a.get("error").is_none(), "rclpy could not serialize {t}: {a}");
-        // rclpy's serialize_message leaves alignment padding uninitialised and may report a
-        // few bytes too many; `wire_hex` is the same serialization with padding zeroed and
-        // cut to what Fast DDS sends (checked against captured packets when the peer was
-        // written). The raw `hex` must agree with it on every data byte.
-        let wire = a["wire_hex"].as_str().unwrap();
+    let rclpy = rclpy_serialize(&types, &samples);
+    for (t, r) in types.iter().zip(&rclpy) {
+        // Compared exactly, over labrig's whole buffer: the 4-byte encapsulation header
+        // (00 01 00 00: plain CDR little endian, no options) and every byte serialize_message
+        // wrote are rclpy's own bytes; where serialize_message wrote nothing (alignment
+        // padding) labrig has zeros; labrig's buffer ends at serialize_message's last written
+        // byte, zero padded to a multiple of 4. serialize_message's own length is not
+        // compared: it is rmw's size estimate (4 bytes past the data for the sample
+        // JointState), and it leaves out that final padding (26 bytes for the sample Header).
         let ours = visit_type(t, Encode(samples[t].clone())).unwrap();
-        assert_eq!(hex(&ours), wire, "{t}: labrig's CDR differs from ROS 2's");
-        let raw = unhex(a["hex"].as_str().unwrap());
-        assert!(raw.len() + 3 >= ours.len(), "{t}: rclpy produced fewer bytes than labrig");
-        visit_type(t, DecodeEquals(unhex(wire), samples[t].clone())).unwrap();
+        assert_eq!(
+            hex(&ours),
+            hex(&r.on_the_wire()),
+            "{t}: labrig's CDR differs from rclpy's serialize_message {} (__: not written by rclpy)",
+            r.annotated()
+        );
+        // And labrig reads rclpy's bytes back to the sample, padded as on the wire and
+        // as serialize_message leaves them (cut after its last written byte).
+        visit_type(t, DecodeEquals(r.on_the_wire(), samples[t].clone())).unwrap();
+        visit_type(t, DecodeEquals(r.bytes[..r.end()].to_vec(), samples[t].clone())).unwrap();
     }
 }
 
@@ -107,7 +181,7 @@ fn ros2_decodes_labrig_bytes_to_the_same_values() {
         .iter()
         .map(|t| json!({"type": t, "hex": hex(&visit_type(t, Encode(samples[t].clone())).unwrap())}))
         .collect();
-    let answers = rclpy_cdr("deserialize", &requests);
+    let answers = rclpy_cdr("deserialize", &requests, None);
     for (t, a) in types.iter().zip(&answers) {
         assert!(a.get("error").is_none(), "rclpy could not deserialize labrig's {t}: {a}");
         assert!(same(&a["value"], &samples[t]), "{t}: rclpy read {} but labrig wrote {}", a["value"], samples[t]);
@@ -119,8 +193,7 @@ fn a_corrupted_rclpy_buffer_is_an_error_naming_the_type() {
     // A real ROS 2 buffer, cut short: the error names the type, and nothing panics.
     let samples = samples();
     let t = "sensor_msgs/msg/CameraInfo";
-    let a = &rclpy_cdr("serialize", &[json!({"type": t, "value": samples[t]})])[0];
-    let wire = unhex(a["wire_hex"].as_str().unwrap());
+    let wire = rclpy_serialize(&[t.to_owned()], &samples)[0].on_the_wire();
     let err = decode::<labrig_msgs::sensor_msgs::CameraInfo>(&wire[..wire.len() / 2]).unwrap_err();
     assert!(err.to_string().starts_with("sensor_msgs/msg/CameraInfo: malformed or truncated"), "{err}");
 }

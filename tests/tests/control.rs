@@ -164,14 +164,20 @@ fn operator_events_start_and_end_episodes() {
         .args(["--domain-id", &domain.to_string()])
         .env(NAMESPACE_ENV, &ns);
     let mut control = Proc::spawn("labrig-control run", control);
-    let episode = |args: &[&str]| {
+    // `labrig episode` exits with the loop's verdict on its own request: 0 taken, 1 refused.
+    let episode_says = |args: &[&str]| {
         let out = Command::new(labrig_tests::labrig_bin())
             .arg("episode")
             .args(args)
             .args(["--domain-id", &domain.to_string(), "--wait", "60"])
             .output()
             .unwrap();
-        assert!(out.status.success(), "labrig episode {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+        (out.status.code(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+    };
+    let episode = |args: &[&str]| {
+        let (code, said) = episode_says(args);
+        assert_eq!(code, Some(0), "labrig episode {args:?}: {said}");
+        assert!(said.contains("the rig loop took"), "{said}");
     };
     let (events, steps) = rt().block_on(async {
         let cfg = RosConfig { domain_id: domain, ..Default::default() };
@@ -195,11 +201,12 @@ fn operator_events_start_and_end_episodes() {
                 *steps += 1;
             }
         };
-        // Success while idle: refused by the loop, nothing published.
-        episode(&["success"]);
-        tokio::time::sleep(Duration::from_millis(500)).await;
+        // Success while idle: the loop refuses it, says so and why, and publishes nothing.
+        let (code, said) = episode_says(&["success"]);
+        assert_eq!(code, Some(1), "an event out of place is refused: {said}");
+        assert!(said.contains("the rig loop refused Success: "), "{said}");
         drain(&mut got, &mut steps);
-        assert!(got.is_empty(), "an event out of place is refused: {got:?}");
+        assert!(got.is_empty(), "a refused event publishes nothing: {got:?}");
         episode(&["start", "--note", "wipe the table"]);
         let deadline = Instant::now() + Duration::from_secs(60);
         while steps < 10 && Instant::now() < deadline {

@@ -84,8 +84,10 @@ fn the_gripper_node_drives_an_emulated_2f85() {
         let s = wait_state(&states, "the fault", |s| s.fault_code == 0x0E).await;
         assert!(s.fault.contains("0x0E") && s.fault.contains("overcurrent"), "{}", s.fault);
         assert!(!s.activated, "a major fault: not ready");
+        // The node says it holds the command back (so it arrived), and the 2F-85 was not written.
         cmd_pub.publish(command(0.9)).unwrap();
-        tokio::time::sleep(Duration::from_millis(300)).await;
+        let s = wait_state(&states, "the held-back command", |s| s.fault.contains("was not written")).await;
+        assert!(s.fault.contains("the command to 0.902 was not written") && s.fault.contains("0x0E"), "{}", s.fault);
         let g = emu.status();
         assert_eq!((g.requested, g.position), (128, 128), "nothing written under a fault: {}", g.describe());
         // Back to the command written before the fault: nothing left to write. (Given a few

@@ -83,8 +83,30 @@ fn rclpy_receives_labrig_joint_states_at_100hz_with_exact_values() {
         assert_eq!(v["stamp"]["nanosec"], (i * 7) as i64);
         assert_eq!(v["frame_id"], "fr3_link0");
     }
-    // The publisher ran at 100 Hz (interval-paced); a sanity bound, not a timing assertion.
-    assert!(sent_at >= Duration::from_millis(10 * (N - 1)), "publishing took {sent_at:?}");
+    // The rate where the messages arrive: when rclpy's callback got each one (the peer's
+    // time.monotonic_ns(), taken first thing in the callback). labrig publishes every 10 ms.
+    let arrived: Vec<u64> =
+        got.iter().map(|v| v["recv_mono_ns"].as_u64().expect("rclpy reports recv_mono_ns")).collect();
+    let mut gaps_ms: Vec<f64> =
+        arrived.windows(2).map(|w| w[1].checked_sub(w[0]).expect("arrivals in order") as f64 / 1e6).collect();
+    gaps_ms.sort_by(f64::total_cmp);
+    let (p50, p90) = (gaps_ms[gaps_ms.len() / 2], gaps_ms[gaps_ms.len() * 9 / 10]);
+    let rate_hz = (N - 1) as f64 / ((arrived[N as usize - 1] - arrived[0]) as f64 / 1e9);
+    let timing = format!(
+        "rclpy got {N} messages at {rate_hz:.1} Hz, inter-arrival p50 {p50:.2} ms, p90 {p90:.2} ms; labrig published them over {sent_at:?}"
+    );
+    eprintln!("{timing}");
+    // Bounds for a busy shared 2-core machine (measured there beside a training job: 100 Hz,
+    // p50 10.2 ms, p90 10.5 to 13 ms). When either process is starved for a while, the
+    // messages of that stretch arrive together (gaps near 0, then one long gap), and a starved
+    // publisher's tokio interval sends its missed ticks at once, so the whole run still takes
+    // about N x 10 ms. The median gap ignores such stretches while they cover under half the
+    // run, so a factor-2 band around 10 ms holds on a loaded machine yet fails for a flood
+    // (messages sent unpaced or delivered in batches: median near 0) and for a rate halved
+    // or worse (median 20 ms or more). The overall rate, first to last arrival, catches long
+    // pauses the median does not see: at least half of 100 Hz, so 300 messages in under 6 s.
+    assert!((5.0..20.0).contains(&p50), "median inter-arrival gap is not about 10 ms: {timing}");
+    assert!(rate_hz >= 50.0, "rclpy received at under half of 100 Hz: {timing}");
 }
 
 #[test]

@@ -143,7 +143,12 @@ pub struct RigLoop {
     skew_ns: Vec<i64>,
     started: Instant,
     /// An operator's event and its note (a Start's task instruction).
-    pending_request: Option<(EpisodeEventKind, String)>,
+    pending_request: Option<(EpisodeEventKind, String, i64)>,
+    /// What became of the newest operator request (its stamp, kind, accepted or why not):
+    /// in the status, so `labrig episode` can say whether the loop took it.
+    last_request: Option<serde_json::Value>,
+    /// The status goes out this tick (a request was decided), not only every 20 ticks.
+    status_due: bool,
     tick: Option<Tick>,
     /// The recorder said it takes no episode (a full disk): why. Starts wait while it does.
     recorder_refusal: Option<String>,
@@ -196,6 +201,8 @@ impl RigLoop {
             skew_ns: Vec::new(),
             started: Instant::now(),
             pending_request: None,
+            last_request: None,
+            status_due: false,
             tick: None,
             recorder_refusal: None,
             refused_episode: None,
@@ -364,12 +371,35 @@ impl RigLoop {
         }
     }
 
-    /// An operator's request (`/rig/request`); the newest one of a tick wins.
+    /// An operator's request (`/rig/request`); the newest one of a tick wins (an older one of
+    /// the same tick is reported as superseded). Its header stamp identifies it in the status.
     pub fn push_request(&mut self, event: &EpisodeEvent) {
+        let stamp = Nanos::from(event.header.stamp).0;
         match event.kind() {
-            Ok(k) => self.pending_request = Some((k, event.note.clone())),
-            Err(e) => tracing::warn!("/rig/request: {e}"),
+            Ok(k) => {
+                if let Some((old, _, old_stamp)) = self.pending_request.replace((k, event.note.clone(), stamp)) {
+                    self.decided(old_stamp, old, Err("superseded by a newer request in the same tick".into()));
+                }
+            }
+            Err(e) => {
+                tracing::warn!("/rig/request: {e}");
+                self.decided(stamp, EpisodeEventKind::Stop, Err(format!("not a request: {e}")));
+            }
         }
+    }
+
+    /// Records what became of a request, for the status.
+    fn decided(&mut self, stamp: i64, kind: EpisodeEventKind, verdict: Result<(), String>) {
+        if let Err(why) = &verdict {
+            tracing::warn!(?kind, "operator request refused: {why}");
+        }
+        self.last_request = Some(serde_json::json!({
+            "stamp_ns": stamp,
+            "kind": format!("{kind:?}"),
+            "accepted": verdict.is_ok(),
+            "reason": verdict.err(),
+        }));
+        self.status_due = true;
     }
 
     /// Lockstep after `/sim/reset`: the state after the rebuild is the new scene's first tick,
@@ -400,15 +430,22 @@ impl RigLoop {
         out: &mut dyn RigOutputs,
     ) -> Result<(), LoopError> {
         let tick_ns = self.tick().ns;
-        let (mut event, mut instruction) = match self.pending_request.take() {
+        let request = self.pending_request.take();
+        let (mut event, mut instruction) = match &request {
             // Only the loop says the arm is home: an operator's Reset means "go home", which
             // applies while idle (while resetting the arm is on its way already).
-            Some((EpisodeEventKind::Reset, _)) if self.episodes.state() != State::Idle => {
-                tracing::warn!(state = ?self.episodes.state(), "a Reset request applies while idle only: ignored");
+            Some((EpisodeEventKind::Reset, _, stamp)) if self.episodes.state() != State::Idle => {
+                let why = format!("a Reset request applies while idle only (the loop is {:?})", self.episodes.state());
+                self.decided(*stamp, EpisodeEventKind::Reset, Err(why));
                 (None, String::new())
             }
-            Some((k, note)) => (Some(k), note),
+            Some((k, note, _)) => (Some(*k), note.clone()),
             None => (None, String::new()),
+        };
+        // The request still waiting for its verdict (decided below, when the event is applied).
+        let mut asked = match request {
+            Some((k, _, stamp)) if event == Some(k) => Some((k, stamp)),
+            _ => None,
         };
         if instruction.is_empty() {
             instruction.clone_from(&self.scene.instruction);
@@ -424,9 +461,13 @@ impl RigLoop {
             }
         }
         if event == Some(EpisodeEventKind::Start) && state == State::Idle && self.recorder_refusal.is_some() {
-            tracing::warn!("episode start refused: {}", self.recorder_refusal.as_deref().unwrap_or_default());
+            let why = format!("episode start refused: {}", self.recorder_refusal.as_deref().unwrap_or_default());
+            tracing::warn!("{why}");
             self.summary.starts_refused += 1;
             event = None;
+            if let Some((k, stamp)) = asked.take() {
+                self.decided(stamp, k, Err(why));
+            }
         }
         if self.recorder_refusal.is_none()
             && event.is_none()
@@ -521,8 +562,14 @@ impl RigLoop {
                 });
             }
         }
-        if let Some(kind) = event {
-            self.apply(kind, &instruction, source, out);
+        let applied = event.map(|kind| (kind, self.apply(kind, &instruction, source, out)));
+        if let Some((k, stamp)) = asked {
+            let verdict = match applied {
+                Some((kind, verdict)) if kind == k => verdict,
+                Some((kind, _)) => Err(format!("the loop applied its own {kind:?} this tick instead")),
+                None => Err("the loop did not apply it".into()),
+            };
+            self.decided(stamp, k, verdict);
         }
         Ok(())
     }
@@ -546,7 +593,7 @@ impl RigLoop {
         instruction: &str,
         source: Option<&mut (dyn ActionSource + '_)>,
         out: &mut dyn RigOutputs,
-    ) {
+    ) -> Result<(), String> {
         let tick_ns = self.tick().ns;
         match self.episodes.on(kind) {
             Ok(Effect::StartRecording) => {
@@ -593,8 +640,12 @@ impl RigLoop {
                 self.reset_started = tick_ns;
                 tracing::info!("the operator sent the arm home");
             }
-            Err(refused) => tracing::warn!("{refused}"),
+            Err(refused) => {
+                tracing::warn!("{refused}");
+                return Err(refused.to_string());
+            }
         }
+        Ok(())
     }
 
     /// Step 5: the tick's action through the safety layer, the commands, the Step record.
@@ -718,7 +769,7 @@ impl RigLoop {
             self.operator_acting = operator;
         }
         // Who acts goes out at once when it changes (the station shows the operator's turn).
-        if self.summary.ticks.is_multiple_of(20) || acting_changed {
+        if self.summary.ticks.is_multiple_of(20) || acting_changed || std::mem::take(&mut self.status_due) {
             let acting = (self.cfg.source == SourceKind::Policy && self.episodes.recording())
                 .then_some(if self.operator_acting { "operator" } else { "policy" });
             let status = json!({
@@ -727,6 +778,7 @@ impl RigLoop {
                 "operator_steps": self.episode_operator_steps,
                 "state": format!("{:?}", self.episodes.state()),
                 "recorder_refusal": self.recorder_refusal,
+                "last_request": self.last_request,
                 "episode": self.episode_id,
                 "steps": self.episodes.steps,
                 "episodes": self.summary.episodes.len(),

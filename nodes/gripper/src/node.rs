@@ -298,7 +298,9 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
                     fault.clear();
                 }
                 Err(e) => {
-                    let e = e.to_string();
+                    // Named with the command it held back, so the state shows the command
+                    // arrived and was not written (a lost command would not say this).
+                    let e = format!("{e}; the command to {:.3} was not written", counts_to_droid(w.position));
                     if e != fault {
                         tracing::warn!("{e}");
                     }

@@ -1,6 +1,9 @@
 //! `labrig episode start|success|failure|discard|stop|reset`: an operator's episode event for the rig
 //! loop (on `/rig/request`). The loop applies it if it makes sense in its state (a Success
-//! while idle is refused, named in its log) and publishes what happened on `/rig/episode`.
+//! while idle is refused) and publishes what happened on `/rig/episode`. The request carries
+//! its send time in its header, and the loop's status says what became of the request with
+//! that stamp: this command waits for that verdict and exits 0 when the loop took it, 1 when it
+//! refused it (printing why), 2 when no loop (or no verdict) came within `--wait`.
 
 use crate::programs::RosArgs;
 use clap::{Args, ValueEnum};
@@ -68,10 +71,29 @@ pub fn run(a: EpisodeArgs) -> anyhow::Result<ExitCode> {
         // The ROS graph shows the reader a little before this writer has matched it (SEDP is
         // processed on DDS's own thread); a volatile sample sent in between is lost.
         tokio::time::sleep(Duration::from_millis(500)).await;
-        publisher.publish(EpisodeEvent { kind: kind as u8, note: a.note.clone(), ..Default::default() })?;
-        // Reliable delivery before the participant goes.
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        println!("sent {kind:?} to the rig loop");
-        Ok(ExitCode::SUCCESS)
+        let stamp = labrig_runtime::Clock::Wall.now();
+        let header = labrig_msgs::std_msgs::Header { stamp: stamp.into(), frame_id: String::new() };
+        publisher.publish(EpisodeEvent { header, kind: kind as u8, note: a.note.clone(), ..Default::default() })?;
+        // The loop's verdict on this request (its status names the stamp it decided).
+        let deadline = std::time::Instant::now() + Duration::from_secs_f64(a.wait.max(0.1));
+        while std::time::Instant::now() < deadline {
+            while let Some(s) = status.try_take()? {
+                let Ok(v) = serde_json::from_str::<serde_json::Value>(&s.msg.data) else { continue };
+                let r = &v["last_request"];
+                if r["stamp_ns"].as_i64() != Some(stamp.0) {
+                    continue;
+                }
+                if r["accepted"] == true {
+                    println!("the rig loop took {kind:?}");
+                    return Ok(ExitCode::SUCCESS);
+                }
+                let why = r["reason"].as_str().unwrap_or("no reason given");
+                eprintln!("the rig loop refused {kind:?}: {why}");
+                return Ok(ExitCode::from(1));
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        eprintln!("sent {kind:?}, but the rig loop said nothing of it within {} s", a.wait);
+        Ok(ExitCode::from(2))
     })
 }

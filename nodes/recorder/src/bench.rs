@@ -2,7 +2,8 @@
 //! 128x128 cameras (a moving pattern, JPEG-encoded as the recorder does), /rig/step,
 //! /arm/state at 40 Hz — written with labrig-recorder's EpisodeWriter, either in real
 //! time (`--realtime`, as a rig would) or as fast as it goes. Prints a JSON line each time a
-//! chunk closes (what a crash can no longer take) and the totals: MB/s, CPU, JPEG time.
+//! chunk closes (what a crash can no longer take) and the totals: MB/s, CPU, JPEG time; with
+//! `--progress`, a line per step written as well.
 
 use clap::Args;
 use labrig_episode::bag::Reliability;
@@ -33,6 +34,10 @@ pub struct RecordArgs {
     out: Option<PathBuf>,
     #[arg(long)]
     json: bool,
+    /// Also print `{"written": n, "stamp_ns": t}` after each step the writer took (n steps so
+    /// far, the last one stamped t): what a crash test measures its loss against.
+    #[arg(long)]
+    progress: bool,
 }
 
 fn now_ns() -> i64 {
@@ -99,6 +104,9 @@ pub fn run(a: RecordArgs) -> anyhow::Result<ExitCode> {
             ..Default::default()
         };
         w.write(topics::RIG_STEP.name, &step, Nanos(t), Nanos(t), Reliability::Reliable)?;
+        if a.progress {
+            println!("{}", json!({ "written": k + 1, "stamp_ns": t }));
+        }
         if w.closed_chunks() != closed {
             closed = w.closed_chunks();
             println!("{}", json!({ "closed_chunks": closed, "steps": k, "messages": w.messages() }));
