@@ -46,7 +46,10 @@ fn the_simulated_rig_calibrates_its_five_cameras_to_the_goals_and_check_catches_
     assert!(out.status.success(), "{}", text(&out));
     let r = json(&out);
     let cams = r["cameras"].as_array().unwrap();
-    assert_eq!(cams.len(), 5, "{r}");
+    let mut ids: Vec<&str> = cams.iter().map(|c| c["camera"].as_str().unwrap()).collect();
+    ids.sort();
+    assert_eq!(ids, ["ext1", "ext2", "rs1", "rs2", "wrist"], "{r}");
+    let truth = scene_cameras(dir.path(), "1");
     let mut table = String::new();
     for c in cams {
         let id = c["camera"].as_str().unwrap();
@@ -67,6 +70,16 @@ fn the_simulated_rig_calibrates_its_five_cameras_to_the_goals_and_check_catches_
             serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
         assert_eq!(cal.camera, id);
         assert_eq!(cal.parent_frame, if id == "wrist" { "tcp" } else { "base" });
+        // Independently of the report's own truth: each external camera against the scene
+        // spec's pose for this seed (`labrig sim snapshot`), the wrist camera against its mount.
+        let (pos, axis) = position_and_axis(&cal);
+        let (want_pos, want_axis) = if id == "wrist" { wrist_mount() } else { spec_pose(&truth[id]) };
+        let (d_mm, angle_deg) = pose_gap(pos, axis, want_pos, want_axis);
+        table += &format!("  {id} against the scene: {d_mm:.3} mm, axis {angle_deg:.4} deg\n");
+        assert!(
+            d_mm <= max_mm && angle_deg <= max_deg,
+            "{id} at {pos:?} looking {axis:?}; the scene's: {want_pos:?} looking {want_axis:?}"
+        );
         assert!(cal.unix_time_s > 1_700_000_000 && cal.date.ends_with('Z'), "{}", cal.date);
         assert_eq!(cal.views.len(), rep["views_captured"].as_u64().unwrap() as usize);
         for fig in ["views", "residuals"] {
@@ -250,6 +263,38 @@ fn scene_cameras(dir: &Path, seed: &str) -> Value {
     serde_json::from_str::<Value>(&std::fs::read_to_string(values).unwrap()).unwrap()["values"]["cameras"].clone()
 }
 
+/// An external camera's pose in the scene spec's values: its position and the unit direction
+/// to the point it looks at.
+fn spec_pose(cam: &Value) -> ([f64; 3], [f64; 3]) {
+    let p: [f64; 3] = serde_json::from_value(cam["position"].clone()).unwrap_or_else(|e| panic!("{e}: {cam}"));
+    let look: [f64; 3] = serde_json::from_value(cam["look_at"].clone()).unwrap();
+    let d = [look[0] - p[0], look[1] - p[1], look[2] - p[2]];
+    let n = d.iter().map(|v| v * v).sum::<f64>().sqrt();
+    (p, [d[0] / n, d[1] / n, d[2] / n])
+}
+
+/// The wrist camera's pose in the TCP frame, from the rig's model and nothing the calibration
+/// uses: sim/src/rig.rs mounts it on the flange at (0, 0.09, 0.03) with MuJoCo xyaxes
+/// (-1 0 0, 0 0.966 0.259), so its optical axis (MuJoCo's -z) is (0, -0.259, 0.966); the TCP is
+/// the 2F-85's pinch site (robotiq_2f85/2f85.xml: base_mount at z 0.007, base at z 0.0038
+/// turned -90 deg about z, pinch at z 0.145 in base), i.e. z 0.1558 turned -90 deg in the
+/// flange. Into the TCP frame: turn by +90 deg about z, (x, y) -> (-y, x).
+fn wrist_mount() -> ([f64; 3], [f64; 3]) {
+    let tcp_z = 0.007 + 0.0038 + 0.145;
+    let (p, axis) = ([0.0, 0.09, 0.03 - tcp_z], [0.0, -0.259, 0.966]);
+    let turn = |v: [f64; 3]| [-v[1], v[0], v[2]];
+    let a = turn(axis);
+    let n = a.iter().map(|v| v * v).sum::<f64>().sqrt();
+    (turn(p), [a[0] / n, a[1] / n, a[2] / n])
+}
+
+/// Distance (mm) and angle between optical axes (deg) of two poses.
+fn pose_gap(pos: [f64; 3], axis: [f64; 3], want_pos: [f64; 3], want_axis: [f64; 3]) -> (f64, f64) {
+    let d_mm = (0..3).map(|i| (pos[i] - want_pos[i]).powi(2)).sum::<f64>().sqrt() * 1e3;
+    let cos = (0..3).map(|i| axis[i] * want_axis[i]).sum::<f64>();
+    (d_mm, cos.clamp(-1.0, 1.0).acos().to_degrees())
+}
+
 /// A calibration file's pose as position and optical axis (its z) in the parent frame.
 fn position_and_axis(cal: &labrig_msgs::calibration::CalibrationFile) -> ([f64; 3], [f64; 3]) {
     let [w, x, y, z] = cal.pose.quaternion_wxyz;
@@ -291,6 +336,10 @@ fn a_live_rig_calibrates_from_its_launch_config_and_check_catches_a_moved_camera
     assert_eq!(r["rig"], "sim_droid", "{r}");
     let truth = scene_cameras(dir.path(), "0");
     let mut table = String::new();
+    // Both cameras asked for, each once (a missing wrist must not pass).
+    let mut ids: Vec<&str> = r["cameras"].as_array().unwrap().iter().map(|c| c["camera"].as_str().unwrap()).collect();
+    ids.sort();
+    assert_eq!(ids, ["ext1", "wrist"], "{r}");
     for c in r["cameras"].as_array().unwrap() {
         let id = c["camera"].as_str().unwrap();
         assert!(c["ok"].as_bool().unwrap(), "{id}: {c}");

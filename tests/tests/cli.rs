@@ -4,6 +4,18 @@ use labrig_tests::labrig_bin;
 use serde_json::Value;
 use std::process::Command;
 
+/// The rig's five cameras, sorted as the reports' keys and names compare: every per-camera
+/// array or map below is checked against it first, so a report that lost a camera (or all
+/// of them) fails instead of looping over nothing.
+const CAMERAS: [&str; 5] = ["ext1", "ext2", "rs1", "rs2", "wrist"];
+
+/// The sorted names of a per-camera report.
+fn sorted<'a>(names: impl Iterator<Item = &'a str>) -> Vec<&'a str> {
+    let mut v: Vec<&str> = names.collect();
+    v.sort_unstable();
+    v
+}
+
 /// The README's main command: the simulated rig (sim bridge, recorder, control loop with the
 /// scripted expert) records seeded pick-and-place episodes; each is complete, unflagged,
 /// successful, holds every step and camera frame, and is read in full by the reference
@@ -27,7 +39,9 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
     assert_eq!(r["successes"], 2, "{r}");
     assert_eq!(r["ok"], true);
     let mut uuids = Vec::new();
-    for (k, e) in r["episodes"].as_array().unwrap().iter().enumerate() {
+    let episodes = r["episodes"].as_array().unwrap();
+    assert_eq!(episodes.len(), 2, "one report per recorded episode: {r}");
+    for (k, e) in episodes.iter().enumerate() {
         let i = &e["inspect"];
         assert_eq!(i["flags"], serde_json::json!([]), "episode {k}: {i}");
         assert_eq!(i["complete"], true);
@@ -39,7 +53,9 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
         // The scene of each episode is its own seed's (3, then 4).
         let scene: Value = serde_json::from_str(i["metadata"]["sim_scene"].as_str().unwrap()).unwrap();
         assert_eq!(scene["seed"], 3 + k as u64);
-        for c in i["cameras"].as_array().unwrap() {
+        let cameras = i["cameras"].as_array().unwrap();
+        assert_eq!(sorted(cameras.iter().map(|c| c["camera"].as_str().unwrap())), CAMERAS, "episode {k}: {i}");
+        for c in cameras {
             assert!(c["frames"].as_u64().unwrap() >= steps, "{c}");
             assert_eq!(c["dropped"], 0, "{c}");
         }
@@ -62,7 +78,9 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
         let rep: Value = serde_json::from_slice(&out.stdout).unwrap();
         assert_eq!(rep["steps"], steps);
         assert_eq!(rep["aligned_ticks"], 0);
-        for (j, e) in rep["joint_rad"].as_array().unwrap().iter().enumerate() {
+        let joints = rep["joint_rad"].as_array().unwrap();
+        assert_eq!(joints.len(), 7, "one series per FR3 joint: {joints:?}");
+        for (j, e) in joints.iter().enumerate() {
             assert_eq!(e["max"], 0.0, "joint {j}: replayed states equal the recorded ones bit for bit");
         }
         assert_eq!(rep["tcp_m"]["max"], 0.0);
@@ -92,10 +110,13 @@ fn demo_records_expert_episodes_that_the_reference_readers_read() {
     let (good, reports, problems) = labrig_tests::check_droid_with_python(&droid);
     assert!(good, "{problems}");
     assert_eq!(reports.len(), 2);
-    for (r, e) in reports.iter().zip(r["episodes"].as_array().unwrap()) {
+    for (r, e) in reports.iter().zip(episodes) {
         assert!(r["dir"].as_str().unwrap().starts_with("success/"), "{r}");
         assert_eq!(r["steps"], e["inspect"]["steps"]);
-        for v in r["mp4"].as_object().unwrap().values() {
+        // One MP4 per camera, named by its serial (the sim's cameras have none: their id).
+        let mp4 = r["mp4"].as_object().unwrap();
+        assert_eq!(sorted(mp4.keys().map(String::as_str)), CAMERAS, "{r}");
+        for v in mp4.values() {
             assert_eq!(v["frames"], e["inspect"]["steps"]);
         }
     }
@@ -123,7 +144,9 @@ fn shm_bench_delivers_frames_between_processes() {
         .unwrap();
     assert!(out.status.success(), "bench failed: {}", String::from_utf8_lossy(&out.stderr));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
-    for s in r["streams"].as_array().unwrap() {
+    let streams = r["streams"].as_array().unwrap();
+    assert_eq!(streams.len(), 2, "one report per --streams: {r}");
+    for s in streams {
         assert_eq!(s["published"], 30);
         assert_eq!(s["delivered"], s["published"], "{s}");
         assert_eq!(s["sequence_gaps"], 0);

@@ -193,7 +193,12 @@ fn the_fci_backend_moves_franka_sims_fr3_along_commanded_paths() {
         // Silence: the watchdog holds the arm 100 ms after the last command.
         let held = rig.wait(5, "the watchdog's hold", |s| s.mode == RobotState::MODE_STOPPED).await;
         let silence = labrig_tests::watchdog_silence_ms(&held.fault);
-        assert!((100.0..102.0).contains(&silence), "held after {silence} ms");
+        // Never before 100 ms: exact, the watchdog trips only on a silence of at least its
+        // limit. After it, by how much is the node's thread waking on a wall-clock timer beside
+        // franka-sim's 1 kHz loop: under 2 ms on a quiet machine, more when a shared 2-core
+        // machine is busy; 25 ms of slack keeps this a check that the hold comes at its
+        // deadline, not a timing figure (the node's latencies are `labrig bench franka`'s).
+        assert!((100.0..125.0).contains(&silence), "held after {silence} ms");
         // The arm comes to rest where the hold found it (the trajectory generator brakes it):
         // no joint moves more than 0.5 mrad over 200 ms. (Positions, not franka-sim's velocity
         // readings: its joint 7 reports ~0.08 rad/s at rest.)

@@ -590,27 +590,156 @@ fn launch_files() -> &'static Vec<(PathBuf, String)> {
     })
 }
 
-/// The control for the above: every real file loads as it is, every launch file validates.
+/// What reads a file in launch_configs/.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Reader {
+    /// `labrig launch` (`LaunchConfig`).
+    Launch,
+    /// The node run by this program (as a launch file's `program` names it), with the file as
+    /// its `--config`.
+    Node(&'static str),
+    /// No program reads it; the reason.
+    NotAConfig(&'static str),
+}
+
+/// Every file in launch_configs/ (nested folders too, paths relative to it) and what reads
+/// it. `every_real_config_loads` fails on a file missing here, so a new config is loaded by
+/// its reader or named as no config, never skipped without a word.
+const REAL_CONFIGS: [(&str, Reader); 15] = [
+    ("README.md", Reader::NotAConfig("the folder's description, for people")),
+    ("bench_rig.toml", Reader::Launch),
+    ("real_droid.toml", Reader::Launch),
+    ("real_policy.toml", Reader::Launch),
+    ("sim_demo.toml", Reader::Launch),
+    ("sim_droid.toml", Reader::Launch),
+    ("sim_rollout.toml", Reader::Launch),
+    ("nodes/cameras_bench.toml", Reader::Node("labrig-cameras")),
+    ("nodes/cameras_real.toml", Reader::Node("labrig-cameras")),
+    ("nodes/control_real.toml", Reader::Node("labrig-control")),
+    ("nodes/control_real_policy.toml", Reader::Node("labrig-control")),
+    ("nodes/franka_fr3.toml", Reader::Node("labrig-franka")),
+    ("nodes/gripper_2f85.toml", Reader::Node("labrig-gripper")),
+    ("nodes/teleop_quest.toml", Reader::Node("labrig-teleop")),
+    ("nodes/teleop_sim_trace.toml", Reader::Node("labrig-teleop")),
+];
+
+/// Programs the launch files start that this test cannot load a config for, and why.
+const NOT_LOADED: [(&str, &str); 1] =
+    [("labrig-policy", "the policy server's crate links libtorch, which this test crate does not build against")];
+
+/// Every file under `dir`, nested folders too, relative to `dir`, sorted.
+fn files_under(dir: &Path) -> Vec<String> {
+    fn walk(root: &Path, dir: &Path, out: &mut Vec<String>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.push(p.strip_prefix(root).unwrap().to_string_lossy().into_owned());
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
+
+/// The node skeleton's `load` on a real file where it lies (so that paths in it resolve
+/// against its own folder, as when the launcher passes it), or with no file; the config must
+/// load, then `after` checks what the node does with it.
+fn load_real_with<N: Node>(file: Option<&Path>, after: impl Fn(&N::Config))
+where
+    N::Flags: clap::FromArgMatches,
+{
+    let common = CommonFlags {
+        config: file.map(Path::to_owned),
+        set: Vec::new(),
+        domain_id: None,
+        json: false,
+        stats_out: None,
+    };
+    match load::<N>(&common, no_flags::<N::Flags>()) {
+        Ok(cfg) => after(&cfg),
+        Err(e) => panic!("{} refuses {}: {e}", N::NAME, file.map_or("no config".into(), |f| f.display().to_string())),
+    }
+}
+
+/// `file` (`None`: no config file) loaded by the node `program` runs.
+fn load_real(program: &str, file: Option<&Path>) {
+    match program {
+        "labrig-franka" => load_real_with::<labrig_franka::FrankaNode>(file, franka_after),
+        "labrig-gripper" => load_real_with::<labrig_gripper::GripperNode>(file, gripper_after),
+        "labrig-recorder" => load_real_with::<labrig_recorder::RecorderNode>(file, |_| {}),
+        "labrig-control" => load_real_with::<labrig_control::ControlNode>(file, |_| {}),
+        "labrig-teleop" => load_real_with::<labrig_quest_teleop::TeleopNode>(file, |c| {
+            teleop_after(c);
+            // A recorded trace is resolved against the config's folder: it must be there.
+            if let Some(trace) = &c.input.file {
+                let config = file.map_or("no config".into(), |f| f.display().to_string());
+                assert!(trace.is_file(), "{config}: the trace {} is not a file", trace.display());
+            }
+        }),
+        "labrig-sim" => load_real_with::<labrig_sim_bridge::bridge::BridgeNode>(file, bridge_after),
+        "labrig-station" => load_real_with::<labrig_station::StationNode>(file, station_after),
+        "labrig-cameras" => load_real_with::<labrig_cameras::CamerasNode>(file, |_| {}),
+        other => panic!("{other}: no node here to load its config with; add it to `load_real`"),
+    }
+}
+
+/// The control for the above: every real file in launch_configs/ (nested folders too) is
+/// loaded as it is by what reads it: the launch files by the launcher, each node config by
+/// the node the launch files start with it; the nodes they start with no config file load
+/// with none. A file or program this test cannot load is named, with why.
 #[test]
 fn every_real_config_loads() {
-    let s = subjects();
-    let none = Vec::new;
-    for f in &s[0].files {
-        load_node::<labrig_franka::FrankaNode>(Some(f), none(), franka_after).unwrap();
+    let root = launch_configs();
+    let found = files_under(&root);
+    let unnamed: Vec<&String> = found.iter().filter(|f| !REAL_CONFIGS.iter().any(|(n, _)| n == f)).collect();
+    assert!(unnamed.is_empty(), "launch_configs/ holds {unnamed:?}: name each in `REAL_CONFIGS` with what reads it");
+    let gone: Vec<&str> = REAL_CONFIGS.iter().map(|(n, _)| *n).filter(|n| !found.iter().any(|f| f == n)).collect();
+    assert!(gone.is_empty(), "`REAL_CONFIGS` names {gone:?}, which launch_configs/ does not hold");
+    let reader_of = |rel: &str| REAL_CONFIGS.iter().find(|(f, _)| *f == rel).map(|(_, r)| *r);
+    let mut without_config = std::collections::BTreeSet::new();
+    for (rel, reader) in REAL_CONFIGS {
+        let path = root.join(rel);
+        match reader {
+            Reader::Launch => {
+                let (cfg, _) =
+                    labrig::launch::LaunchConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                // The launch file says which node reads each config: the table must agree, so
+                // each config below is loaded by the node that will really read it.
+                for n in &cfg.nodes {
+                    match &n.config {
+                        Some(c) => {
+                            let c = path.parent().unwrap().join(c);
+                            let c = c.strip_prefix(&root).unwrap_or(&c).to_string_lossy().into_owned();
+                            assert!(
+                                matches!(reader_of(&c), Some(Reader::Node(p)) if p == n.program),
+                                "{rel}: node {} runs {} with {c}, which `REAL_CONFIGS` gives to {:?}",
+                                n.name,
+                                n.program,
+                                reader_of(&c)
+                            );
+                        }
+                        None => {
+                            without_config.insert(n.program.clone());
+                        }
+                    }
+                }
+            }
+            Reader::Node(program) => load_real(program, Some(&path)),
+            Reader::NotAConfig(_) => {}
+        }
     }
-    for f in &s[1].files {
-        load_node::<labrig_gripper::GripperNode>(Some(f), none(), gripper_after).unwrap();
+    for program in &without_config {
+        if !NOT_LOADED.iter().any(|(p, _)| p == program) {
+            load_real(program, None);
+        }
     }
-    for f in &s[3].files {
-        load_node::<labrig_control::ControlNode>(Some(f), none(), |_| {}).unwrap();
-    }
-    for f in &s[4].files {
-        load_node::<labrig_quest_teleop::TeleopNode>(Some(f), none(), teleop_after).unwrap();
-    }
-    load_node::<labrig_recorder::RecorderNode>(None, none(), |_| {}).unwrap();
-    load_node::<labrig_sim_bridge::bridge::BridgeNode>(None, none(), bridge_after).unwrap();
-    for (origin, text) in launch_files() {
-        labrig::launch::LaunchConfig::parse(text, origin).unwrap_or_else(|e| panic!("{}: {e:#}", origin.display()));
+    // An entry for a program no launch file starts without a config excuses nothing: stale.
+    for (program, _) in NOT_LOADED {
+        assert!(without_config.contains(program), "NOT_LOADED names {program}, which no launch file starts");
     }
 }
 

@@ -185,9 +185,10 @@ fn a_recorded_controller_trace_drives_the_sim_rig() {
 }
 
 /// The controller vanishes mid-motion (the trace's lines stop while the grip is held and the
-/// hand moves): the loop holds the arm within 100 ms of the last reading, and it stays.
+/// hand moves): the loop follows no reading older than 35 ms and holds the arm on the tick
+/// after (35 ms + a 50 ms tick after the last reading, on time), and it stays held.
 #[test]
-fn a_vanished_controller_holds_the_arm_within_100_ms() {
+fn a_vanished_controller_holds_the_arm_on_the_next_tick() {
     let mut rig = Rig::start("teleop_vanished_controller_holds", "teleop vanish");
     let stats = rig.play("vanish.logcat");
     assert_eq!(stats["lines"]["bad"], 0);
@@ -208,7 +209,14 @@ fn a_vanished_controller_holds_the_arm_within_100_ms() {
     eprintln!(
         "vanished controller: last moving step {moving_ms:.1} ms after the last reading, hold {hold_ms:.1} ms after it"
     );
-    assert!(hold_ms <= 100.0, "held {hold_ms:.1} ms after the last reading");
+    // The rule, exact in the loop's own stamps: it follows an action only while it is at most
+    // teleop_max_age_s (35 ms) old when the tick starts, so the last moving step started
+    // within 35 ms of the last reading. The hold then comes on the next tick: 35 ms + one 50 ms
+    // period on time; the slack above that (65 ms) is for a tick that starts late on a busy
+    // shared machine (two processes and the sim in real time), so this checks "the next tick
+    // or so", not a latency figure.
+    assert!(moving_ms <= 35.0, "the loop followed a reading {moving_ms:.1} ms old (limit 35 ms)");
+    assert!(hold_ms <= 35.0 + 50.0 + 65.0, "held {hold_ms:.1} ms after the last reading");
     // Held: from the hold on, every step commands the same joints (the arm's last target),
     // and the TCP, once it has caught up with that target (0.3 s), stays.
     let target = steps[last_moving + 1].action.joint_position;

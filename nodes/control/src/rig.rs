@@ -959,6 +959,33 @@ mod tests {
         rig.push_request(&EpisodeEvent { kind: kind as u8, note: note.into(), ..Default::default() });
     }
 
+    /// An operator's request gets a verdict in the status the tick it is decided, by its
+    /// stamp: a Success while idle is refused with the reason, a Start taken.
+    #[test]
+    fn a_request_is_answered_in_the_status_by_its_stamp() {
+        let mut rig = rig(100);
+        let (mut src, mut out) = (Queue::default(), Sent::default());
+        tick(&mut rig, 0, &mut src, &mut out);
+        let stamped = |kind: EpisodeEventKind, ns: i64| EpisodeEvent {
+            header: Header { stamp: Nanos(ns).into(), frame_id: String::new() },
+            kind: kind as u8,
+            ..Default::default()
+        };
+        rig.push_request(&stamped(EpisodeEventKind::Success, 111));
+        tick(&mut rig, 1, &mut src, &mut out);
+        let r = &out.statuses.last().expect("a status the tick it was decided")["last_request"];
+        assert_eq!(
+            (r["stamp_ns"].as_i64(), r["kind"].as_str(), r["accepted"].as_bool()),
+            (Some(111), Some("Success"), Some(false))
+        );
+        assert!(r["reason"].as_str().is_some_and(|w| !w.is_empty()), "{r}");
+        rig.push_request(&stamped(EpisodeEventKind::Start, 222));
+        src.actions.push_back(go(joints_at(0.0)));
+        tick(&mut rig, 2, &mut src, &mut out);
+        let r = &out.statuses.last().unwrap()["last_request"];
+        assert_eq!((r["stamp_ns"].as_i64(), r["accepted"].as_bool()), (Some(222), Some(true)), "{r}");
+    }
+
     /// A policy rollout: a run of steps by another source is an operator's takeover; the
     /// loop counts them and their steps per episode and in the run, and its status says who
     /// acts the tick it changes.
@@ -978,8 +1005,17 @@ mod tests {
             tick(&mut rig, 1 + k as i64, &mut src, &mut out);
         }
         assert_eq!(out.steps.iter().map(|s| s.action_source).collect::<Vec<_>>(), who);
+        // The first status goes out the tick the Start request was decided (taken), then one
+        // per change of who acts.
+        assert_eq!(out.statuses[0]["last_request"]["kind"], "Start", "{:?}", out.statuses[0]);
+        assert_eq!(out.statuses[0]["last_request"]["accepted"], true, "{:?}", out.statuses[0]);
         let acting: Vec<&str> = out.statuses.iter().filter_map(|s| s["acting"].as_str()).collect();
-        assert_eq!(acting, ["operator", "policy", "operator", "policy"], "one status per change: {:?}", out.statuses);
+        assert_eq!(
+            acting,
+            ["policy", "operator", "policy", "operator", "policy"],
+            "one status per change: {:?}",
+            out.statuses
+        );
         let last = out.statuses.last().unwrap();
         assert_eq!((last["takeovers"].as_u64(), last["operator_steps"].as_u64()), (Some(2), Some(3)));
         src.verdict = Some(Verdict::Succeeded);
