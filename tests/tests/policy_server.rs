@@ -88,6 +88,23 @@ fn observations(episode: &Path, at: &[usize]) -> Vec<PolicyObservation> {
         .collect()
 }
 
+/// The next JSON message on a string topic (`/policy/info`, `/policy/refused`); panics naming
+/// `what` after `timeout`.
+async fn next_json(
+    sub: &RosSubscription<labrig_msgs::std_msgs::StringMsg>,
+    timeout: Duration,
+    what: &str,
+) -> serde_json::Value {
+    let until = Instant::now() + timeout;
+    loop {
+        if let Some(m) = sub.try_take().unwrap() {
+            return serde_json::from_str(&m.msg.data).unwrap();
+        }
+        assert!(Instant::now() < until, "no {what}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
 async fn next_chunk(chunks: &RosSubscription<ActionChunk>, timeout: Duration) -> Option<ActionChunk> {
     let until = Instant::now() + timeout;
     while Instant::now() < until {
@@ -156,14 +173,7 @@ fn the_policy_server_answers_requests_with_chunks() {
         let t0 = labrig_msgs::Nanos::from(obs[1].header.stamp).0;
         assert_eq!(a.request_id, 1);
         assert_eq!(a.times_ns, (0..15).map(|i| t0 + i * 50_000_000).collect::<Vec<_>>(), "one time per action");
-        let until = Instant::now() + Duration::from_secs(10);
-        let served = loop {
-            if let Some(m) = info.try_take().unwrap() {
-                break serde_json::from_str::<serde_json::Value>(&m.msg.data).unwrap();
-            }
-            assert!(Instant::now() < until, "no /policy/info");
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        };
+        let served = next_json(&info, Duration::from_secs(10), "/policy/info").await;
         assert_eq!(served["policy_id"], "run@3");
         assert_eq!(served["cameras"], serde_json::json!(["ext1"]));
         assert_eq!(
@@ -182,14 +192,7 @@ fn the_policy_server_answers_requests_with_chunks() {
         let mut blind = obs.clone();
         blind[1].images.clear();
         requests.publish(request(3, blind)).unwrap();
-        let until = Instant::now() + Duration::from_secs(60);
-        let refusal = loop {
-            if let Some(m) = refused.try_take().unwrap() {
-                break serde_json::from_str::<serde_json::Value>(&m.msg.data).unwrap();
-            }
-            assert!(Instant::now() < until, "no /policy/refused for a request without ext1");
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        };
+        let refusal = next_json(&refused, Duration::from_secs(60), "/policy/refused for a request without ext1").await;
         assert_eq!((refusal["request_id"].as_u64(), refusal["policy_id"].as_str()), (Some(3), Some("run@3")));
         assert!(refusal["error"].as_str().is_some_and(|e| e.contains("ext1")), "{refusal}");
         let one = vec![obs[1].clone()];
