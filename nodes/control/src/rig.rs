@@ -462,11 +462,12 @@ impl RigLoop {
         }
         if event == Some(EpisodeEventKind::Start) && state == State::Idle && self.recorder_refusal.is_some() {
             let why = format!("episode start refused: {}", self.recorder_refusal.as_deref().unwrap_or_default());
-            tracing::warn!("{why}");
             self.summary.starts_refused += 1;
             event = None;
-            if let Some((k, stamp)) = asked.take() {
-                self.decided(stamp, k, Err(why));
+            match asked.take() {
+                // decided() logs it.
+                Some((k, stamp)) => self.decided(stamp, k, Err(why)),
+                None => tracing::warn!("{why}"),
             }
         }
         if self.recorder_refusal.is_none()
