@@ -37,12 +37,26 @@ fn s(p: &Path) -> &str {
 }
 
 /// Seed 1 of pick_place draws its four external cameras from four of the paper's five bins
-/// (ext1 agent-left, ext2 shoulder-right, rs1 agent-front, rs2 shoulder-left).
+/// (ext1 agent-left, ext2 shoulder-right, rs1 agent-front, rs2 shoulder-left). Half DROID's
+/// ~60 views per camera (the default): 150 rendered views and their solves instead of 300 hold
+/// the suite's only two cores for ~half the time, and the goals below are the same.
 #[test]
 fn the_simulated_rig_calibrates_its_five_cameras_to_the_goals_and_check_catches_a_moved_camera() {
     let dir = tempfile::tempdir().unwrap();
     let out_dir = dir.path().join("calibration/sim");
-    let out = labrig(&["calibrate", "--sim", "--camera", "all", "--seed", "1", "--json", "--out-dir", s(&out_dir)]);
+    let out = labrig(&[
+        "calibrate",
+        "--sim",
+        "--camera",
+        "all",
+        "--views",
+        "30",
+        "--seed",
+        "1",
+        "--json",
+        "--out-dir",
+        s(&out_dir),
+    ]);
     assert!(out.status.success(), "{}", text(&out));
     let r = json(&out);
     let cams = r["cameras"].as_array().unwrap();
