@@ -159,9 +159,18 @@ fn the_policy_server_answers_requests_with_chunks() {
             period_ns: 50_000_000,
             ..PolicyRequest::default()
         };
-        // What it serves, latched for the loop.
+        // What it serves, latched for the loop. Like the rig's loop, the client asks only once
+        // /policy/info has come and the server's chunk writer is known: a chunk published
+        // before that writer has matched this reader is not delivered (volatile), which failed
+        // this test once in CI on a loaded machine.
         let info = ros.subscription_on(&topics::POLICY_INFO, 1).unwrap();
         let refused = ros.subscription_on(&topics::POLICY_REFUSED, 10).unwrap();
+        let served = next_json(&info, Duration::from_secs(60), "/policy/info").await;
+        let until = Instant::now() + Duration::from_secs(60);
+        while ros.publisher_count(topics::POLICY_CHUNK.name) < 1 {
+            assert!(Instant::now() < until, "no /policy/chunk publisher");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
         requests.publish(request(1, obs.clone())).unwrap();
         let a = next_chunk(&chunks, Duration::from_secs(60)).await.expect("a chunk");
         assert_eq!(a.policy_id, "run@3");
@@ -173,7 +182,6 @@ fn the_policy_server_answers_requests_with_chunks() {
         let t0 = labrig_msgs::Nanos::from(obs[1].header.stamp).0;
         assert_eq!(a.request_id, 1);
         assert_eq!(a.times_ns, (0..15).map(|i| t0 + i * 50_000_000).collect::<Vec<_>>(), "one time per action");
-        let served = next_json(&info, Duration::from_secs(10), "/policy/info").await;
         assert_eq!(served["policy_id"], "run@3");
         assert_eq!(served["cameras"], serde_json::json!(["ext1"]));
         assert_eq!(
