@@ -267,8 +267,9 @@ FS_VENV="$LABRIG_CACHE/venv-franka-sim"
 # `mcap-ros2-support`, and `rosbags`.
 tool_venv readers "mcap_ros2, rosbags" mcap==1.6.0 mcap-ros2-support==0.6.0 rosbags==0.11.9
 # h5py: the reference reader the DROID export is checked with (issue 6), and the writer of the
-# dataset tests' DROID raw fixtures; pyarrow: an independent reader of the dataset index (issue 21).
-tool_venv droid "h5py, pyarrow" h5py==3.16.0 pyarrow==26.0.1
+# dataset tests' DROID raw fixtures; pyarrow: an independent reader of the dataset index (issue 21);
+# mcap: the writer of DROID-layout MCAP test files from an h5 and their independent reader (issue 38).
+tool_venv droid "h5py, pyarrow, mcap" h5py==3.16.0 pyarrow==26.0.1 mcap==1.6.0
 # librealsense for the camera node's RealSense source (issue 19): Debian has no package; the
 # PyPI wheel carries it inside pyrealsense2, which the node runs in a child process (the
 # extension cannot be loaded into a non-Python process). numpy: the tests' synthetic recordings.

@@ -31,7 +31,7 @@ pub struct IndexRow {
     pub index_version: u32,
     pub episode_id: String,
     pub source_path: String,
-    /// `labrig` or `droid_raw`.
+    /// `labrig`, `droid_raw`, `droid_mcap` or `rlds`.
     pub source_format: String,
     pub file_size: u64,
     pub file_mtime_ns: i64,

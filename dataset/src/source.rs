@@ -1,7 +1,8 @@
 //! Episodes to index rows, by auto-detection: labrig MCAP episodes (a directory holding
 //! `episode_0.mcap`), DROID raw episodes (a directory holding `trajectory.h5` and
-//! `metadata_<uuid>.json`) and DROID's RLDS shards (`*.tfrecord-NNNNN-of-NNNNN`, many episodes
-//! each). Only low-dimensional data is read: no image is decoded.
+//! `metadata_<uuid>.json`), DROID-layout MCAP files (`trajectory.mcap`, any `*.mcap` not in a
+//! labrig episode) and DROID's RLDS shards (`*.tfrecord-NNNNN-of-NNNNN`, many episodes each).
+//! Only low-dimensional data is derived: no image is decoded.
 
 use crate::INDEX_VERSION;
 use crate::dv::{self, GraspParams, Vocabulary};
@@ -21,6 +22,8 @@ pub struct Found {
 pub enum Format {
     Labrig,
     DroidRaw,
+    /// DROID's MCAP layout (its `dir` is the file).
+    DroidMcap,
     /// A TFRecord shard of an RLDS dataset (its `dir` is the file).
     Rlds,
 }
@@ -30,6 +33,7 @@ impl Format {
         match self {
             Format::Labrig => "labrig",
             Format::DroidRaw => "droid_raw",
+            Format::DroidMcap => "droid_mcap",
             Format::Rlds => "rlds",
         }
     }
@@ -47,6 +51,11 @@ pub fn discover(root: &Path) -> Vec<Found> {
         )
         .collect();
     found.extend(tfrecords(root).into_iter().map(|dir| Found { dir, format: Format::Rlds }));
+    found.extend(
+        labrig_droid::droid_mcap::find_droid_mcaps(root)
+            .into_iter()
+            .map(|dir| Found { dir, format: Format::DroidMcap }),
+    );
     found.sort();
     found
 }
@@ -91,7 +100,7 @@ impl Default for Derive {
 /// The files an episode is (their total size and newest modification time say whether it
 /// changed since it was indexed).
 pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
-    if found.format == Format::Rlds {
+    if matches!(found.format, Format::Rlds | Format::DroidMcap) {
         return Ok(vec![found.dir.clone()]);
     }
     let mut files = Vec::new();
@@ -103,7 +112,7 @@ pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
                 name.ends_with(".mcap") || name == "metadata.yaml" || name == labrig_episode::judge::JUDGED_FILE
             }
             Format::DroidRaw => name == "trajectory.h5" || (name.starts_with("metadata_") && name.ends_with(".json")),
-            Format::Rlds => false,
+            Format::Rlds | Format::DroidMcap => false,
         };
         if keep {
             files.push(p);
@@ -133,6 +142,7 @@ pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, String> {
     let read = match found.format {
         Format::Labrig => vec![read_labrig(&found.dir)?],
         Format::DroidRaw => vec![read_droid_raw(&found.dir)?],
+        Format::DroidMcap => vec![read_droid_mcap(&found.dir)?],
         Format::Rlds => read_rlds(&found.dir)?,
     };
     let many = read.len() > 1 || found.format == Format::Rlds;
@@ -217,6 +227,30 @@ fn read_labrig(dir: &Path) -> Result<Read, String> {
     let gripper = data.steps.iter().map(|s| s.action.gripper_position).collect();
     let instructions = vec![meta.task_instruction.clone()];
     Ok((meta, xyz.collect(), gripper, instructions))
+}
+
+/// A DROID-layout MCAP: its metadata as `labrig import droid-mcap` reads it, the TCP positions
+/// and the gripper (commanded where the file has it). Its images are read too, undecoded.
+fn read_droid_mcap(file: &Path) -> Result<Read, String> {
+    use labrig_droid::droid_mcap;
+    use labrig_droid::h5doc::Data;
+    let mut read = droid_mcap::read_mcap(file).map_err(|e| e.to_string())?;
+    let meta = droid_mcap::episode_metadata(&mut read, file).map_err(|e| e.to_string())?.meta;
+    let n = read.times_ns.len();
+    let column = |key: &str, width: usize| -> Option<Vec<f64>> {
+        match &read.doc.datasets.get(key)?.data {
+            Data::F64(v) if v.len() == n * width => Some(v.clone()),
+            _ => None,
+        }
+    };
+    let cart = column("observation/robot_state/cartesian_position", 6)
+        .ok_or_else(|| format!("{}: /robot_state has no cartesian_position of 6 numbers a step", file.display()))?;
+    let gripper = column("action/gripper_position", 1)
+        .or_else(|| column("observation/robot_state/gripper_position", 1))
+        .ok_or_else(|| format!("{}: no gripper_position in /action or /robot_state", file.display()))?;
+    let xyz = cart.chunks_exact(6).map(|c| [c[0], c[1], c[2]]).collect();
+    let instructions = vec![meta.task_instruction.clone()];
+    Ok((meta, xyz, gripper, instructions))
 }
 
 fn read_droid_raw(dir: &Path) -> Result<Read, String> {

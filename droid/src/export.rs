@@ -89,9 +89,11 @@ impl CameraOut {
     }
 }
 
-/// Exports the episode at `source` (its directory or MCAP file) under `out_root`.
-pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> Result<Exported, DroidError> {
-    let started = Instant::now();
+/// A recorded episode, checked for export: its MCAP file, metadata and steps (finished, with
+/// metadata, every step there).
+pub(crate) fn read_checked(
+    source: &Path,
+) -> Result<(PathBuf, labrig_episode::EpisodeMetadata, Vec<labrig_msgs::labrig_msgs::Step>), DroidError> {
     let data = read_episode(source)?;
     let file = data.file.clone();
     if !data.complete {
@@ -114,14 +116,106 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
         }
     }
     metadata.trajectory_length = steps.len() as u64;
+    Ok((file, metadata, steps))
+}
+
+/// What a pass over a recorded episode finds besides frames.
+pub(crate) struct Seen {
+    pub intrinsics: BTreeMap<String, [f64; 9]>,
+    /// The hand camera's pose in the TCP frame.
+    pub hand_offset: Option<[f64; 6]>,
+}
+
+impl Seen {
+    /// An imported episode carries the hand camera's offset in its metadata; a recorded one
+    /// has it on /tf.
+    pub fn new(metadata: &labrig_episode::EpisodeMetadata) -> Seen {
+        Seen {
+            intrinsics: BTreeMap::new(),
+            hand_offset: metadata.extrinsics.get(&format!("{HAND_CAMERA}_gripper_offset")).copied(),
+        }
+    }
+}
+
+/// One pass over a recorded episode's messages (`buf`, the bytes of `file`): intrinsics and the
+/// hand camera's offset go to `seen`; each frame of `cameras` to `frame(camera index, capture
+/// ns, JPEG)`; every other message to `other(topic, CDR bytes)`.
+pub(crate) fn scan(
+    file: &Path,
+    buf: &[u8],
+    cameras: &[Camera],
+    seen: &mut Seen,
+    mut frame: impl FnMut(usize, i64, &[u8]) -> Result<(), DroidError>,
+    mut other: impl FnMut(&str, &[u8]),
+) -> Result<(), DroidError> {
+    let mcap_err = |source| DroidError::Mcap { path: file.to_owned(), source };
+    let index: BTreeMap<&str, usize> = cameras.iter().enumerate().map(|(i, c)| (c.id.as_str(), i)).collect();
+    for m in mcap::MessageStream::new(buf).map_err(mcap_err)? {
+        let m = m.map_err(mcap_err)?;
+        let topic = m.channel.topic.as_str();
+        let Some(rest) = topic.strip_prefix(topics::CAMERAS_PREFIX) else {
+            if topic == topics::TF.name
+                && seen.hand_offset.is_none()
+                && let Ok(tf) = labrig_msgs::decode::<TFMessage>(&m.data)
+            {
+                seen.hand_offset = hand_offset_of(&tf);
+            }
+            other(topic, &m.data);
+            continue;
+        };
+        let Some((id, what)) = rest.split_once('/') else { continue };
+        let Some(&c) = index.get(id) else { continue };
+        match what {
+            "image/compressed" => {
+                let img =
+                    labrig_msgs::decode::<CompressedImage>(&m.data).map_err(|e| bad(file, format!("{topic}: {e}")))?;
+                frame(c, Nanos::from(img.header.stamp).0, &img.data)?;
+            }
+            "camera_info" if !seen.intrinsics.contains_key(id) => {
+                if let Ok(info) = labrig_msgs::decode::<CameraInfo>(&m.data) {
+                    seen.intrinsics.insert(id.to_owned(), info.k);
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// DROID's metadata JSON of an exported episode in `rel_dir` (relative to the dataset root).
+pub(crate) fn droid_json(ep: &Episode, rel_dir: &str) -> serde_json::Value {
+    let cameras: Vec<(String, String, Option<[f64; 6]>)> =
+        ep.cameras.iter().map(|c| (c.id.clone(), c.serial.clone(), camera_extrinsics(ep, c))).collect();
+    meta::to_json(&meta::JsonInput {
+        meta: &ep.metadata,
+        rel_dir,
+        cameras: &cameras,
+        hand_offset: ep.hand_offset,
+        action_source: ep.steps[0].action_source,
+    })
+}
+
+/// A camera's extrinsics as DROID's metadata JSON gives them: the hand camera's at the first
+/// step (the TCP's pose composed with its offset), the others' from the metadata.
+fn camera_extrinsics(ep: &Episode, c: &Camera) -> Option<[f64; 6]> {
+    if c.id == HAND_CAMERA {
+        ep.hand_offset.map(|off| {
+            xyz_euler(&(pose_from_xyz_euler(&ep.steps[0].robot_state.cartesian_position) * pose_from_xyz_euler(&off)))
+        })
+    } else {
+        ep.metadata.extrinsics.get(&c.id).copied()
+    }
+}
+
+/// Exports the episode at `source` (its directory or MCAP file) under `out_root`.
+pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> Result<Exported, DroidError> {
+    let started = Instant::now();
+    let (file, metadata, steps) = read_checked(source)?;
 
     // Second pass: intrinsics, the hand camera's offset, and the frames into the MP4s.
     let buf = std::fs::read(&file).map_err(io(&file))?;
-    let mut intrinsics: BTreeMap<String, [f64; 9]> = BTreeMap::new();
-    // An imported episode carries the hand camera's offset in its metadata; a recorded one
-    // has it on /tf.
-    let mut hand_offset = metadata.extrinsics.get(&format!("{HAND_CAMERA}_gripper_offset")).copied();
-    let mut cameras = droid::cameras_of(&steps, &metadata, &intrinsics);
+    let mut seen = Seen::new(&metadata);
+    let mut cameras = droid::cameras_of(&steps, &metadata, &seen.intrinsics);
     let (refs, _) = droid::frame_refs(&steps, &cameras);
 
     let outcome = if metadata.success == Some(true) { Outcome::Success } else { Outcome::Failure };
@@ -136,7 +230,6 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
     let _ = std::fs::remove_dir_all(&partial);
     let mp4_dir = partial.join("recordings").join("MP4");
     std::fs::create_dir_all(&mp4_dir).map_err(io(&mp4_dir))?;
-    let mcap_err = |source| DroidError::Mcap { path: file.clone(), source };
     let result = (|| -> Result<Exported, DroidError> {
         let mut outs: Vec<CameraOut> = Vec::new();
         for (cam, r) in cameras.iter().zip(&refs) {
@@ -148,35 +241,7 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
                 writer: Mp4Writer::create(&mp4_dir.join(format!("{}.mp4", cam.serial)), FPS)?,
             });
         }
-        let index: BTreeMap<String, usize> = cameras.iter().enumerate().map(|(i, c)| (c.id.clone(), i)).collect();
-        for m in mcap::MessageStream::new(&buf).map_err(mcap_err)? {
-            let m = m.map_err(mcap_err)?;
-            let topic = m.channel.topic.as_str();
-            let Some(rest) = topic.strip_prefix(topics::CAMERAS_PREFIX) else {
-                if topic == topics::TF.name
-                    && hand_offset.is_none()
-                    && let Ok(tf) = labrig_msgs::decode::<TFMessage>(&m.data)
-                {
-                    hand_offset = hand_offset_of(&tf);
-                }
-                continue;
-            };
-            let Some((id, what)) = rest.split_once('/') else { continue };
-            let Some(&c) = index.get(id) else { continue };
-            match what {
-                "image/compressed" => {
-                    let img = labrig_msgs::decode::<CompressedImage>(&m.data)
-                        .map_err(|e| bad(&file, format!("{topic}: {e}")))?;
-                    outs[c].frame(Nanos::from(img.header.stamp).0, &img.data)?;
-                }
-                "camera_info" if !intrinsics.contains_key(id) => {
-                    if let Ok(info) = labrig_msgs::decode::<CameraInfo>(&m.data) {
-                        intrinsics.insert(id.to_owned(), info.k);
-                    }
-                }
-                _ => {}
-            }
-        }
+        scan(&file, &buf, &cameras, &mut seen, |c, t, jpeg| Ok(outs[c].frame(t, jpeg)?), |_, _| {})?;
         let mut mp4_frames = Vec::new();
         let mut frames_filled = 0;
         for (cam, mut out) in cameras.iter().zip(outs) {
@@ -192,36 +257,13 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
             mp4_frames.push(out.writer.finish()?);
         }
         for cam in cameras.iter_mut() {
-            cam.k = intrinsics.get(&cam.id).copied();
+            cam.k = seen.intrinsics.get(&cam.id).copied();
         }
         let h5_started = Instant::now();
-        let ep = Episode { metadata, steps, cameras, hand_offset };
+        let ep = Episode { metadata, steps, cameras, hand_offset: seen.hand_offset };
         h5doc::write(&partial.join("trajectory.h5"), &droid::to_droid(&ep))?;
         let h5_seconds = h5_started.elapsed().as_secs_f64();
-        let json_cams: Vec<(String, String, Option<[f64; 6]>)> = ep
-            .cameras
-            .iter()
-            .map(|c: &Camera| {
-                let e = if c.id == HAND_CAMERA {
-                    ep.hand_offset.map(|off| {
-                        xyz_euler(
-                            &(pose_from_xyz_euler(&ep.steps[0].robot_state.cartesian_position)
-                                * pose_from_xyz_euler(&off)),
-                        )
-                    })
-                } else {
-                    ep.metadata.extrinsics.get(&c.id).copied()
-                };
-                (c.id.clone(), c.serial.clone(), e)
-            })
-            .collect();
-        let json = meta::to_json(&meta::JsonInput {
-            meta: &ep.metadata,
-            rel_dir: &rel_dir,
-            cameras: &json_cams,
-            hand_offset: ep.hand_offset,
-            action_source: ep.steps[0].action_source,
-        });
+        let json = droid_json(&ep, &rel_dir);
         let json_path = partial.join(meta::file_name(&ep.metadata.uuid));
         let text = serde_json::to_string_pretty(&json).map_err(|e| bad(&json_path, e.to_string()))?;
         std::fs::write(&json_path, text + "\n").map_err(io(&json_path))?;
@@ -237,17 +279,9 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
             h5_seconds,
         })
     })();
-    match result {
-        Ok(mut e) => {
-            std::fs::rename(&partial, &dir).map_err(io(&dir))?;
-            e.seconds = started.elapsed().as_secs_f64();
-            Ok(e)
-        }
-        Err(err) => {
-            let _ = std::fs::remove_dir_all(&partial);
-            Err(err)
-        }
-    }
+    let mut e = crate::settle(&partial, &dir, result)?;
+    e.seconds = started.elapsed().as_secs_f64();
+    Ok(e)
 }
 
 pub use labrig_episode::episode::find_episodes;

@@ -91,25 +91,51 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> R
     let doc = h5doc::read(&h5_path)?;
     let mut meta = parsed.meta;
     let traj = droid::from_droid(&doc, &meta.uuid, &parsed.serial_to_id).map_err(|e| bad(&h5_path, e.to_string()))?;
+    merge_trajectory(&mut meta, &traj, parsed.has_start);
     let mut steps = traj.steps;
     for s in &mut steps {
         s.action_source = parsed.action_source;
     }
-    // trajectory.h5's attributes are DROID's record of who, where and what; the JSON fills in.
-    for (key, field) in [
-        ("user", &mut meta.user),
-        ("building", &mut meta.building),
-        ("scene_id", &mut meta.scene_id),
-        ("current_task", &mut meta.task_instruction),
-    ] {
-        if let Some(v) = droid::attr_text(&doc, key) {
-            *field = v;
-        }
-    }
+    apply_attrs(&doc, &mut meta);
+
+    let mut frames = Mp4Frames::open(source, &traj.cameras, opts.jpeg_quality, steps.len())?;
+    let mut warnings = std::mem::take(&mut frames.warnings);
+    let (dir, frames) = write_imported(
+        meta.clone(),
+        &steps,
+        &traj.cameras,
+        traj.hand_offset,
+        out_root,
+        opts,
+        &mut frames,
+        &mut warnings,
+        "imported from DROID",
+    )?;
+    Ok(Imported {
+        source: source.to_owned(),
+        dir,
+        uuid: meta.uuid,
+        steps: steps.len(),
+        cameras: traj.cameras.iter().map(|c| c.id.clone()).collect(),
+        frames,
+        warnings,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// What trajectory.h5 says of the episode, into its metadata: the outcome (where the file is
+/// labelled), the start (unless the metadata had one), the length, the cameras' serials and
+/// the external cameras' extrinsics (the metadata's win).
+pub(crate) fn merge_trajectory(
+    meta: &mut labrig_episode::metadata::EpisodeMetadata,
+    traj: &droid::Trajectory,
+    has_start: bool,
+) {
+    let steps = &traj.steps;
     if traj.labelled {
         meta.success = traj.success;
     }
-    if !parsed.has_start {
+    if !has_start {
         meta.start_ns = steps[0].timing.step_start;
     }
     meta.trajectory_length = steps.len() as u64;
@@ -119,7 +145,134 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> R
     for (id, e) in &traj.extrinsics {
         meta.extrinsics.entry(id.clone()).or_insert(*e);
     }
+}
 
+/// trajectory.h5's attributes are DROID's record of who, where and what; they win over the
+/// metadata JSON's.
+pub(crate) fn apply_attrs(doc: &h5doc::H5Doc, meta: &mut labrig_episode::metadata::EpisodeMetadata) {
+    for (key, field) in [
+        ("user", &mut meta.user),
+        ("building", &mut meta.building),
+        ("scene_id", &mut meta.scene_id),
+        ("current_task", &mut meta.task_instruction),
+    ] {
+        if let Some(v) = droid::attr_text(doc, key) {
+            *field = v;
+        }
+    }
+}
+
+/// Where an import's camera frames come from, as JPEG.
+pub(crate) trait FrameSource {
+    /// The camera's image size (None: no images, so no camera_info either).
+    fn size(&self, camera: usize) -> Option<(u32, u32)>;
+    /// `camera`'s frame at `step`, asked once per step in order: the JPEG when `wanted` (the
+    /// step's frame is not its predecessor's), None when there is none.
+    fn frame(&mut self, camera: usize, step: usize, wanted: bool) -> Result<Option<Vec<u8>>, DroidError>;
+    /// After the last step: anything left over, as warnings.
+    fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), DroidError>;
+}
+
+/// The MP4s of a DROID raw episode: one frame per step, encoded to JPEG.
+struct Mp4Frames {
+    readers: Vec<Option<Mp4Reader>>,
+    short: Vec<bool>,
+    ids: Vec<String>,
+    quality: u8,
+    source: PathBuf,
+    warnings: Vec<String>,
+    steps: usize,
+}
+
+impl Mp4Frames {
+    fn open(source: &Path, cameras: &[Camera], quality: u8, steps: usize) -> Result<Mp4Frames, DroidError> {
+        let mp4_dir = source.join("recordings").join("MP4");
+        let mut readers = Vec::new();
+        let mut warnings = Vec::new();
+        for cam in cameras {
+            let p = mp4_dir.join(format!("{}.mp4", cam.serial));
+            if !p.is_file() {
+                warnings.push(format!(
+                    "camera {} ({}): no {}: imported without images",
+                    cam.id,
+                    cam.serial,
+                    p.display()
+                ));
+                readers.push(None);
+                continue;
+            }
+            readers.push(Some(Mp4Reader::open(&p)?));
+        }
+        Ok(Mp4Frames {
+            short: vec![false; cameras.len()],
+            readers,
+            ids: cameras.iter().map(|c| c.id.clone()).collect(),
+            quality,
+            source: source.to_owned(),
+            warnings,
+            steps,
+        })
+    }
+}
+
+impl FrameSource for Mp4Frames {
+    fn size(&self, camera: usize) -> Option<(u32, u32)> {
+        self.readers[camera].as_ref().map(|r| (r.width, r.height))
+    }
+
+    fn frame(&mut self, camera: usize, step: usize, wanted: bool) -> Result<Option<Vec<u8>>, DroidError> {
+        let Some(r) = self.readers[camera].as_mut() else { return Ok(None) };
+        // The video holds one frame per step, read whether or not it is written.
+        let pixels = if self.short[camera] { None } else { r.next_frame()? };
+        let Some(pixels) = pixels else {
+            if !self.short[camera] {
+                self.short[camera] = true;
+                self.warnings.push(format!(
+                    "camera {}: the video ends at frame {step} of {} steps",
+                    self.ids[camera], self.steps
+                ));
+            }
+            return Ok(None);
+        };
+        if !wanted {
+            return Ok(None);
+        }
+        labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, self.quality)
+            .map(Some)
+            .map_err(|e| bad(&self.source, format!("camera {}: {e}", self.ids[camera])))
+    }
+
+    fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), DroidError> {
+        warnings.append(&mut self.warnings);
+        for (c, r) in self.readers.iter_mut().enumerate() {
+            if let Some(r) = r
+                && !self.short[c]
+                && r.next_frame()?.is_some()
+            {
+                warnings.push(format!(
+                    "camera {}: the video has more frames than the {} steps; the rest were left out",
+                    self.ids[c], self.steps
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Writes an imported episode under `out_root`'s recorder layout (into `<dir>.partial`, renamed
+/// at the end: a failed import leaves nothing); returns its directory and the frames written.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_imported(
+    meta: labrig_episode::metadata::EpisodeMetadata,
+    steps: &[labrig_msgs::labrig_msgs::Step],
+    cameras: &[Camera],
+    hand_offset: Option<[f64; 6]>,
+    out_root: &Path,
+    opts: &ImportOptions,
+    frames: &mut dyn FrameSource,
+    warnings: &mut Vec<String>,
+    note: &str,
+) -> Result<(PathBuf, u64), DroidError> {
     let outcome = if meta.success == Some(true) { Outcome::Success } else { Outcome::Failure };
     // The recorder's metadata.yaml names the episode's uuid.
     let uuid = meta.uuid.clone();
@@ -127,28 +280,12 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> R
     let dir = crate::destination(&episode_dir(out_root, outcome, Nanos(meta.start_ns)), same, opts.overwrite)?;
     let partial = dir.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
-    let mut warnings = Vec::new();
-    let result =
-        write_episode(&partial, meta.clone(), &steps, &traj.cameras, traj.hand_offset, source, opts, &mut warnings);
-    match result {
-        Ok(frames) => {
-            std::fs::rename(&partial, &dir).map_err(io(&dir))?;
-            Ok(Imported {
-                source: source.to_owned(),
-                dir,
-                uuid: meta.uuid,
-                steps: steps.len(),
-                cameras: traj.cameras.iter().map(|c| c.id.clone()).collect(),
-                frames,
-                warnings,
-                seconds: started.elapsed().as_secs_f64(),
-            })
-        }
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&partial);
-            Err(e)
-        }
-    }
+    let n = crate::settle(
+        &partial,
+        &dir,
+        write_episode(&partial, meta, steps, cameras, hand_offset, frames, warnings, note),
+    )?;
+    Ok((dir, n))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -158,9 +295,9 @@ fn write_episode(
     steps: &[labrig_msgs::labrig_msgs::Step],
     cameras: &[Camera],
     hand_offset: Option<[f64; 6]>,
-    source: &Path,
-    opts: &ImportOptions,
+    frames: &mut dyn FrameSource,
     warnings: &mut Vec<String>,
+    note: &str,
 ) -> Result<u64, DroidError> {
     if let Some(off) = hand_offset {
         // Where the recorder keeps extrinsics; an export reads the hand camera's from here.
@@ -169,23 +306,12 @@ fn write_episode(
     let success = meta.success;
     let uuid = meta.uuid.clone();
     let mut w = EpisodeWriter::create(dir, meta)?;
-    let mp4_dir = source.join("recordings").join("MP4");
-    let mut readers: Vec<Option<Mp4Reader>> = Vec::new();
-    for cam in cameras {
-        let p = mp4_dir.join(format!("{}.mp4", cam.serial));
-        if !p.is_file() {
-            warnings.push(format!("camera {} ({}): no {}: imported without images", cam.id, cam.serial, p.display()));
-            readers.push(None);
-            continue;
-        }
-        readers.push(Some(Mp4Reader::open(&p)?));
-    }
     let t0 = steps[0].timing.step_start.max(Nanos::from(steps[0].header.stamp).0);
     let event = |kind: EpisodeEventKind, t: i64| EpisodeEvent {
         header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
         kind: kind as u8,
         episode_id: uuid.clone(),
-        note: "imported from DROID".into(),
+        note: note.into(),
         ..EpisodeEvent::default()
     };
     w.write(
@@ -195,20 +321,19 @@ fn write_episode(
         Nanos(t0),
         Reliability::Reliable,
     )?;
-    let mut frames = 0u64;
-    let mut short = vec![false; cameras.len()];
+    let mut written = 0u64;
     let mut last_t = t0;
     for (i, s) in steps.iter().enumerate() {
         let t = s.timing.step_start.max(Nanos::from(s.header.stamp).0).max(last_t);
         last_t = t;
         for (c, cam) in cameras.iter().enumerate() {
-            let Some(r) = readers[c].as_mut() else { continue };
+            let Some((width, height)) = frames.size(c) else { continue };
             if i == 0 {
                 let k = cam.k.unwrap_or([0.0; 9]);
                 let info = CameraInfo {
                     header: Header { stamp: Nanos(t).into(), frame_id: format!("{}_optical", cam.id) },
-                    width: r.width,
-                    height: r.height,
+                    width,
+                    height,
                     distortion_model: "plumb_bob".into(),
                     d: vec![0.0; 5],
                     k,
@@ -218,51 +343,30 @@ fn write_episode(
                 };
                 w.write(&topics::camera_info(&cam.id), &info, Nanos(t), Nanos(t), Reliability::Reliable)?;
             }
-            // The video holds one frame per step; a step whose frame is its predecessor's
-            // (same capture time) was one frame recorded once.
-            let pixels = if short[c] { None } else { r.next_frame()? };
-            let Some(pixels) = pixels else {
-                if !short[c] {
-                    short[c] = true;
-                    warnings.push(format!("camera {}: the video ends at frame {i} of {} steps", cam.id, steps.len()));
-                }
-                continue;
-            };
-            let Some(fr) = s.cameras.iter().find(|f| f.camera_id == cam.id) else { continue };
-            let repeat =
-                i > 0 && steps[i - 1].cameras.iter().any(|p| p.camera_id == cam.id && p.capture_ns == fr.capture_ns);
-            if repeat {
-                continue;
-            }
-            let jpeg = labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, opts.jpeg_quality)
-                .map_err(|e| bad(source, format!("camera {}: {e}", cam.id)))?;
+            let fr = s.cameras.iter().find(|f| f.camera_id == cam.id);
+            // A step whose frame is its predecessor's (same capture time) was one frame
+            // recorded once.
+            let repeat = fr.is_some_and(|fr| {
+                i > 0 && steps[i - 1].cameras.iter().any(|p| p.camera_id == cam.id && p.capture_ns == fr.capture_ns)
+            });
+            let Some(jpeg) = frames.frame(c, i, fr.is_some() && !repeat)? else { continue };
+            let Some(fr) = fr else { continue };
             let img = CompressedImage {
                 header: Header { stamp: Nanos(fr.capture_ns).into(), frame_id: format!("{}_optical", cam.id) },
                 format: "jpeg".into(),
                 data: jpeg,
             };
             w.write(&topics::camera_image(&cam.id), &img, Nanos(t), Nanos(fr.capture_ns), Reliability::BestEffort)?;
-            frames += 1;
+            written += 1;
         }
         w.write(topics::RIG_STEP.name, s, Nanos(t), Nanos::from(s.header.stamp), Reliability::Reliable)?;
     }
-    for (c, cam) in cameras.iter().enumerate() {
-        if let Some(r) = readers[c].as_mut()
-            && !short[c]
-            && r.next_frame()?.is_some()
-        {
-            warnings.push(format!(
-                "camera {}: the video has more frames than the {} steps; the rest were left out",
-                cam.id,
-                steps.len()
-            ));
-        }
-    }
+    frames.finish(warnings)?;
     let end = match success {
         Some(true) => EpisodeEventKind::Success,
         _ => EpisodeEventKind::Failure,
     };
     w.write(topics::RIG_EPISODE.name, &event(end, last_t), Nanos(last_t), Nanos(last_t), Reliability::Reliable)?;
     w.finish()?;
-    Ok(frames)
+    Ok(written)
 }

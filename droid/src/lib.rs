@@ -6,8 +6,10 @@
 //! - [`meta`]: the metadata JSON (`metadata_<uuid>.json`).
 //! - [`video`]: MP4 through ffmpeg.
 //! - [`export`], [`import`]: whole episodes.
+//! - [`droid_mcap`]: DROID's own MCAP layout (`trajectory.mcap`), exported and imported.
 
 pub mod droid;
+pub mod droid_mcap;
 pub mod export;
 pub mod h5doc;
 pub mod import;
@@ -82,6 +84,21 @@ pub(crate) fn destination(
         }
     }
     unreachable!("an unbounded search")
+}
+
+/// An export or import written into `partial`: renamed to `dir` when it succeeded, removed when
+/// it failed (so a failure leaves no half episode behind).
+pub(crate) fn settle<T>(partial: &Path, dir: &Path, result: Result<T, DroidError>) -> Result<T, DroidError> {
+    match result {
+        Ok(v) => {
+            std::fs::rename(partial, dir).map_err(io(dir))?;
+            Ok(v)
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(partial);
+            Err(e)
+        }
+    }
 }
 
 #[cfg(test)]

@@ -3,6 +3,7 @@
 
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
+use labrig_droid::droid_mcap::{ExportedMcap, ImportedMcap, export_mcap, find_droid_mcaps, import_mcap};
 use labrig_droid::export::{ExportOptions, Exported, export_episode, find_episodes};
 use labrig_droid::import::{ImportOptions, Imported, find_droid_episodes, import_episode};
 use std::path::{Path, PathBuf};
@@ -23,8 +24,27 @@ enum Command {
     Export(ExportArgs),
     /// A DROID raw episode (or every one under a directory) -> an MCAP episode under --out.
     Import(ImportArgs),
+    /// An MCAP episode (or every episode under a directory) -> DROID's own MCAP layout under OUT:
+    /// {success|failure}/<date>/<time>/trajectory.mcap (JSON + jsonschema, base64 JPEG images).
+    ExportMcap(ExportArgs),
+    /// A DROID-layout MCAP file (either upstream variant, told apart by content), or every
+    /// *.mcap under a directory that is not a labrig episode -> an MCAP episode under --out.
+    ImportMcap(ImportMcapArgs),
     /// Export (and import back) throughput in steps per second.
     Bench(BenchArgs),
+}
+
+#[derive(Debug, Args)]
+struct ImportMcapArgs {
+    /// A DROID-layout MCAP file (trajectory.mcap), or a directory of them.
+    source: PathBuf,
+    /// Where the MCAP episodes go (the recorder's layout).
+    #[arg(long, default_value = "episodes")]
+    out: PathBuf,
+    #[arg(long)]
+    overwrite: bool,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -153,8 +173,13 @@ fn export_line(e: &Exported) -> String {
 }
 
 fn import_line(i: &Imported) -> String {
+    import_line_noted(i, "")
+}
+
+/// An import's line; `note` goes first in the brackets.
+fn import_line_noted(i: &Imported, note: &str) -> String {
     let mut s = format!(
-        "imported {} -> {} ({} steps, {} cameras, {} frames, {:.2} s)",
+        "imported {} -> {} ({note}{} steps, {} cameras, {} frames, {:.2} s)",
         i.source.display(),
         i.dir.display(),
         i.steps,
@@ -166,6 +191,31 @@ fn import_line(i: &Imported) -> String {
         s.push_str(&format!("\n  warning: {w}"));
     }
     s
+}
+
+fn export_mcap_line(e: &ExportedMcap) -> String {
+    format!(
+        "exported {} -> {} ({} steps, {} cameras, {} images{}{}, {:.1} MB, {:.2} s, {:.0} steps/s)",
+        e.source.display(),
+        e.file.display(),
+        e.steps,
+        e.cameras.len(),
+        e.images,
+        if e.frames_filled > 0 {
+            format!(" ({} filled from a neighbouring frame)", e.frames_filled)
+        } else {
+            String::new()
+        },
+        if e.vr_messages > 0 { format!(", {} /vr_controller", e.vr_messages) } else { String::new() },
+        e.bytes as f64 / 1e6,
+        e.seconds,
+        e.steps as f64 / e.seconds.max(1e-9)
+    )
+}
+
+fn import_mcap_line(m: &ImportedMcap) -> String {
+    let ms = if m.times_in_ms { ", log times read as DROID's milliseconds" } else { "" };
+    import_line_noted(&m.imported, &format!("{}{ms}; ", m.variant.describe()))
 }
 
 fn percentile(v: &mut [f64], p: f64) -> f64 {
@@ -245,6 +295,17 @@ fn main() -> ExitCode {
                 run_all(&items, "import", a.json, |p| import_episode(p, &a.out, &opts), import_line, |i| i.steps)
             })
         }
+        Command::ExportMcap(a) => {
+            let is_episode = |p: &Path| p.join(labrig_episode::episode::EPISODE_FILE).is_file();
+            sources(&a.source, is_episode, find_episodes).map(|items| {
+                let opts = ExportOptions { overwrite: a.overwrite };
+                run_all(&items, "export", a.json, |p| export_mcap(p, &a.out, &opts), export_mcap_line, |e| e.steps)
+            })
+        }
+        Command::ImportMcap(a) => sources(&a.source, |_| false, find_droid_mcaps).map(|items| {
+            let opts = ImportOptions { overwrite: a.overwrite, ..ImportOptions::default() };
+            run_all(&items, "import", a.json, |p| import_mcap(p, &a.out, &opts), import_mcap_line, |i| i.imported.steps)
+        }),
         Command::Bench(a) => bench(a),
     };
     match r {

@@ -56,3 +56,18 @@ pub(crate) fn chunk_records(header: &ChunkHeader, compressed: &[u8]) -> McapResu
     }
     Ok(records)
 }
+
+/// Every record of the MCAP file in `buf`, in file order, each chunk opened into its records
+/// with [`chunk_records`]'s bounds (so a foreign or damaged file is an error, never an
+/// allocation it claims). The first error ends the walk and is returned; the records before
+/// it have been given.
+pub fn walk_records(buf: &[u8], mut on_record: impl FnMut(Record<'_>)) -> McapResult<()> {
+    let reader = mcap::read::LinearReader::new_with_options(buf, mcap::read::Options::IgnoreEndMagic.into())?;
+    for rec in reader {
+        match rec? {
+            Record::Chunk { header, data } => chunk_records(&header, &data)?.into_iter().for_each(&mut on_record),
+            r => on_record(r),
+        }
+    }
+    Ok(())
+}

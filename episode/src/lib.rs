@@ -32,6 +32,7 @@ pub(crate) fn log_ns(t: u64) -> i64 {
     i64::try_from(t).unwrap_or(i64::MAX)
 }
 
+pub use chunk::walk_records;
 pub use episode::{EpisodeError, EpisodeSummary, EpisodeWriter};
 pub use inspect::{EpisodeData, Gap, Inspection, Part, ReadError, inspect, read_episode};
 pub use metadata::{EpisodeMetadata, MetadataError, Outcome, RigIdentity, episode_dir};

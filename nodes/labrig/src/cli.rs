@@ -70,18 +70,19 @@ pub enum Command {
     },
     /// Export episodes to another format: `labrig export droid <episode|dir> <out_dir>
     /// [--overwrite] [--json]` writes DROID's raw layout (trajectory.h5, one MP4 per camera,
-    /// metadata_<uuid>.json).
+    /// metadata_<uuid>.json); `labrig export droid-mcap ...` DROID's MCAP layout (trajectory.mcap).
     #[command(disable_help_flag = true)]
     Export {
-        /// The format (`droid`), then the options of `labrig-droid export`.
+        /// The format (`droid` or `droid-mcap`), then the options of `labrig-droid export`.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
     /// Import episodes from another format: `labrig import droid <droid_episode|dir>
-    /// [--out episodes]` writes MCAP episodes in the recorder's layout.
+    /// [--out episodes]` (DROID's raw layout) or `labrig import droid-mcap <trajectory.mcap|dir>`
+    /// (DROID's MCAP layout) writes MCAP episodes in the recorder's layout.
     #[command(disable_help_flag = true)]
     Import {
-        /// The format (`droid`), then the options of `labrig-droid import`.
+        /// The format (`droid` or `droid-mcap`), then the options of `labrig-droid import`.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
@@ -203,16 +204,20 @@ pub fn replay(args: &[String]) -> anyhow::Result<ExitCode> {
 /// is the one format so far; labrig-droid is the program that links libhdf5).
 pub fn convert(verb: &str, args: &[String]) -> anyhow::Result<ExitCode> {
     match args.first().map(String::as_str) {
-        Some("droid") => {
-            let mut forwarded = vec![verb.to_owned()];
+        Some(format @ ("droid" | "droid-mcap")) => {
+            // labrig-droid's `export` / `import` (raw) and `export-mcap` / `import-mcap`.
+            let sub = if format == "droid" { verb.to_owned() } else { format!("{verb}-mcap") };
+            let mut forwarded = vec![sub];
             forwarded.extend(args[1..].iter().cloned());
             node("labrig-droid", &forwarded)
         }
         Some("--help" | "-h") | None => {
-            println!("usage: labrig {verb} droid ... (formats: droid)\n");
+            println!(
+                "usage: labrig {verb} droid|droid-mcap ... (formats: droid = DROID's raw layout, droid-mcap = DROID's MCAP layout)\n"
+            );
             node("labrig-droid", &[verb.to_owned(), "--help".to_owned()])
         }
-        Some(other) => anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid)"),
+        Some(other) => anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid, droid-mcap)"),
     }
 }
 
