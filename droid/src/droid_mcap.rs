@@ -340,6 +340,57 @@ fn vr_payload(s: &TeleopState, t: i64) -> Value {
     })
 }
 
+/// The newer DROID writer's `/vr_controller` payload as the Quest's state (the inverse of
+/// [`vr_payload`]; DROID's own files carry its headset-frame pose, kept as it is).
+fn teleop_state(v: &Value) -> Result<TeleopState, String> {
+    let poses = v.get("poses").and_then(Value::as_object).ok_or("no `poses` object")?;
+    let (hand, m) = match (poses.get("r"), poses.get("l")) {
+        (Some(m), _) => ("right", m),
+        (None, Some(m)) => ("left", m),
+        (None, None) => return Err("`poses` has neither `r` nor `l`".into()),
+    };
+    let m: Vec<f64> = m
+        .as_array()
+        .filter(|a| a.len() == 16)
+        .and_then(|a| a.iter().map(Value::as_f64).collect::<Option<Vec<f64>>>())
+        .filter(|m| m.iter().all(|x| x.is_finite()))
+        .ok_or("a pose is not 16 finite numbers (a row-major 4x4 matrix)")?;
+    let rot = nalgebra::Matrix3::new(m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]);
+    let q = nalgebra::UnitQuaternion::from_matrix(&rot);
+    let side = if hand == "left" { "left" } else { "right" };
+    let b = v.get("buttons").cloned().unwrap_or(Value::Null);
+    let flag = |key: &str| b.get(key).and_then(Value::as_bool).unwrap_or(false);
+    let first = |key: &str| b.get(key).and_then(|x| x.get(0)).and_then(Value::as_f64).unwrap_or(0.0);
+    let top = |key: &str| v.get(key).and_then(Value::as_bool).unwrap_or(false);
+    let js = b
+        .get(format!("{side}JS"))
+        .and_then(Value::as_array)
+        .map(|a| a.iter().filter_map(Value::as_f64).collect::<Vec<_>>());
+    let t = v.get("timestamp").cloned().unwrap_or(Value::Null);
+    let ns = t.get("sec").and_then(Value::as_i64).unwrap_or(0) * 1_000_000_000
+        + t.get("nsec").and_then(Value::as_i64).unwrap_or(0);
+    let mut s = TeleopState {
+        controller_connected: top("controller_on"),
+        hand: hand.into(),
+        movement_enabled: top("movement_enabled"),
+        grip: first(&format!("{side}Grip")),
+        trigger: first(&format!("{side}Trig")),
+        joystick: match js.as_deref() {
+            Some([x, y]) => [*x, *y],
+            _ => [0.0, 0.0],
+        },
+        joystick_pressed: flag(if hand == "left" { "LJ" } else { "RJ" }),
+        button_success: top("success"),
+        button_failure: top("failure"),
+        ..TeleopState::default()
+    };
+    s.header.stamp = Nanos(ns).into();
+    s.header.frame_id = "vr_head".into();
+    s.controller_pose.position = labrig_msgs::geometry_msgs::Point { x: m[3], y: m[7], z: m[11] };
+    s.controller_pose.orientation = labrig_msgs::geometry_msgs::Quaternion { w: q.w, x: q.i, y: q.j, z: q.k };
+    Ok(s)
+}
+
 /// Exports the episode at `source` (its directory or MCAP file) as
 /// `<out_root>/{success|failure}/<date>/<time>/trajectory.mcap`.
 pub fn export_mcap(source: &Path, out_root: &Path, opts: &export::ExportOptions) -> Result<ExportedMcap, DroidError> {
@@ -510,6 +561,8 @@ pub struct DroidMcap {
     pub images: BTreeMap<String, Vec<Option<Vec<u8>>>>,
     /// Metadata records by name.
     pub records: BTreeMap<String, BTreeMap<String, String>>,
+    /// Each step's `/vr_controller` (the Quest's state), where the file has it.
+    pub vr: Vec<Option<TeleopState>>,
     pub warnings: Vec<String>,
 }
 
@@ -691,9 +744,11 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
     let mut doc = H5Doc::default();
     let mut stacks = Stacks::default();
     let mut flat_actions: Vec<Vec<f64>> = Vec::new();
+    let mut vr = vec![None; n];
     for (i, (_, m)) in steps.iter().enumerate() {
         for (topic, v) in m {
             if topic == VR_CONTROLLER {
+                vr[i] = Some(teleop_state(v).map_err(|e| bad(path, format!("step {i}: /vr_controller: {e}")))?);
                 continue;
             }
             let data = if variant == Variant::Flat && topic == ROBOT_STATE {
@@ -778,7 +833,7 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
             doc.attrs.insert(key.to_owned(), a);
         }
     }
-    Ok(DroidMcap { variant, doc, times_ns, times_in_ms, images, records, warnings })
+    Ok(DroidMcap { variant, doc, times_ns, times_in_ms, images, records, vr, warnings })
 }
 
 /// The flat variant's 7-vector as DROID's action keys; the position targets DROID's raw files
@@ -940,6 +995,7 @@ pub fn import_mcap(source: &Path, out_root: &Path, opts: &ImportOptions) -> Resu
         out_root,
         opts,
         &mut frames,
+        &read.vr,
         &mut warnings,
         "imported from DROID's MCAP layout",
     )?;

@@ -16,7 +16,7 @@ use labrig_episode::bag::Reliability;
 use labrig_episode::episode::EpisodeWriter;
 use labrig_episode::metadata::{Outcome, episode_dir};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, TeleopState};
 use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::topics;
@@ -108,6 +108,7 @@ pub fn import_episode(source: &Path, out_root: &Path, opts: &ImportOptions) -> R
         out_root,
         opts,
         &mut frames,
+        &[],
         &mut warnings,
         "imported from DROID",
     )?;
@@ -270,6 +271,7 @@ pub(crate) fn write_imported(
     out_root: &Path,
     opts: &ImportOptions,
     frames: &mut dyn FrameSource,
+    teleop: &[Option<TeleopState>],
     warnings: &mut Vec<String>,
     note: &str,
 ) -> Result<(PathBuf, u64), DroidError> {
@@ -283,7 +285,7 @@ pub(crate) fn write_imported(
     let n = crate::settle(
         &partial,
         &dir,
-        write_episode(&partial, meta, steps, cameras, hand_offset, frames, warnings, note),
+        write_episode(&partial, meta, steps, cameras, hand_offset, frames, teleop, warnings, note),
     )?;
     Ok((dir, n))
 }
@@ -296,6 +298,7 @@ fn write_episode(
     cameras: &[Camera],
     hand_offset: Option<[f64; 6]>,
     frames: &mut dyn FrameSource,
+    teleop: &[Option<TeleopState>],
     warnings: &mut Vec<String>,
     note: &str,
 ) -> Result<u64, DroidError> {
@@ -358,6 +361,9 @@ fn write_episode(
             };
             w.write(&topics::camera_image(&cam.id), &img, Nanos(t), Nanos(fr.capture_ns), Reliability::BestEffort)?;
             written += 1;
+        }
+        if let Some(Some(st)) = teleop.get(i) {
+            w.write(topics::TELEOP_STATE.name, st, Nanos(t), Nanos::from(st.header.stamp), Reliability::Reliable)?;
         }
         w.write(topics::RIG_STEP.name, s, Nanos(t), Nanos::from(s.header.stamp), Reliability::Reliable)?;
     }

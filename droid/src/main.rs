@@ -30,7 +30,7 @@ enum Command {
     /// A DROID-layout MCAP file (either upstream variant, told apart by content), or every
     /// *.mcap under a directory that is not a labrig episode -> an MCAP episode under --out.
     ImportMcap(ImportMcapArgs),
-    /// Export (and import back) throughput in steps per second.
+    /// Export (and import back) throughput in steps per second, DROID raw and DROID MCAP.
     Bench(BenchArgs),
 }
 
@@ -228,6 +228,7 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let tmp = std::env::temp_dir().join(format!("labrig-droid-bench-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
     let (mut export_rate, mut h5_rate, mut import_rate) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut mcap_export_rate, mut mcap_import_rate) = (Vec::new(), Vec::new());
     let mut first: Option<Exported> = None;
     let pb = if a.json { ProgressBar::hidden() } else { ProgressBar::new(a.repeat as u64) };
     for _ in 0..a.repeat {
@@ -237,6 +238,15 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         export_rate.push(e.steps as f64 / e.seconds);
         h5_rate.push(e.steps as f64 / e.h5_seconds.max(1e-9));
         import_rate.push(i.steps as f64 / i.seconds);
+        // DROID's MCAP layout: the same episode out and back in.
+        let m = export_mcap(&a.episode, &tmp.join("droid_mcap"), &ExportOptions { overwrite: true })?;
+        let back = import_mcap(
+            &m.file,
+            &tmp.join("mcap_back"),
+            &ImportOptions { overwrite: true, ..ImportOptions::default() },
+        )?;
+        mcap_export_rate.push(m.steps as f64 / m.seconds);
+        mcap_import_rate.push(back.imported.steps as f64 / back.imported.seconds);
         first.get_or_insert(e);
         pb.inc(1);
     }
@@ -249,6 +259,8 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         "h5_only_steps_per_s": {"p50": percentile(&mut h5_rate, 0.5)},
         "import_steps_per_s": {"p50": percentile(&mut import_rate, 0.5), "min": percentile(&mut import_rate, 0.0), "max": percentile(&mut import_rate, 1.0)},
         "realtime_factor_export_p50": percentile(&mut export_rate, 0.5) / 20.0,
+        "droid_mcap_export_steps_per_s": {"p50": percentile(&mut mcap_export_rate, 0.5), "min": percentile(&mut mcap_export_rate, 0.0), "max": percentile(&mut mcap_export_rate, 1.0)},
+        "droid_mcap_import_steps_per_s": {"p50": percentile(&mut mcap_import_rate, 0.5), "min": percentile(&mut mcap_import_rate, 0.0), "max": percentile(&mut mcap_import_rate, 1.0)},
     });
     if a.json {
         println!("{summary}");
@@ -268,12 +280,17 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             summary["realtime_factor_export_p50"].as_f64().unwrap_or(0.0),
             summary["h5_only_steps_per_s"]["p50"].as_f64().unwrap_or(0.0),
         );
-        println!(
-            "  import: p50 {:.0} steps/s (min {:.0}, max {:.0})",
-            summary["import_steps_per_s"]["p50"].as_f64().unwrap_or(0.0),
-            summary["import_steps_per_s"]["min"].as_f64().unwrap_or(0.0),
-            summary["import_steps_per_s"]["max"].as_f64().unwrap_or(0.0),
-        );
+        let line = |what: &str, key: &str| {
+            println!(
+                "  {what}: p50 {:.0} steps/s (min {:.0}, max {:.0})",
+                summary[key]["p50"].as_f64().unwrap_or(0.0),
+                summary[key]["min"].as_f64().unwrap_or(0.0),
+                summary[key]["max"].as_f64().unwrap_or(0.0),
+            )
+        };
+        line("import", "import_steps_per_s");
+        line("DROID MCAP export", "droid_mcap_export_steps_per_s");
+        line("DROID MCAP import", "droid_mcap_import_steps_per_s");
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -21,6 +21,8 @@ Deviations from upstream that its code needs to run at all (mcap 1.6.0, h5py 3.1
 - add_metadata takes a dict of strings, so each attribute is {"value": str(v)} (upstream passes
   bytes, which the writer rejects).
 
+--vr (flat): a /vr_controller per step as the newer writer's: poses {"r": row-major 4x4},
+  buttons, movement_enabled, controller_on, success, failure.
 --images DIR holds DIR/<serial>_left/<step>.jpg for the cameras of observation/camera_type.
 --bad CASE writes a file labrig must refuse by name: no_robot_state (step 3 has none),
   bad_image (step 2's first image is not a JPEG), not_droid (an /imu topic only).
@@ -30,6 +32,7 @@ import argparse
 import base64
 import hashlib
 import json
+import math
 import os
 
 import h5py
@@ -71,8 +74,9 @@ def main():
     ap.add_argument("--images", required=True)
     ap.add_argument("--variant", default="wrapped", choices=["wrapped", "flat"])
     ap.add_argument("--bad", default=None, choices=["no_robot_state", "bad_image", "not_droid"])
+    ap.add_argument("--vr", action="store_true", help="flat: a /vr_controller per step, as DROID's newer writer")
     a = ap.parse_args()
-    summary = {"steps": 0, "log_times": [], "images": {}}
+    summary = {"steps": 0, "log_times": [], "images": {}, "vr": []}
     with h5py.File(a.h5, "r") as f, open(a.out, "wb") as stream:
         n = f["action/joint_position"].shape[0]
         serials = sorted(f["observation/camera_type"].keys())
@@ -97,6 +101,9 @@ def main():
             ch["/robot_state"] = w.register_channel("/robot_state", "json", s)
             s = w.register_schema("droid.Action", "jsonschema", json.dumps({"type": "object"}).encode())
             ch["/action"] = w.register_channel("/action", "json", s)
+            if a.vr:
+                s = w.register_schema("droid.VRController", "jsonschema", json.dumps({"type": "object"}).encode())
+                ch["/vr_controller"] = w.register_channel("/vr_controller", "json", s)
         img_schema = w.register_schema(
             "foxglove.CompressedImage", "jsonschema", json.dumps(IMAGE_C if a.variant == "wrapped" else IMAGE_W2).encode()
         )
@@ -132,6 +139,24 @@ def main():
                     w.add_message(ch["/robot_state"], log_time=log, publish_time=log, data=json.dumps(state).encode())
                 act = f["action/cartesian_velocity"][i].tolist() + [f["action/gripper_velocity"][i].item()]
                 w.add_message(ch["/action"], log_time=log, publish_time=log, data=json.dumps({"timestamp": ts, "data": act}).encode())
+                if a.vr:
+                    # The right controller turning about z and moving along x; grip held for the
+                    # first half, the A button (success) on the last step.
+                    c, s_ = math.cos(0.02 * i), math.sin(0.02 * i)
+                    pose = [c, -s_, 0.0, 0.3 + 0.001 * i, s_, c, 0.0, -0.1, 0.0, 0.0, 1.0, 1.2, 0.0, 0.0, 0.0, 1.0]
+                    held = i < n // 2
+                    vr = {
+                        "timestamp": ts,
+                        "poses": {"r": pose},
+                        "buttons": {"A": i == n - 1, "B": False, "RG": held, "RJ": i % 7 == 0,
+                                    "rightTrig": [i / n], "rightGrip": [1.0 if held else 0.0], "rightJS": [0.1, -0.2]},
+                        "movement_enabled": held,
+                        "controller_on": True,
+                        "success": i == n - 1,
+                        "failure": False,
+                    }
+                    summary["vr"].append(vr)
+                    w.add_message(ch["/vr_controller"], log_time=log, publish_time=log, data=json.dumps(vr).encode())
             for k, serial in enumerate(serials):
                 with open(os.path.join(a.images, f"{serial}_left", f"{i}.jpg"), "rb") as jf:
                     jpeg = jf.read()

@@ -5,7 +5,7 @@ usage: read_droid_mcap.py FILE [--h5 TRAJECTORY_H5]
 
 Timesteps are grouped by log time, as DROID's reader does. Prints JSON: profile, channels
 (schema name and encoding, message encoding, whether an image schema declares base64),
-steps (per step: topics present, images' sha256 by topic), metadata records, and with --h5:
+steps (per step: topics present, images' sha256 by topic, the /vr_controller payload), metadata records, and with --h5:
 how many values were compared, every key that differed and the first mismatches.
 """
 import argparse
@@ -56,7 +56,7 @@ def main():
         images = {
             k: hashlib.sha256(base64.b64decode(v["data"])).hexdigest() for k, v in topics.items() if k.startswith("/camera/")
         }
-        out["steps"].append({"log_time": t, "topics": sorted(topics), "images": images})
+        out["steps"].append({"log_time": t, "topics": sorted(topics), "images": images, "vr": topics.get("/vr_controller")})
     if a.h5:
         import h5py
 

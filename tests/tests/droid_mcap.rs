@@ -167,7 +167,11 @@ fn files_written_as_droid_s_tools_write_them_import_in_both_variants() {
     let (h5, imgs) = h5_and_images(t);
     for variant in ["wrapped", "flat"] {
         let file = t.join(format!("{variant}.mcap"));
-        let made = py("make_droid_mcap.py", &[s(&h5), s(&file), "--images", s(&imgs), "--variant", variant]);
+        let mut args = vec![s(&h5), s(&file), "--images", s(&imgs), "--variant", variant];
+        if variant == "flat" {
+            args.push("--vr");
+        }
+        let made = py("make_droid_mcap.py", &args);
         assert_eq!(made["steps"], 50);
         let eps = t.join(format!("eps_{variant}"));
         let out = ok(&labrig(&["import", "droid-mcap", s(&file), "--out", s(&eps), "--json"]));
@@ -200,6 +204,22 @@ fn files_written_as_droid_s_tools_write_them_import_in_both_variants() {
                 assert!(!mismatched.contains(&key), "{key}: {}", back["h5"]);
             }
             assert!(out.contains("next step's observed state"), "the derived action keys are said: {out}");
+            // The Quest's state went in as /teleop/state and came out as /vr_controller again.
+            let sent = made["vr"].as_array().unwrap();
+            assert_eq!(sent.len(), 50);
+            for (i, st) in back["steps"].as_array().unwrap().iter().enumerate() {
+                let (got, want) = (&st["vr"], &sent[i]);
+                for k in ["movement_enabled", "controller_on", "success", "failure"] {
+                    assert_eq!(got[k], want[k], "step {i} {k}: {got} against {want}");
+                }
+                for k in ["A", "RG", "RJ", "rightTrig", "rightGrip", "rightJS"] {
+                    assert_eq!(got["buttons"][k], want["buttons"][k], "step {i} {k}: {got} against {want}");
+                }
+                let (g, w) = (got["poses"]["r"].as_array().unwrap(), want["poses"]["r"].as_array().unwrap());
+                let worst =
+                    g.iter().zip(w).map(|(a, b)| (a.as_f64().unwrap() - b.as_f64().unwrap()).abs()).fold(0.0, f64::max);
+                assert!(g.len() == 16 && worst < 1e-12, "step {i}: the pose came back {worst} off");
+            }
         }
         // Each step's image is the one the file had at that step, or, where the step reused its
         // predecessor's frame (one capture), the predecessor's.
