@@ -4,7 +4,7 @@
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use labrig_droid::droid_mcap::{ExportedMcap, ImportedMcap, export_mcap, find_droid_mcaps, import_mcap};
-use labrig_droid::export::{ExportOptions, Exported, export_episode, find_episodes};
+use labrig_droid::export::{ExportOptions, Exported, export_episode};
 use labrig_droid::import::{ImportOptions, Imported, find_droid_episodes, import_episode};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -19,12 +19,12 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// An MCAP episode (or every episode under a directory) -> DROID's raw layout under OUT:
+    /// An MCAP episode (or every episode under a directory or in a manifest) -> DROID's raw layout under OUT:
     /// {success|failure}/<date>/<time>/{trajectory.h5, recordings/MP4/<serial>.mp4, metadata_<uuid>.json}.
     Export(ExportArgs),
     /// A DROID raw episode (or every one under a directory) -> an MCAP episode under --out.
     Import(ImportArgs),
-    /// An MCAP episode (or every episode under a directory) -> DROID's own MCAP layout under OUT:
+    /// An MCAP episode (or every episode under a directory or in a manifest) -> DROID's own MCAP layout under OUT:
     /// {success|failure}/<date>/<time>/trajectory.mcap (JSON + jsonschema, base64 JPEG images).
     ExportMcap(ExportArgs),
     /// A DROID-layout MCAP file (either upstream variant, told apart by content), or every
@@ -49,7 +49,8 @@ struct ImportMcapArgs {
 
 #[derive(Debug, Args)]
 struct ExportArgs {
-    /// An episode (its directory or episode_0.mcap), or a directory of episodes.
+    /// An episode (its directory or episode_0.mcap), a directory of episodes, or a manifest
+    /// (`labrig dataset retrieve`'s JSON, or a list of episode paths one a line).
     source: PathBuf,
     /// The DROID dataset root to write into.
     out: PathBuf,
@@ -111,6 +112,15 @@ fn sources(
     let found = find(source);
     anyhow::ensure!(!found.is_empty(), "{}: no episodes found under it", source.display());
     Ok(found)
+}
+
+/// The labrig episodes to export: an episode, a directory of them, or a manifest (a retrieval
+/// manifest or a list of paths).
+fn episodes(source: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    if source.is_dir() && source.join(labrig_episode::episode::EPISODE_FILE).is_file() {
+        return Ok(vec![source.to_owned()]);
+    }
+    labrig_episode::episode::episodes_of(source).map_err(anyhow::Error::msg)
 }
 
 fn run_all<T: serde::Serialize>(
@@ -298,13 +308,10 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let r = match cli.command {
-        Command::Export(a) => {
-            let is_episode = |p: &Path| p.join(labrig_episode::episode::EPISODE_FILE).is_file();
-            sources(&a.source, is_episode, find_episodes).map(|items| {
-                let opts = ExportOptions { overwrite: a.overwrite };
-                run_all(&items, "export", a.json, |p| export_episode(p, &a.out, &opts), export_line, |e| e.steps)
-            })
-        }
+        Command::Export(a) => episodes(&a.source).map(|items| {
+            let opts = ExportOptions { overwrite: a.overwrite };
+            run_all(&items, "export", a.json, |p| export_episode(p, &a.out, &opts), export_line, |e| e.steps)
+        }),
         Command::Import(a) => {
             let is_episode = |p: &Path| p.join("trajectory.h5").is_file();
             sources(&a.source, is_episode, find_droid_episodes).map(|items| {
@@ -312,13 +319,10 @@ fn main() -> ExitCode {
                 run_all(&items, "import", a.json, |p| import_episode(p, &a.out, &opts), import_line, |i| i.steps)
             })
         }
-        Command::ExportMcap(a) => {
-            let is_episode = |p: &Path| p.join(labrig_episode::episode::EPISODE_FILE).is_file();
-            sources(&a.source, is_episode, find_episodes).map(|items| {
-                let opts = ExportOptions { overwrite: a.overwrite };
-                run_all(&items, "export", a.json, |p| export_mcap(p, &a.out, &opts), export_mcap_line, |e| e.steps)
-            })
-        }
+        Command::ExportMcap(a) => episodes(&a.source).map(|items| {
+            let opts = ExportOptions { overwrite: a.overwrite };
+            run_all(&items, "export", a.json, |p| export_mcap(p, &a.out, &opts), export_mcap_line, |e| e.steps)
+        }),
         Command::ImportMcap(a) => sources(&a.source, |_| false, find_droid_mcaps).map(|items| {
             let opts = ImportOptions { overwrite: a.overwrite, ..ImportOptions::default() };
             run_all(&items, "import", a.json, |p| import_mcap(p, &a.out, &opts), import_mcap_line, |i| i.imported.steps)

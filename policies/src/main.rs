@@ -151,59 +151,7 @@ struct InferArgs {
 
 /// Episode paths from a --target/--cotrain argument.
 fn episodes_of(arg: &Path) -> anyhow::Result<Vec<PathBuf>> {
-    if arg.is_dir() {
-        let found = labrig_episode::episode::find_episodes(arg);
-        if found.is_empty() {
-            let droid = labrig_episode::episode::dirs_holding(arg, "trajectory.h5");
-            anyhow::ensure!(
-                droid.is_empty(),
-                "{}: {} DROID raw episodes and no labrig ones: convert them first with `labrig import droid {} --out <episodes>`",
-                arg.display(),
-                droid.len(),
-                arg.display()
-            );
-            anyhow::bail!("{}: no episodes (directories holding episode_0.mcap) under it", arg.display());
-        }
-        return Ok(found);
-    }
-    anyhow::ensure!(arg.is_file(), "{}: no such episode directory or manifest", arg.display());
-    if arg.extension().is_some_and(|e| e == "mcap") {
-        return Ok(vec![arg.to_owned()]);
-    }
-    let text = std::fs::read_to_string(arg).with_context(|| format!("reading the manifest {}", arg.display()))?;
-    let base = arg.parent().unwrap_or(Path::new("."));
-    // A retrieval manifest (`labrig dataset retrieve`): JSON with the episodes' paths and formats.
-    if let Ok(serde_json::Value::Object(m)) = serde_json::from_str::<serde_json::Value>(&text) {
-        let episodes = m.get("episodes").and_then(|e| e.as_array()).with_context(|| {
-            format!("{}: a JSON manifest needs `episodes` (labrig dataset retrieve writes one)", arg.display())
-        })?;
-        let mut paths = Vec::new();
-        for e in episodes {
-            let path =
-                e["path"].as_str().with_context(|| format!("{}: an episode without `path`: {e}", arg.display()))?;
-            match e["format"].as_str() {
-                Some("labrig") => paths.push(base.join(path)),
-                other => anyhow::bail!(
-                    "{}: {path} is {} data: convert it first with `labrig import droid {path} --out <episodes>` and \
-                     index those",
-                    arg.display(),
-                    other.unwrap_or("unknown")
-                ),
-            }
-        }
-        for p in &paths {
-            anyhow::ensure!(p.exists(), "{}: lists {}, which does not exist", arg.display(), p.display());
-        }
-        anyhow::ensure!(!paths.is_empty(), "{}: the manifest lists no episodes", arg.display());
-        return Ok(paths);
-    }
-    let paths: Vec<PathBuf> =
-        text.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')).map(|l| base.join(l)).collect();
-    for p in &paths {
-        anyhow::ensure!(p.exists(), "{}: lists {}, which does not exist", arg.display(), p.display());
-    }
-    anyhow::ensure!(!paths.is_empty(), "{}: the manifest lists no episodes", arg.display());
-    Ok(paths)
+    labrig_episode::episode::episodes_of(arg).map_err(anyhow::Error::msg)
 }
 
 fn set_threads(n: Option<i32>) -> i32 {

@@ -146,7 +146,7 @@ fn bad_input_is_named() {
     let empty = t.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
     let e = failed(&labrig(&["export", "droid", &s(&empty), &s(&out)]));
-    assert!(e.contains("no episodes found"), "{e}");
+    assert!(e.contains("no episodes (directories holding episode_0.mcap) under it"), "{e}");
     let e = failed(&labrig(&["import", "droid", &s(&empty), "--out", &s(&out)]));
     assert!(e.contains("no episodes found"), "{e}");
 

@@ -297,3 +297,20 @@ fn dataset_index_reads_droid_mcap_files_beside_labrig_episodes() {
     assert_eq!(bad.len(), 1, "{r}");
     assert!(bad[0]["reason"].as_str().unwrap().contains("not an MCAP file"), "{r}");
 }
+
+#[test]
+fn a_manifest_names_the_episodes_to_export_and_droid_data_in_it_is_sent_to_its_import() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let list = t.join("episodes.txt");
+    std::fs::write(&list, format!("# one episode\n{}\n", fixture().display())).unwrap();
+    let text = ok(&labrig(&["export", "droid-mcap", s(&list), s(&t.join("out"))]));
+    assert!(text.contains("50 steps, 5 cameras"), "{text}");
+    only_file(&t.join("out"), "trajectory.mcap");
+    // A retrieval manifest that lists a DROID MCAP file: refused with the command that converts it.
+    let manifest = t.join("m.json");
+    let entry = serde_json::json!({"episodes": [{"path": "x/trajectory.mcap", "format": "droid_mcap"}]});
+    std::fs::write(&manifest, entry.to_string()).unwrap();
+    let e = failed(&labrig(&["export", "droid-mcap", s(&manifest), s(&t.join("out2"))]));
+    assert!(e.contains("x/trajectory.mcap is droid_mcap data: convert it first with `labrig import droid-mcap"), "{e}");
+}
