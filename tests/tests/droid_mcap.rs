@@ -129,6 +129,17 @@ fn the_export_is_droid_s_mcap_layout_and_imports_back_to_the_same_episode() {
         std::fs::read(&h5).unwrap() == std::fs::read(&h5_b).unwrap(),
         "trajectory.h5 differs after the MCAP round trip"
     );
+    // ...and so is its metadata JSON (the episode's metadata went through the MCAP whole).
+    let json_of = |dir: &Path| -> Vec<u8> {
+        let p = std::fs::read_dir(dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.path())
+            .find(|p| p.file_name().unwrap().to_string_lossy().starts_with("metadata_"))
+            .unwrap();
+        std::fs::read(p).unwrap()
+    };
+    assert_eq!(json_of(h5.parent().unwrap()), json_of(h5_b.parent().unwrap()), "the metadata JSON differs");
     // The JPEGs went through untouched: exported again, the same image at every step.
     ok(&labrig(&["export", "droid-mcap", s(&imported), s(&t.join("mcap_b"))]));
     let r_b = py("read_droid_mcap.py", &[s(&only_file(&t.join("mcap_b"), "trajectory.mcap")), "--h5", s(&h5)]);
