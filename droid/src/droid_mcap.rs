@@ -606,7 +606,15 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
         }
         _ => {}
     })
-    .map_err(|e| bad(path, format!("a damaged MCAP file: {e}")))?;
+    .map_err(|e| match e {
+        mcap::McapError::UnsupportedCompression(c) => bad(
+            path,
+            format!(
+                "its chunks are compressed with {c}, which labrig does not read (zstd or none): re-write it with zstd"
+            ),
+        ),
+        e => bad(path, format!("a damaged MCAP file: {e}")),
+    })?;
     let topic_names: Vec<&str> = channels.values().map(|(t, ..)| t.as_str()).collect();
     let Some((_, (_, encoding, _))) = channels.iter().find(|(_, (t, ..))| t == ROBOT_STATE) else {
         if topic_names.contains(&topics::RIG_STEP.name) {

@@ -74,13 +74,14 @@ def main():
     ap.add_argument("--images", required=True)
     ap.add_argument("--variant", default="wrapped", choices=["wrapped", "flat"])
     ap.add_argument("--bad", default=None, choices=["no_robot_state", "bad_image", "not_droid"])
+    ap.add_argument("--lz4", action="store_true", help="LZ4 chunks (the writer's other codec) instead of zstd")
     ap.add_argument("--vr", action="store_true", help="flat: a /vr_controller per step, as DROID's newer writer")
     a = ap.parse_args()
     summary = {"steps": 0, "log_times": [], "images": {}, "vr": []}
     with h5py.File(a.h5, "r") as f, open(a.out, "wb") as stream:
         n = f["action/joint_position"].shape[0]
         serials = sorted(f["observation/camera_type"].keys())
-        w = Writer(stream, compression=CompressionType.ZSTD)
+        w = Writer(stream, compression=CompressionType.LZ4 if a.lz4 else CompressionType.ZSTD)
         w.start(profile="ros2" if a.variant == "wrapped" else "droid", library="droid-franka-robots")
         if a.bad == "not_droid":
             s = w.register_schema("sensor.Imu", "jsonschema", json.dumps(WRAPPED).encode())

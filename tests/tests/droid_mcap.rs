@@ -267,6 +267,11 @@ fn bad_droid_mcap_input_is_named_and_nothing_is_written() {
         assert!(e.contains(says) && e.contains(s(&file)), "{bad} ({variant}): {e}");
     }
     // A labrig episode is not DROID's layout; a zip is not MCAP; a directory without any.
+    // LZ4 chunks (the Python writer's other codec): labrig's mcap reads zstd only, and says so.
+    let lz4 = t.join("lz4.mcap");
+    py("make_droid_mcap.py", &[s(&h5), s(&lz4), "--images", s(&imgs), "--lz4"]);
+    let e = failed(&labrig(&["import", "droid-mcap", s(&lz4), "--out", s(&out)]));
+    assert!(e.contains("its chunks are compressed with lz4, which labrig does not read"), "{e}");
     let e = failed(&labrig(&["import", "droid-mcap", s(&fixture().join("episode_0.mcap")), "--out", s(&out)]));
     assert!(e.contains("a labrig episode (ROS 2 CDR messages), not DROID's MCAP layout"), "{e}");
     let zip = t.join("x.mcap");
