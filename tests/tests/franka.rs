@@ -124,6 +124,22 @@ impl Rig {
     }
 
     /// Sends `commands` at 20 Hz, collecting states.
+    /// Holds `target` at 20 Hz for at least 1 s and until every joint is within `tol` rad of it
+    /// (at most `max_s`); returns the worst joint's error at the end. franka-sim steps its
+    /// physics once per loop cycle, and its 1 kHz loop ran at 410-890 Hz in a suite here, so the
+    /// arm's time runs slower than the wall's: "settles" is checked in the arm's time, not 1 s
+    /// of wall time.
+    async fn hold(&mut self, target: [f64; 7], tol: f64, max_s: f64, states: &mut Vec<RobotState>) -> f64 {
+        let err = |s: &RobotState| (0..7).map(|i| (s.joint_positions[i] - target[i]).abs()).fold(0.0, f64::max);
+        for k in 0..(max_s * 20.0) as usize {
+            self.play([joints(target)], states).await;
+            if k >= 19 && states.last().is_some_and(|s| err(s) < tol) {
+                break;
+            }
+        }
+        states.last().map_or(f64::INFINITY, err)
+    }
+
     async fn play(&mut self, commands: impl IntoIterator<Item = ArmCommand>, states: &mut Vec<RobotState>) {
         let mut next = tokio::time::Instant::now();
         for c in commands {
@@ -162,12 +178,10 @@ fn the_fci_backend_moves_franka_sims_fr3_along_commanded_paths() {
         let (lo, hi) = q1.iter().fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
         assert!(hi > 0.2 && lo < -0.2, "joint 1 swept {lo:.3}..{hi:.3} rad of the +-0.25 rad sine");
         assert!(hi < 0.27 && lo > -0.27, "overshoot: {lo:.3}..{hi:.3}");
-        // Then the last target, held for 1 s: the arm settles on it.
+        // Then the last target, held: the arm settles on it.
         let end = target(60);
-        rig.play((0..20).map(|_| joints(end)), &mut states).await;
-        let last = states.last().unwrap();
-        let err = (0..7).map(|i| (last.joint_positions[i] - end[i]).abs()).fold(0.0, f64::max);
-        assert!(err < 0.005, "the arm rests {err:.4} rad from a target held for 1 s");
+        let err = rig.hold(end, 0.005, 4.0, &mut states).await;
+        assert!(err < 0.005, "the arm rests {err:.4} rad from a target held for up to 4 s");
         assert!(states.iter().all(|s| s.mode != RobotState::MODE_FAULT), "a fault on a safe path");
         let latency: Vec<f64> = states.iter().map(|s| s.prev_controller_latency_ms).collect();
         eprintln!(
@@ -181,9 +195,8 @@ fn the_fci_backend_moves_franka_sims_fr3_along_commanded_paths() {
         let here = rig.wait(10, "a reading", |_| true).await.joint_positions;
         let mut states = Vec::new();
         let way = |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (reset[i] - here[i]) * (k as f64 / 60.0)) };
-        rig.play((1..=60).map(|k| joints(way(k))).chain((0..20).map(|_| joints(reset))), &mut states).await;
-        let at = states.last().unwrap().joint_positions;
-        let err = (0..7).map(|i| (at[i] - reset[i]).abs()).fold(0.0, f64::max);
+        rig.play((1..=60).map(|k| joints(way(k))), &mut states).await;
+        let err = rig.hold(reset, 0.005, 4.0, &mut states).await;
         assert!(err < 0.005, "{err} rad from DROID's reset pose");
 
         // Cartesian velocity mode: DROID's +y at 0.1 (7.5 mm per step) for 1 s = 15 cm.
@@ -287,10 +300,12 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
             assert!(r.success, "{}", r.message);
             let here =
                 rig.wait(5, "a reading after the recovery", |s| s.mode != RobotState::MODE_FAULT).await.joint_positions;
+            // Over 6 s: a missed cycle's jump in the commanded path grows with the speed, so a
+            // slow path trips fewer discontinuity reflexes.
             let back =
-                |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (start[i] - here[i]) * (k as f64 / 60.0)) };
+                |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (start[i] - here[i]) * (k as f64 / 120.0)) };
             let mut states = Vec::new();
-            rig.play((1..=60).map(|k| joints(back(k))).chain((0..10).map(|_| joints(start))), &mut states).await;
+            rig.play((1..=120).map(|k| joints(back(k))).chain((0..10).map(|_| joints(start))), &mut states).await;
             let last = states.last().unwrap().clone();
             // (Later commands are refused naming that reflex, so the last state may say either.)
             let missed_cycle = last.mode == RobotState::MODE_FAULT
