@@ -320,19 +320,15 @@ fn vr_payload(s: &TeleopState, t: i64) -> Value {
     let m = nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p.position.x, p.position.y, p.position.z), q)
         .to_homogeneous();
     let rows: Vec<f64> = (0..4).flat_map(|r| (0..4).map(move |c| m[(r, c)])).collect();
-    let hand = if s.hand == "left" { "l" } else { "r" };
-    let (grip, trig, js, jsp) = (
-        hand.to_uppercase() + "G",
-        format!("{}Trig", if hand == "l" { "left" } else { "right" }),
-        format!("{}JS", if hand == "l" { "left" } else { "right" }),
-        hand.to_uppercase() + "J",
-    );
-    let (ok, fail) = if hand == "l" { ("X", "Y") } else { ("A", "B") };
+    // DROID's keys: `r`/`l` for the pose, RG/RJ and A/B (LG/LJ and X/Y on the left),
+    // rightTrig/rightJS/rightGrip (left...).
+    let (hand, side, ok, fail) = if s.hand == "left" { ("l", "left", "X", "Y") } else { ("r", "right", "A", "B") };
+    let (grip, jsp) = (hand.to_uppercase() + "G", hand.to_uppercase() + "J");
     json!({
         "timestamp": stamp(t),
         "poses": { hand: rows },
         "buttons": { ok: s.button_success, fail: s.button_failure, grip: s.movement_enabled, jsp: s.joystick_pressed,
-                     trig: [s.trigger], js: s.joystick, format!("{}Grip", if hand == "l" { "left" } else { "right" }): [s.grip] },
+                     format!("{side}Trig"): [s.trigger], format!("{side}JS"): s.joystick, format!("{side}Grip"): [s.grip] },
         "movement_enabled": s.movement_enabled,
         "controller_on": s.controller_connected,
         "success": s.button_success,
