@@ -146,26 +146,102 @@ pub fn tcp_offset(state: &Tensor, action_dim: i64, kind: tch::Kind) -> Tensor {
 /// recorded gripper command (`action`'s column 6) is on the other side of one half from the
 /// step's; after the last event, the episode's last TCP position. For a pick-and-place demo:
 /// the grasp point until the gripper closes, then where it lets go, then where it ends.
-/// Proprioception and commands only: a real rig's episodes give the same labels.
-pub fn waypoints(state: &Tensor, action: &Tensor) -> Tensor {
+/// Events at the steps in `ignore` do not count (a missed grasp's close and reopen, so the
+/// steps before it point at the grasp that holds).
+pub fn waypoints(state: &Tensor, action: &Tensor, ignore: &[usize]) -> Tensor {
     let n = state.size()[0];
     if n == 0 {
         return Tensor::zeros([0, 3], (Kind::Float, tch::Device::Cpu));
     }
     let tcp: Vec<f32> =
         Vec::try_from(state.narrow(1, 0, 3).to_kind(Kind::Float).contiguous().view([-1])).unwrap_or_default();
-    let closed: Vec<bool> = Vec::<f32>::try_from(action.select(1, 6).to_kind(Kind::Float).contiguous())
-        .unwrap_or_default()
-        .into_iter()
-        .map(|g| g > 0.5)
-        .collect();
+    let closed = gripper_closed(action);
     let n = n as usize;
     let mut at = vec![n - 1; n];
     for t in (0..n.saturating_sub(1)).rev() {
-        at[t] = if closed[t + 1] != closed[t] { t + 1 } else { at[t + 1] };
+        let event = closed[t + 1] != closed[t] && !ignore.contains(&(t + 1));
+        at[t] = if event { t + 1 } else { at[t + 1] };
     }
     let rows: Vec<f32> = at.iter().flat_map(|&k| tcp[3 * k..3 * k + 3].to_vec()).collect();
     Tensor::from_slice(&rows).view([n as i64, 3])
+}
+
+/// Each step's recorded gripper command (`action`'s column 6) as closed (> 0.5) or not.
+fn gripper_closed(action: &Tensor) -> Vec<bool> {
+    Vec::<f32>::try_from(action.select(1, 6).to_kind(Kind::Float).contiguous())
+        .unwrap_or_default()
+        .into_iter()
+        .map(|g| g > 0.5)
+        .collect()
+}
+
+/// A gripper reading (0 open .. 1 shut) at or above this while the fingers are commanded
+/// closed and before the arm rises: they shut on nothing (on the 50 mm cube the 2F-85 reads
+/// about 0.45).
+pub const MISSED_OPENING: f32 = 0.8;
+
+/// Steps a missed grasp's descent may rest at the bottom before the close.
+const BOTTOM_STEPS: usize = 5;
+
+/// A grasp in a recorded episode that closed on nothing: the fingers shut
+/// ([`MISSED_OPENING`]) before the arm rose. Its descent and close are the mistake; what
+/// follows from `lift` (rising with the fingers shut, opening, coming back) is the recovery.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MissedGrasp {
+    /// The step whose action started the descent that led to the close (the last one at its
+    /// top; the TCP went down every step after it, then waited at most [`BOTTOM_STEPS`]).
+    pub descent: usize,
+    /// The step the gripper command closed.
+    pub close: usize,
+    /// The first step the TCP is 5 mm above where it closed (the episode's length if never).
+    pub lift: usize,
+    /// The step the command opened again (the episode's length if never).
+    pub reopen: usize,
+}
+
+impl MissedGrasp {
+    /// The steps whose actions are the mistake: the descent and the close, up to the lift.
+    pub fn mistake(&self) -> std::ops::Range<usize> {
+        self.descent..self.lift
+    }
+}
+
+/// The missed grasps of an episode, read from its state (position first; the gripper's
+/// reading in column `gripper`) and its recorded gripper commands. A real rig's recordings
+/// give them too: an operator's missed grasp is found the same way.
+pub fn missed_grasps(state: &Tensor, action: &Tensor, gripper: i64) -> Vec<MissedGrasp> {
+    let n = state.size()[0] as usize;
+    if n == 0 || state.size()[1] <= gripper {
+        return Vec::new();
+    }
+    let col = |c: i64| -> Vec<f32> { Vec::try_from(state.select(1, c).to_kind(Kind::Float).contiguous()).unwrap_or_default() };
+    let (z, reading) = (col(2), col(gripper));
+    let closed = gripper_closed(action);
+    let mut out = Vec::new();
+    let mut t = 1;
+    while t < n {
+        if !(closed[t] && !closed[t - 1]) {
+            t += 1;
+            continue;
+        }
+        let close = t;
+        let reopen = (close..n).find(|&k| !closed[k]).unwrap_or(n);
+        let lift = (close..reopen).find(|&k| z[k] > z[close] + 0.005).unwrap_or(reopen);
+        if reading[close..lift].iter().any(|&g| g >= MISSED_OPENING) {
+            // Back over the few steps at the bottom before the close, then up the descent to
+            // the last step at its top: that step's action started it.
+            let mut descent = close;
+            while descent > 0 && close - descent < BOTTOM_STEPS && (z[descent - 1] - z[descent]).abs() <= 1e-3 {
+                descent -= 1;
+            }
+            while descent > 0 && z[descent - 1] > z[descent] + 1e-3 {
+                descent -= 1;
+            }
+            out.push(MissedGrasp { descent, close, lift, reopen });
+        }
+        t = reopen.max(close + 1);
+    }
+    out
 }
 
 /// The recorded action in `space`: for `eef_axis_angle`, the target position and its
@@ -531,6 +607,39 @@ mod tests {
     /// A pick and place of six steps: the gripper closes at step 2 and opens at step 4. Steps
     /// 0..=1 point at the grasp (step 2's TCP), 2..=3 at the release (step 4's), 4..=5 at the
     /// last pose; an episode with no event points at its last pose throughout.
+    /// A demo that misses, then grasps: z (m), the gripper command and its reading per step.
+    /// Steps 0-1 hover (step 1's action starts down), 2-4 descend, 5-7 closed on nothing (reading 1.0), 8-9 rise shut,
+    /// 10 opens, 11-13 descend again, 14-16 closed on the cube (0.45), 17 rises.
+    fn miss_then_grasp() -> (Tensor, Tensor) {
+        let z = [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
+        let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
+        let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
+        let n = z.len() as i64;
+        let state: Vec<f32> = (0..z.len()).flat_map(|t| [t as f32, 0.0, z[t], 1.0, 0.0, 0.0, 0.0, reading[t]]).collect();
+        let action: Vec<f32> = cmd.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
+        (Tensor::from_slice(&state).view([n, 8]), Tensor::from_slice(&action).view([n, 7]))
+    }
+
+    /// The miss is found from the recording alone (its descent from the hover, the close, the
+    /// first step 5 mm up, the reopen); the grasp on the cube is not a miss; with the miss's
+    /// events ignored, the steps before it point at the grasp that held.
+    #[test]
+    fn a_missed_grasp_is_read_from_the_recording() {
+        let (state, action) = miss_then_grasp();
+        let missed = missed_grasps(&state, &action, 7);
+        assert_eq!(missed, [MissedGrasp { descent: 1, close: 5, lift: 8, reopen: 10 }]);
+        assert_eq!(missed[0].mistake(), 1..8);
+        // Without the gripper's reading nothing can be told.
+        assert!(missed_grasps(&state.narrow(1, 0, 7), &action, 7).is_empty());
+        let x = |w: &Tensor| -> Vec<f32> { Vec::try_from(w.select(1, 0).contiguous()).unwrap() };
+        // Plain: steps 0..=4 point at the miss (step 5's TCP, x = 5).
+        assert_eq!(x(&waypoints(&state, &action, &[]))[..5], [5.0; 5]);
+        // Ignoring the miss's close and reopen: at the grasp that held (step 14).
+        let w = x(&waypoints(&state, &action, &[5, 10]));
+        assert_eq!(w[..14], [14.0; 14]);
+        assert_eq!(w[14..17], [17.0; 3]);
+    }
+
     #[test]
     fn waypoints_are_the_tcp_at_the_next_gripper_event() {
         let tcp =
@@ -539,14 +648,14 @@ mod tests {
         let state: Vec<f32> = tcp.iter().flat_map(|p| [p[0], p[1], p[2], 1.0, 0.0, 0.0, 0.0]).collect();
         let action: Vec<f32> = grip.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
         let state = Tensor::from_slice(&state).view([6, 7]);
-        let w = waypoints(&state, &Tensor::from_slice(&action).view([6, 7]));
+        let w = waypoints(&state, &Tensor::from_slice(&action).view([6, 7]), &[]);
         let rows: Vec<f32> = Vec::try_from(w.view([-1])).unwrap();
         let want: Vec<f32> = [2, 2, 4, 4, 5, 5].iter().flat_map(|&k| tcp[k]).collect();
         assert_eq!(rows, want);
-        let none = waypoints(&state, &Tensor::zeros([6, 7], (Kind::Float, tch::Device::Cpu)));
+        let none = waypoints(&state, &Tensor::zeros([6, 7], (Kind::Float, tch::Device::Cpu)), &[]);
         let rows: Vec<f32> = Vec::try_from(none.view([-1])).unwrap();
         assert_eq!(rows, tcp.iter().flat_map(|_| tcp[5]).collect::<Vec<_>>());
-        assert_eq!(waypoints(&state.narrow(0, 0, 0), &state.narrow(0, 0, 0)).size(), [0, 3]);
+        assert_eq!(waypoints(&state.narrow(0, 0, 0), &state.narrow(0, 0, 0), &[]).size(), [0, 3]);
     }
 
     #[test]

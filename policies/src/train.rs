@@ -40,6 +40,13 @@ pub struct TrainConfig {
     pub val_samples: usize,
     pub checkpoint_every: usize,
     pub seed: u64,
+    /// Leave out, as labels, the recorded mistake of every missed grasp in the episodes
+    /// ([`crate::data::missed_grasps`]: the fingers shut on nothing before the arm rose): the
+    /// windows whose action rows include its descent or its close. The recovery after it (the
+    /// arm rising, the fingers opening, the new approach) stays, and waypoints skip the miss.
+    /// For demos with deliberate misses (`labrig demo --expert-miss-fraction`); needs
+    /// `gripper_state`.
+    pub skip_missed_grasps: bool,
 }
 
 impl Default for TrainConfig {
@@ -58,6 +65,7 @@ impl Default for TrainConfig {
             val_samples: 256,
             checkpoint_every: 1000,
             seed: 0,
+            skip_missed_grasps: false,
         }
     }
 }
@@ -209,6 +217,10 @@ pub struct SampleSet {
     /// The sample of each episode's first step (the arm at its start, where only the
     /// images can say where the object is).
     pub first_samples: Vec<usize>,
+    /// With `skip_missed_grasps`: the missed grasps found, and the windows left out for
+    /// holding their mistake.
+    pub missed_grasps: usize,
+    pub mistake_windows: usize,
     /// (samples, To) and (samples, Tp) row indices.
     obs_rows: Vec<i64>,
     action_rows: Vec<i64>,
@@ -247,22 +259,40 @@ pub enum Corrections {
 
 impl SampleSet {
     pub fn new(episodes: &[EpisodeTensors], cfg: &DiffusionConfig) -> SampleSet {
-        SampleSet::selecting(episodes, cfg, Corrections::All)
+        SampleSet::selecting(episodes, cfg, Corrections::All, false)
     }
 
-    /// The samples of `episodes`, correction episodes' chosen by `corrections`.
-    pub fn selecting(episodes: &[EpisodeTensors], cfg: &DiffusionConfig, corrections: Corrections) -> SampleSet {
+    /// The samples of `episodes`, correction episodes' chosen by `corrections`; with
+    /// `skip_missed`, none whose labels hold a missed grasp's mistake
+    /// ([`TrainConfig::skip_missed_grasps`]).
+    pub fn selecting(
+        episodes: &[EpisodeTensors],
+        cfg: &DiffusionConfig,
+        corrections: Corrections,
+        skip_missed: bool,
+    ) -> SampleSet {
         let (n_obs, horizon) = (cfg.n_obs_steps as usize, cfg.horizon as usize);
         // LeRobot's drop_n_last_frames: the last steps, whose chunks would be mostly padding,
         // are not sampled.
         let drop_last = (cfg.horizon - cfg.n_action_steps - cfg.n_obs_steps + 1).max(0) as usize;
         let (mut obs_rows, mut action_rows, mut episode_of) = (Vec::new(), Vec::new(), Vec::new());
         let mut first_samples = Vec::new();
+        let (mut missed_grasps, mut mistake_windows) = (0, 0);
+        let mut ignored_events = Vec::with_capacity(episodes.len());
         let mut offset = 0i64;
         for (e, ep) in episodes.iter().enumerate() {
             let keep = ep.len().saturating_sub(drop_last).max(1);
             let operator: Vec<bool> = ep.source.iter().map(|&s| crate::data::is_operator(s)).collect();
+            let missed = if skip_missed { crate::data::missed_grasps(&ep.state, &ep.action, 7) } else { Vec::new() };
+            let mut mistake = vec![false; ep.len()];
+            missed.iter().flat_map(|m| m.mistake()).for_each(|k| mistake[k] = true);
+            missed_grasps += missed.len();
+            ignored_events.push(missed.iter().flat_map(|m| [m.close, m.reopen]).collect::<Vec<_>>());
             for w in windows(ep.len(), n_obs, horizon).into_iter().take(keep) {
+                if w.actions.iter().any(|&k| mistake[k]) {
+                    mistake_windows += 1;
+                    continue;
+                }
                 if w.t == 0 && !ep.is_correction() {
                     first_samples.push(episode_of.len());
                 }
@@ -293,8 +323,21 @@ impl SampleSet {
             frames: cat(&|e| e.frames.shallow_clone()),
             state: cat(&|e| e.state.shallow_clone()),
             action: cat(&|e| e.action.shallow_clone()),
-            waypoint: cat(&|e| crate::data::waypoints(&e.state, &e.action)),
+            waypoint: if episodes.is_empty() {
+                Tensor::zeros([0, 3], (Kind::Float, Device::Cpu))
+            } else {
+                Tensor::cat(
+                    &episodes
+                        .iter()
+                        .zip(&ignored_events)
+                        .map(|(e, ignore)| crate::data::waypoints(&e.state, &e.action, ignore))
+                        .collect::<Vec<_>>(),
+                    0,
+                )
+            },
             first_samples,
+            missed_grasps,
+            mistake_windows,
             obs_rows,
             action_rows,
             episode_of,
@@ -422,6 +465,12 @@ pub struct RunReport {
     /// The training samples (windows) drawn from those.
     #[serde(default)]
     pub correction_samples: usize,
+    /// With `skip_missed_grasps`: missed grasps found in the training episodes, and the
+    /// windows left out for holding their mistake.
+    #[serde(default)]
+    pub missed_grasps: usize,
+    #[serde(default)]
+    pub mistake_windows: usize,
     pub w: f64,
     pub drawn_target: u64,
     pub drawn_cotrain: u64,
@@ -853,14 +902,30 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     if opts.resume && last.is_none() {
         eprintln!("--resume: no checkpoint in {} yet; starting from step 0", opts.out.display());
     }
-    let train_set = SampleSet::selecting(&train_eps, model, opts.corrections);
-    let val_set = SampleSet::new(&val_eps, model);
-    let co_set = SampleSet::selecting(&cotrain, model, opts.corrections);
+    if tc.skip_missed_grasps && !model.gripper_state {
+        return Err(TrainError::Setup(
+            "skip_missed_grasps reads the gripper's opening from the state: set gripper_state = true".into(),
+        ));
+    }
+    let skip = tc.skip_missed_grasps;
+    let train_set = SampleSet::selecting(&train_eps, model, opts.corrections, skip);
+    let val_set = SampleSet::selecting(&val_eps, model, Corrections::All, skip);
+    let co_set = SampleSet::selecting(&cotrain, model, opts.corrections, skip);
+    if skip {
+        eprintln!(
+            "skip_missed_grasps: {} missed grasps in the training episodes, {} windows holding their mistake left out ({} kept)",
+            train_set.missed_grasps + co_set.missed_grasps,
+            train_set.mistake_windows + co_set.mistake_windows,
+            train_set.len() + co_set.len()
+        );
+    }
+    let (missed_grasps, mistake_windows) =
+        (train_set.missed_grasps + co_set.missed_grasps, train_set.mistake_windows + co_set.mistake_windows);
     let corrections: Vec<&EpisodeTensors> = train_eps.iter().chain(&cotrain).filter(|e| e.is_correction()).collect();
     let correction_episodes = corrections.len();
     let correction_samples = corrections
         .iter()
-        .map(|e| SampleSet::selecting(std::slice::from_ref(*e), model, opts.corrections).len())
+        .map(|e| SampleSet::selecting(std::slice::from_ref(*e), model, opts.corrections, skip).len())
         .sum::<usize>();
     drop(corrections);
     let (state_stats, action_stats, resumed_from) = match &last {
@@ -1066,6 +1131,8 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         skipped_unsuccessful: skipped_t + skipped_c,
         correction_episodes,
         correction_samples,
+        missed_grasps,
+        mistake_windows,
         w,
         drawn_target: sampler.drawn_target,
         drawn_cotrain: sampler.drawn_cotrain,
@@ -1211,15 +1278,44 @@ mod tests {
         let newest = |set: &SampleSet| -> Vec<i64> { (0..set.len()).map(|i| set.obs_rows[i * 2 + 1]).collect() };
         let correction = ep(source.clone());
         assert!(correction.is_correction());
-        let all = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::All);
+        let all = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::All, false);
         assert_eq!(newest(&all), (0..10).collect::<Vec<_>>());
-        let op = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 0 });
+        let op = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 0 }, false);
         assert_eq!(newest(&op), [4, 5, 6]);
-        let lead = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 2 });
+        let lead = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 2 }, false);
         assert_eq!(newest(&lead), [2, 3, 4, 5, 6]);
         let demo = ep(vec![Step::SOURCE_SCRIPTED; t]);
         assert!(!demo.is_correction());
-        assert_eq!(SampleSet::selecting(&[demo], &cfg, Corrections::Operator { before: 0 }).len(), 10);
+        assert_eq!(SampleSet::selecting(&[demo], &cfg, Corrections::Operator { before: 0 }, false).len(), 10);
+    }
+
+    /// With `skip_missed`, the windows whose labels hold a missed grasp's descent or close
+    /// (steps 1..8 of `miss_then_grasp`-like data) are left out; the recovery's stay.
+    #[test]
+    fn windows_holding_a_missed_grasp_are_left_out_when_asked() {
+        let z = [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
+        let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
+        let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
+        let t = z.len();
+        let state: Vec<f32> = (0..t).flat_map(|k| [k as f32, 0.0, z[k], 1.0, 0.0, 0.0, 0.0, reading[k]]).collect();
+        let action: Vec<f32> = cmd.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
+        let ep = EpisodeTensors {
+            path: "ep".into(),
+            uuid: "ep".into(),
+            success: Some(true),
+            state: Tensor::from_slice(&state).view([t as i64, 8]),
+            action: Tensor::from_slice(&action).view([t as i64, 7]),
+            frames: Tensor::zeros([t as i64, 0, 3, 1, 1], (Kind::Uint8, Device::Cpu)),
+            source: vec![Step::SOURCE_SCRIPTED; t],
+        };
+        let cfg = DiffusionConfig { horizon: 4, n_action_steps: 3, n_obs_steps: 2, ..DiffusionConfig::tiny() };
+        let newest = |set: &SampleSet| -> Vec<i64> { (0..set.len()).map(|i| set.obs_rows[i * 2 + 1]).collect() };
+        let all = SampleSet::selecting(std::slice::from_ref(&ep), &cfg, Corrections::All, false);
+        assert_eq!((all.len(), all.missed_grasps), (t, 0));
+        let kept = SampleSet::selecting(std::slice::from_ref(&ep), &cfg, Corrections::All, true);
+        // A window at t holds actions t-1..=t+2: those touching 1..=7 go (t = 0..=8).
+        assert_eq!(newest(&kept), (9..t as i64).collect::<Vec<_>>());
+        assert_eq!((kept.missed_grasps, kept.mistake_windows), (1, 9));
     }
 
     #[test]

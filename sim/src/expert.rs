@@ -121,7 +121,16 @@ pub struct PickPlaceExpert {
     /// [`PickPlaceExpert::with_aim_error`]: where the first approach and the first descent
     /// stop short (offsets in the table plane from the object), each taken out when reached.
     aim: [Option<Vector3<f64>>; 2],
+    /// [`PickPlaceExpert::with_missed_grasp`]: where the first descent goes instead of the
+    /// object (an offset in the table plane), taken out when the missed grasp is retried.
+    miss: Option<Vector3<f64>>,
 }
+
+/// A missed grasp's offset from the object across the fingers' closing axis (m): the
+/// finger pads (22 mm wide) close beside the 50 mm cube, on nothing.
+const MISS_ACROSS_M: std::ops::RangeInclusive<f64> = 0.04..=0.055;
+/// ... and along the closing axis, where the open fingers (85 mm) still clear it.
+const MISS_ALONG_M: f64 = 0.01;
 
 const HOVER_Z: f64 = 0.12;
 /// With an aim error, the descent pauses this far above the grasp point to correct its
@@ -160,7 +169,33 @@ impl PickPlaceExpert {
             last_gripper: 0.0,
             start: Vector3::from(start),
             aim: [None, None],
+            miss: None,
         }
+    }
+
+    /// Demos with a missed grasp and its recovery, in `fraction` of the scenes (drawn from
+    /// the seed): the first descent goes down beside the object ([`MISS_ACROSS_M`] across the
+    /// fingers' closing axis, so they close on nothing) and closes; the expert's usual retry
+    /// does the rest: it lifts with the fingers shut, opens, comes back over the object and
+    /// grasps it. A policy's misses look like this; demos without one never show the way back.
+    /// (The descent and the close of the miss are the deliberate mistake: training drops
+    /// them as labels, `skip_missed_grasps`; what follows is the lesson.) 0 = never.
+    pub fn with_missed_grasp(mut self, seed: u64, fraction: f64) -> PickPlaceExpert {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_1A55);
+        if fraction <= 0.0 || rng.random::<f64>() >= fraction {
+            self.miss = None;
+            return self;
+        }
+        let grasp_rot = *Rotation3::from_axis_angle(&Vector3::z_axis(), self.grasp_yaw).matrix() * self.down;
+        let flat = |v: Vector3<f64>| Vector3::new(v.x, v.y, 0.0).normalize();
+        let (across, along) = (flat(grasp_rot * Vector3::x()), flat(grasp_rot * Vector3::y()));
+        let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
+        let off = across * sign * rng.random_range(MISS_ACROSS_M) + along * rng.random_range(-MISS_ALONG_M..=MISS_ALONG_M);
+        self.miss = Some(off);
+        // The descent goes straight to the miss: no pause to correct on the way.
+        self.aim[1] = None;
+        self
     }
 
     /// Demos that look and correct (DART-like, but every recorded action is the expert's):
@@ -209,6 +244,7 @@ impl PickPlaceExpert {
             attempts: 1,
             last_gripper: sim.gripper_position(),
             aim: [None, None],
+            miss: None,
             ..self.clone()
         }
     }
@@ -259,13 +295,14 @@ impl PickPlaceExpert {
                 let off = self.aim[0].unwrap_or_default();
                 (Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + HOVER_Z), grasp_rot, 0.0)
             }
-            Phase::Descend => match self.aim[1] {
-                Some(off) => (
+            Phase::Descend => match (self.miss, self.aim[1]) {
+                (Some(off), _) => (Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0),
+                (None, Some(off)) => (
                     Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + GRASP_ABOVE_CENTRE + LOOK_ABOVE_GRASP),
                     grasp_rot,
                     0.0,
                 ),
-                None => (Vector3::new(obj.x, obj.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0),
+                (None, None) => (Vector3::new(obj.x, obj.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0),
             },
             Phase::Grasp => {
                 self.carried = pos;
@@ -309,6 +346,10 @@ impl PickPlaceExpert {
             self.attempts += 1;
             self.phase = Phase::Approach;
             self.ticks_in_phase = 0;
+            self.miss = None;
+            self.aim = [None, None];
+            // The miss may have nudged or turned the object: turn to it as it lies now.
+            self.grasp_yaw = turn_to(&self.down, sim.object_yaw(), std::f64::consts::FRAC_PI_2);
         } else if done || (self.ticks_in_phase > PHASE_TIMEOUT && self.phase != Phase::Done) {
             tracing::debug!(
                 phase = ?self.phase,
@@ -511,6 +552,15 @@ impl Expert {
             Task::DrawerOpen | Task::DrawerClose => {
                 Expert::Drawer(DrawerExpert::new(sim).expect("the spec validated a drawer for the drawer tasks"))
             }
+        }
+    }
+
+    /// Pick-and-place demos with a missed grasp and its recovery in `fraction` of the scenes:
+    /// [`PickPlaceExpert::with_missed_grasp`]. Drawer experts are unchanged.
+    pub fn with_missed_grasp(self, sim: &Sim, fraction: f64) -> Expert {
+        match self {
+            Expert::PickPlace(e) => Expert::PickPlace(e.with_missed_grasp(sim.scene().seed, fraction)),
+            other => other,
         }
     }
 

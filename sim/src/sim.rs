@@ -389,6 +389,13 @@ impl Sim {
         self.data.xpos()[self.object_body]
     }
 
+    /// The object's yaw (rad): the heading of its x axis in the base frame's table plane (for
+    /// an object that lies flat, its turn about z).
+    pub fn object_yaw(&self) -> f64 {
+        let m = self.data.xmat()[self.object_body];
+        m[3].atan2(m[0])
+    }
+
     /// How far the drawer is open (m; 0 = shut), if the scene has one.
     pub fn drawer_opening(&self) -> Option<f64> {
         self.drawer.map(|(qpos, _)| self.data.qpos()[qpos])

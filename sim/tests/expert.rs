@@ -212,3 +212,43 @@ fn the_expert_that_aims_off_stops_beside_the_object_corrects_over_it_and_still_s
     }
     assert!(successes >= 9, "the aiming expert succeeded on {successes}/10 scenes");
 }
+
+/// With a miss fraction of 1 every scene's first grasp closes on nothing 4-5.5 cm beside the
+/// cube (the fingers shut: the gripper reads near 1 while the arm is still down); the expert
+/// then rises, opens, comes back over the cube and grasps it, and still solves. With 0 the
+/// seeds' first grasps hold. The same seed draws the same miss.
+#[test]
+fn the_expert_that_misses_on_purpose_closes_beside_the_cube_then_recovers() {
+    let spec = SceneSpec::default_pick_place();
+    let mut successes = 0;
+    for seed in 0..6 {
+        for fraction in [0.0, 1.0] {
+            let mut sim = Sim::new(&assets(), &spec, seed, Nanos::from_millis(50)).unwrap();
+            let obj = sim.object_position();
+            let e = expert::Expert::new(&sim).with_aim_error(&sim, 0.06).with_missed_grasp(&sim, fraction);
+            // (command closed, TCP xy distance from the cube, gripper reading) per tick.
+            let mut ticks: Vec<(bool, f64, f64)> = Vec::new();
+            let r = expert::run_episode_with(&mut sim, e, 500, |sim, a| {
+                let (p, _) = sim.tcp_pose();
+                let o = sim.object_position();
+                ticks.push((a.gripper_position >= 0.5, (p[0] - o[0]).hypot(p[1] - o[1]), sim.gripper_position()));
+                Ok(())
+            })
+            .unwrap();
+            let closes: Vec<usize> = (1..ticks.len()).filter(|&t| ticks[t].0 && !ticks[t - 1].0).collect();
+            if fraction == 0.0 {
+                assert_eq!(closes.len(), 1, "seed {seed}: the first grasp should hold ({} closes)", closes.len());
+                continue;
+            }
+            assert_eq!(closes.len(), 2, "seed {seed}: a miss and a grasp, not {} closes", closes.len());
+            let miss_off = ticks[closes[0]].1;
+            assert!((0.03..0.07).contains(&miss_off), "seed {seed}: the miss closed {miss_off:.3} m from the cube ({obj:?})");
+            let shut = ticks[closes[0]..closes[1]].iter().map(|t| t.2).fold(0.0, f64::max);
+            assert!(shut > 0.8, "seed {seed}: the fingers shut on nothing should read near 1, read {shut:.2}");
+            let grasp_off = ticks[closes[1]].1;
+            assert!(grasp_off < 0.01, "seed {seed}: the retry closed {grasp_off:.3} m from the cube");
+            successes += r.success as u32;
+        }
+    }
+    assert_eq!(successes, 6, "the missing expert solved {successes}/6 scenes");
+}

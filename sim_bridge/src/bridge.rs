@@ -110,6 +110,11 @@ pub struct BridgeConfig {
     /// above the grasp a third as far off and corrects again (`PickPlaceExpert::with_aim_error`).
     /// Every recorded action is still the expert's. 0 (default): the exact expert.
     pub expert_aim_error_m: f64,
+    /// With `expert`, on pick-and-place: in this fraction of the scenes (drawn from the seed)
+    /// the expert's first grasp misses on purpose, 4-5.5 cm beside the object, and it then
+    /// recovers as it does from any miss: lifts, opens, comes back over the object and grasps
+    /// it (`PickPlaceExpert::with_missed_grasp`). 0 (default): never.
+    pub expert_miss_fraction: f64,
     /// Sim time on the wall clock's time line (Unix ns) instead of from 0: in realtime each
     /// step's state and frames are stamped with the wall time they were made at, as a real
     /// rig's, so a control loop on the wall clock pairs them with its ticks; time lost to a
@@ -194,6 +199,7 @@ impl Default for BridgeConfig {
             expert: false,
             expert_resume: false,
             expert_aim_error_m: 0.0,
+            expert_miss_fraction: 0.0,
             wall_clock_origin: false,
             realtime_priority: None,
             max_ticks: None,
@@ -243,6 +249,18 @@ impl BridgeConfig {
             return Err(Invalid::new(
                 "expert_aim_error_m",
                 "expert_aim_error_m (--expert-aim-error-m) needs expert (--expert)",
+            ));
+        }
+        if !(self.expert_miss_fraction.is_finite() && (0.0..=1.0).contains(&self.expert_miss_fraction)) {
+            return Err(Invalid::new(
+                "expert_miss_fraction",
+                format!("expert_miss_fraction = {} must be in 0..=1", self.expert_miss_fraction),
+            ));
+        }
+        if self.expert_miss_fraction > 0.0 && !self.expert {
+            return Err(Invalid::new(
+                "expert_miss_fraction",
+                "expert_miss_fraction (--expert-miss-fraction) needs expert (--expert)",
             ));
         }
         if let Some(r) = self.camera_rate_hz
@@ -361,6 +379,11 @@ pub struct BridgeFlags {
     #[arg(long)]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub expert_aim_error_m: Option<f64>,
+    /// Demos with a missed grasp and its recovery in this fraction of the scenes (config
+    /// `expert_miss_fraction`; needs --expert).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub expert_miss_fraction: Option<f64>,
     /// Sim time on the wall clock's time line (config `wall_clock_origin`).
     #[arg(long)]
     #[serde(skip_serializing_if = "is_false")]
@@ -584,8 +607,11 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     };
     let mut expert = if a.expert {
         Some(ExpertPub {
-            expert: labrig_sim::expert::Expert::new(&sim).with_aim_error(&sim, a.expert_aim_error_m),
+            expert: labrig_sim::expert::Expert::new(&sim)
+                .with_aim_error(&sim, a.expert_aim_error_m)
+                .with_missed_grasp(&sim, a.expert_miss_fraction),
             aim_error_m: a.expert_aim_error_m,
+            miss_fraction: a.expert_miss_fraction,
             resume: a.expert_resume.then(|| (labrig_sim::expert::Expert::new(&sim), safety.ik().kinematics().clone())),
             last_action: None,
             action: ros.publisher_on(&topics::SIM_EXPERT_ACTION, 10)?,
@@ -828,6 +854,8 @@ struct ExpertPub {
     resume: Option<(labrig_sim::expert::Expert, labrig_arm::Fr3Kinematics)>,
     /// `expert_aim_error_m`, for each new scene's expert.
     aim_error_m: f64,
+    /// `expert_miss_fraction`, likewise.
+    miss_fraction: f64,
     /// The last action published (pose, gripper): what the arm followed or not.
     last_action: Option<([f64; 6], f64)>,
     action: RosPublisher<ArmCommand>,
@@ -840,7 +868,9 @@ struct ExpertPub {
 impl ExpertPub {
     /// A new scene at its reset pose: a new expert (and template).
     fn new_scene(&mut self, sim: &Sim) {
-        self.expert = labrig_sim::expert::Expert::new(sim).with_aim_error(sim, self.aim_error_m);
+        self.expert = labrig_sim::expert::Expert::new(sim)
+            .with_aim_error(sim, self.aim_error_m)
+            .with_missed_grasp(sim, self.miss_fraction);
         if let Some((template, _)) = &mut self.resume {
             *template = self.expert.clone();
         }

@@ -121,6 +121,10 @@ struct EvalArgs {
     /// to this far (m) beside the object. 0 = the exact expert.
     #[arg(long, default_value_t = 0.0)]
     aim_error_m: f64,
+    /// Demos with a missed grasp and its recovery (`expert_miss_fraction`): in this fraction
+    /// of the scenes the first grasp closes beside the object on purpose. 0 = never.
+    #[arg(long, default_value_t = 0.0)]
+    miss_fraction: f64,
 }
 
 /// Exit status when the replay deviates beyond the tolerances.
@@ -198,7 +202,7 @@ fn eval(a: EvalArgs) -> anyhow::Result<ExitCode> {
     let mut results: Vec<EpisodeResult> = Vec::new();
     for seed in a.first_seed..a.first_seed + a.episodes {
         let mut sim = Sim::new(&assets, &spec, seed, Nanos::from_millis(50)).with_context(|| format!("seed {seed}"))?;
-        let e = expert::Expert::new(&sim).with_aim_error(&sim, a.aim_error_m);
+        let e = expert::Expert::new(&sim).with_aim_error(&sim, a.aim_error_m).with_missed_grasp(&sim, a.miss_fraction);
         let r = expert::run_episode_with(&mut sim, e, a.max_ticks, |_, _| Ok(()))?;
         results.push(r);
         let ok = results.iter().filter(|r| r.success).count();

@@ -58,6 +58,12 @@ pub struct DemoArgs {
     /// cube in the wrist camera before they grasp. 0 = the exact expert.
     #[arg(long, default_value_t = 0.0)]
     pub expert_aim_error_m: f64,
+    /// Demos with a missed grasp and its recovery (pick-and-place): in this fraction of the
+    /// scenes (drawn from the seed) the expert's first grasp closes 4-5.5 cm beside the cube
+    /// on purpose, then it lifts, opens, comes back and grasps it. The miss's descent and
+    /// close are not labels for training (`skip_missed_grasps`); the way back is. 0 = never.
+    #[arg(long, default_value_t = 0.0)]
+    pub expert_miss_fraction: f64,
 }
 
 /// Sets `flag`'s value in `args` (appended when absent).
@@ -102,6 +108,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         }
         if args.expert_aim_error_m != 0.0 {
             set_arg(&mut sim.args, "--expert-aim-error-m", &args.expert_aim_error_m.to_string());
+        }
+        if args.expert_miss_fraction != 0.0 {
+            set_arg(&mut sim.args, "--expert-miss-fraction", &args.expert_miss_fraction.to_string());
         }
         if args.realtime {
             sim.args.extend(["--wall-clock-origin".into(), "--realtime-priority".into(), "10".into()]);
