@@ -214,7 +214,9 @@ pub fn missed_grasps(state: &Tensor, action: &Tensor, gripper: i64) -> Vec<Misse
     if n == 0 || state.size()[1] <= gripper {
         return Vec::new();
     }
-    let col = |c: i64| -> Vec<f32> { Vec::try_from(state.select(1, c).to_kind(Kind::Float).contiguous()).unwrap_or_default() };
+    let col = |c: i64| -> Vec<f32> {
+        Vec::try_from(state.select(1, c).to_kind(Kind::Float).contiguous()).unwrap_or_default()
+    };
     let (z, reading) = (col(2), col(gripper));
     let closed = gripper_closed(action);
     let mut out = Vec::new();
@@ -611,11 +613,13 @@ mod tests {
     /// Steps 0-1 hover (step 1's action starts down), 2-4 descend, 5-7 closed on nothing (reading 1.0), 8-9 rise shut,
     /// 10 opens, 11-13 descend again, 14-16 closed on the cube (0.45), 17 rises.
     fn miss_then_grasp() -> (Tensor, Tensor) {
-        let z = [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
+        let z =
+            [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
         let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
         let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
         let n = z.len() as i64;
-        let state: Vec<f32> = (0..z.len()).flat_map(|t| [t as f32, 0.0, z[t], 1.0, 0.0, 0.0, 0.0, reading[t]]).collect();
+        let state: Vec<f32> =
+            (0..z.len()).flat_map(|t| [t as f32, 0.0, z[t], 1.0, 0.0, 0.0, 0.0, reading[t]]).collect();
         let action: Vec<f32> = cmd.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
         (Tensor::from_slice(&state).view([n, 8]), Tensor::from_slice(&action).view([n, 7]))
     }

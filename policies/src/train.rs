@@ -1280,9 +1280,11 @@ mod tests {
         assert!(correction.is_correction());
         let all = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::All, false);
         assert_eq!(newest(&all), (0..10).collect::<Vec<_>>());
-        let op = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 0 }, false);
+        let op =
+            SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 0 }, false);
         assert_eq!(newest(&op), [4, 5, 6]);
-        let lead = SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 2 }, false);
+        let lead =
+            SampleSet::selecting(std::slice::from_ref(&correction), &cfg, Corrections::Operator { before: 2 }, false);
         assert_eq!(newest(&lead), [2, 3, 4, 5, 6]);
         let demo = ep(vec![Step::SOURCE_SCRIPTED; t]);
         assert!(!demo.is_correction());
@@ -1293,7 +1295,8 @@ mod tests {
     /// (steps 1..8 of `miss_then_grasp`-like data) are left out; the recovery's stay.
     #[test]
     fn windows_holding_a_missed_grasp_are_left_out_when_asked() {
-        let z = [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
+        let z =
+            [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
         let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
         let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
         let t = z.len();

@@ -191,7 +191,8 @@ impl PickPlaceExpert {
         let flat = |v: Vector3<f64>| Vector3::new(v.x, v.y, 0.0).normalize();
         let (across, along) = (flat(grasp_rot * Vector3::x()), flat(grasp_rot * Vector3::y()));
         let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
-        let off = across * sign * rng.random_range(MISS_ACROSS_M) + along * rng.random_range(-MISS_ALONG_M..=MISS_ALONG_M);
+        let off =
+            across * sign * rng.random_range(MISS_ACROSS_M) + along * rng.random_range(-MISS_ALONG_M..=MISS_ALONG_M);
         self.miss = Some(off);
         // The descent goes straight to the miss: no pause to correct on the way.
         self.aim[1] = None;
@@ -296,7 +297,9 @@ impl PickPlaceExpert {
                 (Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + HOVER_Z), grasp_rot, 0.0)
             }
             Phase::Descend => match (self.miss, self.aim[1]) {
-                (Some(off), _) => (Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0),
+                (Some(off), _) => {
+                    (Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + GRASP_ABOVE_CENTRE), grasp_rot, 0.0)
+                }
                 (None, Some(off)) => (
                     Vector3::new(obj.x + off.x, obj.y + off.y, obj.z + GRASP_ABOVE_CENTRE + LOOK_ABOVE_GRASP),
                     grasp_rot,

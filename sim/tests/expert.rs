@@ -242,7 +242,10 @@ fn the_expert_that_misses_on_purpose_closes_beside_the_cube_then_recovers() {
             }
             assert_eq!(closes.len(), 2, "seed {seed}: a miss and a grasp, not {} closes", closes.len());
             let miss_off = ticks[closes[0]].1;
-            assert!((0.03..0.07).contains(&miss_off), "seed {seed}: the miss closed {miss_off:.3} m from the cube ({obj:?})");
+            assert!(
+                (0.03..0.07).contains(&miss_off),
+                "seed {seed}: the miss closed {miss_off:.3} m from the cube ({obj:?})"
+            );
             let shut = ticks[closes[0]..closes[1]].iter().map(|t| t.2).fold(0.0, f64::max);
             assert!(shut > 0.8, "seed {seed}: the fingers shut on nothing should read near 1, read {shut:.2}");
             let grasp_off = ticks[closes[1]].1;
