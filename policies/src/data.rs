@@ -222,7 +222,8 @@ pub fn missed_grasps(state: &Tensor, action: &Tensor, gripper: i64) -> Vec<Misse
     let mut out = Vec::new();
     let mut t = 1;
     while t < n {
-        if !(closed[t] && !closed[t - 1]) {
+        let closes = closed[t] && !closed[t - 1];
+        if !closes {
             t += 1;
             continue;
         }
