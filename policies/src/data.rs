@@ -114,6 +114,10 @@ pub fn state_of(rs: &RobotState) -> [f32; 7] {
     [p[0], p[1], p[2], qx, qy, qz, qw].map(|x| x as f32)
 }
 
+/// The state's column of the gripper's opening, with `gripper_state` ([`state_row`]: after the
+/// pose's 7 values).
+pub const GRIPPER_COLUMN: i64 = 7;
+
 /// A policy's state for one step: the pose (`state_of`), then the gripper's opening
 /// (`gripper_state`), then the scene's positions (`scene_state`). Training and the policy
 /// server build it here alike.
@@ -544,6 +548,20 @@ fn decode_episode(path: &Path, parts: &[PathBuf], cfg: &DiffusionConfig) -> Resu
     })
 }
 
+/// For tests: a demo that misses, then grasps: z (m), the gripper command and its reading per step.
+/// Steps 0-1 hover (step 1's action starts down), 2-4 descend, 5-7 closed on nothing (reading 1.0), 8-9 rise shut,
+/// 10 opens, 11-13 descend again, 14-16 closed on the cube (0.45), 17 rises.
+#[cfg(test)]
+pub(crate) fn miss_then_grasp() -> (Tensor, Tensor) {
+    let z = [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
+    let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
+    let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
+    let n = z.len() as i64;
+    let state: Vec<f32> = (0..z.len()).flat_map(|t| [t as f32, 0.0, z[t], 1.0, 0.0, 0.0, 0.0, reading[t]]).collect();
+    let action: Vec<f32> = cmd.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
+    (Tensor::from_slice(&state).view([n, 8]), Tensor::from_slice(&action).view([n, 7]))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -607,35 +625,17 @@ mod tests {
         assert!(e.to_string().contains("step 2: robot_state.cartesian_position"), "{e}");
     }
 
-    /// A pick and place of six steps: the gripper closes at step 2 and opens at step 4. Steps
-    /// 0..=1 point at the grasp (step 2's TCP), 2..=3 at the release (step 4's), 4..=5 at the
-    /// last pose; an episode with no event points at its last pose throughout.
-    /// A demo that misses, then grasps: z (m), the gripper command and its reading per step.
-    /// Steps 0-1 hover (step 1's action starts down), 2-4 descend, 5-7 closed on nothing (reading 1.0), 8-9 rise shut,
-    /// 10 opens, 11-13 descend again, 14-16 closed on the cube (0.45), 17 rises.
-    fn miss_then_grasp() -> (Tensor, Tensor) {
-        let z =
-            [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
-        let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
-        let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
-        let n = z.len() as i64;
-        let state: Vec<f32> =
-            (0..z.len()).flat_map(|t| [t as f32, 0.0, z[t], 1.0, 0.0, 0.0, 0.0, reading[t]]).collect();
-        let action: Vec<f32> = cmd.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
-        (Tensor::from_slice(&state).view([n, 8]), Tensor::from_slice(&action).view([n, 7]))
-    }
-
     /// The miss is found from the recording alone (its descent from the hover, the close, the
     /// first step 5 mm up, the reopen); the grasp on the cube is not a miss; with the miss's
     /// events ignored, the steps before it point at the grasp that held.
     #[test]
     fn a_missed_grasp_is_read_from_the_recording() {
-        let (state, action) = miss_then_grasp();
-        let missed = missed_grasps(&state, &action, 7);
+        let (state, action) = super::miss_then_grasp();
+        let missed = missed_grasps(&state, &action, GRIPPER_COLUMN);
         assert_eq!(missed, [MissedGrasp { descent: 1, close: 5, lift: 8, reopen: 10 }]);
         assert_eq!(missed[0].mistake(), 1..8);
         // Without the gripper's reading nothing can be told.
-        assert!(missed_grasps(&state.narrow(1, 0, 7), &action, 7).is_empty());
+        assert!(missed_grasps(&state.narrow(1, 0, 7), &action, GRIPPER_COLUMN).is_empty());
         let x = |w: &Tensor| -> Vec<f32> { Vec::try_from(w.select(1, 0).contiguous()).unwrap() };
         // Plain: steps 0..=4 point at the miss (step 5's TCP, x = 5).
         assert_eq!(x(&waypoints(&state, &action, &[]))[..5], [5.0; 5]);
@@ -645,6 +645,9 @@ mod tests {
         assert_eq!(w[14..17], [17.0; 3]);
     }
 
+    /// A pick and place of six steps: the gripper closes at step 2 and opens at step 4. Steps
+    /// 0..=1 point at the grasp (step 2's TCP), 2..=3 at the release (step 4's), 4..=5 at the
+    /// last pose; an episode with no event points at its last pose throughout.
     #[test]
     fn waypoints_are_the_tcp_at_the_next_gripper_event() {
         let tcp =

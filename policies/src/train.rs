@@ -292,16 +292,21 @@ impl SampleSet {
         let (mut obs_rows, mut action_rows, mut episode_of) = (Vec::new(), Vec::new(), Vec::new());
         let mut first_samples = Vec::new();
         let (mut missed_grasps, mut mistake_windows) = (0, 0);
-        let mut ignored_events = Vec::with_capacity(episodes.len());
+        let mut waypoints = Vec::with_capacity(episodes.len());
         let mut offset = 0i64;
         for (e, ep) in episodes.iter().enumerate() {
             let keep = ep.len().saturating_sub(drop_last).max(1);
             let operator: Vec<bool> = ep.source.iter().map(|&s| crate::data::is_operator(s)).collect();
-            let missed = if skip_missed { crate::data::missed_grasps(&ep.state, &ep.action, 7) } else { Vec::new() };
+            let missed = if skip_missed {
+                crate::data::missed_grasps(&ep.state, &ep.action, crate::data::GRIPPER_COLUMN)
+            } else {
+                Vec::new()
+            };
             let mut mistake = vec![false; ep.len()];
             missed.iter().flat_map(|m| m.mistake()).for_each(|k| mistake[k] = true);
             missed_grasps += missed.len();
-            ignored_events.push(missed.iter().flat_map(|m| [m.close, m.reopen]).collect::<Vec<_>>());
+            let ignore: Vec<usize> = missed.iter().flat_map(|m| [m.close, m.reopen]).collect();
+            waypoints.push(crate::data::waypoints(&ep.state, &ep.action, &ignore));
             for w in windows(ep.len(), n_obs, horizon).into_iter().take(keep) {
                 if w.actions.iter().any(|&k| mistake[k]) {
                     mistake_windows += 1;
@@ -337,17 +342,10 @@ impl SampleSet {
             frames: cat(&|e| e.frames.shallow_clone()),
             state: cat(&|e| e.state.shallow_clone()),
             action: cat(&|e| e.action.shallow_clone()),
-            waypoint: if episodes.is_empty() {
+            waypoint: if waypoints.is_empty() {
                 Tensor::zeros([0, 3], (Kind::Float, Device::Cpu))
             } else {
-                Tensor::cat(
-                    &episodes
-                        .iter()
-                        .zip(&ignored_events)
-                        .map(|(e, ignore)| crate::data::waypoints(&e.state, &e.action, ignore))
-                        .collect::<Vec<_>>(),
-                    0,
-                )
+                Tensor::cat(&waypoints, 0)
             },
             first_samples,
             missed_grasps,
@@ -925,16 +923,14 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let train_set = SampleSet::selecting(&train_eps, model, opts.corrections, skip);
     let val_set = SampleSet::selecting(&val_eps, model, Corrections::All, skip);
     let co_set = SampleSet::selecting(&cotrain, model, opts.corrections, skip);
+    let (missed_grasps, mistake_windows) =
+        (train_set.missed_grasps + co_set.missed_grasps, train_set.mistake_windows + co_set.mistake_windows);
     if skip {
         eprintln!(
-            "skip_missed_grasps: {} missed grasps in the training episodes, {} windows holding their mistake left out ({} kept)",
-            train_set.missed_grasps + co_set.missed_grasps,
-            train_set.mistake_windows + co_set.mistake_windows,
+            "skip_missed_grasps: {missed_grasps} missed grasps in the training episodes, {mistake_windows} windows holding their mistake left out ({} kept)",
             train_set.len() + co_set.len()
         );
     }
-    let (missed_grasps, mistake_windows) =
-        (train_set.missed_grasps + co_set.missed_grasps, train_set.mistake_windows + co_set.mistake_windows);
     let corrections: Vec<&EpisodeTensors> = train_eps.iter().chain(&cotrain).filter(|e| e.is_correction()).collect();
     let correction_episodes = corrections.len();
     let correction_samples = corrections
@@ -1319,22 +1315,17 @@ mod tests {
     }
 
     /// With `skip_missed`, the windows whose labels hold a missed grasp's descent or close
-    /// (steps 1..8 of `miss_then_grasp`-like data) are left out; the recovery's stay.
+    /// (steps 1..8 of `data::miss_then_grasp`) are left out; the recovery's stay.
     #[test]
     fn windows_holding_a_missed_grasp_are_left_out_when_asked() {
-        let z =
-            [0.2f32, 0.2, 0.15, 0.1, 0.05, 0.05, 0.05, 0.05, 0.1, 0.15, 0.15, 0.12, 0.08, 0.05, 0.05, 0.05, 0.05, 0.1];
-        let cmd = [0.0f32, 0., 0., 0., 0., 1., 1., 1., 1., 1., 0., 0., 0., 0., 1., 1., 1., 1.];
-        let reading = [0.0f32, 0., 0., 0., 0., 0.5, 0.9, 1.0, 1.0, 1.0, 0.3, 0., 0., 0., 0.3, 0.45, 0.45, 0.45];
-        let t = z.len();
-        let state: Vec<f32> = (0..t).flat_map(|k| [k as f32, 0.0, z[k], 1.0, 0.0, 0.0, 0.0, reading[k]]).collect();
-        let action: Vec<f32> = cmd.iter().flat_map(|&g| [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, g]).collect();
+        let (state, action) = crate::data::miss_then_grasp();
+        let t = state.size()[0] as usize;
         let ep = EpisodeTensors {
             path: "ep".into(),
             uuid: "ep".into(),
             success: Some(true),
-            state: Tensor::from_slice(&state).view([t as i64, 8]),
-            action: Tensor::from_slice(&action).view([t as i64, 7]),
+            state,
+            action,
             frames: Tensor::zeros([t as i64, 0, 3, 1, 1], (Kind::Uint8, Device::Cpu)),
             source: vec![Step::SOURCE_SCRIPTED; t],
         };
