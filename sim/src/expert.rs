@@ -101,6 +101,32 @@ fn turn_to(down: &Matrix3<f64>, axis_yaw: f64, symmetry: f64) -> f64 {
     turn
 }
 
+/// The two aim errors of an expert that looks and corrects (the approach's, then the
+/// descent's a third as large), in directions drawn from the scene's `seed`; none for 0.
+fn aim_offsets(seed: u64, max_m: f64) -> [Option<Vector3<f64>>; 2] {
+    use rand::{Rng, SeedableRng};
+    if max_m <= 0.0 {
+        return [None, None];
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0xA1A1_E440);
+    let mut draw = |r: f64| {
+        let (len, dir) = (rng.random_range(0.4 * r..=r), rng.random_range(0.0..std::f64::consts::TAU));
+        Some(Vector3::new(len * dir.cos(), len * dir.sin(), 0.0))
+    };
+    [draw(max_m), draw(max_m * LOW_AIM_FRACTION)]
+}
+
+/// Whether `phase` (approach: `aim[0]`, descent: `aim[1]`) was heading for an aimed-off point
+/// and is `done`: that aim is taken out, and the phase goes on over (down to) the target itself.
+fn reached_aim(phase: Phase, aim: &mut [Option<Vector3<f64>>; 2], done: bool) -> bool {
+    let k = match phase {
+        Phase::Approach => 0,
+        Phase::Descend => 1,
+        _ => return false,
+    };
+    done && aim[k].take().is_some()
+}
+
 /// Pick-and-place from ground truth: approach above the object, descend, close, lift, carry
 /// over the bin, lower, open, retreat.
 #[derive(Debug, Clone)]
@@ -207,17 +233,7 @@ impl PickPlaceExpert {
     /// in its cameras with the motion that centres it, and a grasp that waits for that,
     /// where an exact expert shows only straight lines at one pace. 0 = the exact expert.
     pub fn with_aim_error(mut self, seed: u64, max_m: f64) -> PickPlaceExpert {
-        use rand::{Rng, SeedableRng};
-        if max_m <= 0.0 {
-            self.aim = [None, None];
-            return self;
-        }
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0xA1A1_E440);
-        let mut draw = |r: f64| {
-            let (len, dir) = (rng.random_range(0.4 * r..=r), rng.random_range(0.0..std::f64::consts::TAU));
-            Some(Vector3::new(len * dir.cos(), len * dir.sin(), 0.0))
-        };
-        self.aim = [draw(max_m), draw(max_m * LOW_AIM_FRACTION)];
+        self.aim = aim_offsets(seed, max_m);
         self
     }
 
@@ -332,17 +348,7 @@ impl PickPlaceExpert {
         };
         self.last_gripper = sim.gripper_position();
         // A grasp that did not lift the object is retried from the approach.
-        let aiming = match self.phase {
-            Phase::Approach => Some(0),
-            Phase::Descend => Some(1),
-            _ => None,
-        }
-        .filter(|&k| self.aim[k].is_some());
-        if let Some(k) = aiming
-            && done
-        {
-            // The aimed-off point is reached: now over (down to) the object itself.
-            self.aim[k] = None;
+        if reached_aim(self.phase, &mut self.aim, done) {
             self.ticks_in_phase = 0;
         } else if self.phase == Phase::Lift && done && obj.z < OBJECT_SIZE && self.attempts < MAX_ATTEMPTS {
             tracing::debug!(attempt = self.attempts, "expert: the object did not come up; retrying the grasp");
@@ -390,7 +396,18 @@ pub struct DrawerExpert {
     last_gripper: f64,
     /// The TCP at the reset pose: where the plan ([`Expert::plan`]) starts.
     start: Vector3<f64>,
+    /// [`DrawerExpert::with_aim_error`]: where the first approach and the first descent stop
+    /// short (offsets in the table plane from the handle), each taken out when reached.
+    aim: [Option<Vector3<f64>>; 2],
+    /// [`DrawerExpert::with_missed_grasp`]: where the first descent goes instead of the
+    /// handle, taken out when the grasp is retried.
+    miss: Option<Vector3<f64>>,
 }
+
+/// A missed handle grasp's offset toward the robot (-x) from the handle's grip point (m): the
+/// finger pads (22 mm wide) come down past the bar's free end (35 mm from its centre) with
+/// room for the drift of a close (~8 mm toward the bar), and close on nothing.
+const DRAWER_MISS_OUT_M: std::ops::RangeInclusive<f64> = 0.06..=0.075;
 
 /// The pinch point sits this far above the handle bar's centre.
 const HANDLE_GRIP_ABOVE: f64 = 0.004;
@@ -417,7 +434,35 @@ impl DrawerExpert {
             attempts: 1,
             last_gripper: 0.0,
             start: Vector3::from(start),
+            aim: [None, None],
+            miss: None,
         })
+    }
+
+    /// [`PickPlaceExpert::with_aim_error`] for the handle: the first approach hovers up to
+    /// `max_m` beside it, the first descent pauses [`LOOK_ABOVE_GRASP`] above the grip a third
+    /// as far off; each corrects over the handle before going on. 0 = the exact expert.
+    pub fn with_aim_error(mut self, seed: u64, max_m: f64) -> DrawerExpert {
+        self.aim = aim_offsets(seed, max_m);
+        self
+    }
+
+    /// [`PickPlaceExpert::with_missed_grasp`] for the handle, in `fraction` of the scenes: the
+    /// first descent goes down [`DRAWER_MISS_OUT_M`] toward the robot from the handle, past
+    /// the bar's free end (up to 1 cm aside), and closes on nothing; the slide then finds no
+    /// handle in the fingers and the expert's retry (up, open, back over the handle, grasp)
+    /// does the rest. 0 = never.
+    pub fn with_missed_grasp(mut self, seed: u64, fraction: f64) -> DrawerExpert {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_1A55);
+        if fraction <= 0.0 || rng.random::<f64>() >= fraction {
+            self.miss = None;
+            return self;
+        }
+        let out = rng.random_range(DRAWER_MISS_OUT_M);
+        self.miss = Some(Vector3::new(-out, rng.random_range(-MISS_ALONG_M..=MISS_ALONG_M), 0.0));
+        self.aim[1] = None;
+        self
     }
 
     /// This scene's expert (`self`, made at the reset pose) taking over from the state `sim`
@@ -440,6 +485,8 @@ impl DrawerExpert {
             held: held_at,
             attempts: 1,
             last_gripper: sim.gripper_position(),
+            aim: [None, None],
+            miss: None,
             ..self.clone()
         }
     }
@@ -477,8 +524,12 @@ impl DrawerExpert {
             _ => Phase::Pull,
         };
         let (target, gripper) = match self.phase {
-            Phase::Approach => (grip + Vector3::z() * HOVER_Z, 0.0),
-            Phase::Descend => (grip, 0.0),
+            Phase::Approach => (grip + self.aim[0].unwrap_or_default() + Vector3::z() * HOVER_Z, 0.0),
+            Phase::Descend => match (self.miss, self.aim[1]) {
+                (Some(off), _) => (grip + off, 0.0),
+                (None, Some(off)) => (grip + off + Vector3::z() * LOOK_ABOVE_GRASP, 0.0),
+                (None, None) => (grip, 0.0),
+            },
             Phase::Grasp => {
                 self.held = pos;
                 (pos, 1.0)
@@ -505,11 +556,15 @@ impl DrawerExpert {
         self.last_gripper = sim.gripper_position();
         // The handle slipped out of the fingers while sliding: let go and grasp again.
         let slipped = matches!(self.phase, Phase::Pull | Phase::Push) && (handle - pos).norm() > 0.03;
-        if slipped && self.attempts < MAX_ATTEMPTS {
-            tracing::debug!(attempt = self.attempts, "expert: the handle slipped; grasping again");
+        if reached_aim(self.phase, &mut self.aim, done) {
+            self.ticks_in_phase = 0;
+        } else if slipped && self.attempts < MAX_ATTEMPTS {
+            tracing::debug!(attempt = self.attempts, "expert: the handle slipped (or was missed); grasping again");
             self.attempts += 1;
             self.phase = Phase::Approach;
             self.ticks_in_phase = 0;
+            self.miss = None;
+            self.aim = [None, None];
         } else if done || (self.ticks_in_phase > PHASE_TIMEOUT && self.phase != Phase::Done) {
             tracing::debug!(phase = ?self.phase, ticks = self.ticks_in_phase, timed_out = !done, opening, "expert phase done");
             self.phase = if self.phase == Phase::Grasp { slide } else { self.next_phase() };
@@ -559,20 +614,22 @@ impl Expert {
     }
 
     /// Pick-and-place demos with a missed grasp and its recovery in `fraction` of the scenes:
-    /// [`PickPlaceExpert::with_missed_grasp`]. Drawer experts are unchanged.
+    /// [`PickPlaceExpert::with_missed_grasp`], [`DrawerExpert::with_missed_grasp`].
     pub fn with_missed_grasp(self, sim: &Sim, fraction: f64) -> Expert {
+        let seed = sim.scene().seed;
         match self {
-            Expert::PickPlace(e) => Expert::PickPlace(e.with_missed_grasp(sim.scene().seed, fraction)),
-            other => other,
+            Expert::PickPlace(e) => Expert::PickPlace(e.with_missed_grasp(seed, fraction)),
+            Expert::Drawer(e) => Expert::Drawer(e.with_missed_grasp(seed, fraction)),
         }
     }
 
-    /// Pick-and-place demos that look and correct: [`PickPlaceExpert::with_aim_error`], its
-    /// offsets drawn from `sim`'s scene seed. The drawer experts stay exact.
+    /// Demos that look and correct: [`PickPlaceExpert::with_aim_error`],
+    /// [`DrawerExpert::with_aim_error`], the offsets drawn from `sim`'s scene seed.
     pub fn with_aim_error(self, sim: &Sim, max_m: f64) -> Expert {
+        let seed = sim.scene().seed;
         match self {
-            Expert::PickPlace(e) => Expert::PickPlace(e.with_aim_error(sim.scene().seed, max_m)),
-            drawer => drawer,
+            Expert::PickPlace(e) => Expert::PickPlace(e.with_aim_error(seed, max_m)),
+            Expert::Drawer(e) => Expert::Drawer(e.with_aim_error(seed, max_m)),
         }
     }
 

@@ -104,16 +104,18 @@ pub struct BridgeConfig {
     /// also carries the expert's phase target and its whole plan (`Expert::plan`), which the
     /// loop's takeover rule measures the arm against.
     pub expert_resume: bool,
-    /// With `expert`, on pick-and-place: demos that look and correct. The expert's first
-    /// approach stops up to this far (m) beside the object (at least 0.4 of it, the direction
+    /// With `expert`: demos that look and correct. The expert's first approach stops up to
+    /// this far (m) beside the object or the drawer's handle (at least 0.4 of it, the direction
     /// drawn from the scene's seed) and then corrects over it; its first descent pauses 5 cm
-    /// above the grasp a third as far off and corrects again (`PickPlaceExpert::with_aim_error`).
+    /// above the grasp a third as far off and corrects again (`PickPlaceExpert::with_aim_error`,
+    /// `DrawerExpert::with_aim_error`).
     /// Every recorded action is still the expert's. 0 (default): the exact expert.
     pub expert_aim_error_m: f64,
-    /// With `expert`, on pick-and-place: in this fraction of the scenes (drawn from the seed)
-    /// the expert's first grasp misses on purpose, 4-5.5 cm beside the object, and it then
-    /// recovers as it does from any miss: lifts, opens, comes back over the object and grasps
-    /// it (`PickPlaceExpert::with_missed_grasp`). 0 (default): never.
+    /// With `expert`: in this fraction of the scenes (drawn from the seed) the expert's first
+    /// grasp misses on purpose (4-5.5 cm beside the cube; 6-7.5 cm toward the robot from the
+    /// drawer handle's centre), and it then recovers as it does from any miss: rises, opens, comes back
+    /// over the object (handle) and grasps it (`PickPlaceExpert::with_missed_grasp`,
+    /// `DrawerExpert::with_missed_grasp`). 0 (default): never.
     pub expert_miss_fraction: f64,
     /// Sim time on the wall clock's time line (Unix ns) instead of from 0: in realtime each
     /// step's state and frames are stamped with the wall time they were made at, as a real
@@ -375,7 +377,7 @@ pub struct BridgeFlags {
     #[serde(skip_serializing_if = "is_false")]
     pub expert_resume: bool,
     /// Demos that look and correct: the expert's first approach stops up to this far (m)
-    /// beside the object, then corrects (config `expert_aim_error_m`; needs --expert).
+    /// beside the object (handle), then corrects (config `expert_aim_error_m`; needs --expert).
     #[arg(long)]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub expert_aim_error_m: Option<f64>,

@@ -118,11 +118,11 @@ struct EvalArgs {
     #[arg(long)]
     min_success: Option<f64>,
     /// The expert that looks and corrects (`expert_aim_error_m`): its first approach stops up
-    /// to this far (m) beside the object. 0 = the exact expert.
+    /// to this far (m) beside the object (handle). 0 = the exact expert.
     #[arg(long, default_value_t = 0.0)]
     aim_error_m: f64,
     /// Demos with a missed grasp and its recovery (`expert_miss_fraction`): in this fraction
-    /// of the scenes the first grasp closes beside the object on purpose. 0 = never.
+    /// of the scenes the first grasp closes beside the object (handle) on purpose. 0 = never.
     #[arg(long, default_value_t = 0.0)]
     miss_fraction: f64,
 }

@@ -51,17 +51,18 @@ pub struct DemoArgs {
     /// at start for cameras without a current one.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
-    /// Demos that look and correct (pick-and-place): the expert's first approach stops up to
-    /// this far (m) beside the cube, in a direction drawn from the seed, then corrects over it;
-    /// its descent pauses 5 cm above the grasp a third as far off and corrects again. Every
-    /// recorded action is still the expert's. Image policies learn from these to centre the
-    /// cube in the wrist camera before they grasp. 0 = the exact expert.
+    /// Demos that look and correct: the expert's first approach stops up to this far (m)
+    /// beside the cube (the drawer's handle), in a direction drawn from the seed, then corrects
+    /// over it; its descent pauses 5 cm above the grasp a third as far off and corrects again.
+    /// Every recorded action is still the expert's. Image policies learn from these to centre
+    /// the cube (handle) in the wrist camera before they grasp. 0 = the exact expert.
     #[arg(long, default_value_t = 0.0)]
     pub expert_aim_error_m: f64,
-    /// Demos with a missed grasp and its recovery (pick-and-place): in this fraction of the
-    /// scenes (drawn from the seed) the expert's first grasp closes 4-5.5 cm beside the cube
-    /// on purpose, then it lifts, opens, comes back and grasps it. The miss's descent and
-    /// close are not labels for training (`skip_missed_grasps`); the way back is. 0 = never.
+    /// Demos with a missed grasp and its recovery: in this fraction of the scenes (drawn from
+    /// the seed) the expert's first grasp closes on nothing on purpose (4-5.5 cm beside the
+    /// cube; 6-7.5 cm toward the robot from the drawer handle's centre), then it rises,
+    /// opens, comes back and grasps. The miss's descent and close are not labels for training
+    /// (`skip_missed_grasps`); the way back is. 0 = never.
     #[arg(long, default_value_t = 0.0)]
     pub expert_miss_fraction: f64,
 }
