@@ -363,12 +363,12 @@ fn report_text(r: &RolloutReport) -> String {
     let n = r.rollouts.len();
     let _ = writeln!(
         s,
-        "labrig rollout: {}, {} in {}, seeds {}..{}",
+        "labrig rollout: {}, {} in {}, seeds {}..{} (both included)",
         rate_text(r),
         r.scene,
         r.mode,
         r.first_seed,
-        r.first_seed + n as u64
+        (r.first_seed + n as u64).saturating_sub(1).max(r.first_seed)
     );
     let _ = writeln!(s, "policy {}", r.policy);
     let _ = writeln!(
