@@ -116,6 +116,14 @@ fn aim_offsets(seed: u64, max_m: f64) -> [Option<Vector3<f64>>; 2] {
     [draw(max_m), draw(max_m * LOW_AIM_FRACTION)]
 }
 
+/// The scene's draw for a deliberate miss: `Some` (the generator, to draw where the miss goes)
+/// in `fraction` of the scenes, by `seed`; `None` for the rest, and always for 0.
+fn miss_draw(seed: u64, fraction: f64) -> Option<rand_chacha::ChaCha8Rng> {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_1A55);
+    (fraction > 0.0 && rng.random::<f64>() < fraction).then_some(rng)
+}
+
 /// Whether `phase` (approach: `aim[0]`, descent: `aim[1]`) was heading for an aimed-off point
 /// and is `done`: that aim is taken out, and the phase goes on over (down to) the target itself.
 fn reached_aim(phase: Phase, aim: &mut [Option<Vector3<f64>>; 2], done: bool) -> bool {
@@ -207,12 +215,11 @@ impl PickPlaceExpert {
     /// (The descent and the close of the miss are the deliberate mistake: training drops
     /// them as labels, `skip_missed_grasps`; what follows is the lesson.) 0 = never.
     pub fn with_missed_grasp(mut self, seed: u64, fraction: f64) -> PickPlaceExpert {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_1A55);
-        if fraction <= 0.0 || rng.random::<f64>() >= fraction {
+        use rand::Rng;
+        let Some(mut rng) = miss_draw(seed, fraction) else {
             self.miss = None;
             return self;
-        }
+        };
         let grasp_rot = *Rotation3::from_axis_angle(&Vector3::z_axis(), self.grasp_yaw).matrix() * self.down;
         let flat = |v: Vector3<f64>| Vector3::new(v.x, v.y, 0.0).normalize();
         let (across, along) = (flat(grasp_rot * Vector3::x()), flat(grasp_rot * Vector3::y()));
@@ -453,12 +460,11 @@ impl DrawerExpert {
     /// handle in the fingers and the expert's retry (up, open, back over the handle, grasp)
     /// does the rest. 0 = never.
     pub fn with_missed_grasp(mut self, seed: u64, fraction: f64) -> DrawerExpert {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_1A55);
-        if fraction <= 0.0 || rng.random::<f64>() >= fraction {
+        use rand::Rng;
+        let Some(mut rng) = miss_draw(seed, fraction) else {
             self.miss = None;
             return self;
-        }
+        };
         let out = rng.random_range(DRAWER_MISS_OUT_M);
         self.miss = Some(Vector3::new(-out, rng.random_range(-MISS_ALONG_M..=MISS_ALONG_M), 0.0));
         self.aim[1] = None;
