@@ -274,6 +274,12 @@ tool_venv droid "h5py, pyarrow, mcap" h5py==3.16.0 pyarrow==26.0.1 mcap==1.6.0
 # PyPI wheel carries it inside pyrealsense2, which the node runs in a child process (the
 # extension cannot be loaded into a non-Python process). numpy: the tests' synthetic recordings.
 tool_venv realsense "pyrealsense2, numpy" pyrealsense2==2.59.1.11053 numpy==2.4.6
+# openpi's own websocket client and server (issue 33): the real peers of labrig's openpi
+# protocol (`--source remote`, `labrig policy run --openpi`). openpi-client imports
+# typing_extensions without declaring it; the rest pinned as resolved 2026-11-29.
+tool_venv openpi "openpi_client.websocket_client_policy, openpi_server.websocket_policy_server" \
+    openpi-client==0.1.2 openpi-server==0.1.0 typing_extensions==4.16.0 numpy==1.26.4 \
+    msgpack==1.2.4 websockets==17.4 dm-tree==0.1.10 pillow==13.0.0
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
@@ -322,6 +328,7 @@ export FR3_MJCF=\"$FS_MJCF\"
 export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
 export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
+export LABRIG_OPENPI_PYTHON=\"$LABRIG_CACHE/venv-openpi/bin/python\"
 export LABRIG_NODE=\"$NODE_BIN\"
 export LABRIG_NODE_PEERS=\"$PEERS\"
 export LABRIG_CHROMIUM=/usr/bin/chromium

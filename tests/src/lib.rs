@@ -32,6 +32,23 @@ pub fn ros_python() -> PathBuf {
     p
 }
 
+/// The Python of the openpi venv made by `scripts/setup.sh` (openpi-client, openpi-server).
+pub fn openpi_python() -> PathBuf {
+    let p = match std::env::var_os("LABRIG_OPENPI_PYTHON") {
+        Some(p) => PathBuf::from(p),
+        None => cache_dir().join("venv-openpi/bin/python"),
+    };
+    assert!(p.exists(), "openpi venv python {} is missing: run `bash scripts/setup.sh` first", p.display());
+    p
+}
+
+/// tests/peers/openpi_peer.py with the openpi venv's Python.
+pub fn openpi_peer(args: &[&str]) -> Command {
+    let mut cmd = Command::new(openpi_python());
+    cmd.arg(repo_root().join("tests/peers/openpi_peer.py")).args(args);
+    cmd
+}
+
 /// The `labrig` binary of this build (built on demand if a lone test run lacks it).
 pub fn labrig_bin() -> PathBuf {
     workspace_bin("labrig", "labrig")
