@@ -1,8 +1,8 @@
 """openpi's own client and server (PyPI openpi-client 0.1.2, openpi-server 0.1.0) as labrig's
 test peers.
 
-  openpi_peer.py serve --chunks FILE [--fail-on N] [--log FILE] [--metadata JSON]
-      Runs the upstream WebsocketPolicyServer on 127.0.0.1 (a free port, printed as the first
+  openpi_peer.py serve --chunks FILE [--fail-on N] [--log FILE] [--metadata JSON] [--port P]
+      Runs the upstream WebsocketPolicyServer on 127.0.0.1 (P or a free port, printed as the first
       stdout line: {"port": P}) serving a test policy: request k (from 0) gets chunk
       k % len(chunks) of FILE (a JSON list of N x 8 lists); with --fail-on N, request N raises
       (the server's error frame). --log writes one JSON line per request: the keys, shapes and
@@ -76,7 +76,7 @@ def serve(args):
                 log.flush()
             return {"actions": actions, "policy_timing": {"infer_ms": 0.1}}
 
-    port = free_port()
+    port = args.port or free_port()
     metadata = json.loads(args.metadata) if args.metadata else {}
     server = websocket_policy_server.WebsocketPolicyServer(ChunkPolicy(), host="127.0.0.1", port=port, metadata=metadata)
     print(json.dumps({"port": port}), flush=True)
@@ -136,6 +136,7 @@ def main():
     s.add_argument("--fail-on", type=int)
     s.add_argument("--log")
     s.add_argument("--metadata")
+    s.add_argument("--port", type=int, help="this port (default: a free one)")
     c = sub.add_parser("client")
     c.add_argument("--url", required=True)
     c.add_argument("--requests", type=int, default=3)

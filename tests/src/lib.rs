@@ -177,6 +177,9 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("fault_bench_dds_stop", 164, 1),
     ("fault_bench_bridge_kill", 165, 1),
     ("fault_bench_camera_stall", 166, 1),
+    ("openpi_remote_droid", 167, 1),
+    ("openpi_remote_faults", 168, 1),
+    ("openpi_server_rollout", 169, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

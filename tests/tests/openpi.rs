@@ -162,3 +162,209 @@ fn openpis_own_client_and_broker_query_labrigs_server() {
     assert_eq!(server.counters().errors.load(std::sync::atomic::Ordering::Relaxed), 1);
     assert!(server.counters().health_checks.load(std::sync::atomic::Ordering::Relaxed) >= 1);
 }
+
+// ---------------------------------------------------------------- the rig as openpi's client
+
+/// A smooth pi0.5-DROID stand-in: DROID step n (chunk k's row i is step 8k + i, as the client
+/// runs 8 of each chunk) moves joint j at velocity 0.15 sin(2 pi n / 40 + j); the gripper
+/// closes for 30 steps, opens for 30.
+fn droid_chunks(n_chunks: usize, width: usize) -> Vec<Vec<Vec<f32>>> {
+    (0..n_chunks)
+        .map(|k| {
+            (0..15)
+                .map(|i| {
+                    let n = (k * 8 + i) as f32;
+                    let mut row: Vec<f32> =
+                        (0..7).map(|j| 0.15 * (2.0 * std::f32::consts::PI * n / 40.0 + j as f32).sin()).collect();
+                    row.push(if (n as usize / 30) % 2 == 1 { 1.0 } else { 0.0 });
+                    row.truncate(width);
+                    row
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The upstream server on `port` (0: a free one) serving `chunks`; its port and request log.
+fn upstream_serving(
+    chunks: &[Vec<Vec<f32>>],
+    dir: &std::path::Path,
+    name: &str,
+    port: u16,
+    fail_on: Option<u32>,
+) -> (Proc, u16, std::path::PathBuf) {
+    let file = dir.join(format!("{name}.json"));
+    std::fs::write(&file, serde_json::to_string(chunks).unwrap()).unwrap();
+    let log = dir.join(format!("{name}.jsonl"));
+    let (port_s, fail) = (port.to_string(), fail_on.map(|n| n.to_string()));
+    let mut args = vec!["serve", "--chunks", file.to_str().unwrap(), "--log", log.to_str().unwrap()];
+    args.extend(["--metadata", r#"{"policy": "droid-sine"}"#]);
+    if port != 0 {
+        args.extend(["--port", port_s.as_str()]);
+    }
+    if let Some(f) = &fail {
+        args.extend(["--fail-on", f.as_str()]);
+    }
+    let mut proc = Proc::spawn(name, openpi_peer(&args));
+    let line = proc.next_line(Duration::from_secs(60)).expect("the openpi server prints its port");
+    let port = serde_json::from_str::<serde_json::Value>(&line).unwrap()["port"].as_u64().unwrap() as u16;
+    let addr = format!("127.0.0.1:{port}");
+    for _ in 0..200 {
+        if labrig_openpi::client::healthz(&addr, Duration::from_secs(1)).is_ok() {
+            return (proc, port, log);
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    panic!("the openpi server on {addr} never answered /healthz");
+}
+
+fn log_lines(log: &std::path::Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(log).unwrap_or_default().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
+/// `labrig rollout --remote` (lockstep, pick_place seed 1000); its report.
+fn remote_rollout(key: &str, port: u16, out: &std::path::Path, extra: &[&str]) -> serde_json::Value {
+    let o = std::process::Command::new(labrig_tests::labrig_bin())
+        .args(["rollout", "--json", "--episodes", "1", "--domain-id", &labrig_tests::domain_for(key).to_string()])
+        .args(["--remote", &format!("127.0.0.1:{port}"), "--out"])
+        .arg(out)
+        .args(extra)
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+        .current_dir(labrig_tests::repo_root())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let report: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{}", String::from_utf8_lossy(&o.stderr)));
+    assert_eq!(o.status.code(), Some(0), "{report:#}\n{}", String::from_utf8_lossy(&o.stderr));
+    report
+}
+
+fn recorded_steps(report: &serde_json::Value) -> labrig_episode::EpisodeData {
+    let dir = report["rollouts"][0]["dir"].as_str().expect("a recorded rollout");
+    labrig_episode::read_episode(std::path::Path::new(dir)).unwrap()
+}
+
+/// openpi's upstream server drives the simulated rig: every executed row is the joint target
+/// DROID's conventions give for the served chunk (velocity x 0.2 rad per 1/15 s from the
+/// observed joints, read at the loop's own 50 ms ticks; the gripper binarised at 0.5), the
+/// arm follows, and each step names the remote policy.
+#[test]
+fn openpis_server_drives_the_sim_rig_with_droid_joint_velocities() {
+    let dir = tempfile::tempdir().unwrap();
+    let chunks = droid_chunks(40, 8);
+    let (_server, port, log) = upstream_serving(&chunks, dir.path(), "droid", 0, None);
+    let report = remote_rollout("openpi_remote_droid", port, &dir.path().join("out"), &["--max-steps", "60"]);
+    let r = &report["rollouts"][0];
+    assert_eq!(r["reason"], "the step budget (60 steps) was spent", "{report:#}");
+    assert_eq!(report["policy"], format!("openpi ws://127.0.0.1:{port}"));
+    let data = recorded_steps(&report);
+    let requests = log_lines(&log);
+    let conv = droid::ActionConvention::default();
+    let want_id = format!("openpi ws://127.0.0.1:{port} {{\"policy\":\"droid-sine\"}}");
+    assert_eq!(data.metadata.as_ref().unwrap().policy.as_deref(), Some(want_id.as_str()));
+    let mut checked = 0;
+    let mut moved = 0.0f64;
+    // Steps that executed a row (the first had no frames to ask with: held, no chunk).
+    for s in
+        data.steps.iter().filter(|s| s.action_source == labrig_msgs::labrig_msgs::Step::SOURCE_POLICY && s.chunk_id > 0)
+    {
+        assert_eq!(s.policy_id, want_id);
+        // Request ids count from 1; the server's log from 0.
+        let req = &requests[s.chunk_id as usize - 1];
+        let q_obs: Vec<f64> = serde_json::from_value(req["joint_position"].clone()).unwrap();
+        let served: Vec<droid::Row> = serde_json::from_value::<Vec<Vec<f64>>>(req["actions"].clone())
+            .unwrap()
+            .iter()
+            .map(|r| std::array::from_fn(|k| r[k]))
+            .collect();
+        let q0: [f64; 7] = std::array::from_fn(|j| q_obs[j]);
+        // Worked out here, not by labrig's resampler: the command at row m is where DROID's
+        // steps (0.2 rad x velocity per 1/15 s, velocities here all within [-1, 1]) have
+        // brought the joints (m + 1) x 50 ms after the observation.
+        let t_steps = (f64::from(s.chunk_row) + 1.0) * 0.05 * 15.0;
+        let (full, frac) = (t_steps.floor() as usize, t_steps - t_steps.floor());
+        let mut want = [0.0; 8];
+        for j in 0..7 {
+            let done: f64 = served[..full].iter().map(|r| r[j]).sum();
+            let part = served.get(full).map_or(0.0, |r| r[j] * frac);
+            want[j] = q0[j] + 0.2 * (done + part);
+        }
+        // The gripper of the DROID step under way at the tick (row m at m x 50 ms), at 0.5.
+        let under_way = ((f64::from(s.chunk_row) * 0.05 * 15.0) + 1e-9).floor() as usize;
+        want[7] = if served[under_way][7] >= 0.5 { 1.0 } else { 0.0 };
+        assert_eq!(want.map(|x| x.is_finite()), [true; 8]);
+        assert!(conv.rate_hz == 15.0 && conv.max_joint_delta_rad == 0.2, "DROID's defaults");
+        for j in 0..7 {
+            assert!(
+                (s.action.joint_position[j] - want[j]).abs() < 1e-9,
+                "step {} (chunk {} row {}): joint {j} commanded {} != DROID's {}",
+                s.step_index,
+                s.chunk_id,
+                s.chunk_row,
+                s.action.joint_position[j],
+                want[j]
+            );
+        }
+        assert_eq!(s.action.gripper_position, want[7], "step {}", s.step_index);
+        moved = moved.max((s.action.joint_position[0] - q0[0]).abs());
+        checked += 1;
+    }
+    // Every step but the first (no frames yet) is the policy's; 8 DROID steps = 10 ticks a chunk.
+    assert!(checked >= 55, "{checked} policy steps of {}", data.steps.len());
+    assert!(requests.len() >= 5, "{} requests", requests.len());
+    assert!(moved > 0.05, "the arm barely moved: {moved}");
+    // The prompt is the scene's instruction; the images 224 x 224 RGB.
+    assert!(!requests[0]["prompt"].as_str().unwrap().is_empty(), "{:?}", requests[0]["prompt"]);
+    assert_eq!(requests[0]["keys"][droid::EXTERIOR_IMAGE]["shape"], serde_json::json!([224, 224, 3]));
+    // The arm follows: measured joints a tick later within 2 cm-equivalent of the command.
+    let lag = data
+        .steps
+        .windows(2)
+        .filter(|w| w[0].chunk_id > 0)
+        .flat_map(|w| (0..7).map(move |j| (w[1].robot_state.joint_positions[j] - w[0].action.joint_position[j]).abs()))
+        .fold(0.0f64, f64::max);
+    assert!(lag < 0.05, "the measured joints trail the commands by up to {lag} rad");
+}
+
+/// The faults: an error raised in the policy fails the episode with the traceback's last line;
+/// a chunk of the wrong shape is named; a killed server that comes back on its port is
+/// reconnected (a new handshake) and the rollout goes on.
+#[test]
+fn remote_policy_faults_are_named_and_a_restarted_server_is_reconnected() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = "openpi_remote_faults";
+
+    let (_s, port, _) = upstream_serving(&droid_chunks(40, 8), dir.path(), "raises", 0, Some(2));
+    let report = remote_rollout(key, port, &dir.path().join("raises_out"), &["--max-steps", "60"]);
+    let reason = report["rollouts"][0]["reason"].as_str().unwrap();
+    assert!(reason.contains("RuntimeError: test policy: request 2 fails on purpose"), "{reason}");
+    // Two chunks of 10 rows ran (and the first step had no frames); then it ended.
+    let steps = report["rollouts"][0]["steps"].as_u64().unwrap();
+    assert!((20..=23).contains(&steps), "{report:#}");
+
+    let (_s, port, _) = upstream_serving(&droid_chunks(4, 7), dir.path(), "narrow", 0, None);
+    let report = remote_rollout(key, port, &dir.path().join("narrow_out"), &["--max-steps", "60"]);
+    let reason = report["rollouts"][0]["reason"].as_str().unwrap();
+    assert!(reason.contains("actions of shape [15, 7]: expected (N, 8)"), "{reason}");
+
+    // Killed after 3 requests, back on the same port 1 s later.
+    let (mut first, port, log) = upstream_serving(&droid_chunks(40, 8), dir.path(), "first", 0, None);
+    let out = dir.path().join("restart_out");
+    let run = {
+        let out = out.clone();
+        std::thread::spawn(move || remote_rollout(key, port, &out, &["--max-steps", "80", "--server-timeout-s", "10"]))
+    };
+    let until = std::time::Instant::now() + Duration::from_secs(120);
+    while log_lines(&log).len() < 3 {
+        assert!(std::time::Instant::now() < until, "the rollout never made 3 requests");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = first.child.kill();
+    let _ = first.child.wait();
+    std::thread::sleep(Duration::from_secs(1));
+    let (_second, _, log2) = upstream_serving(&droid_chunks(40, 8), dir.path(), "second", port, None);
+    let report = run.join().unwrap();
+    assert_eq!(report["rollouts"][0]["reason"], "the step budget (80 steps) was spent", "{report:#}");
+    assert!(!log_lines(&log2).is_empty(), "the restarted server got no request");
+}

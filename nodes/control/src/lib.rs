@@ -18,6 +18,7 @@ pub mod episode;
 pub mod frames;
 pub mod node;
 pub mod policy;
+pub mod remote;
 pub mod rig;
 pub mod source;
 pub mod step;

@@ -69,6 +69,10 @@ pub enum SourceKind {
     /// The policy server (`labrig-policy run`): action chunks for the loop's observations
     /// (`[policy]`); in the sim `/sim/task` judges success, on a real rig the operator.
     Policy,
+    /// A policy behind openpi's websocket protocol (pi0 / pi0.5-DROID on openpi's server, or
+    /// `labrig policy run --openpi`): `[remote]` maps DROID's observation and 15 Hz joint
+    /// velocity chunks; scheduled, judged and made safe as `policy` is (`[policy]`).
+    Remote,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -129,8 +133,10 @@ pub struct ControlConfig {
     pub safety: SafetyConfig,
     /// The FR3 URDF (default: the one setup installs).
     pub urdf: Option<PathBuf>,
-    /// The policy source (`source = "policy"`).
+    /// The policy source (`source = "policy"`, and the scheduling of `source = "remote"`).
     pub policy: PolicySourceConfig,
+    /// The openpi server and DROID's conventions (`source = "remote"`).
+    pub remote: crate::remote::RemoteConfig,
     /// The rig's camera calibrations (a folder of `<camera>.json`, e.g. `calibration/<rig>`):
     /// the loop warns at start for each of `cameras` whose calibration is missing, unreadable
     /// or older than `calibration_max_age_s` (DROID's GUI warns after an hour).
@@ -166,6 +172,7 @@ impl Default for ControlConfig {
             safety: SafetyConfig { max_command_age_s: 0.0, ..SafetyConfig::default() },
             urdf: None,
             policy: PolicySourceConfig::default(),
+            remote: crate::remote::RemoteConfig::default(),
             calibration: None,
             calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
         }
@@ -230,6 +237,9 @@ impl ControlConfig {
             }
         }
         self.policy.validate()?;
+        if self.source == SourceKind::Remote {
+            self.remote.validate()?;
+        }
         self.safety.validate()
     }
 }
@@ -347,10 +357,21 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
         SourceKind::Teleop => {
             Some(Box::new(crate::source::Teleop::new(&mut ros, Duration::from_secs_f64(cfg.teleop_max_age_s))?))
         }
-        SourceKind::Policy => {
+        SourceKind::Policy | SourceKind::Remote => {
             let period = Nanos::from_secs_rounded(cfg.period_s);
-            let p =
-                PolicySource::connect(&mut ros, cfg.policy.clone(), cfg.clock, period, &cfg.cameras, &shutdown).await?;
+            let p = if cfg.source == SourceKind::Remote {
+                PolicySource::connect_remote(
+                    &mut ros,
+                    cfg.policy.clone(),
+                    cfg.remote.clone(),
+                    cfg.clock,
+                    period,
+                    &cfg.cameras,
+                )
+                .await?
+            } else {
+                PolicySource::connect(&mut ros, cfg.policy.clone(), cfg.clock, period, &cfg.cameras, &shutdown).await?
+            };
             let teleop_age = Duration::from_secs_f64(cfg.teleop_max_age_s);
             match cfg.policy.takeover {
                 TakeoverKind::None => Some(Box::new(p)),

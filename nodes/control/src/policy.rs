@@ -26,6 +26,7 @@
 //! width, each named.
 
 use crate::node::ClockKind;
+use crate::remote::{RemoteConfig, RemoteJob, RemoteReply};
 use crate::source::{ActionSource, Proposal, RgbFrame, SourceError, TickView, Verdict};
 use crate::step::ChunkRef;
 pub use crate::takeover::TakeoverKind;
@@ -134,8 +135,14 @@ impl Default for PolicySourceConfig {
     }
 }
 
-/// The action spaces the loop executes.
-pub const EXECUTABLE: [&str; 2] = ["eef_axis_angle", "cartesian_velocity"];
+/// The action spaces the loop executes (`joint_position`: 7 joint targets + the gripper, what
+/// a remote openpi policy's chunk becomes, see [`crate::remote`]).
+pub const EXECUTABLE: [&str; 3] = ["eef_axis_angle", "cartesian_velocity", "joint_position"];
+
+/// An action space's width: 6 + the gripper, or 7 joints + the gripper.
+pub fn action_width(action_space: &str) -> usize {
+    if action_space == "joint_position" { 8 } else { 7 }
+}
 
 impl PolicySourceConfig {
     pub fn validate(&self) -> Result<(), labrig_msgs::Invalid> {
@@ -237,10 +244,13 @@ impl PolicyInfo {
                 self.action_space
             ));
         }
-        if self.action_dim != 7 {
+        let width = action_width(&self.action_space);
+        if self.action_dim != width {
             return Err(format!(
-                "the policy {id} predicts {}-wide actions; {:?} is 7 wide (6 + the gripper)",
-                self.action_dim, self.action_space
+                "the policy {id} predicts {}-wide actions; {:?} is {width} wide ({} + the gripper)",
+                self.action_dim,
+                self.action_space,
+                width - 1
             ));
         }
         if self.n_obs_steps == 0 || self.horizon < self.n_obs_steps || self.n_action_steps == 0 {
@@ -290,7 +300,8 @@ struct Chunk {
     id: u64,
     obs_step: u64,
     times_ns: Vec<i64>,
-    rows: Vec<[f64; 7]>,
+    /// `action_dim` wide.
+    rows: Vec<Vec<f64>>,
     /// The first row executed (the ones before it were late).
     first_used: Option<usize>,
     /// Rows of it executed.
@@ -323,18 +334,32 @@ struct Job {
     images: Vec<Vec<(String, Arc<RgbFrame>)>>,
 }
 
+/// Where requests go: labrig's policy server over DDS, or an openpi server's websocket.
+enum Requests {
+    Dds(mpsc::Sender<Job>),
+    Remote(mpsc::Sender<RemoteJob>),
+}
+
+/// Where chunks come from.
+enum Chunks {
+    Dds(Box<RosSubscription<ActionChunk>>),
+    Remote(mpsc::Receiver<RemoteReply>),
+}
+
 pub struct PolicySource {
     cfg: PolicySourceConfig,
     info: PolicyInfo,
     clock: ClockKind,
     period_ns: i64,
-    chunks_sub: RosSubscription<ActionChunk>,
+    chunks: Chunks,
     task_sub: RosSubscription<StringMsg>,
     /// With `deadman`: the Quest's state and when it arrived.
     deadman_sub: Option<RosSubscription<TeleopState>>,
     grip: Option<(bool, Instant)>,
-    jobs: Option<mpsc::Sender<Job>>,
+    jobs: Option<Requests>,
     encoder: Option<std::thread::JoinHandle<()>>,
+    /// Why the episode fails (a remote policy's error, a chunk of the wrong shape).
+    failure: Option<String>,
     history: VecDeque<Obs>,
     /// Oldest first; the last is the newest.
     active: Vec<Chunk>,
@@ -374,6 +399,8 @@ pub enum PolicyStartError {
     Mismatch(String),
     #[error("stopped before the policy server came up")]
     Stopped,
+    #[error("{0}")]
+    Remote(String),
 }
 
 impl PolicySource {
@@ -416,20 +443,79 @@ impl PolicySource {
             .name("policy-requests".into())
             .spawn(move || encode_and_send(&rx, &requests, quality))
             .map_err(|e| PolicyStartError::BadInfo(format!("cannot start the request thread: {e}")))?;
+        Ok(PolicySource::new(
+            cfg,
+            info,
+            clock,
+            period,
+            (Chunks::Dds(Box::new(chunks_sub)), Requests::Dds(jobs), encoder),
+            task_sub,
+            deadman_sub,
+        ))
+    }
+
+    /// Connects to an openpi server (`source = "remote"`): its metadata frame is the policy's
+    /// id; the observation and the actions follow `remote` (DROID's keys and conventions).
+    pub async fn connect_remote(
+        ros: &mut Ros,
+        cfg: PolicySourceConfig,
+        remote: RemoteConfig,
+        clock: ClockKind,
+        period: Nanos,
+        cameras: &[String],
+    ) -> Result<PolicySource, PolicyStartError> {
+        let task_sub = ros.subscription_on(&topics::SIM_TASK, 100)?;
+        let deadman_sub = if cfg.deadman { Some(ros.subscription_on(&topics::TELEOP_STATE, 100)?) } else { None };
+        let period_s = period.0 as f64 * 1e-9;
+        let r = remote.clone();
+        let (client, info) = tokio::task::spawn_blocking(move || crate::remote::connect(&r, period_s))
+            .await
+            .map_err(|e| PolicyStartError::Remote(e.to_string()))?
+            .map_err(PolicyStartError::Remote)?;
+        info.check(cameras, &cfg.action_space, cfg.sim_rig).map_err(PolicyStartError::Mismatch)?;
+        let (jobs, rx) = mpsc::channel::<RemoteJob>();
+        let (replies, chunks) = mpsc::channel::<RemoteReply>();
+        let (id, timeout) = (info.policy_id.clone(), cfg.server_timeout_s);
+        let observers = (ros.publisher_on(&topics::POLICY_CHUNK, 10)?, ros.publisher_on(&topics::POLICY_REFUSED, 10)?);
+        let worker = std::thread::Builder::new()
+            .name("openpi-requests".into())
+            .spawn(move || crate::remote::run_worker(Some(client), remote, id, timeout, &rx, &replies, Some(observers)))
+            .map_err(|e| PolicyStartError::BadInfo(format!("cannot start the request thread: {e}")))?;
+        Ok(PolicySource::new(
+            cfg,
+            info,
+            clock,
+            period,
+            (Chunks::Remote(chunks), Requests::Remote(jobs), worker),
+            task_sub,
+            deadman_sub,
+        ))
+    }
+
+    fn new(
+        cfg: PolicySourceConfig,
+        info: PolicyInfo,
+        clock: ClockKind,
+        period: Nanos,
+        (chunks, jobs, encoder): (Chunks, Requests, std::thread::JoinHandle<()>),
+        task_sub: RosSubscription<StringMsg>,
+        deadman_sub: Option<RosSubscription<TeleopState>>,
+    ) -> PolicySource {
         tracing::info!(policy = %info.policy_id, cameras = ?info.cameras, action_space = %info.action_space, "policy source up");
         let stats =
             PolicyStats { policy_id: info.policy_id.clone(), round_trip_ms: [f64::NAN; 3], ..PolicyStats::default() };
-        Ok(PolicySource {
+        PolicySource {
             cfg,
             info,
             clock,
             period_ns: period.0,
-            chunks_sub,
+            chunks,
             task_sub,
             deadman_sub,
             grip: None,
             jobs: Some(jobs),
             encoder: Some(encoder),
+            failure: None,
             history: VecDeque::new(),
             active: Vec::new(),
             in_flight: None,
@@ -441,7 +527,7 @@ impl PolicySource {
             stats,
             warned_images: false,
             suspended: false,
-        })
+        }
     }
 
     pub fn info(&self) -> &PolicyInfo {
@@ -481,7 +567,7 @@ impl PolicySource {
         if c.request_id < self.first_request_of_episode {
             return; // an earlier episode's
         }
-        if c.action_dim != 7 || c.times_ns.len() != c.horizon as usize {
+        if c.action_dim as usize != self.info.action_dim || c.times_ns.len() != c.horizon as usize {
             tracing::warn!(chunk = c.request_id, "a chunk of {} x {}: ignored", c.horizon, c.action_dim);
             return;
         }
@@ -494,12 +580,7 @@ impl PolicySource {
             }
         }
         self.stats.chunks += 1;
-        let rows = (0..c.horizon as usize)
-            .map(|i| {
-                let a = c.action(i).expect("validated width");
-                std::array::from_fn(|k| a[k])
-            })
-            .collect();
+        let rows = (0..c.horizon as usize).map(|i| c.action(i).expect("validated width").to_vec()).collect();
         self.active.push(Chunk {
             id: c.request_id,
             obs_step: c.observation_step,
@@ -509,6 +590,19 @@ impl PolicySource {
             executed: 0,
             usable_from,
         });
+    }
+
+    /// A request the policy could not answer: the episode fails with the reason (the arm
+    /// holds: no rows come).
+    fn refused(&mut self, request_id: u64, why: String) {
+        if request_id < self.first_request_of_episode {
+            return;
+        }
+        if self.in_flight.is_some_and(|f| f.id == request_id) {
+            self.in_flight = None;
+        }
+        tracing::warn!(request_id, "{}: {why}", self.info.policy_id);
+        self.failure.get_or_insert(format!("the policy {} failed request {request_id}: {why}", self.info.policy_id));
     }
 
     fn send(&mut self, tick_ns: i64, lead: u32, view: &TickView<'_>) {
@@ -537,9 +631,14 @@ impl PolicySource {
             ..PolicyRequest::default()
         };
         let images = newest.iter().map(|o| o.images.clone()).collect();
-        if let Some(jobs) = &self.jobs
-            && jobs.send(Job { request, images }).is_err()
-        {
+        let sent = match &self.jobs {
+            Some(Requests::Dds(jobs)) => jobs.send(Job { request, images }).is_ok(),
+            Some(Requests::Remote(jobs)) => {
+                jobs.send(RemoteJob { request, images, instruction: view.instruction.to_owned() }).is_ok()
+            }
+            None => false,
+        };
+        if !sent {
             tracing::error!("the policy request thread is gone");
         }
         self.stats.requests += 1;
@@ -554,7 +653,7 @@ impl PolicySource {
 
     /// The action meant for `tick`: per blending, from the chunks that have a row for it; the
     /// newest such chunk and its row.
-    fn blended(&self, tick: i64) -> Option<([f64; 7], usize, usize)> {
+    fn blended(&self, tick: i64) -> Option<(Vec<f64>, usize, usize)> {
         let tol = self.tolerance();
         let rows: Vec<(usize, usize)> = self
             .active
@@ -565,33 +664,33 @@ impl PolicySource {
             .collect();
         let &(newest, row) = rows.last()?;
         if self.cfg.blend == Blend::Replace || rows.len() == 1 {
-            return Some((self.active[newest].rows[row], newest, row));
+            return Some((self.active[newest].rows[row].clone(), newest, row));
         }
         let newest_step = self.active[newest].obs_step;
-        let weighted: Vec<([f64; 7], f64)> = rows
+        let weighted: Vec<(&[f64], f64)> = rows
             .iter()
             .map(|&(k, r)| {
                 let age = newest_step.saturating_sub(self.active[k].obs_step) as f64;
-                (self.active[k].rows[r], (-self.cfg.blend_decay * age).exp())
+                (self.active[k].rows[r].as_slice(), (-self.cfg.blend_decay * age).exp())
             })
             .collect();
         Some((blend(&weighted, &self.info.action_space), newest, row))
     }
 }
 
-/// Weighted average of actions: positions (or velocities) and the gripper linearly,
-/// axis-angle rotations by incremental slerp.
-fn blend(rows: &[([f64; 7], f64)], action_space: &str) -> [f64; 7] {
+/// Weighted average of actions: positions (or velocities, joint targets) and the gripper
+/// linearly, axis-angle rotations by incremental slerp.
+fn blend(rows: &[(&[f64], f64)], action_space: &str) -> Vec<f64> {
     let total: f64 = rows.iter().map(|(_, w)| w).sum();
-    let mut out = [0.0; 7];
+    let mut out = vec![0.0; rows[0].0.len()];
     for (a, w) in rows {
-        for k in 0..7 {
-            out[k] += a[k] * w / total;
+        for (o, x) in out.iter_mut().zip(a.iter()) {
+            *o += x * w / total;
         }
     }
     if action_space == "eef_axis_angle" {
-        let rot = |a: &[f64; 7]| UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5]));
-        let mut q = rot(&rows[0].0);
+        let rot = |a: &[f64]| UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5]));
+        let mut q = rot(rows[0].0);
         let mut acc = rows[0].1;
         for (a, w) in &rows[1..] {
             let mut next = rot(a);
@@ -645,7 +744,10 @@ impl Drop for PolicySource {
 
 impl ActionSource for PolicySource {
     fn name(&self) -> &'static str {
-        "the policy server (/policy/chunk)"
+        match self.chunks {
+            Chunks::Dds(_) => "the policy server (/policy/chunk)",
+            Chunks::Remote(_) => "the openpi server (websocket)",
+        }
     }
 
     fn kind(&self) -> u8 {
@@ -653,8 +755,20 @@ impl ActionSource for PolicySource {
     }
 
     fn poll(&mut self) -> Result<(), RosError> {
-        while let Some(c) = self.chunks_sub.try_take()? {
-            self.take_chunk(c.msg);
+        let mut got = Vec::new();
+        match &self.chunks {
+            Chunks::Dds(sub) => {
+                while let Some(c) = sub.try_take()? {
+                    got.push(Ok(c.msg));
+                }
+            }
+            Chunks::Remote(rx) => got.extend(rx.try_iter()),
+        }
+        for answer in got {
+            match answer {
+                Ok(c) => self.take_chunk(c),
+                Err((id, why)) => self.refused(id, why),
+            }
         }
         if let Some(sub) = &self.deadman_sub {
             while let Some(t) = sub.try_take()? {
@@ -709,8 +823,11 @@ impl ActionSource for PolicySource {
             i += 1;
             keep
         });
-        let mut command = ArmCommand { gripper_position: a[6], ..ArmCommand::default() };
-        if self.info.action_space == "cartesian_velocity" {
+        let mut command = ArmCommand { gripper_position: a[a.len() - 1], ..ArmCommand::default() };
+        if self.info.action_space == "joint_position" {
+            command.mode = ArmCommandMode::JointPosition as u8;
+            command.joint_position.copy_from_slice(&a[..7]);
+        } else if self.info.action_space == "cartesian_velocity" {
             command.mode = ArmCommandMode::CartesianVelocity as u8;
             command.cartesian_velocity.copy_from_slice(&a[..6]);
         } else {
@@ -730,6 +847,9 @@ impl ActionSource for PolicySource {
     /// process) and the loop's time (in lockstep the ticks go on after the wait gives up,
     /// executing the rows left and then holding, as they would on the wall clock).
     fn verdict(&self, tick: Nanos) -> Verdict {
+        if let Some(why) = &self.failure {
+            return Verdict::Failed { why: Some(why.clone()) };
+        }
         let timeout = self.timeout_s();
         if let Some(f) = self.in_flight
             && f.sent.elapsed().as_secs_f64() >= timeout
@@ -755,6 +875,7 @@ impl ActionSource for PolicySource {
         self.in_flight = None;
         self.first_request_of_episode = self.next_request;
         self.suspended = false;
+        self.failure = None;
     }
 
     /// Either way what it has is dropped: the chunks (for other states than the arm's now)
@@ -874,20 +995,20 @@ mod tests {
     fn blending_weights_newer_chunks_and_slerps_rotations() {
         let a = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
         let b = [1.0, 0.0, 0.0, 0.0, 0.0, std::f64::consts::FRAC_PI_2, 1.0];
-        let even = blend(&[(a, 1.0), (b, 1.0)], "eef_axis_angle");
+        let even = blend(&[(&a[..], 1.0), (&b[..], 1.0)], "eef_axis_angle");
         assert!((even[0] - 0.5).abs() < 1e-12 && (even[6] - 0.5).abs() < 1e-12);
         assert!((even[5] - std::f64::consts::FRAC_PI_4).abs() < 1e-9, "{even:?}");
-        let newer = blend(&[(a, (-2.0f64).exp()), (b, 1.0)], "eef_axis_angle");
+        let newer = blend(&[(&a[..], (-2.0f64).exp()), (&b[..], 1.0)], "eef_axis_angle");
         assert!(newer[0] > 0.85 && newer[5] > even[5], "{newer:?}");
         // The same rotation written two ways (angle 3 vs 3 - 2 pi about the same axis)
         // averages to itself, not to the identity.
         let r = [0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0];
         let r2 = [0.0, 0.0, 0.0, 3.0 - 2.0 * std::f64::consts::PI, 0.0, 0.0, 0.0];
-        let m = blend(&[(r, 1.0), (r2, 1.0)], "eef_axis_angle");
+        let m = blend(&[(&r[..], 1.0), (&r2[..], 1.0)], "eef_axis_angle");
         let q = UnitQuaternion::from_scaled_axis(Vector3::new(m[3], m[4], m[5]));
         assert!(q.angle_to(&UnitQuaternion::from_scaled_axis(Vector3::new(3.0, 0.0, 0.0))) < 1e-9, "{m:?}");
         // Velocities average linearly.
-        let v = blend(&[(a, 1.0), (b, 1.0)], "cartesian_velocity");
+        let v = blend(&[(&a[..], 1.0), (&b[..], 1.0)], "cartesian_velocity");
         assert!((v[5] - std::f64::consts::FRAC_PI_4).abs() < 1e-12);
     }
 }

@@ -279,6 +279,7 @@ impl RigLoop {
             },
             scene: &self.scene.json,
             scene_seed: self.scene.seed,
+            instruction: &self.episode_instruction,
             images: Vec::new(),
         })
     }
@@ -757,7 +758,7 @@ impl RigLoop {
             out.step(make_step(&self.episode_id, self.episodes.steps, &obs, &decision, &times))?;
             self.episodes.tick();
             // A policy rollout's step by another source is an operator's (a takeover).
-            let operator = self.cfg.source == SourceKind::Policy
+            let operator = matches!(self.cfg.source, SourceKind::Policy | SourceKind::Remote)
                 && source_kind != Step::SOURCE_POLICY
                 && source_kind != Step::SOURCE_NONE;
             if operator && !self.operator_acting {
@@ -771,8 +772,9 @@ impl RigLoop {
         }
         // Who acts goes out at once when it changes (the station shows the operator's turn).
         if self.summary.ticks.is_multiple_of(20) || acting_changed || std::mem::take(&mut self.status_due) {
-            let acting = (self.cfg.source == SourceKind::Policy && self.episodes.recording())
-                .then_some(if self.operator_acting { "operator" } else { "policy" });
+            let acting = (matches!(self.cfg.source, SourceKind::Policy | SourceKind::Remote)
+                && self.episodes.recording())
+            .then_some(if self.operator_acting { "operator" } else { "policy" });
             let status = json!({
                 "acting": acting,
                 "takeovers": self.episode_takeovers,

@@ -43,6 +43,8 @@ pub struct TickView<'a> {
     /// The sim scene's JSON (empty on a real rig) and its seed.
     pub scene: &'a str,
     pub scene_seed: Option<u64>,
+    /// The episode's language instruction (a remote policy's prompt).
+    pub instruction: &'a str,
     /// Per camera the source names ([`ActionSource::cameras`]), its frame at the tick.
     pub images: Vec<(&'a str, std::sync::Arc<RgbFrame>)>,
 }

@@ -471,6 +471,7 @@ mod tests {
             robot: Default::default(),
             scene: "",
             scene_seed: None,
+            instruction: "",
             images: vec![],
         }
     }

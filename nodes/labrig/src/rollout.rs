@@ -45,8 +45,25 @@ pub enum BlendArg {
 pub struct RolloutArgs {
     /// The checkpoint: `labrig train`'s `checkpoints/step_<n>`, its `checkpoints/last`, or the
     /// run directory (its last checkpoint).
+    #[arg(long, required_unless_present = "remote", conflicts_with = "remote")]
+    pub policy: Option<PathBuf>,
+    /// Instead of a checkpoint: a policy behind openpi's websocket protocol at this address
+    /// (`host:port` or `ws://host:port`; e.g. pi0.5-DROID on openpi's `serve_policy.py`, or
+    /// `labrig policy run --openpi`). The loop's source is then `remote` (`[remote]`: DROID's
+    /// observation keys and 15 Hz joint-velocity chunks by default).
     #[arg(long)]
-    pub policy: PathBuf,
+    pub remote: Option<String>,
+    /// `--remote`: what the chunk's arm columns are (`remote.actions`: joint_velocity, DROID's,
+    /// or joint_position).
+    #[arg(long, requires = "remote")]
+    pub remote_actions: Option<String>,
+    /// `--remote`: the prompt (`remote.prompt`; default: the scene's instruction).
+    #[arg(long, requires = "remote")]
+    pub prompt: Option<String>,
+    /// A request unanswered this long fails the rollout (s; `policy.server_timeout_s`; the
+    /// default is the loop's 1 s, or 5 s with `--remote`).
+    #[arg(long)]
+    pub server_timeout_s: Option<f64>,
     /// The scene: a built-in one (pick_place, drawer_open, drawer_close) or a spec file.
     #[arg(long, default_value = "pick_place")]
     pub scene: String,
@@ -181,10 +198,22 @@ pub fn wilson95(k: u64, n: u64) -> [f64; 2] {
 pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
     anyhow::ensure!((1..=1000).contains(&args.episodes), "--episodes must be in 1..=1000");
     // The server resolves it (a checkpoint, `checkpoints/last`, a run) and names what is wrong.
-    let ckpt = std::fs::canonicalize(&args.policy)
-        .with_context(|| format!("the checkpoint {} (--policy)", args.policy.display()))?;
+    let ckpt = match &args.policy {
+        Some(p) => {
+            Some(std::fs::canonicalize(p).with_context(|| format!("the checkpoint {} (--policy)", p.display()))?)
+        }
+        None => None,
+    };
     let origin = Path::new("launch_configs/sim_rollout.toml");
-    let (mut cfg, order) = LaunchConfig::parse(SIM_ROLLOUT, origin)?;
+    let (mut cfg, mut order) = LaunchConfig::parse(SIM_ROLLOUT, origin)?;
+    if args.remote.is_some() {
+        // The policy is served elsewhere: no policy server node.
+        cfg.nodes.retain(|n| n.name != "policy");
+        for n in &mut cfg.nodes {
+            n.after.retain(|d| d != "policy");
+        }
+        order = cfg.validate(Path::new("launch_configs"))?;
+    }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let out = std::fs::canonicalize(&args.out)?;
     let root = out.join("rollouts");
@@ -201,9 +230,11 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         }
         let rec = cfg.node_mut("recorder").context("sim_rollout.toml has no `recorder` node")?;
         set_arg(&mut rec.args, "--root", &root.display().to_string());
-        let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
-        set_arg(&mut pol.args, "--checkpoint", &ckpt.display().to_string());
-        set_arg(&mut pol.args, "--threads", &args.threads.to_string());
+        if let Some(ckpt) = &ckpt {
+            let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
+            set_arg(&mut pol.args, "--checkpoint", &ckpt.display().to_string());
+            set_arg(&mut pol.args, "--threads", &args.threads.to_string());
+        }
         let ctl = cfg.node_mut("control").context("sim_rollout.toml has no `control` node")?;
         set_arg(&mut ctl.args, "--episodes", &args.episodes.to_string());
         set_arg(&mut ctl.args, "--first-seed", &args.first_seed.to_string());
@@ -212,7 +243,26 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
             set_arg(&mut ctl.args, "--clock", "wall");
         }
         set_arg(&mut ctl.args, "--stats-out", &out.join("control_stats.json").display().to_string());
+        if args.remote.is_some() {
+            set_arg(&mut ctl.args, "--source", "remote");
+        }
         let mut set = |kv: String| ctl.args.extend(["--set".into(), kv]);
+        // A TOML basic string (JSON's escapes are valid in one).
+        let toml_str = |v: &str| serde_json::Value::String(v.to_owned()).to_string();
+        if let Some(url) = &args.remote {
+            set(format!("remote.url={}", toml_str(url)));
+            if let Some(a) = &args.remote_actions {
+                set(format!("remote.actions={}", toml_str(a)));
+            }
+            if let Some(p) = &args.prompt {
+                set(format!("remote.prompt={}", toml_str(p)));
+            }
+        }
+        match (args.server_timeout_s, args.remote.is_some()) {
+            (Some(t), _) => set(format!("policy.server_timeout_s={t}")),
+            (None, true) => set("policy.server_timeout_s=5.0".into()),
+            (None, false) => {}
+        }
         if let Some(b) = args.blend {
             set(format!("policy.blend=\"{}\"", if b == BlendArg::Replace { "replace" } else { "exponential" }));
         }
@@ -302,7 +352,11 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
     let successes = rollouts.iter().filter(|r| r.success).count() as u64;
     let lat = labrig_episode::inspect::Percentiles::of(seen.inference_ms.clone());
     let mut report = RolloutReport {
-        policy: ckpt.display().to_string(),
+        policy: match (&ckpt, &args.remote) {
+            (Some(c), _) => c.display().to_string(),
+            (None, Some(url)) => format!("openpi {}", labrig_openpi::client::ws_url(url)),
+            (None, None) => String::new(),
+        },
         scene: args.scene.clone(),
         mode: if args.realtime { "realtime" } else { "lockstep" },
         first_seed: args.first_seed,
