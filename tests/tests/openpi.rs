@@ -368,3 +368,63 @@ fn remote_policy_faults_are_named_and_a_restarted_server_is_reconnected() {
     assert_eq!(report["rollouts"][0]["reason"], "the step budget (80 steps) was spent", "{report:#}");
     assert!(!log_lines(&log2).is_empty(), "the restarted server got no request");
 }
+
+// ---------------------------------------------------------------- a labrig checkpoint as openpi's server
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// `labrig-policy run --openpi`: openpi's own client and broker query a labrig checkpoint
+/// (pixels + proprioception) with DROID's keys; the chunk is in the checkpoint's action space;
+/// a missing key gets openpi's error frame naming it; a sim-only checkpoint is refused.
+#[test]
+fn openpis_client_queries_a_labrig_checkpoint() {
+    let root = labrig_tests::repo_root();
+    let server_bin = labrig_tests::workspace_bin("labrig-policy", "labrig-policy-server");
+    let domain = labrig_tests::domain_for("openpi_server_rollout").to_string();
+
+    // The low-dim checkpoint reads the scene's positions: nothing openpi's observation has.
+    let o = std::process::Command::new(&server_bin)
+        .args(["run", "--threads", "1", "--domain-id", &domain, "--openpi", "0", "--checkpoint"])
+        .arg(root.join("tests/fixtures/policies/tiny_lowdim"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("which openpi's DROID observation does not carry"), "{err}");
+
+    let port = free_port();
+    let mut cmd = std::process::Command::new(&server_bin);
+    cmd.args(["run", "--threads", "1", "--domain-id", &domain, "--openpi", &port.to_string(), "--checkpoint"])
+        .arg(root.join("tests/fixtures/policies/small_vision"));
+    let _server = Proc::spawn("labrig-policy --openpi", cmd);
+    let addr = format!("127.0.0.1:{port}");
+    let until = std::time::Instant::now() + Duration::from_secs(120);
+    while labrig_openpi::client::healthz(&addr, Duration::from_secs(1)).is_err() {
+        assert!(std::time::Instant::now() < until, "labrig-policy --openpi never answered /healthz on {addr}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let out = openpi_peer(&["client", "--url", &format!("ws://{addr}"), "--requests", "3", "--horizon", "8"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "openpi client: {}", String::from_utf8_lossy(&out.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let meta = &r["metadata"];
+    assert!(meta["policy_id"].as_str().unwrap().starts_with("small_vision@"), "{meta}");
+    assert_eq!(meta["cameras"], serde_json::json!(["wrist", "ext1"]));
+    assert_eq!(meta["action_space"], "eef_axis_angle");
+    assert_eq!(meta["action_rate_hz"], 20.0);
+    assert_eq!(meta["image_keys"][droid::WRIST_IMAGE], "wrist");
+    // Tp - To + 1 = 16 - 2 + 1 rows of xyz + axis-angle + gripper, finite, in the workspace.
+    for rep in r["replies"].as_array().unwrap() {
+        assert_eq!(rep["shape"], serde_json::json!([15, 7]), "{rep}");
+        assert_eq!(rep["finite"], true);
+        let row: Vec<f64> = serde_json::from_value(rep["first_row"].clone()).unwrap();
+        assert!(row[0] > 0.1 && row[0] < 1.0 && row[2] > -0.1 && row[2] < 1.0, "{row:?}");
+        assert!(rep["server_timing"]["infer_ms"].as_f64().unwrap() > 0.0);
+    }
+    assert_eq!(r["broker"], serde_json::json!(vec![vec![7]; 9]));
+    let err = r["error"].as_str().expect("the bad request raised");
+    assert!(err.contains("the observation has no \"observation/wrist_image_left\""), "{err}");
+}

@@ -4,9 +4,11 @@
 //! answers each with an action chunk on `/policy/chunk`. Inference runs on its own thread; a
 //! request that arrives while one is computed replaces any older one still waiting (the
 //! newest observation wins). The model and its arithmetic are labrig-policies'; this crate adds
-//! the transport ([`serve`] has no ROS in it).
+//! the transport ([`serve`] has no ROS in it). With `--openpi ADDR` the same model also answers
+//! openpi's websocket clients ([`openpi`]).
 
 pub mod node;
+pub mod openpi;
 pub mod serve;
 
 use labrig_msgs::Invalid;
@@ -29,6 +31,11 @@ pub struct PolicyFlags {
     #[arg(long)]
     #[serde(skip_serializing_if = "Option::is_none")]
     threads: Option<i32>,
+    /// Also answer openpi clients (DROID's keys) on this address (`openpi`; `host:port`, or a
+    /// port on 127.0.0.1).
+    #[arg(long, value_name = "ADDR")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    openpi: Option<String>,
 }
 
 impl labrig_runtime::Node for PolicyServerNode {

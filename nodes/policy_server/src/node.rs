@@ -22,6 +22,13 @@ pub struct PolicyServerConfig {
     pub threads: i32,
     /// The rig's cameras: a checkpoint observing another is refused at start.
     pub rig_cameras: Vec<String>,
+    /// Also answer openpi clients on this address (`host:port`; a bare port binds 127.0.0.1):
+    /// DROID's observation keys in, the checkpoint's chunk out (see [`crate::openpi`]).
+    pub openpi: Option<String>,
+    /// openpi: the checkpoint's control period (s), the spacing of its chunk's rows.
+    pub period_s: f64,
+    /// openpi: the FR3 URDF whose kinematics give the pose from the joints (default: setup's).
+    pub urdf: Option<PathBuf>,
 }
 
 impl Default for PolicyServerConfig {
@@ -31,6 +38,9 @@ impl Default for PolicyServerConfig {
             checkpoint: None,
             threads: 0,
             rig_cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
+            openpi: None,
+            period_s: 0.05,
+            urdf: None,
         }
     }
 }
@@ -46,8 +56,28 @@ impl PolicyServerConfig {
                 format!("policy server config: `threads` must be >= 0, got {}", self.threads),
             ));
         }
+        if !(self.period_s.is_finite() && (0.001..=1.0).contains(&self.period_s)) {
+            return Err(Invalid::new(
+                "period_s",
+                format!("policy server config: period_s = {} must be in 0.001..=1", self.period_s),
+            ));
+        }
+        if let Some(a) = &self.openpi {
+            openpi_addr(a).map_err(|e| Invalid::new("openpi", e))?;
+        }
         Ok(())
     }
+}
+
+/// `--openpi`'s address: `host:port`, or a bare port on 127.0.0.1.
+pub fn openpi_addr(a: &str) -> Result<String, String> {
+    let full = if a.parse::<u16>().is_ok() { format!("127.0.0.1:{a}") } else { a.to_owned() };
+    use std::net::ToSocketAddrs;
+    full.to_socket_addrs()
+        .map_err(|e| format!("policy server config: openpi = {a:?} is not host:port ({e})"))?
+        .next()
+        .ok_or_else(|| format!("policy server config: openpi = {a:?} names no address"))?;
+    Ok(full)
 }
 
 /// What a run served.
@@ -62,6 +92,10 @@ pub struct ServeStats {
     pub failed: u64,
     pub inference_ms_p50: f64,
     pub inference_ms_p99: f64,
+    /// openpi: connections, requests, and requests answered with an error frame.
+    pub openpi_connections: u64,
+    pub openpi_requests: u64,
+    pub openpi_errors: u64,
 }
 
 /// The request waiting for the inference thread (the newest only) and whether to stop.
@@ -82,6 +116,25 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     server.check_rig(&cfg.rig_cameras)?;
     let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
     let (id, cameras, info_json) = (server.id().to_owned(), server.config().cameras.clone(), server.info().to_string());
+    // One model for both faces; openpi's requests and the loop's take turns.
+    let server = Arc::new(Mutex::new(server));
+    let openpi = match &cfg.openpi {
+        Some(addr) => {
+            let addr = openpi_addr(addr).map_err(anyhow::Error::msg)?;
+            let kin = labrig_arm::kinematics::Fr3Kinematics::from_urdf_file(
+                &labrig_arm::urdf_path(cfg.urdf.as_deref()),
+                labrig_arm::kinematics::TcpOffset::ROBOTIQ_2F85,
+            )?;
+            let policy =
+                crate::openpi::OpenpiPolicy::new(Arc::clone(&server), kin, cfg.period_s).map_err(anyhow::Error::msg)?;
+            let metadata = policy.metadata();
+            let s = labrig_openpi::Server::bind(&addr, metadata, Arc::new(policy))
+                .map_err(|e| anyhow::anyhow!("openpi: cannot listen on {addr}: {e}"))?;
+            tracing::info!(policy = %id, addr = %s.local_addr(), "answering openpi clients (ws://{})", s.local_addr());
+            Some(s)
+        }
+        None => None,
+    };
     let mut ros = Ros::new(&cfg.ros, "labrig_policy")?;
     let requests = ros.subscription_on(&topics::POLICY_REQUEST, 10)?;
     let chunks = ros.publisher_on(&topics::POLICY_CHUNK, 10)?;
@@ -98,7 +151,8 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
         let waiting = Arc::clone(&waiting);
         std::thread::Builder::new().name("inference".into()).spawn(move || {
             tch::set_num_threads(threads);
-            let _ = warm_tx.send(server.warm_up().map_err(|e| e.to_string()));
+            let lock = || server.lock().unwrap_or_else(|p| p.into_inner());
+            let _ = warm_tx.send(lock().warm_up().map_err(|e| e.to_string()));
             loop {
                 let req = {
                     let (lock, cv) = &*waiting;
@@ -111,7 +165,7 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
                     }
                     w.request.take().expect("checked")
                 };
-                let answer = server.chunk(&req).map_err(|e| (req.request_id, e.to_string()));
+                let answer = lock().chunk(&req).map_err(|e| (req.request_id, e.to_string()));
                 if done_tx.send(answer).is_err() {
                     return;
                 }
@@ -160,6 +214,12 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
         cv.notify_one();
     }
     let _ = worker.join();
+    if let Some(s) = openpi {
+        use std::sync::atomic::Ordering::Relaxed;
+        let c = s.counters();
+        (stats.openpi_connections, stats.openpi_requests, stats.openpi_errors) =
+            (c.connections.load(Relaxed), c.requests.load(Relaxed), c.errors.load(Relaxed));
+    }
     if let Some(p) = labrig_episode::inspect::Percentiles::of(latencies) {
         (stats.inference_ms_p50, stats.inference_ms_p99) = (p.p50, p.p99);
     }
