@@ -302,3 +302,45 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
     let meta = labrig_episode::read_episode(&recorded[1]).unwrap().metadata.unwrap();
     assert_eq!((meta.success, meta.policy.as_deref()), (Some(false), Some(POLICY_ID)));
 }
+
+/// A TorchScript module exported by PyTorch (tests/fixtures/policies/torchscript_tiny, untrained:
+/// slow DROID velocities) runs on the sim rig through `labrig rollout --torchscript`: the
+/// episode is recorded, every step after the first few is the module's, named by its id.
+#[test]
+fn a_torchscript_module_runs_on_the_sim_rig() {
+    let dir = tempfile::tempdir().unwrap();
+    let fx = repo_root().join("tests/fixtures/policies/torchscript_tiny");
+    let key = "torchscript_rollout";
+    let o = Command::new(labrig_bin())
+        .args(["rollout", "--threads", "1", "--json", "--episodes", "1", "--max-steps", "30"])
+        .args(["--domain-id", &domain_for(key).to_string(), "--torchscript"])
+        .arg(fx.join("policy_scripted.pt"))
+        .arg("--spec")
+        .arg(fx.join("spec.toml"))
+        .arg("--out")
+        .arg(dir.path())
+        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+        .current_dir(repo_root())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{}", String::from_utf8_lossy(&o.stderr)));
+    assert_eq!(o.status.code(), Some(0), "{report:#}");
+    let r = &report["rollouts"][0];
+    assert_eq!(r["reason"], "the step budget (30 steps) was spent", "{report:#}");
+    assert!(r["chunks"].as_u64().unwrap() >= 3, "{report:#}");
+    let (steps, meta) = steps(&r["dir"]);
+    assert_eq!(meta.policy.as_deref(), Some("torchscript:torchscript_tiny"));
+    let by_module = steps.iter().filter(|s| s.chunk_id > 0 && s.policy_id == "torchscript:torchscript_tiny").count();
+    // (The first steps hold until every camera's first frame is there.)
+    assert!(by_module >= 25, "{by_module} of {} steps ran the module's rows", steps.len());
+    // DROID velocities: the recorded action is the module's (within its +-0.2).
+    assert!(
+        steps.iter().filter(|s| s.chunk_id > 0).all(|s| s
+            .action
+            .cartesian_velocity
+            .iter()
+            .all(|v| v.abs() <= 0.2 + 1e-9))
+    );
+}

@@ -291,6 +291,9 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// openpi's websocket protocol: the round trip on loopback (labrig's and openpi's own
+    /// server), and the 20 Hz loop with a remote policy 0-1000 ms away (held ticks, skipped rows).
+    Openpi(crate::bench_openpi::OpenpiBenchArgs),
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -311,6 +314,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Station(a)) => crate::bench_station::run(a),
         Command::Bench(BenchCommand::Cameras(a)) => crate::bench_cameras::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
+        Command::Bench(BenchCommand::Openpi(a)) => crate::bench_openpi::run(a),
         Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
         Command::Bench(BenchCommand::Policy { args }) => node("labrig-policies", &tool("bench", args)),
         Command::Train { args } => node("labrig-policies", &tool("train", args)),

@@ -45,8 +45,15 @@ pub enum BlendArg {
 pub struct RolloutArgs {
     /// The checkpoint: `labrig train`'s `checkpoints/step_<n>`, its `checkpoints/last`, or the
     /// run directory (its last checkpoint).
-    #[arg(long, required_unless_present = "remote", conflicts_with = "remote")]
+    #[arg(long, required_unless_present_any = ["remote", "torchscript"], conflicts_with_all = ["remote", "torchscript"])]
     pub policy: Option<PathBuf>,
+    /// Instead of a checkpoint: a TorchScript module saved by PyTorch, with `--spec` (what it
+    /// takes and gives; see ARCHITECTURE.md).
+    #[arg(long, requires = "spec", conflicts_with = "remote")]
+    pub torchscript: Option<PathBuf>,
+    /// `--torchscript`: the module's spec (TOML).
+    #[arg(long, requires = "torchscript")]
+    pub spec: Option<PathBuf>,
     /// Instead of a checkpoint: a policy behind openpi's websocket protocol at this address
     /// (`host:port` or `ws://host:port`; e.g. pi0.5-DROID on openpi's `serve_policy.py`, or
     /// `labrig policy run --openpi`). The loop's source is then `remote` (`[remote]`: DROID's
@@ -196,6 +203,18 @@ pub fn wilson95(k: u64, n: u64) -> [f64; 2] {
 }
 
 pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
+    let json = args.json;
+    let report = run_quiet(args)?;
+    if json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print!("{}", report_text(&report));
+    }
+    Ok(if report.errors.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(1) })
+}
+
+/// The rollouts and their report (also written to `rollouts.json`), printing nothing.
+pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
     anyhow::ensure!((1..=1000).contains(&args.episodes), "--episodes must be in 1..=1000");
     // The server resolves it (a checkpoint, `checkpoints/last`, a run) and names what is wrong.
     let ckpt = match &args.policy {
@@ -203,6 +222,14 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
             Some(std::fs::canonicalize(p).with_context(|| format!("the checkpoint {} (--policy)", p.display()))?)
         }
         None => None,
+    };
+    let torchscript = match (&args.torchscript, &args.spec) {
+        (Some(m), Some(s)) => Some((
+            std::fs::canonicalize(m)
+                .with_context(|| format!("the TorchScript module {} (--torchscript)", m.display()))?,
+            std::fs::canonicalize(s).with_context(|| format!("the spec {} (--spec)", s.display()))?,
+        )),
+        _ => None,
     };
     let origin = Path::new("launch_configs/sim_rollout.toml");
     let (mut cfg, mut order) = LaunchConfig::parse(SIM_ROLLOUT, origin)?;
@@ -233,6 +260,15 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
         if let Some(ckpt) = &ckpt {
             let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
             set_arg(&mut pol.args, "--checkpoint", &ckpt.display().to_string());
+            set_arg(&mut pol.args, "--threads", &args.threads.to_string());
+        }
+        if let Some((module, spec)) = &torchscript {
+            let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
+            if let Some(i) = pol.args.iter().position(|a| a == "--checkpoint") {
+                pol.args.drain(i..(i + 2).min(pol.args.len()));
+            }
+            set_arg(&mut pol.args, "--torchscript", &module.display().to_string());
+            set_arg(&mut pol.args, "--spec", &spec.display().to_string());
             set_arg(&mut pol.args, "--threads", &args.threads.to_string());
         }
         let ctl = cfg.node_mut("control").context("sim_rollout.toml has no `control` node")?;
@@ -352,10 +388,11 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
     let successes = rollouts.iter().filter(|r| r.success).count() as u64;
     let lat = labrig_episode::inspect::Percentiles::of(seen.inference_ms.clone());
     let mut report = RolloutReport {
-        policy: match (&ckpt, &args.remote) {
-            (Some(c), _) => c.display().to_string(),
-            (None, Some(url)) => format!("openpi {}", labrig_openpi::client::ws_url(url)),
-            (None, None) => String::new(),
+        policy: match (&ckpt, &args.remote, &torchscript) {
+            (Some(c), _, _) => c.display().to_string(),
+            (None, Some(url), _) => format!("openpi {}", labrig_openpi::client::ws_url(url)),
+            (None, None, Some((m, _))) => format!("torchscript {}", m.display()),
+            (None, None, None) => String::new(),
         },
         scene: args.scene.clone(),
         mode: if args.realtime { "realtime" } else { "lockstep" },
@@ -391,12 +428,7 @@ pub fn run(args: RolloutArgs) -> anyhow::Result<ExitCode> {
     report.errors = errors;
     std::fs::write(out.join("rollouts.json"), serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", out.join("rollouts.json").display()))?;
-    if args.json {
-        println!("{}", serde_json::to_string(&report)?);
-    } else {
-        print!("{}", report_text(&report));
-    }
-    Ok(if report.errors.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(1) })
+    Ok(report)
 }
 
 /// "k of n rollouts succeeded (p%, 95% CI lo-hi%)".

@@ -10,6 +10,7 @@
 pub mod node;
 pub mod openpi;
 pub mod serve;
+pub mod torchscript;
 
 use labrig_msgs::Invalid;
 use labrig_runtime::{RosConfig, Shutdown};
@@ -24,9 +25,19 @@ pub struct PolicyServerNode;
 #[derive(Debug, clap::Args, serde::Serialize)]
 pub struct PolicyFlags {
     /// The checkpoint directory (`checkpoint`).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "torchscript")]
     #[serde(skip_serializing_if = "Option::is_none")]
     checkpoint: Option<PathBuf>,
+    /// Instead of a checkpoint: a TorchScript module saved by PyTorch (`torchscript`), with
+    /// `--spec`.
+    #[arg(long, requires = "spec")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    torchscript: Option<PathBuf>,
+    /// The TorchScript module's spec (`spec`, TOML: cameras, image size and range, state
+    /// layout, To / Tp / Ta, action space).
+    #[arg(long, requires = "torchscript")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    spec: Option<PathBuf>,
     /// Inference threads (`threads`; 0 = every core).
     #[arg(long)]
     #[serde(skip_serializing_if = "Option::is_none")]

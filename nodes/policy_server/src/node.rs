@@ -18,6 +18,9 @@ pub struct PolicyServerConfig {
     pub ros: RosConfig,
     /// The checkpoint directory (`labrig train`'s `checkpoints/step_<n>`, or an imported one).
     pub checkpoint: Option<PathBuf>,
+    /// Or a TorchScript module saved by PyTorch, with its `spec` ([`crate::torchscript`]).
+    pub torchscript: Option<PathBuf>,
+    pub spec: Option<PathBuf>,
     /// Inference threads; 0 = every core.
     pub threads: i32,
     /// The rig's cameras: a checkpoint observing another is refused at start.
@@ -36,6 +39,8 @@ impl Default for PolicyServerConfig {
         PolicyServerConfig {
             ros: RosConfig::default(),
             checkpoint: None,
+            torchscript: None,
+            spec: None,
             threads: 0,
             rig_cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
             openpi: None,
@@ -47,8 +52,23 @@ impl Default for PolicyServerConfig {
 
 impl PolicyServerConfig {
     pub fn validate(&self) -> Result<(), Invalid> {
-        if self.checkpoint.is_none() {
-            return Err(Invalid::new("checkpoint", "policy server config: no `checkpoint` (--checkpoint <dir>)"));
+        match (&self.checkpoint, &self.torchscript, &self.spec) {
+            (Some(_), None, None) | (None, Some(_), Some(_)) => {}
+            (None, None, _) => {
+                return Err(Invalid::new(
+                    "checkpoint",
+                    "policy server config: no `checkpoint` (--checkpoint <dir>) nor `torchscript` (--torchscript model.pt --spec spec.toml)",
+                ));
+            }
+            (Some(_), Some(_), _) => {
+                return Err(Invalid::new(
+                    "torchscript",
+                    "policy server config: `checkpoint` or `torchscript`, not both",
+                ));
+            }
+            (_, Some(_), None) | (Some(_), None, Some(_)) => {
+                return Err(Invalid::new("spec", "policy server config: `torchscript` and `spec` go together"));
+            }
         }
         if self.threads < 0 {
             return Err(Invalid::new(
@@ -111,8 +131,11 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     } else {
         std::thread::available_parallelism().map(|n| n.get() as i32).unwrap_or(1)
     };
-    let dir = cfg.checkpoint.clone().expect("validated");
-    let server = Server::load(&dir)?;
+    let (server, dir) = match (&cfg.checkpoint, &cfg.torchscript, &cfg.spec) {
+        (Some(dir), _, _) => (Server::load(dir)?, dir.clone()),
+        (None, Some(module), Some(spec)) => (Server::load_torchscript(module, spec)?, module.clone()),
+        _ => unreachable!("validated"),
+    };
     server.check_rig(&cfg.rig_cameras)?;
     let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
     let (id, cameras, info_json) = (server.id().to_owned(), server.config().cameras.clone(), server.info().to_string());

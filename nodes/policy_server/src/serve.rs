@@ -4,6 +4,7 @@
 //! state's quaternion, the scene's positions), so the policy sees at the rig what it saw in
 //! the data.
 
+use crate::torchscript::TorchScriptSpec;
 use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
 use labrig_msgs::std_msgs::Header;
 use labrig_policies::checkpoint::{self, CheckpointError, CheckpointMeta};
@@ -31,12 +32,30 @@ pub enum ServeError {
     },
 }
 
-/// A loaded checkpoint.
+/// The model behind a server.
+enum Model {
+    /// A labrig (or imported LeRobot) Diffusion Policy checkpoint.
+    Diffusion { _vs: tch::nn::VarStore, policy: DiffusionPolicy, meta: Box<CheckpointMeta> },
+    /// A TorchScript module with its spec ([`crate::torchscript`]).
+    TorchScript { module: tch::CModule, spec: TorchScriptSpec, path: std::path::PathBuf },
+}
+
+impl std::fmt::Debug for Model {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Model::Diffusion { meta, .. } => write!(f, "Diffusion(step {})", meta.step),
+            Model::TorchScript { path, .. } => write!(f, "TorchScript({})", path.display()),
+        }
+    }
+}
+
+/// A loaded policy: a checkpoint or a TorchScript module.
 #[derive(Debug)]
 pub struct Server {
-    _vs: tch::nn::VarStore,
-    policy: DiffusionPolicy,
-    meta: CheckpointMeta,
+    model: Model,
+    /// What it observes and predicts (a TorchScript module's spec as this config).
+    config: DiffusionConfig,
+    step: u64,
     id: String,
 }
 
@@ -47,22 +66,104 @@ impl Server {
         let dir = checkpoint::resolve(path)?;
         let (vs, policy, meta) = checkpoint::load(&dir, Device::Cpu)?;
         let id = checkpoint::id(&dir, meta.step);
-        Ok(Server { _vs: vs, policy, meta, id })
+        let (config, step) = (meta.config.clone(), meta.step);
+        Ok(Server { model: Model::Diffusion { _vs: vs, policy, meta: Box::new(meta) }, config, step, id })
+    }
+
+    /// Loads a TorchScript module (`torch.jit.script` or `trace`, saved by PyTorch) with the
+    /// spec saying what it takes and gives; one forward on zeros checks the output's shape.
+    pub fn load_torchscript(module: &Path, spec_path: &Path) -> Result<Server, ServeError> {
+        let mismatch = |what: String| ServeError::Mismatch { checkpoint: module.display().to_string(), what };
+        let spec = TorchScriptSpec::load(spec_path).map_err(mismatch)?;
+        let mut m = tch::CModule::load(module).map_err(|e| mismatch(format!("not a TorchScript module: {e}")))?;
+        m.set_eval();
+        let config = spec.config();
+        let stem = module.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let id = format!("torchscript:{}", spec.id.clone().unwrap_or(stem));
+        let server =
+            Server { model: Model::TorchScript { module: m, spec, path: module.to_owned() }, config, step: 0, id };
+        server.warm_up()?;
+        Ok(server)
+    }
+
+    /// The model's actions for named observation tensors (LeRobot's names, [`Self::observation`]):
+    /// (1, Tp, action_dim) in the robot's units. `noise` seeds a diffusion model's sampling.
+    pub fn predict(
+        &self,
+        named: &BTreeMap<String, Tensor>,
+        noise: &Tensor,
+        request: u64,
+    ) -> Result<Tensor, ServeError> {
+        match &self.model {
+            Model::Diffusion { policy, meta, .. } => infer::infer(policy, meta, named, noise)
+                .map(|r| r.action)
+                .map_err(|source| ServeError::Infer { request, source }),
+            Model::TorchScript { module, spec, .. } => {
+                let bad = |what: String| ServeError::Request { request, what };
+                let dict = named
+                    .iter()
+                    .map(|(k, v)| {
+                        let v = if spec.image_range == "byte" && k.starts_with("observation.images.") {
+                            v * 255.0
+                        } else {
+                            v.shallow_clone()
+                        };
+                        (tch::IValue::String(k.clone()), tch::IValue::Tensor(v))
+                    })
+                    .collect();
+                let out = tch::no_grad(|| module.forward_is(&[tch::IValue::GenericDict(dict)]))
+                    .map_err(|e| bad(format!("the TorchScript module failed: {e}")))?;
+                let t = match out {
+                    tch::IValue::Tensor(t) => t,
+                    other => return Err(bad(format!("the module returned {other:?}, not a tensor"))),
+                };
+                let c = &self.config;
+                let want = [1, c.horizon, c.action_dim];
+                if t.size() != want {
+                    return Err(bad(format!(
+                        "the module returned shape {:?}; its spec says (1, horizon {}, action_dim {})",
+                        t.size(),
+                        c.horizon,
+                        c.action_dim
+                    )));
+                }
+                Ok(t.to_kind(Kind::Float))
+            }
+        }
     }
 
     /// One chunk from a blank observation, before the first request: libtorch's first call
     /// sets up its thread pool and buffers, which took over a second on a busy machine (past
     /// the loop's default 1 s server timeout, failing a rollout's first episode). Its time, ms.
     pub fn warm_up(&self) -> Result<f64, ServeError> {
-        let c = &self.meta.config;
+        let c = &self.config;
         let opts = (Kind::Float, Device::Cpu);
-        let images: Vec<Tensor> =
-            c.cameras.iter().map(|_| Tensor::zeros([1, c.n_obs_steps, 3, c.image_size, c.image_size], opts)).collect();
-        let state = Tensor::zeros([1, c.n_obs_steps, c.state_dim], opts);
         let noise = Tensor::zeros([1, c.horizon, c.action_dim], opts);
         let started = Instant::now();
-        let _chunk = tch::no_grad(|| self.policy.sample(&images, &state, &noise))
-            .map_err(|e| ServeError::Mismatch { checkpoint: self.id.clone(), what: e.to_string() })?;
+        let mismatch = |what: String| ServeError::Mismatch { checkpoint: self.id.clone(), what };
+        match &self.model {
+            Model::Diffusion { policy, .. } => {
+                let images: Vec<Tensor> = c
+                    .cameras
+                    .iter()
+                    .map(|_| Tensor::zeros([1, c.n_obs_steps, 3, c.image_size, c.image_size], opts))
+                    .collect();
+                let state = Tensor::zeros([1, c.n_obs_steps, c.state_dim], opts);
+                let _chunk =
+                    tch::no_grad(|| policy.sample(&images, &state, &noise)).map_err(|e| mismatch(e.to_string()))?;
+            }
+            Model::TorchScript { .. } => {
+                let mut named = BTreeMap::new();
+                for cam in &c.cameras {
+                    named.insert(
+                        format!("observation.images.{cam}"),
+                        Tensor::zeros([1, c.n_obs_steps, 3, c.image_size, c.image_size], opts),
+                    );
+                }
+                named.insert("observation.state".into(), Tensor::zeros([1, c.n_obs_steps, c.state_dim], opts));
+                let _actions = self.predict(&named, &noise, 0).map_err(|e| mismatch(e.to_string()))?;
+            }
+        }
         Ok(started.elapsed().as_secs_f64() * 1e3)
     }
 
@@ -72,12 +173,12 @@ impl Server {
     }
 
     pub fn config(&self) -> &DiffusionConfig {
-        &self.meta.config
+        &self.config
     }
 
     /// Refuses a checkpoint that needs a camera the rig does not have, naming it.
     pub fn check_rig(&self, rig_cameras: &[String]) -> Result<(), ServeError> {
-        let missing: Vec<&String> = self.meta.config.cameras.iter().filter(|c| !rig_cameras.contains(c)).collect();
+        let missing: Vec<&String> = self.config.cameras.iter().filter(|c| !rig_cameras.contains(c)).collect();
         if missing.is_empty() {
             return Ok(());
         }
@@ -93,7 +194,7 @@ impl Server {
     /// camera, the state (1, To, D). With fewer observations than To (an episode's first
     /// ticks) the oldest one is repeated, as LeRobot's observation queue does.
     pub fn observation(&self, req: &PolicyRequest) -> Result<BTreeMap<String, Tensor>, ServeError> {
-        let c = &self.meta.config;
+        let c = &self.config;
         let bad = |what: String| ServeError::Request { request: req.request_id, what };
         let n_obs = c.n_obs_steps as usize;
         let newest = &req.observations[req.observations.len().saturating_sub(n_obs)..];
@@ -129,7 +230,25 @@ impl Server {
 
     /// What the server serves, as `/policy/info` carries it (JSON).
     pub fn info(&self) -> serde_json::Value {
-        let c = &self.meta.config;
+        let c = &self.config;
+        if let Model::TorchScript { spec, path, .. } = &self.model {
+            return serde_json::json!({
+                "policy_id": self.id,
+                "format": "torchscript",
+                "module": path.display().to_string(),
+                "cameras": c.cameras,
+                "image_size": c.image_size,
+                "image_range": spec.image_range,
+                "state": spec.state,
+                "n_obs_steps": c.n_obs_steps,
+                "horizon": c.horizon,
+                "n_action_steps": c.n_action_steps,
+                "action_space": c.action_space,
+                "action_dim": c.action_dim,
+                "observes": c.observes(),
+                "sim_only": c.sim_only_inputs(),
+            });
+        }
         serde_json::json!({
             "policy_id": self.id,
             "cameras": c.cameras,
@@ -148,7 +267,7 @@ impl Server {
             "encoder": c.encoder,
             "observes": c.observes(),
             "sim_only": c.sim_only_inputs(),
-            "step": self.meta.step,
+            "step": self.step,
         })
     }
 
@@ -163,14 +282,13 @@ impl Server {
             .last()
             .ok_or_else(|| ServeError::Request { request: req.request_id, what: "no observations".into() })?;
         let named = self.observation(req)?;
-        let c = &self.meta.config;
+        let c = &self.config;
         tch::manual_seed(noise_seed(req.seed, newest.step_index));
         let noise = Tensor::randn([1, c.horizon, c.action_dim], (Kind::Float, Device::Cpu));
-        let r = infer::infer(&self.policy, &self.meta, &named, &noise)
-            .map_err(|source| ServeError::Infer { request: req.request_id, source })?;
+        let action = self.predict(&named, &noise, req.request_id)?;
         let from = c.n_obs_steps - 1;
         let rows = c.horizon - from;
-        let actions: Vec<f64> = Vec::<f32>::try_from(r.action.get(0).narrow(0, from, rows).flatten(0, -1))
+        let actions: Vec<f64> = Vec::<f32>::try_from(action.get(0).narrow(0, from, rows).flatten(0, -1))
             .map_err(|e| ServeError::Request { request: req.request_id, what: e.to_string() })?
             .into_iter()
             .map(f64::from)
