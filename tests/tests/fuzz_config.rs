@@ -605,11 +605,12 @@ enum Reader {
 /// Every file in launch_configs/ (nested folders too, paths relative to it) and what reads
 /// it. `every_real_config_loads` fails on a file missing here, so a new config is loaded by
 /// its reader or named as no config, never skipped without a word.
-const REAL_CONFIGS: [(&str, Reader); 15] = [
+const REAL_CONFIGS: [(&str, Reader); 17] = [
     ("README.md", Reader::NotAConfig("the folder's description, for people")),
     ("bench_rig.toml", Reader::Launch),
     ("real_droid.toml", Reader::Launch),
     ("real_policy.toml", Reader::Launch),
+    ("real_openpi.toml", Reader::Launch),
     ("sim_demo.toml", Reader::Launch),
     ("sim_droid.toml", Reader::Launch),
     ("sim_rollout.toml", Reader::Launch),
@@ -617,6 +618,7 @@ const REAL_CONFIGS: [(&str, Reader); 15] = [
     ("nodes/cameras_real.toml", Reader::Node("labrig-cameras")),
     ("nodes/control_real.toml", Reader::Node("labrig-control")),
     ("nodes/control_real_policy.toml", Reader::Node("labrig-control")),
+    ("nodes/control_real_openpi.toml", Reader::Node("labrig-control")),
     ("nodes/franka_fr3.toml", Reader::Node("labrig-franka")),
     ("nodes/gripper_2f85.toml", Reader::Node("labrig-gripper")),
     ("nodes/teleop_quest.toml", Reader::Node("labrig-teleop")),

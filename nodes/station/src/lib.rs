@@ -112,7 +112,7 @@ impl StationConfig {
         if let Some(c) =
             self.cameras.iter().find(|c| c.is_empty() || !c.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_'))
         {
-            return Err(Invalid::new("cameras", format!("camera id {c:?}: letters, digits and '_' only")));
+            return Err(Invalid::new("cameras", format!("cameras: camera id {c:?}: letters, digits and '_' only")));
         }
         Ok(())
     }
