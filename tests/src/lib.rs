@@ -181,6 +181,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("openpi_remote_faults", 168, 1),
     ("openpi_server_rollout", 169, 1),
     ("torchscript_rollout", 170, 1),
+    ("openpi_remote_timing", 171, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

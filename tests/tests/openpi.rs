@@ -285,25 +285,25 @@ fn openpis_server_drives_the_sim_rig_with_droid_joint_velocities() {
         let t_steps = (f64::from(s.chunk_row) + 1.0) * 0.05 * 15.0;
         let (full, frac) = (t_steps.floor() as usize, t_steps - t_steps.floor());
         let mut want = [0.0; 8];
-        for j in 0..7 {
+        for (j, w) in want.iter_mut().take(7).enumerate() {
             let done: f64 = served[..full].iter().map(|r| r[j]).sum();
             let part = served.get(full).map_or(0.0, |r| r[j] * frac);
-            want[j] = q0[j] + 0.2 * (done + part);
+            *w = q0[j] + 0.2 * (done + part);
         }
         // The gripper of the DROID step under way at the tick (row m at m x 50 ms), at 0.5.
         let under_way = ((f64::from(s.chunk_row) * 0.05 * 15.0) + 1e-9).floor() as usize;
         want[7] = if served[under_way][7] >= 0.5 { 1.0 } else { 0.0 };
         assert_eq!(want.map(|x| x.is_finite()), [true; 8]);
         assert!(conv.rate_hz == 15.0 && conv.max_joint_delta_rad == 0.2, "DROID's defaults");
-        for j in 0..7 {
+        for (j, w) in want.iter().take(7).enumerate() {
             assert!(
-                (s.action.joint_position[j] - want[j]).abs() < 1e-9,
+                (s.action.joint_position[j] - w).abs() < 1e-9,
                 "step {} (chunk {} row {}): joint {j} commanded {} != DROID's {}",
                 s.step_index,
                 s.chunk_id,
                 s.chunk_row,
                 s.action.joint_position[j],
-                want[j]
+                w
             );
         }
         assert_eq!(s.action.gripper_position, want[7], "step {}", s.step_index);
@@ -427,4 +427,31 @@ fn openpis_client_queries_a_labrig_checkpoint() {
     assert_eq!(r["broker"], serde_json::json!(vec![vec![7]; 9]));
     let err = r["error"].as_str().expect("the bad request raised");
     assert!(err.contains("the observation has no \"observation/wrist_image_left\""), "{err}");
+}
+
+/// A chunk that comes 3 ticks late (lockstep `--delay-steps 3`): timed from its observation,
+/// its first 3 rows have passed and are skipped; timed from its arrival (DROID's client), it
+/// runs from row 0.
+#[test]
+fn a_late_chunk_runs_from_its_observation_or_from_its_arrival() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_server, port, _) = upstream_serving(&droid_chunks(40, 8), dir.path(), "late", 0, None);
+    let key = "openpi_remote_timing";
+    let base = ["--max-steps", "40", "--delay-steps", "3"];
+    let obs = remote_rollout(key, port, &dir.path().join("obs"), &base);
+    let arr = remote_rollout(key, port, &dir.path().join("arr"), &[&base[..], &["--chunk-timing", "arrival"]].concat());
+    let first_rows = |report: &serde_json::Value| -> Vec<u32> {
+        let data = recorded_steps(report);
+        let mut seen = std::collections::BTreeMap::new();
+        for s in data.steps.iter().filter(|s| s.chunk_id > 0) {
+            seen.entry(s.chunk_id).or_insert(s.chunk_row);
+        }
+        seen.into_values().collect()
+    };
+    let (o, a) = (first_rows(&obs), first_rows(&arr));
+    assert!(o.len() >= 3 && a.len() >= 3, "{o:?} {a:?}");
+    assert!(o.iter().all(|&r| r == 3), "from the observation: the first 3 rows passed: {o:?}");
+    assert!(a.iter().all(|&r| r == 0), "from the arrival: row 0 first: {a:?}");
+    assert!(obs["rollouts"][0]["skipped_rows"].as_u64().unwrap() >= 9, "{obs:#}");
+    assert_eq!(arr["rollouts"][0]["skipped_rows"], 0, "{arr:#}");
 }

@@ -56,6 +56,19 @@ pub enum Blend {
     Exponential,
 }
 
+/// When a chunk's rows are meant to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ChunkTiming {
+    /// Row i at the observation's tick + i periods (what the policy predicted for): rows whose
+    /// time passed before the chunk came are skipped.
+    Observation,
+    /// Row 0 at the first tick after the chunk came, the rest one period apart (DROID's own
+    /// client, which blocks on the server and then executes the chunk): nothing is skipped,
+    /// but every row is as old as the round trip.
+    Arrival,
+}
+
 /// `[policy]` in the control node's config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -64,6 +77,9 @@ pub struct PolicySourceConfig {
     /// Exponential blending: a chunk's weight is `exp(-blend_decay * k)`, `k` how many steps
     /// older its newest observation is than the newest chunk's (0: a plain average).
     pub blend_decay: f64,
+    /// When a chunk's rows run: from its observation's tick (`"observation"`) or from its
+    /// arrival (`"arrival"`, DROID's client's behaviour behind a slow remote server).
+    pub chunk_timing: ChunkTiming,
     /// Rows of a chunk executed before the next one is due (0: the checkpoint's
     /// `n_action_steps`).
     pub execute_steps: u32,
@@ -117,6 +133,7 @@ impl Default for PolicySourceConfig {
         PolicySourceConfig {
             blend: Blend::Replace,
             blend_decay: 0.5,
+            chunk_timing: ChunkTiming::Observation,
             execute_steps: 0,
             lockstep_delay_steps: 0,
             server_wait_s: 120.0,
@@ -572,11 +589,26 @@ impl PolicySource {
             return;
         }
         let mut usable_from = i64::MIN;
+        let mut times_ns = c.times_ns.clone();
         if let Some(f) = self.in_flight.filter(|f| f.id == c.request_id) {
-            self.round_trips_ms.push(f.sent.elapsed().as_secs_f64() * 1e3);
+            let elapsed = f.sent.elapsed();
+            self.round_trips_ms.push(elapsed.as_secs_f64() * 1e3);
             self.in_flight = None;
             if self.clock == ClockKind::Sim {
                 usable_from = f.due_ns;
+            }
+            if self.cfg.chunk_timing == ChunkTiming::Arrival {
+                // The first tick at or after its arrival: in lockstep the tick it was due at,
+                // on the wall clock the sending tick + the round trip rounded up to ticks.
+                let arrival = match self.clock {
+                    ClockKind::Sim => f.due_ns,
+                    ClockKind::Wall => {
+                        let ticks = (elapsed.as_nanos() as i64 + self.period_ns - 1) / self.period_ns;
+                        f.sent_ns + ticks * self.period_ns
+                    }
+                };
+                let shift = times_ns.first().map_or(0, |&t0| (arrival - t0).max(0));
+                times_ns.iter_mut().for_each(|t| *t += shift);
             }
         }
         self.stats.chunks += 1;
@@ -584,7 +616,7 @@ impl PolicySource {
         self.active.push(Chunk {
             id: c.request_id,
             obs_step: c.observation_step,
-            times_ns: c.times_ns,
+            times_ns,
             rows,
             first_used: None,
             executed: 0,

@@ -7,8 +7,9 @@
 //!    `WebsocketPolicyServer`: p50 / p99 / max over `--requests`.
 //! 2. The rig: the simulated rig in real time with `--source remote` against a server that
 //!    answers after `--latency-ms` (0, 250, 500, 1000 by default: the openpi README puts a
-//!    remote GPU's chunk at 0.5-1 s): the loop's period jitter, held ticks, the lead it asked
-//!    with, and the rows that had passed when their chunk came.
+//!    remote GPU's chunk at 0.5-1 s), each with the rows timed from the observation (the
+//!    default) and from the chunk's arrival (DROID's client): the loop's period jitter, held
+//!    ticks, the lead it asked with, and the rows that had passed when their chunk came.
 //!
 //! The machine is shared and noisy: read percentiles, and compare runs made together.
 
@@ -58,6 +59,8 @@ pub struct RoundTrip {
 #[derive(Debug, Clone, Serialize)]
 pub struct RigRun {
     pub latency_ms: u64,
+    /// `policy.chunk_timing`: rows from the observation's tick, or from the chunk's arrival.
+    pub chunk_timing: &'static str,
     pub steps: u64,
     pub requests: u64,
     pub chunks: u64,
@@ -188,7 +191,7 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let out = std::fs::canonicalize(&a.out)?;
     let mut notes = Vec::new();
-    let bar = ProgressBar::new((2 * a.requests) as u64 + a.latency_ms.len() as u64 * a.steps);
+    let bar = ProgressBar::new((2 * a.requests) as u64 + 2 * a.latency_ms.len() as u64 * a.steps);
     bar.set_style(ProgressStyle::with_template("{msg:30} [{bar:30}] {pos}/{len} {elapsed}").expect("template"));
     if a.json {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
@@ -206,25 +209,34 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
     }
 
     let mut rig = Vec::new();
-    for (k, &latency) in a.latency_ms.iter().enumerate() {
-        bar.set_message(format!("the rig, server latency {latency} ms"));
+    let runs: Vec<(u64, crate::rollout::ChunkTimingArg)> = a
+        .latency_ms
+        .iter()
+        .flat_map(|&l| {
+            [crate::rollout::ChunkTimingArg::Observation, crate::rollout::ChunkTimingArg::Arrival].map(|t| (l, t))
+        })
+        .collect();
+    for (k, &(latency, timing)) in runs.iter().enumerate() {
+        let timing_name = if timing == crate::rollout::ChunkTimingArg::Arrival { "arrival" } else { "observation" };
+        bar.set_message(format!("the rig, {latency} ms, {timing_name}"));
         let server = Server::bind(
             "127.0.0.1:0",
             codec::map([("policy", Value::from(format!("sine after {latency} ms")))]),
             Arc::new(Delayed { latency: Duration::from_millis(latency) }),
         )?;
-        let dir = out.join(format!("latency_{latency}ms"));
+        let dir = out.join(format!("latency_{latency}ms_{timing_name}"));
         let args = crate::rollout::RolloutArgs {
             policy: None,
             torchscript: None,
             spec: None,
             remote: Some(server.local_addr().to_string()),
             remote_actions: None,
+            chunk_timing: Some(timing),
             prompt: None,
             server_timeout_s: Some((3.0 * latency as f64 / 1e3).max(5.0)),
             scene: "pick_place".into(),
             episodes: 1,
-            first_seed: 1000 + k as u64,
+            first_seed: 1000 + (k / 2) as u64,
             lockstep: false,
             realtime: true,
             max_steps: a.steps,
@@ -249,6 +261,7 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
         let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
         rig.push(RigRun {
             latency_ms: latency,
+            chunk_timing: timing_name,
             steps: u(&report["rollouts"][0]["steps"]),
             requests: u(&s["requests"]),
             chunks: u(&s["chunks"]),
@@ -282,12 +295,13 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
         if !report.rig.is_empty() {
             println!("the sim rig in real time, --source remote, DROID chunks of 15 at 15 Hz, 8 executed (10 ticks):");
             println!(
-                "  latency  steps  requests  chunks  rows run  rows skipped  held ticks  lead  rtt p50 ms  jitter p50/p99 us"
+                "  latency  rows from    steps  requests  chunks  rows run  rows skipped  held ticks  lead  rtt p50 ms  jitter p50/p99 us"
             );
             for r in &report.rig {
                 println!(
-                    "  {:>5} ms {:>6} {:>9} {:>7} {:>9} {:>13} {:>11} {:>5} {:>11.1}  {:.0}/{:.0}",
+                    "  {:>5} ms {:11} {:>6} {:>9} {:>7} {:>9} {:>13} {:>11} {:>5} {:>11.1}  {:.0}/{:.0}",
                     r.latency_ms,
+                    r.chunk_timing,
                     r.steps,
                     r.requests,
                     r.chunks,

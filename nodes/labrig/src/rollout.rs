@@ -67,6 +67,11 @@ pub struct RolloutArgs {
     /// `--remote`: the prompt (`remote.prompt`; default: the scene's instruction).
     #[arg(long, requires = "remote")]
     pub prompt: Option<String>,
+    /// When a chunk's rows run (`policy.chunk_timing`): from the observation's tick (default;
+    /// rows that passed before the chunk came are skipped) or from the chunk's arrival (DROID's
+    /// client's behaviour).
+    #[arg(long, value_enum)]
+    pub chunk_timing: Option<ChunkTimingArg>,
     /// A request unanswered this long fails the rollout (s; `policy.server_timeout_s`; the
     /// default is the loop's 1 s, or 5 s with `--remote`).
     #[arg(long)]
@@ -130,6 +135,12 @@ pub struct RolloutArgs {
     /// `--intervene expert`: ticks before the expert hands back (`policy.takeover_ticks`).
     #[arg(long, requires = "intervene")]
     pub takeover_ticks: Option<u32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ChunkTimingArg {
+    Observation,
+    Arrival,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -293,6 +304,12 @@ pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
             if let Some(p) = &args.prompt {
                 set(format!("remote.prompt={}", toml_str(p)));
             }
+        }
+        if let Some(t) = args.chunk_timing {
+            set(format!(
+                "policy.chunk_timing=\"{}\"",
+                if t == ChunkTimingArg::Arrival { "arrival" } else { "observation" }
+            ));
         }
         match (args.server_timeout_s, args.remote.is_some()) {
             (Some(t), _) => set(format!("policy.server_timeout_s={t}")),
