@@ -35,7 +35,7 @@ pub enum ServeError {
 /// The model behind a server.
 enum Model {
     /// A labrig (or imported LeRobot) Diffusion Policy checkpoint.
-    Diffusion { _vs: tch::nn::VarStore, policy: DiffusionPolicy, meta: Box<CheckpointMeta> },
+    Diffusion { _vs: tch::nn::VarStore, policy: Box<DiffusionPolicy>, meta: Box<CheckpointMeta> },
     /// A TorchScript module with its spec ([`crate::torchscript`]).
     TorchScript { module: tch::CModule, spec: TorchScriptSpec, path: std::path::PathBuf },
 }
@@ -67,7 +67,12 @@ impl Server {
         let (vs, policy, meta) = checkpoint::load(&dir, Device::Cpu)?;
         let id = checkpoint::id(&dir, meta.step);
         let (config, step) = (meta.config.clone(), meta.step);
-        Ok(Server { model: Model::Diffusion { _vs: vs, policy, meta: Box::new(meta) }, config, step, id })
+        Ok(Server {
+            model: Model::Diffusion { _vs: vs, policy: Box::new(policy), meta: Box::new(meta) },
+            config,
+            step,
+            id,
+        })
     }
 
     /// Loads a TorchScript module (`torch.jit.script` or `trace`, saved by PyTorch) with the
