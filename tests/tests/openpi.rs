@@ -335,6 +335,21 @@ fn remote_policy_faults_are_named_and_a_restarted_server_is_reconnected() {
     let dir = tempfile::tempdir().unwrap();
     let key = "openpi_remote_faults";
 
+    // No server at start: the loop exits naming it.
+    let closed = free_port();
+    let o = std::process::Command::new(labrig_tests::workspace_bin("labrig-control", "labrig-control"))
+        .args(["run", "--source", "remote", "--domain-id", &labrig_tests::domain_for(key).to_string()])
+        .args(["--set", &format!("remote.url=\"127.0.0.1:{closed}\""), "--set", "remote.connect_timeout_s=1"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!("openpi server ws://127.0.0.1:{closed}: cannot connect"))
+            && err.contains("tried for 1 s"),
+        "{err}"
+    );
+
     let (_s, port, _) = upstream_serving(&droid_chunks(40, 8), dir.path(), "raises", 0, Some(2));
     let report = remote_rollout(key, port, &dir.path().join("raises_out"), &["--max-steps", "60"]);
     let reason = report["rollouts"][0]["reason"].as_str().unwrap();
