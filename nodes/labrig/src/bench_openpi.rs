@@ -252,7 +252,12 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
             takeover_distance_m: None,
             takeover_ticks: None,
         };
-        crate::rollout::run_quiet(args)?;
+        let r = crate::rollout::run_quiet(args)?;
+        anyhow::ensure!(
+            r.errors.is_empty() && r.rollouts.len() == 1,
+            "the rig run at {latency} ms ({timing_name}) failed: {}",
+            r.errors.join("; ")
+        );
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.join("rollouts.json"))?).context("rollouts.json")?;
         let c = &report["control"];
