@@ -15,6 +15,7 @@
 
 pub mod bench;
 pub mod dv;
+pub mod lerobot;
 pub mod recal;
 pub mod retrieve;
 pub mod rlds;

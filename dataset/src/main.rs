@@ -35,6 +35,21 @@ enum Cmd {
     /// Retrieval over a synthetic index (p50/p99 per --align combination) and, with --episodes-root,
     /// index throughput against merely reading the files.
     Bench(BenchArgs),
+    /// labrig episodes as a LeRobot dataset (format v3.0): `labrig export lerobot <episode|dir>... <out>`.
+    ExportLerobot(ExportLerobotArgs),
+}
+
+#[derive(Debug, Args)]
+struct ExportLerobotArgs {
+    /// Episodes (directories or MCAP files), folders holding them, then the output directory.
+    #[arg(required = true, num_args = 2..)]
+    paths: Vec<PathBuf>,
+    /// Replace an existing output.
+    #[arg(long)]
+    overwrite: bool,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -139,6 +154,7 @@ fn main() -> ExitCode {
         Cmd::Retrieve(a) => retrieve_cmd(a),
         Cmd::Bench(a) => bench(a),
         Cmd::Stats(a) => stats(a),
+        Cmd::ExportLerobot(a) => export_lerobot(a),
     };
     match result {
         Ok(c) => c,
@@ -147,6 +163,52 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
+    let (out, inputs) = a.paths.split_last().expect("two or more");
+    let mut episodes = Vec::new();
+    for p in inputs {
+        if p.is_file() || p.join(labrig_episode::episode::EPISODE_FILE).is_file() {
+            episodes.push(p.clone());
+        } else if p.is_dir() {
+            let found = labrig_episode::episode::find_episodes(p);
+            anyhow::ensure!(!found.is_empty(), "{}: no labrig episodes under it", p.display());
+            episodes.extend(found);
+        } else {
+            bail!("{}: no such episode or folder", p.display());
+        }
+    }
+    let bar = indicatif::ProgressBar::new(episodes.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("export lerobot {bar:30} {pos}/{len} episodes {elapsed}")
+            .expect("template"),
+    );
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let r = labrig_dataset::lerobot::export(&episodes, out, a.overwrite, |done, _| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+    if a.json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else {
+        println!(
+            "labrig export lerobot: {} episodes, {} frames, cameras {:?} -> {} (LeRobot v3.0, {:.1} MB, {:.1} s)",
+            r.episodes,
+            r.frames,
+            r.cameras,
+            r.out.display(),
+            r.bytes as f64 / 1e6,
+            r.seconds
+        );
+        for (c, n) in r.frames_filled.iter().filter(|(_, n)| **n > 0) {
+            println!("  camera {c}: {n} steps had no frame of their own (the previous frame repeated)");
+        }
+        for (p, why) in &r.skipped {
+            println!("  skipped {}: {why}", p.display());
+        }
+    }
+    Ok(if r.skipped.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(2) })
 }
 
 fn shard_of(s: &str) -> anyhow::Result<(usize, usize)> {

@@ -207,6 +207,65 @@ fn camera_extrinsics(ep: &Episode, c: &Camera) -> Option<[f64; 6]> {
     }
 }
 
+/// An episode's steps and one video per camera, one frame per step (the frame the step used;
+/// a step without one gets the camera's previous frame), for other formats' exporters
+/// (LeRobot's, in labrig-dataset).
+#[derive(Debug)]
+pub struct StepVideos {
+    pub file: PathBuf,
+    pub metadata: labrig_episode::EpisodeMetadata,
+    pub steps: Vec<labrig_msgs::labrig_msgs::Step>,
+    /// The cameras in the rig's order, with the path of each one's video.
+    pub cameras: Vec<(Camera, PathBuf)>,
+    /// Frames per camera, and the steps that had no frame of their own (filled in).
+    pub frames: Vec<u64>,
+    pub filled: Vec<usize>,
+}
+
+/// Reads the finished episode at `source` and writes each camera's frames, one per step, to
+/// `video_path(camera id)` as H.264 MP4 at `fps` (a camera with no recorded frame is an error).
+pub fn step_videos(source: &Path, fps: u32, video_path: impl Fn(&str) -> PathBuf) -> Result<StepVideos, DroidError> {
+    let (file, metadata, steps) = read_checked(source)?;
+    let buf = std::fs::read(&file).map_err(io(&file))?;
+    let mut seen = Seen::new(&metadata);
+    let cameras = droid::cameras_of(&steps, &metadata, &seen.intrinsics);
+    let (refs, _) = droid::frame_refs(&steps, &cameras);
+    let mut outs: Vec<CameraOut> = Vec::new();
+    let mut paths = Vec::new();
+    for (cam, r) in cameras.iter().zip(&refs) {
+        let path = video_path(&cam.id);
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(io(dir))?;
+        }
+        outs.push(CameraOut {
+            refs: r.iter().map(|f| f.capture_ns).collect(),
+            next: 0,
+            last: None,
+            filled: 0,
+            writer: Mp4Writer::create(&path, fps)?,
+        });
+        paths.push(path);
+    }
+    scan(&file, &buf, &cameras, &mut seen, |c, t, jpeg| Ok(outs[c].frame(t, jpeg)?), |_, _| {})?;
+    let (mut frames, mut filled) = (Vec::new(), Vec::new());
+    for (cam, mut out) in cameras.iter().zip(outs) {
+        if out.last.is_none() {
+            return Err(bad(&file, format!("camera {} has no recorded frames: no video to export", cam.id)));
+        }
+        while out.next < out.refs.len() {
+            let last = out.last.clone().expect("checked");
+            out.frame(i64::MAX, &last)?;
+        }
+        filled.push(out.filled);
+        frames.push(out.writer.finish()?);
+    }
+    let mut cameras = cameras;
+    for cam in cameras.iter_mut() {
+        cam.k = seen.intrinsics.get(&cam.id).copied();
+    }
+    Ok(StepVideos { file, metadata, steps, cameras: cameras.into_iter().zip(paths).collect(), frames, filled })
+}
+
 /// Exports the episode at `source` (its directory or MCAP file) under `out_root`.
 pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> Result<Exported, DroidError> {
     let started = Instant::now();

@@ -1,0 +1,686 @@
+//! labrig episodes as a LeRobot dataset, format v3.0 (what LeRobot 0.4 reads):
+//! `labrig export lerobot <episodes|dir> <out>`.
+//!
+//! - One frame per step at the rig's 20 Hz: frame k of an episode has `timestamp = k / 20`
+//!   exactly (LeRobot checks it), whatever the step's receive time was; the step index is the
+//!   grid (a wall-clock rig's missed tick is not a frame: the steps are consecutive).
+//! - Each recorded camera as `observation.images.<camera>`: an H.264 MP4 (yuv420p, constant
+//!   20 fps, first pts 0), one per camera per episode, frame k = the frame step k used (a step
+//!   without one repeats the camera's previous frame; counted). H.264 rather than LeRobot's
+//!   default AV1: Debian's ffmpeg encodes it (libx264), LeRobot's PyAV decoder and ordinary
+//!   players read it.
+//! - `observation.state` = the 7 joint positions + the gripper (DROID's, as the LeRobot DROID
+//!   port), with `observation.state.{joint_position, cartesian_position, gripper_position}`
+//!   beside it; `action` = the commanded joint position + gripper, with
+//!   `action.{joint_position, gripper_position, cartesian_position, cartesian_velocity,
+//!   joint_velocity, gripper_velocity}`. The task is the episode's instruction.
+//! - `meta/stats.json` as LeRobot computes it (`compute_stats.py`): per episode, per feature
+//!   dimension min / max / mean / std / count and the quantiles q01 q10 q50 q90 q99 from a
+//!   5000-bin histogram with LeRobot's interpolation, images per channel in [0, 1] over
+//!   LeRobot's sample of frames (`sample_indices`, downsampled past 300 px), then aggregated
+//!   across episodes with counts as weights (quantiles too, as LeRobot does).
+//! - Written under `<out>.partial` and renamed when whole: a failed export leaves no dataset; a
+//!   bad episode is skipped and named.
+
+use arrow_array::{
+    ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, LargeStringArray, ListArray, RecordBatch,
+    StringArray,
+};
+use arrow_schema::{DataType, Field, Schema};
+use labrig_msgs::labrig_msgs::Step;
+use parquet::arrow::ArrowWriter;
+use serde_json::{Value, json};
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// The rig's control rate: LeRobot's fps.
+pub const FPS: u32 = 20;
+/// LeRobot's quantiles and their keys.
+pub const QUANTILES: [(f64, &str); 5] = [(0.01, "q01"), (0.10, "q10"), (0.50, "q50"), (0.90, "q90"), (0.99, "q99")];
+const BINS: usize = 5000;
+const CHUNKS_SIZE: usize = 1000;
+
+/// Why an export failed, naming the file.
+#[derive(Debug, thiserror::Error)]
+pub enum LeRobotError {
+    #[error("{}: {source}", path.display())]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{}: {why}", path.display())]
+    Bad { path: PathBuf, why: String },
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> LeRobotError + '_ {
+    move |e| LeRobotError::Io { path: path.to_owned(), source: e }
+}
+
+fn bad(path: &Path, why: impl Into<String>) -> LeRobotError {
+    LeRobotError::Bad { path: path.to_owned(), why: why.into() }
+}
+
+/// One feature's statistics, per dimension (images: per channel).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Stats {
+    pub min: Vec<f64>,
+    pub max: Vec<f64>,
+    pub mean: Vec<f64>,
+    pub std: Vec<f64>,
+    pub count: u64,
+    /// In [`QUANTILES`]' order.
+    pub quantiles: Vec<Vec<f64>>,
+}
+
+/// LeRobot's `get_feature_stats` over `rows` (each `dim` wide) counting `count` samples:
+/// `RunningQuantileStats` with one batch (histogram quantiles); fewer than 2 rows: the
+/// quantiles are the mean.
+pub fn feature_stats(values: &[f64], dim: usize, count: u64) -> Stats {
+    let n = values.len() / dim;
+    let col = |j: usize| values.iter().skip(j).step_by(dim).copied();
+    let mut s = Stats {
+        min: (0..dim).map(|j| col(j).fold(f64::INFINITY, f64::min)).collect(),
+        max: (0..dim).map(|j| col(j).fold(f64::NEG_INFINITY, f64::max)).collect(),
+        mean: (0..dim).map(|j| col(j).sum::<f64>() / n as f64).collect(),
+        std: vec![0.0; dim],
+        count,
+        quantiles: vec![vec![0.0; dim]; QUANTILES.len()],
+    };
+    for j in 0..dim {
+        let mean_sq = col(j).map(|x| x * x).sum::<f64>() / n as f64;
+        if n < 2 {
+            // np.std of the values.
+            s.std[j] = (col(j).map(|x| (x - s.mean[j]).powi(2)).sum::<f64>() / n as f64).sqrt();
+            for q in &mut s.quantiles {
+                q[j] = s.mean[j];
+            }
+            continue;
+        }
+        s.std[j] = (mean_sq - s.mean[j] * s.mean[j]).max(0.0).sqrt();
+        let (lo, hi) = (s.min[j] - 1e-10, s.max[j] + 1e-10);
+        let width = (hi - lo) / BINS as f64;
+        let edges: Vec<f64> = (0..=BINS).map(|i| lo + (hi - lo) * i as f64 / BINS as f64).collect();
+        let mut hist = vec![0u64; BINS];
+        for x in col(j) {
+            let mut b = ((x - lo) / width) as usize;
+            b = b.min(BINS - 1);
+            // numpy's correction at the bin edges.
+            if x < edges[b] {
+                b = b.saturating_sub(1);
+            } else if b + 1 < BINS && x >= edges[b + 1] {
+                b += 1;
+            }
+            hist[b] += 1;
+        }
+        let mut cumsum = Vec::with_capacity(BINS);
+        let mut acc = 0u64;
+        for h in &hist {
+            acc += h;
+            cumsum.push(acc as f64);
+        }
+        for (k, (q, _)) in QUANTILES.iter().enumerate() {
+            let target = q * n as f64;
+            // np.searchsorted(cumsum, target), side left.
+            let idx = cumsum.partition_point(|&c| c < target);
+            s.quantiles[k][j] = if idx == 0 {
+                edges[0]
+            } else if idx >= cumsum.len() {
+                edges[BINS]
+            } else {
+                let before = cumsum[idx - 1];
+                let inside = cumsum[idx] - before;
+                if inside == 0.0 {
+                    edges[idx]
+                } else {
+                    edges[idx] + (target - before) / inside * (edges[idx + 1] - edges[idx])
+                }
+            };
+        }
+    }
+    s
+}
+
+/// LeRobot's `aggregate_feature_stats`: counts as weights (the quantiles too).
+pub fn aggregate(stats: &[Stats]) -> Stats {
+    let dim = stats[0].mean.len();
+    let total: f64 = stats.iter().map(|s| s.count as f64).sum();
+    let mean: Vec<f64> =
+        (0..dim).map(|j| stats.iter().map(|s| s.mean[j] * s.count as f64).sum::<f64>() / total).collect();
+    let std = (0..dim)
+        .map(|j| {
+            let v: f64 =
+                stats.iter().map(|s| (s.std[j].powi(2) + (s.mean[j] - mean[j]).powi(2)) * s.count as f64).sum::<f64>()
+                    / total;
+            v.sqrt()
+        })
+        .collect();
+    Stats {
+        min: (0..dim).map(|j| stats.iter().map(|s| s.min[j]).fold(f64::INFINITY, f64::min)).collect(),
+        max: (0..dim).map(|j| stats.iter().map(|s| s.max[j]).fold(f64::NEG_INFINITY, f64::max)).collect(),
+        mean,
+        std,
+        count: total as u64,
+        quantiles: (0..QUANTILES.len())
+            .map(|k| {
+                (0..dim)
+                    .map(|j| stats.iter().map(|s| s.quantiles[k][j] * s.count as f64).sum::<f64>() / total)
+                    .collect()
+            })
+            .collect(),
+    }
+}
+
+/// LeRobot's `sample_indices`: which of an episode's frames its image statistics read.
+pub fn sample_indices(len: usize) -> Vec<usize> {
+    let (min, max, power) = (100usize, 10_000usize, 0.75f64);
+    let min = min.min(len);
+    let n = min.max(((len as f64).powf(power) as usize).min(max));
+    if n <= 1 {
+        return vec![0; n];
+    }
+    (0..n).map(|i| ((i as f64) * (len - 1) as f64 / (n - 1) as f64).round_ties_even() as usize).collect()
+}
+
+impl Stats {
+    /// stats.json's entry: images as (3, 1, 1) nested lists.
+    pub fn to_json(&self, image: bool) -> Value {
+        let v =
+            |x: &Vec<f64>| if image { json!(x.iter().map(|c| vec![vec![*c]]).collect::<Vec<_>>()) } else { json!(x) };
+        let mut m = serde_json::Map::new();
+        m.insert("min".into(), v(&self.min));
+        m.insert("max".into(), v(&self.max));
+        m.insert("mean".into(), v(&self.mean));
+        m.insert("std".into(), v(&self.std));
+        m.insert("count".into(), json!([self.count]));
+        for (k, (_, key)) in QUANTILES.iter().enumerate() {
+            m.insert((*key).into(), v(&self.quantiles[k]));
+        }
+        Value::Object(m)
+    }
+}
+
+/// The numeric features of a frame: name, width, per-step values.
+fn numeric_features() -> Vec<(&'static str, usize, fn(&Step) -> Vec<f64>)> {
+    vec![
+        ("observation.state", 8, |s| {
+            let mut v = s.robot_state.joint_positions.to_vec();
+            v.push(s.robot_state.gripper_position);
+            v
+        }),
+        ("observation.state.joint_position", 7, |s| s.robot_state.joint_positions.to_vec()),
+        ("observation.state.cartesian_position", 6, |s| s.robot_state.cartesian_position.to_vec()),
+        ("observation.state.gripper_position", 1, |s| vec![s.robot_state.gripper_position]),
+        ("action", 8, |s| {
+            let mut v = s.action.joint_position.to_vec();
+            v.push(s.action.gripper_position);
+            v
+        }),
+        ("action.joint_position", 7, |s| s.action.joint_position.to_vec()),
+        ("action.gripper_position", 1, |s| vec![s.action.gripper_position]),
+        ("action.cartesian_position", 6, |s| s.action.cartesian_position.to_vec()),
+        ("action.cartesian_velocity", 6, |s| s.action.cartesian_velocity.to_vec()),
+        ("action.joint_velocity", 7, |s| s.action.joint_velocity.to_vec()),
+        ("action.gripper_velocity", 1, |s| vec![s.action.gripper_velocity]),
+    ]
+}
+
+fn names(key: &str, dim: usize) -> Value {
+    let joints = |n: usize| (0..n).map(|i| format!("joint_{i}")).collect::<Vec<_>>();
+    let pose = ["x", "y", "z", "roll", "pitch", "yaw"].map(String::from).to_vec();
+    let v: Vec<String> = match (key, dim) {
+        ("observation.state" | "action", 8) => {
+            let mut v = joints(7);
+            v.push("gripper".into());
+            v
+        }
+        (_, 7) => joints(7),
+        (_, 6) => pose,
+        _ => vec![key.rsplit('.').next().unwrap_or(key).to_owned()],
+    };
+    json!(v)
+}
+
+/// What an export did.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ExportReport {
+    pub out: PathBuf,
+    pub episodes: usize,
+    pub frames: usize,
+    pub cameras: Vec<String>,
+    /// Steps without a frame of their own, per camera (the previous frame repeated).
+    pub frames_filled: BTreeMap<String, usize>,
+    /// Episodes left out, each with why.
+    pub skipped: Vec<(PathBuf, String)>,
+    pub bytes: u64,
+    pub seconds: f64,
+}
+
+struct Exported {
+    steps: Vec<Step>,
+    task: String,
+    videos: Vec<(String, PathBuf)>,
+    image_stats: Vec<(String, Stats, [usize; 2])>,
+}
+
+/// Exports `episodes` (directories or MCAP files of finished labrig episodes) to a LeRobot v3.0
+/// dataset at `out` (refused if it exists unless `overwrite`). `progress(done, total)`.
+pub fn export(
+    episodes: &[PathBuf],
+    out: &Path,
+    overwrite: bool,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<ExportReport, LeRobotError> {
+    let started = std::time::Instant::now();
+    if out.exists() && !overwrite {
+        return Err(bad(out, "exists: choose another output or pass --overwrite"));
+    }
+    let partial = out.with_extension("partial");
+    let _ = std::fs::remove_dir_all(&partial);
+    std::fs::create_dir_all(partial.join("meta")).map_err(io(&partial))?;
+    let result = write_all(episodes, &partial, &mut progress);
+    let mut report = match result {
+        Ok(r) => r,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            return Err(e);
+        }
+    };
+    if out.exists() {
+        std::fs::remove_dir_all(out).map_err(io(out))?;
+    }
+    std::fs::rename(&partial, out).map_err(io(out))?;
+    report.out = out.to_owned();
+    report.bytes = dir_bytes(out);
+    report.seconds = started.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+fn dir_bytes(dir: &Path) -> u64 {
+    let Ok(rd) = std::fs::read_dir(dir) else { return 0 };
+    rd.flatten()
+        .map(|e| {
+            let p = e.path();
+            if p.is_dir() { dir_bytes(&p) } else { e.metadata().map_or(0, |m| m.len()) }
+        })
+        .sum()
+}
+
+fn video_rel(camera: &str, episode: usize) -> String {
+    format!(
+        "videos/observation.images.{camera}/chunk-{:03}/file-{:03}.mp4",
+        episode / CHUNKS_SIZE,
+        episode % CHUNKS_SIZE
+    )
+}
+
+fn write_all(
+    episodes: &[PathBuf],
+    root: &Path,
+    progress: &mut impl FnMut(usize, usize),
+) -> Result<ExportReport, LeRobotError> {
+    let mut done: Vec<Exported> = Vec::new();
+    let mut skipped = Vec::new();
+    let mut cameras: Option<Vec<String>> = None;
+    let mut sizes: BTreeMap<String, [usize; 2]> = BTreeMap::new();
+    let mut filled: BTreeMap<String, usize> = BTreeMap::new();
+    for (k, src) in episodes.iter().enumerate() {
+        progress(k, episodes.len());
+        let index = done.len();
+        match export_one(src, root, index) {
+            Ok((e, fill)) => {
+                let cams: Vec<String> = e.videos.iter().map(|(c, _)| c.clone()).collect();
+                let same_sizes = e.image_stats.iter().all(|(c, _, wh)| sizes.get(c).is_none_or(|s| s == wh));
+                match &cameras {
+                    Some(want) if *want != cams || !same_sizes => {
+                        for (_, p) in &e.videos {
+                            let _ = std::fs::remove_file(p);
+                        }
+                        skipped.push((
+                            src.clone(),
+                            format!("its cameras {cams:?} (or their sizes) differ from the first episode's {want:?}"),
+                        ));
+                        continue;
+                    }
+                    None => cameras = Some(cams),
+                    _ => {}
+                }
+                for (c, _, wh) in &e.image_stats {
+                    sizes.insert(c.clone(), *wh);
+                }
+                for (c, n) in fill {
+                    *filled.entry(c).or_default() += n;
+                }
+                done.push(e);
+            }
+            Err(why) => {
+                for c in cameras.iter().flatten() {
+                    let _ = std::fs::remove_file(root.join(video_rel(c, index)));
+                }
+                skipped.push((src.clone(), why.to_string()));
+            }
+        }
+    }
+    progress(episodes.len(), episodes.len());
+    if done.is_empty() {
+        let why = skipped.iter().map(|(p, w)| format!("{}: {w}", p.display())).collect::<Vec<_>>().join("; ");
+        return Err(bad(root, format!("no episode could be exported ({why})")));
+    }
+    let cameras = cameras.expect("an episode was exported");
+    // Tasks in order of first appearance.
+    let mut tasks: Vec<String> = Vec::new();
+    for e in &done {
+        if !tasks.contains(&e.task) {
+            tasks.push(e.task.clone());
+        }
+    }
+    let feats = numeric_features();
+    let total: usize = done.iter().map(|e| e.steps.len()).sum();
+
+    // data/chunk-000/file-000.parquet
+    let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
+    let mut hf = serde_json::Map::new();
+    for (name, dim, f) in &feats {
+        let values: Vec<f32> = done.iter().flat_map(|e| e.steps.iter().flat_map(|s| f(s))).map(|x| x as f32).collect();
+        if *dim == 1 {
+            // LeRobot reads a shape-[1] feature as a scalar column (as `timestamp`).
+            cols.push((Field::new(*name, DataType::Float32, true), Arc::new(Float32Array::from(values))));
+            hf.insert((*name).into(), json!({"dtype": "float32", "_type": "Value"}));
+            continue;
+        }
+        let item = Arc::new(Field::new("element", DataType::Float32, true));
+        let arr = FixedSizeListArray::try_new(item.clone(), *dim as i32, Arc::new(Float32Array::from(values)), None)
+            .map_err(|e| bad(root, e.to_string()))?;
+        cols.push((Field::new(*name, DataType::FixedSizeList(item, *dim as i32), true), Arc::new(arr)));
+        hf.insert(
+            (*name).into(),
+            json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": dim, "_type": "List"}),
+        );
+    }
+    let mut ts = Vec::with_capacity(total);
+    let (mut frame_index, mut episode_index, mut index, mut task_index) = (vec![], vec![], vec![], vec![]);
+    for (ei, e) in done.iter().enumerate() {
+        let t = tasks.iter().position(|x| *x == e.task).expect("listed") as i64;
+        for k in 0..e.steps.len() {
+            ts.push(k as f32 / FPS as f32);
+            frame_index.push(k as i64);
+            episode_index.push(ei as i64);
+            index.push(index.len() as i64);
+            task_index.push(t);
+        }
+    }
+    cols.push((Field::new("timestamp", DataType::Float32, true), Arc::new(Float32Array::from(ts))));
+    hf.insert("timestamp".into(), json!({"dtype": "float32", "_type": "Value"}));
+    for (name, v) in [
+        ("frame_index", frame_index),
+        ("episode_index", episode_index.clone()),
+        ("index", index),
+        ("task_index", task_index),
+    ] {
+        cols.push((Field::new(name, DataType::Int64, true), Arc::new(Int64Array::from(v))));
+        hf.insert(name.into(), json!({"dtype": "int64", "_type": "Value"}));
+    }
+    let hf_meta = json!({"info": {"features": Value::Object(hf)}}).to_string();
+    write_parquet(&root.join("data/chunk-000/file-000.parquet"), cols, Some(("huggingface", hf_meta)))?;
+
+    // Statistics: per episode, then aggregated.
+    let mut per_feature: BTreeMap<String, Vec<Stats>> = BTreeMap::new();
+    for (ei, e) in done.iter().enumerate() {
+        let n = e.steps.len();
+        for (name, dim, f) in &feats {
+            // LeRobot computes on the stored float32 values.
+            let v: Vec<f64> = e.steps.iter().flat_map(|s| f(s)).map(|x| f64::from(x as f32)).collect();
+            per_feature.entry((*name).into()).or_default().push(feature_stats(&v, *dim, n as u64));
+        }
+        let ints: [(&str, Vec<f64>); 4] = [
+            ("frame_index", (0..n).map(|k| k as f64).collect()),
+            ("episode_index", vec![ei as f64; n]),
+            ("index", (0..n).map(|k| (k + done[..ei].iter().map(|e| e.steps.len()).sum::<usize>()) as f64).collect()),
+            ("task_index", vec![tasks.iter().position(|x| *x == e.task).expect("listed") as f64; n]),
+        ];
+        for (name, v) in ints {
+            per_feature.entry(name.into()).or_default().push(feature_stats(&v, 1, n as u64));
+        }
+        let t: Vec<f64> = (0..n).map(|k| f64::from(k as f32 / FPS as f32)).collect();
+        per_feature.entry("timestamp".into()).or_default().push(feature_stats(&t, 1, n as u64));
+        for (c, s, _) in &e.image_stats {
+            per_feature.entry(format!("observation.images.{c}")).or_default().push(s.clone());
+        }
+    }
+    let stats: serde_json::Map<String, Value> = per_feature
+        .iter()
+        .map(|(k, v)| (k.clone(), aggregate(v).to_json(k.starts_with("observation.images."))))
+        .collect();
+    std::fs::write(root.join("meta/stats.json"), serde_json::to_string_pretty(&stats).expect("json"))
+        .map_err(io(root))?;
+
+    // meta/tasks.parquet, as pandas writes it (the task string is the index).
+    let pandas = json!({
+        "index_columns": ["__index_level_0__"],
+        "column_indexes": [{"name": null, "field_name": null, "pandas_type": "unicode", "numpy_type": "object", "metadata": {"encoding": "UTF-8"}}],
+        "columns": [
+            {"name": "task_index", "field_name": "task_index", "pandas_type": "int64", "numpy_type": "int64", "metadata": null},
+            {"name": null, "field_name": "__index_level_0__", "pandas_type": "unicode", "numpy_type": "object", "metadata": null}
+        ],
+        "attributes": {},
+        "creator": {"library": "labrig", "version": env!("CARGO_PKG_VERSION")},
+        "pandas_version": "2.2.3"
+    });
+    write_parquet(
+        &root.join("meta/tasks.parquet"),
+        vec![
+            (
+                Field::new("task_index", DataType::Int64, true),
+                Arc::new(Int64Array::from((0..tasks.len() as i64).collect::<Vec<_>>())),
+            ),
+            (
+                Field::new("__index_level_0__", DataType::LargeUtf8, true),
+                Arc::new(LargeStringArray::from(tasks.clone())),
+            ),
+        ],
+        Some(("pandas", pandas.to_string())),
+    )?;
+
+    // meta/episodes/chunk-000/file-000.parquet
+    let n_ep = done.len();
+    let lengths: Vec<i64> = done.iter().map(|e| e.steps.len() as i64).collect();
+    let mut from = 0i64;
+    let (mut froms, mut tos) = (vec![], vec![]);
+    for l in &lengths {
+        froms.push(from);
+        from += l;
+        tos.push(from);
+    }
+    let task_lists = {
+        let values = StringArray::from(done.iter().map(|e| e.task.as_str()).collect::<Vec<_>>());
+        let offsets = arrow_array::builder::OffsetBufferBuilder::<i32>::new(n_ep);
+        let mut offsets = offsets;
+        for _ in 0..n_ep {
+            offsets.push_length(1);
+        }
+        ListArray::try_new(
+            Arc::new(Field::new("element", DataType::Utf8, true)),
+            offsets.finish(),
+            Arc::new(values),
+            None,
+        )
+        .map_err(|e| bad(root, e.to_string()))?
+    };
+    let i64s = |v: Vec<i64>| -> ArrayRef { Arc::new(Int64Array::from(v)) };
+    let mut ep_cols: Vec<(Field, ArrayRef)> = vec![
+        (Field::new("episode_index", DataType::Int64, true), i64s((0..n_ep as i64).collect())),
+        (
+            Field::new("tasks", DataType::List(Arc::new(Field::new("element", DataType::Utf8, true))), true),
+            Arc::new(task_lists),
+        ),
+        (Field::new("length", DataType::Int64, true), i64s(lengths.clone())),
+        (Field::new("data/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])),
+        (Field::new("data/file_index", DataType::Int64, true), i64s(vec![0; n_ep])),
+        (Field::new("dataset_from_index", DataType::Int64, true), i64s(froms)),
+        (Field::new("dataset_to_index", DataType::Int64, true), i64s(tos)),
+    ];
+    for c in &cameras {
+        let key = format!("videos/observation.images.{c}");
+        ep_cols.push((
+            Field::new(format!("{key}/chunk_index"), DataType::Int64, true),
+            i64s((0..n_ep).map(|i| (i / CHUNKS_SIZE) as i64).collect()),
+        ));
+        ep_cols.push((
+            Field::new(format!("{key}/file_index"), DataType::Int64, true),
+            i64s((0..n_ep).map(|i| (i % CHUNKS_SIZE) as i64).collect()),
+        ));
+        ep_cols.push((
+            Field::new(format!("{key}/from_timestamp"), DataType::Float64, true),
+            Arc::new(Float64Array::from(vec![0.0; n_ep])),
+        ));
+        ep_cols.push((
+            Field::new(format!("{key}/to_timestamp"), DataType::Float64, true),
+            Arc::new(Float64Array::from(lengths.iter().map(|&l| l as f64 / f64::from(FPS)).collect::<Vec<_>>())),
+        ));
+    }
+    ep_cols.push((Field::new("meta/episodes/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])));
+    ep_cols.push((Field::new("meta/episodes/file_index", DataType::Int64, true), i64s(vec![0; n_ep])));
+    // labrig's own: the DROID metadata LeRobot has no field for.
+    ep_cols.push((
+        Field::new("labrig/uuid", DataType::Utf8, true),
+        Arc::new(StringArray::from(done.iter().map(|e| e.steps[0].episode_id.clone()).collect::<Vec<_>>())),
+    ));
+    write_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), ep_cols, None)?;
+
+    // meta/info.json
+    let mut features = serde_json::Map::new();
+    for c in &cameras {
+        let [w, h] = sizes[c];
+        features.insert(
+            format!("observation.images.{c}"),
+            json!({
+                "dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
+                "info": {"video.height": h, "video.width": w, "video.codec": "h264", "video.pix_fmt": "yuv420p",
+                         "video.is_depth_map": false, "video.fps": FPS, "video.channels": 3, "has_audio": false}
+            }),
+        );
+    }
+    for (name, dim, _) in &feats {
+        features.insert((*name).into(), json!({"dtype": "float32", "shape": [dim], "names": names(name, *dim)}));
+    }
+    features.insert("timestamp".into(), json!({"dtype": "float32", "shape": [1], "names": null}));
+    for name in ["frame_index", "episode_index", "index", "task_index"] {
+        features.insert(name.into(), json!({"dtype": "int64", "shape": [1], "names": null}));
+    }
+    let info = json!({
+        "codebase_version": "v3.0",
+        "robot_type": "franka_fr3_robotiq_2f85",
+        "total_episodes": n_ep,
+        "total_frames": total,
+        "total_tasks": tasks.len(),
+        "chunks_size": CHUNKS_SIZE,
+        "data_files_size_in_mb": 100,
+        "video_files_size_in_mb": 200,
+        "fps": FPS,
+        "splits": {"train": format!("0:{n_ep}")},
+        "data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+        "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4",
+        "features": Value::Object(features),
+    });
+    std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
+        .map_err(io(root))?;
+    let _ = episode_index;
+    Ok(ExportReport {
+        out: root.to_owned(),
+        episodes: n_ep,
+        frames: total,
+        cameras,
+        frames_filled: filled,
+        skipped,
+        bytes: 0,
+        seconds: 0.0,
+    })
+}
+
+fn export_one(src: &Path, root: &Path, index: usize) -> Result<(Exported, Vec<(String, usize)>), LeRobotError> {
+    let v = labrig_droid::export::step_videos(src, FPS, |cam| root.join(video_rel(cam, index)))
+        .map_err(|e| bad(src, e.to_string()))?;
+    let task = v.metadata.task_instruction.clone();
+    let mut image_stats = Vec::new();
+    let picks = sample_indices(v.steps.len());
+    for (cam, path) in &v.cameras {
+        let mut r = labrig_droid::video::Mp4Reader::open(path).map_err(|e| bad(path, e.to_string()))?;
+        let (w, h) = (r.width as usize, r.height as usize);
+        // LeRobot's auto_downsample_height_width: past 300 px, every int(size / 150)-th pixel.
+        let step = if w.max(h) < 300 {
+            1
+        } else if w > h {
+            w / 150
+        } else {
+            h / 150
+        };
+        let mut pixels: Vec<f64> = Vec::new();
+        let mut k = 0usize;
+        let mut wanted = picks.iter().copied().peekable();
+        while let Some(frame) = r.next_frame().map_err(|e| bad(path, e.to_string()))? {
+            while wanted.peek() == Some(&k) {
+                wanted.next();
+                for y in (0..h).step_by(step) {
+                    for x in (0..w).step_by(step) {
+                        let i = (y * w + x) * 3;
+                        pixels.extend([f64::from(frame[i]), f64::from(frame[i + 1]), f64::from(frame[i + 2])]);
+                    }
+                }
+            }
+            k += 1;
+        }
+        let mut s = feature_stats(&pixels, 3, picks.len() as u64);
+        for list in [&mut s.min, &mut s.max, &mut s.mean, &mut s.std] {
+            list.iter_mut().for_each(|x| *x /= 255.0);
+        }
+        for q in &mut s.quantiles {
+            q.iter_mut().for_each(|x| *x /= 255.0);
+        }
+        image_stats.push((cam.id.clone(), s, [w, h]));
+    }
+    let fill = v.cameras.iter().map(|(c, _)| c.id.clone()).zip(v.filled.iter().copied()).collect();
+    let videos = v.cameras.into_iter().map(|(c, p)| (c.id, p)).collect();
+    Ok((Exported { steps: v.steps, task, videos, image_stats }, fill))
+}
+
+fn write_parquet(path: &Path, cols: Vec<(Field, ArrayRef)>, meta: Option<(&str, String)>) -> Result<(), LeRobotError> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+    }
+    let (fields, arrays): (Vec<Field>, Vec<ArrayRef>) = cols.into_iter().unzip();
+    let md: HashMap<String, String> = meta.map(|(k, v)| (k.to_owned(), v)).into_iter().collect();
+    let schema = Arc::new(Schema::new_with_metadata(fields, md));
+    let batch = RecordBatch::try_new(schema.clone(), arrays).map_err(|e| bad(path, e.to_string()))?;
+    let file = std::fs::File::create(path).map_err(io(path))?;
+    let mut w = ArrowWriter::try_new(file, schema, None).map_err(|e| bad(path, e.to_string()))?;
+    w.write(&batch).map_err(|e| bad(path, e.to_string()))?;
+    w.close().map_err(|e| bad(path, e.to_string()))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// LeRobot's numbers for 0..29 (its stats for the episode above, from compute_stats.py).
+    #[test]
+    fn stats_follow_lerobots_histogram_quantiles() {
+        let v: Vec<f64> = (0..30).map(f64::from).collect();
+        let s = feature_stats(&v, 1, 30);
+        assert_eq!((s.min[0], s.max[0], s.mean[0]), (0.0, 29.0, 14.5));
+        assert!((s.std[0] - 8.655441448399191).abs() < 1e-12);
+        let want = [-1e-10, 2.0009999999138, 14.00119999999656, 26.00140000007932, 28.998260000099986];
+        for (k, w) in want.iter().enumerate() {
+            assert!((s.quantiles[k][0] - w).abs() < 1e-9, "{}: {} vs {w}", QUANTILES[k].1, s.quantiles[k][0]);
+        }
+        // Aggregating two episodes weights the quantiles by count, as LeRobot does.
+        let b = feature_stats(&v.iter().map(|x| x + 100.0).collect::<Vec<_>>(), 1, 30);
+        let a = aggregate(&[s, b]);
+        assert!((a.quantiles[0][0] - 50.0).abs() < 1e-6 && a.count == 60, "{a:?}");
+    }
+
+    #[test]
+    fn sample_indices_are_lerobots() {
+        assert_eq!(sample_indices(5), vec![0, 1, 2, 3, 4]);
+        let s = sample_indices(1000);
+        assert_eq!(s.len(), 177);
+        assert_eq!((s[0], s[176]), (0, 999));
+    }
+}
