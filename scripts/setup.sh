@@ -280,6 +280,34 @@ tool_venv realsense "pyrealsense2, numpy" pyrealsense2==2.59.1.11053 numpy==2.4.
 tool_venv openpi "openpi_client.websocket_client_policy, openpi_server.websocket_policy_server" \
     openpi-client==0.1.2 openpi-server==0.1.0 typing_extensions==4.16.0 numpy==1.26.4 \
     msgpack==1.2.4 websockets==17.4 dm-tree==0.1.10 pillow==13.0.0
+# LeRobot's own dataset code (issue 34): the real reader labrig's LeRobot export is checked
+# with. PyPI's torch is a CUDA build: the pinned closure in scripts/lerobot/requirements.txt
+# (torch 2.10 + the 12 nvidia wheels it links, no cusolver/nvrtc/triton) installs with
+# --no-deps from a wheelhouse of its own; cuDNN's and CUPTI's GPU-only libraries are removed.
+LR_REQ="$REPO_DIR/scripts/lerobot/requirements.txt"
+LR_VENV="$LABRIG_CACHE/venv-lerobot-data"
+LR_WHEELS="$LABRIG_CACHE/wheels-lerobot-data"
+lr_want="$("$PYTHON" -c 'import sys; print(sys.version)' | head -n1)|$(sha256sum "$LR_REQ" | cut -d' ' -f1)"
+if [ ! -f "$LR_VENV/.labrig-stamp" ] || [ "$(cat "$LR_VENV/.labrig-stamp")" != "$lr_want" ] \
+    || ! "$LR_VENV/bin/python" -c "import lerobot.datasets.lerobot_dataset" >/dev/null 2>&1; then
+    log "creating $LR_VENV (LeRobot's dataset code; ~3.7 GB of wheels the first time)"
+    rm -rf "$LR_VENV"
+    "$PYTHON" -m venv "$LR_VENV"
+    if [ ! -f "$LR_WHEELS/.labrig-stamp" ] || [ "$(cat "$LR_WHEELS/.labrig-stamp")" != "$lr_want" ]; then
+        rm -rf "$LR_WHEELS"
+        mkdir -p "$LR_WHEELS"
+        PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$LR_VENV/bin/python" -m pip download -q --disable-pip-version-check \
+            --no-deps -d "$LR_WHEELS" -r "$LR_REQ"
+        printf '%s' "$lr_want" > "$LR_WHEELS/.labrig-stamp"
+    fi
+    "$LR_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-index --no-deps \
+        --find-links "$LR_WHEELS" -r "$LR_REQ"
+    lr_site="$("$LR_VENV/bin/python" -c 'import site; print(site.getsitepackages()[0])')"
+    rm -f "$lr_site"/nvidia/cudnn/lib/libcudnn_*.so.9 "$lr_site"/nvidia/cuda_cupti/lib/libnvperf_*.so \
+        "$lr_site"/nvidia/cuda_cupti/lib/libpcsamplingutil.so
+    "$LR_VENV/bin/python" -c "import lerobot.datasets.lerobot_dataset"
+    printf '%s' "$lr_want" > "$LR_VENV/.labrig-stamp"
+fi
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
@@ -329,6 +357,7 @@ export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
 export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
 export LABRIG_OPENPI_PYTHON=\"$LABRIG_CACHE/venv-openpi/bin/python\"
+export LABRIG_LEROBOT_PYTHON=\"$LABRIG_CACHE/venv-lerobot-data/bin/python\"
 export LABRIG_NODE=\"$NODE_BIN\"
 export LABRIG_NODE_PEERS=\"$PEERS\"
 export LABRIG_CHROMIUM=/usr/bin/chromium

@@ -197,8 +197,11 @@ impl Stats {
     }
 }
 
-/// The numeric features of a frame: name, width, per-step values.
-fn numeric_features() -> Vec<(&'static str, usize, fn(&Step) -> Vec<f64>)> {
+/// A numeric feature: its key, width and values at a step.
+type Feature = (&'static str, usize, fn(&Step) -> Vec<f64>);
+
+/// The numeric features of a frame.
+fn numeric_features() -> Vec<Feature> {
     vec![
         ("observation.state", 8, |s| {
             let mut v = s.robot_state.joint_positions.to_vec();
@@ -378,7 +381,7 @@ fn write_all(
     let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
     let mut hf = serde_json::Map::new();
     for (name, dim, f) in &feats {
-        let values: Vec<f32> = done.iter().flat_map(|e| e.steps.iter().flat_map(|s| f(s))).map(|x| x as f32).collect();
+        let values: Vec<f32> = done.iter().flat_map(|e| e.steps.iter().flat_map(f)).map(|x| x as f32).collect();
         if *dim == 1 {
             // LeRobot reads a shape-[1] feature as a scalar column (as `timestamp`).
             cols.push((Field::new(*name, DataType::Float32, true), Arc::new(Float32Array::from(values))));
@@ -426,7 +429,7 @@ fn write_all(
         let n = e.steps.len();
         for (name, dim, f) in &feats {
             // LeRobot computes on the stored float32 values.
-            let v: Vec<f64> = e.steps.iter().flat_map(|s| f(s)).map(|x| f64::from(x as f32)).collect();
+            let v: Vec<f64> = e.steps.iter().flat_map(f).map(|x| f64::from(x as f32)).collect();
             per_feature.entry((*name).into()).or_default().push(feature_stats(&v, *dim, n as u64));
         }
         let ints: [(&str, Vec<f64>); 4] = [

@@ -42,6 +42,16 @@ pub fn openpi_python() -> PathBuf {
     p
 }
 
+/// The Python of the LeRobot venv made by `scripts/setup.sh` (lerobot 0.4.4's dataset code).
+pub fn lerobot_python() -> PathBuf {
+    let p = match std::env::var_os("LABRIG_LEROBOT_PYTHON") {
+        Some(p) => PathBuf::from(p),
+        None => cache_dir().join("venv-lerobot-data/bin/python"),
+    };
+    assert!(p.exists(), "LeRobot venv python {} is missing: run `bash scripts/setup.sh` first", p.display());
+    p
+}
+
 /// tests/peers/openpi_peer.py with the openpi venv's Python.
 pub fn openpi_peer(args: &[&str]) -> Command {
     let mut cmd = Command::new(openpi_python());
@@ -182,6 +192,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("openpi_server_rollout", 169, 1),
     ("torchscript_rollout", 170, 1),
     ("openpi_remote_timing", 171, 1),
+    ("lerobot_export_demo", 172, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
