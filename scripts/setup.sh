@@ -284,30 +284,35 @@ tool_venv openpi "openpi_client.websocket_client_policy, openpi_server.websocket
 # with. PyPI's torch is a CUDA build: the pinned closure in scripts/lerobot/requirements.txt
 # (torch 2.10 + the 12 nvidia wheels it links, no cusolver/nvrtc/triton) installs with
 # --no-deps from a wheelhouse of its own; cuDNN's and CUPTI's GPU-only libraries are removed.
-LR_REQ="$REPO_DIR/scripts/lerobot/requirements.txt"
-LR_VENV="$LABRIG_CACHE/venv-lerobot-data"
-LR_WHEELS="$LABRIG_CACHE/wheels-lerobot-data"
-lr_want="$("$PYTHON" -c 'import sys; print(sys.version)' | head -n1)|$(sha256sum "$LR_REQ" | cut -d' ' -f1)"
-if [ ! -f "$LR_VENV/.labrig-stamp" ] || [ "$(cat "$LR_VENV/.labrig-stamp")" != "$lr_want" ] \
-    || ! "$LR_VENV/bin/python" -c "import lerobot.datasets.lerobot_dataset" >/dev/null 2>&1; then
-    log "creating $LR_VENV (LeRobot's dataset code; ~3.7 GB of wheels the first time)"
-    rm -rf "$LR_VENV"
-    "$PYTHON" -m venv "$LR_VENV"
-    if [ ! -f "$LR_WHEELS/.labrig-stamp" ] || [ "$(cat "$LR_WHEELS/.labrig-stamp")" != "$lr_want" ]; then
-        rm -rf "$LR_WHEELS"
-        mkdir -p "$LR_WHEELS"
-        PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$LR_VENV/bin/python" -m pip download -q --disable-pip-version-check \
-            --no-deps -d "$LR_WHEELS" -r "$LR_REQ"
-        printf '%s' "$lr_want" > "$LR_WHEELS/.labrig-stamp"
+# lerobot_venv NAME REQUIREMENTS -> $LABRIG_CACHE/venv-NAME (wheelhouse wheels-NAME)
+lerobot_venv() {
+    local name="$1" req="$2"
+    local venv="$LABRIG_CACHE/venv-$name" wheels="$LABRIG_CACHE/wheels-$name" want site
+    want="$("$PYTHON" -c 'import sys; print(sys.version)' | head -n1)|$(sha256sum "$req" | cut -d' ' -f1)"
+    if [ -f "$venv/.labrig-stamp" ] && [ "$(cat "$venv/.labrig-stamp")" = "$want" ] \
+        && "$venv/bin/python" -c "import lerobot.datasets.lerobot_dataset" >/dev/null 2>&1; then
+        return
     fi
-    "$LR_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-index --no-deps \
-        --find-links "$LR_WHEELS" -r "$LR_REQ"
-    lr_site="$("$LR_VENV/bin/python" -c 'import site; print(site.getsitepackages()[0])')"
-    rm -f "$lr_site"/nvidia/cudnn/lib/libcudnn_*.so.9 "$lr_site"/nvidia/cuda_cupti/lib/libnvperf_*.so \
-        "$lr_site"/nvidia/cuda_cupti/lib/libpcsamplingutil.so
-    "$LR_VENV/bin/python" -c "import lerobot.datasets.lerobot_dataset"
-    printf '%s' "$lr_want" > "$LR_VENV/.labrig-stamp"
-fi
+    log "creating $venv (LeRobot's dataset code; ~3 GB of wheels the first time)"
+    rm -rf "$venv"
+    "$PYTHON" -m venv "$venv"
+    if [ ! -f "$wheels/.labrig-stamp" ] || [ "$(cat "$wheels/.labrig-stamp")" != "$want" ]; then
+        rm -rf "$wheels"
+        mkdir -p "$wheels"
+        PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$venv/bin/python" -m pip download -q --disable-pip-version-check \
+            --no-deps -d "$wheels" -r "$req"
+        printf '%s' "$want" > "$wheels/.labrig-stamp"
+    fi
+    "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-index --no-deps \
+        --find-links "$wheels" -r "$req"
+    site="$("$venv/bin/python" -c 'import site; print(site.getsitepackages()[0])')"
+    rm -f "$site"/nvidia/cudnn/lib/libcudnn_*.so.9 "$site"/nvidia/cuda_cupti/lib/libnvperf_*.so \
+        "$site"/nvidia/cuda_cupti/lib/libpcsamplingutil.so
+    "$venv/bin/python" -c "import lerobot.datasets.lerobot_dataset"
+    printf '%s' "$want" > "$venv/.labrig-stamp"
+}
+lerobot_venv lerobot-data "$REPO_DIR/scripts/lerobot/requirements.txt"
+lerobot_venv lerobot-v21 "$REPO_DIR/scripts/lerobot/requirements-v21.txt"
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"
@@ -358,6 +363,7 @@ export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
 export LABRIG_OPENPI_PYTHON=\"$LABRIG_CACHE/venv-openpi/bin/python\"
 export LABRIG_LEROBOT_PYTHON=\"$LABRIG_CACHE/venv-lerobot-data/bin/python\"
+export LABRIG_LEROBOT_V21_PYTHON=\"$LABRIG_CACHE/venv-lerobot-v21/bin/python\"
 export LABRIG_NODE=\"$NODE_BIN\"
 export LABRIG_NODE_PEERS=\"$PEERS\"
 export LABRIG_CHROMIUM=/usr/bin/chromium

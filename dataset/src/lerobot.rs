@@ -58,6 +58,33 @@ fn bad(path: &Path, why: impl Into<String>) -> LeRobotError {
     LeRobotError::Bad { path: path.to_owned(), why: why.into() }
 }
 
+/// The dataset format written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub enum Format {
+    /// v3.0 (LeRobot 0.4+): many episodes per data file, meta/episodes parquet, stats.json.
+    V30,
+    /// v2.1 (LeRobot 0.3, openpi's pinned version): a data file and an MP4 per episode,
+    /// meta/episodes.jsonl, episodes_stats.jsonl, tasks.jsonl.
+    V21,
+}
+
+impl Format {
+    pub fn parse(s: &str) -> Result<Format, String> {
+        match s {
+            "v3.0" | "3.0" | "v3" => Ok(Format::V30),
+            "v2.1" | "2.1" => Ok(Format::V21),
+            other => Err(format!("--format {other}: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, openpi)")),
+        }
+    }
+
+    pub fn version(&self) -> &'static str {
+        match self {
+            Format::V30 => "v3.0",
+            Format::V21 => "v2.1",
+        }
+    }
+}
+
 /// One feature's statistics, per dimension (images: per channel).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Stats {
@@ -245,6 +272,7 @@ fn names(key: &str, dim: usize) -> Value {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ExportReport {
     pub out: PathBuf,
+    pub format: Format,
     pub episodes: usize,
     pub frames: usize,
     pub cameras: Vec<String>,
@@ -258,6 +286,8 @@ pub struct ExportReport {
 
 struct Exported {
     steps: Vec<Step>,
+    /// The dataset-wide index of its first frame.
+    first_index: usize,
     task: String,
     videos: Vec<(String, PathBuf)>,
     image_stats: Vec<(String, Stats, [usize; 2])>,
@@ -268,6 +298,7 @@ struct Exported {
 pub fn export(
     episodes: &[PathBuf],
     out: &Path,
+    format: Format,
     overwrite: bool,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<ExportReport, LeRobotError> {
@@ -278,7 +309,7 @@ pub fn export(
     let partial = out.with_extension("partial");
     let _ = std::fs::remove_dir_all(&partial);
     std::fs::create_dir_all(partial.join("meta")).map_err(io(&partial))?;
-    let result = write_all(episodes, &partial, &mut progress);
+    let result = write_all(episodes, &partial, format, &mut progress);
     let mut report = match result {
         Ok(r) => r,
         Err(e) => {
@@ -306,17 +337,23 @@ fn dir_bytes(dir: &Path) -> u64 {
         .sum()
 }
 
-fn video_rel(camera: &str, episode: usize) -> String {
-    format!(
-        "videos/observation.images.{camera}/chunk-{:03}/file-{:03}.mp4",
-        episode / CHUNKS_SIZE,
-        episode % CHUNKS_SIZE
-    )
+fn video_rel(format: Format, camera: &str, episode: usize) -> String {
+    match format {
+        Format::V30 => format!(
+            "videos/observation.images.{camera}/chunk-{:03}/file-{:03}.mp4",
+            episode / CHUNKS_SIZE,
+            episode % CHUNKS_SIZE
+        ),
+        Format::V21 => {
+            format!("videos/chunk-{:03}/observation.images.{camera}/episode_{episode:06}.mp4", episode / CHUNKS_SIZE)
+        }
+    }
 }
 
 fn write_all(
     episodes: &[PathBuf],
     root: &Path,
+    format: Format,
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<ExportReport, LeRobotError> {
     let mut done: Vec<Exported> = Vec::new();
@@ -327,7 +364,7 @@ fn write_all(
     for (k, src) in episodes.iter().enumerate() {
         progress(k, episodes.len());
         let index = done.len();
-        match export_one(src, root, index) {
+        match export_one(src, root, format, index) {
             Ok((e, fill)) => {
                 let cams: Vec<String> = e.videos.iter().map(|(c, _)| c.clone()).collect();
                 let same_sizes = e.image_stats.iter().all(|(c, _, wh)| sizes.get(c).is_none_or(|s| s == wh));
@@ -355,7 +392,7 @@ fn write_all(
             }
             Err(why) => {
                 for c in cameras.iter().flatten() {
-                    let _ = std::fs::remove_file(root.join(video_rel(c, index)));
+                    let _ = std::fs::remove_file(root.join(video_rel(format, c, index)));
                 }
                 skipped.push((src.clone(), why.to_string()));
             }
@@ -367,6 +404,11 @@ fn write_all(
         return Err(bad(root, format!("no episode could be exported ({why})")));
     }
     let cameras = cameras.expect("an episode was exported");
+    let mut first_index = 0;
+    for e in &mut done {
+        e.first_index = first_index;
+        first_index += e.steps.len();
+    }
     // Tasks in order of first appearance.
     let mut tasks: Vec<String> = Vec::new();
     for e in &done {
@@ -377,51 +419,16 @@ fn write_all(
     let feats = numeric_features();
     let total: usize = done.iter().map(|e| e.steps.len()).sum();
 
-    // data/chunk-000/file-000.parquet
-    let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
-    let mut hf = serde_json::Map::new();
-    for (name, dim, f) in &feats {
-        let values: Vec<f32> = done.iter().flat_map(|e| e.steps.iter().flat_map(f)).map(|x| x as f32).collect();
-        if *dim == 1 {
-            // LeRobot reads a shape-[1] feature as a scalar column (as `timestamp`).
-            cols.push((Field::new(*name, DataType::Float32, true), Arc::new(Float32Array::from(values))));
-            hf.insert((*name).into(), json!({"dtype": "float32", "_type": "Value"}));
-            continue;
-        }
-        let item = Arc::new(Field::new("element", DataType::Float32, true));
-        let arr = FixedSizeListArray::try_new(item.clone(), *dim as i32, Arc::new(Float32Array::from(values)), None)
-            .map_err(|e| bad(root, e.to_string()))?;
-        cols.push((Field::new(*name, DataType::FixedSizeList(item, *dim as i32), true), Arc::new(arr)));
-        hf.insert(
-            (*name).into(),
-            json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": dim, "_type": "List"}),
-        );
-    }
-    let mut ts = Vec::with_capacity(total);
-    let (mut frame_index, mut episode_index, mut index, mut task_index) = (vec![], vec![], vec![], vec![]);
-    for (ei, e) in done.iter().enumerate() {
-        let t = tasks.iter().position(|x| *x == e.task).expect("listed") as i64;
-        for k in 0..e.steps.len() {
-            ts.push(k as f32 / FPS as f32);
-            frame_index.push(k as i64);
-            episode_index.push(ei as i64);
-            index.push(index.len() as i64);
-            task_index.push(t);
+    // The frames: one data file (v3.0), or one per episode (v2.1).
+    match format {
+        Format::V30 => write_data(&root.join("data/chunk-000/file-000.parquet"), &done, 0, &tasks, "List")?,
+        Format::V21 => {
+            for ei in 0..done.len() {
+                let path = root.join(format!("data/chunk-{:03}/episode_{ei:06}.parquet", ei / CHUNKS_SIZE));
+                write_data(&path, &done[ei..=ei], ei, &tasks, "Sequence")?;
+            }
         }
     }
-    cols.push((Field::new("timestamp", DataType::Float32, true), Arc::new(Float32Array::from(ts))));
-    hf.insert("timestamp".into(), json!({"dtype": "float32", "_type": "Value"}));
-    for (name, v) in [
-        ("frame_index", frame_index),
-        ("episode_index", episode_index.clone()),
-        ("index", index),
-        ("task_index", task_index),
-    ] {
-        cols.push((Field::new(name, DataType::Int64, true), Arc::new(Int64Array::from(v))));
-        hf.insert(name.into(), json!({"dtype": "int64", "_type": "Value"}));
-    }
-    let hf_meta = json!({"info": {"features": Value::Object(hf)}}).to_string();
-    write_parquet(&root.join("data/chunk-000/file-000.parquet"), cols, Some(("huggingface", hf_meta)))?;
 
     // Statistics: per episode, then aggregated.
     let mut per_feature: BTreeMap<String, Vec<Stats>> = BTreeMap::new();
@@ -446,6 +453,9 @@ fn write_all(
         for (c, s, _) in &e.image_stats {
             per_feature.entry(format!("observation.images.{c}")).or_default().push(s.clone());
         }
+    }
+    if format == Format::V21 {
+        return write_v21_meta(root, &done, &tasks, &cameras, &sizes, &per_feature, filled, skipped);
     }
     let stats: serde_json::Map<String, Value> = per_feature
         .iter()
@@ -548,45 +558,12 @@ fn write_all(
     write_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), ep_cols, None)?;
 
     // meta/info.json
-    let mut features = serde_json::Map::new();
-    for c in &cameras {
-        let [w, h] = sizes[c];
-        features.insert(
-            format!("observation.images.{c}"),
-            json!({
-                "dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
-                "info": {"video.height": h, "video.width": w, "video.codec": "h264", "video.pix_fmt": "yuv420p",
-                         "video.is_depth_map": false, "video.fps": FPS, "video.channels": 3, "has_audio": false}
-            }),
-        );
-    }
-    for (name, dim, _) in &feats {
-        features.insert((*name).into(), json!({"dtype": "float32", "shape": [dim], "names": names(name, *dim)}));
-    }
-    features.insert("timestamp".into(), json!({"dtype": "float32", "shape": [1], "names": null}));
-    for name in ["frame_index", "episode_index", "index", "task_index"] {
-        features.insert(name.into(), json!({"dtype": "int64", "shape": [1], "names": null}));
-    }
-    let info = json!({
-        "codebase_version": "v3.0",
-        "robot_type": "franka_fr3_robotiq_2f85",
-        "total_episodes": n_ep,
-        "total_frames": total,
-        "total_tasks": tasks.len(),
-        "chunks_size": CHUNKS_SIZE,
-        "data_files_size_in_mb": 100,
-        "video_files_size_in_mb": 200,
-        "fps": FPS,
-        "splits": {"train": format!("0:{n_ep}")},
-        "data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
-        "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4",
-        "features": Value::Object(features),
-    });
+    let info = info_json(Format::V30, n_ep, total, tasks.len(), &cameras, &sizes);
     std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
         .map_err(io(root))?;
-    let _ = episode_index;
     Ok(ExportReport {
         out: root.to_owned(),
+        format: Format::V30,
         episodes: n_ep,
         frames: total,
         cameras,
@@ -597,8 +574,184 @@ fn write_all(
     })
 }
 
-fn export_one(src: &Path, root: &Path, index: usize) -> Result<(Exported, Vec<(String, usize)>), LeRobotError> {
-    let v = labrig_droid::export::step_videos(src, FPS, |cam| root.join(video_rel(cam, index)))
+/// The data file of `episodes` (the first one numbered `first`): every numeric feature,
+/// timestamps on the grid, the indices. `list_type`: the `datasets` feature type of a vector
+/// (`List` in datasets 4, which LeRobot 0.4 uses; `Sequence` in datasets 3, LeRobot 0.3).
+/// v2.1's metadata: episodes.jsonl, episodes_stats.jsonl (min, max, mean, std, count per
+/// feature, as LeRobot 0.3 writes them), tasks.jsonl, info.json.
+#[allow(clippy::too_many_arguments)]
+fn write_v21_meta(
+    root: &Path,
+    done: &[Exported],
+    tasks: &[String],
+    cameras: &[String],
+    sizes: &BTreeMap<String, [usize; 2]>,
+    per_feature: &BTreeMap<String, Vec<Stats>>,
+    filled: BTreeMap<String, usize>,
+    skipped: Vec<(PathBuf, String)>,
+) -> Result<ExportReport, LeRobotError> {
+    let lines = |name: &str, rows: Vec<Value>| -> Result<(), LeRobotError> {
+        let text: String = rows.iter().map(|r| r.to_string() + "\n").collect();
+        let path = root.join("meta").join(name);
+        std::fs::write(&path, text).map_err(io(&path))
+    };
+    lines(
+        "episodes.jsonl",
+        done.iter()
+            .enumerate()
+            .map(|(i, e)| json!({"episode_index": i, "tasks": [e.task], "length": e.steps.len()}))
+            .collect(),
+    )?;
+    lines(
+        "episodes_stats.jsonl",
+        (0..done.len())
+            .map(|i| {
+                let stats: serde_json::Map<String, Value> = per_feature
+                    .iter()
+                    .map(|(k, v)| {
+                        let mut j = v[i].to_json(k.starts_with("observation.images."));
+                        if let Value::Object(m) = &mut j {
+                            m.retain(|key, _| !key.starts_with('q'));
+                        }
+                        (k.clone(), j)
+                    })
+                    .collect();
+                json!({"episode_index": i, "stats": stats})
+            })
+            .collect(),
+    )?;
+    lines("tasks.jsonl", tasks.iter().enumerate().map(|(i, t)| json!({"task_index": i, "task": t})).collect())?;
+    let total: usize = done.iter().map(|e| e.steps.len()).sum();
+    let mut info = info_json(Format::V21, done.len(), total, tasks.len(), cameras, sizes);
+    info["total_videos"] = json!(done.len() * cameras.len());
+    info["total_chunks"] = json!(done.len().div_ceil(CHUNKS_SIZE));
+    std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
+        .map_err(io(root))?;
+    Ok(ExportReport {
+        out: root.to_owned(),
+        format: Format::V21,
+        episodes: done.len(),
+        frames: total,
+        cameras: cameras.to_vec(),
+        frames_filled: filled,
+        skipped,
+        bytes: 0,
+        seconds: 0.0,
+    })
+}
+
+/// info.json for `format`.
+fn info_json(
+    format: Format,
+    episodes: usize,
+    frames: usize,
+    tasks: usize,
+    cameras: &[String],
+    sizes: &BTreeMap<String, [usize; 2]>,
+) -> Value {
+    let mut features = serde_json::Map::new();
+    for c in cameras {
+        let [w, h] = sizes[c];
+        features.insert(
+            format!("observation.images.{c}"),
+            json!({
+                "dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
+                "info": {"video.height": h, "video.width": w, "video.codec": "h264", "video.pix_fmt": "yuv420p",
+                         "video.is_depth_map": false, "video.fps": FPS, "video.channels": 3, "has_audio": false}
+            }),
+        );
+    }
+    for (name, dim, _) in &numeric_features() {
+        features.insert((*name).into(), json!({"dtype": "float32", "shape": [dim], "names": names(name, *dim)}));
+    }
+    features.insert("timestamp".into(), json!({"dtype": "float32", "shape": [1], "names": null}));
+    for name in ["frame_index", "episode_index", "index", "task_index"] {
+        features.insert(name.into(), json!({"dtype": "int64", "shape": [1], "names": null}));
+    }
+    let mut info = json!({
+        "codebase_version": format.version(),
+        "robot_type": "franka_fr3_robotiq_2f85",
+        "total_episodes": episodes,
+        "total_frames": frames,
+        "total_tasks": tasks,
+        "chunks_size": CHUNKS_SIZE,
+        "fps": FPS,
+        "splits": {"train": format!("0:{episodes}")},
+        "features": Value::Object(features),
+    });
+    match format {
+        Format::V30 => {
+            info["data_files_size_in_mb"] = json!(100);
+            info["video_files_size_in_mb"] = json!(200);
+            info["data_path"] = json!("data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet");
+            info["video_path"] = json!("videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4");
+        }
+        Format::V21 => {
+            info["data_path"] = json!("data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet");
+            info["video_path"] = json!("videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4");
+        }
+    }
+    info
+}
+
+fn write_data(
+    path: &Path,
+    episodes: &[Exported],
+    first: usize,
+    tasks: &[String],
+    list_type: &str,
+) -> Result<(), LeRobotError> {
+    let feats = numeric_features();
+    let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
+    let mut hf = serde_json::Map::new();
+    for (name, dim, f) in &feats {
+        let values: Vec<f32> = episodes.iter().flat_map(|e| e.steps.iter().flat_map(f)).map(|x| x as f32).collect();
+        if *dim == 1 {
+            // LeRobot reads a shape-[1] feature as a scalar column (as `timestamp`).
+            cols.push((Field::new(*name, DataType::Float32, true), Arc::new(Float32Array::from(values))));
+            hf.insert((*name).into(), json!({"dtype": "float32", "_type": "Value"}));
+            continue;
+        }
+        let item = Arc::new(Field::new("element", DataType::Float32, true));
+        let arr = FixedSizeListArray::try_new(item.clone(), *dim as i32, Arc::new(Float32Array::from(values)), None)
+            .map_err(|e| bad(path, e.to_string()))?;
+        cols.push((Field::new(*name, DataType::FixedSizeList(item, *dim as i32), true), Arc::new(arr)));
+        hf.insert(
+            (*name).into(),
+            json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": dim, "_type": list_type}),
+        );
+    }
+    let mut ts = Vec::new();
+    let (mut frame_index, mut episode_index, mut index, mut task_index) = (vec![], vec![], vec![], vec![]);
+    for (k, e) in episodes.iter().enumerate() {
+        let t = tasks.iter().position(|x| *x == e.task).expect("listed") as i64;
+        for f in 0..e.steps.len() {
+            ts.push(f as f32 / FPS as f32);
+            frame_index.push(f as i64);
+            episode_index.push((first + k) as i64);
+            index.push(e.first_index as i64 + f as i64);
+            task_index.push(t);
+        }
+    }
+    cols.push((Field::new("timestamp", DataType::Float32, true), Arc::new(Float32Array::from(ts))));
+    hf.insert("timestamp".into(), json!({"dtype": "float32", "_type": "Value"}));
+    for (name, v) in
+        [("frame_index", frame_index), ("episode_index", episode_index), ("index", index), ("task_index", task_index)]
+    {
+        cols.push((Field::new(name, DataType::Int64, true), Arc::new(Int64Array::from(v))));
+        hf.insert(name.into(), json!({"dtype": "int64", "_type": "Value"}));
+    }
+    let hf_meta = json!({"info": {"features": Value::Object(hf)}}).to_string();
+    write_parquet(path, cols, Some(("huggingface", hf_meta)))
+}
+
+fn export_one(
+    src: &Path,
+    root: &Path,
+    format: Format,
+    index: usize,
+) -> Result<(Exported, Vec<(String, usize)>), LeRobotError> {
+    let v = labrig_droid::export::step_videos(src, FPS, |cam| root.join(video_rel(format, cam, index)))
         .map_err(|e| bad(src, e.to_string()))?;
     let task = v.metadata.task_instruction.clone();
     let mut image_stats = Vec::new();
@@ -640,7 +793,7 @@ fn export_one(src: &Path, root: &Path, index: usize) -> Result<(Exported, Vec<(S
     }
     let fill = v.cameras.iter().map(|(c, _)| c.id.clone()).zip(v.filled.iter().copied()).collect();
     let videos = v.cameras.into_iter().map(|(c, p)| (c.id, p)).collect();
-    Ok((Exported { steps: v.steps, task, videos, image_stats }, fill))
+    Ok((Exported { steps: v.steps, first_index: 0, task, videos, image_stats }, fill))
 }
 
 fn write_parquet(path: &Path, cols: Vec<(Field, ArrayRef)>, meta: Option<(&str, String)>) -> Result<(), LeRobotError> {

@@ -44,6 +44,9 @@ struct ExportLerobotArgs {
     /// Episodes (directories or MCAP files), folders holding them, then the output directory.
     #[arg(required = true, num_args = 2..)]
     paths: Vec<PathBuf>,
+    /// LeRobot's dataset format: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, what openpi reads).
+    #[arg(long, default_value = "v3.0")]
+    format: String,
     /// Replace an existing output.
     #[arg(long)]
     overwrite: bool,
@@ -187,17 +190,20 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
     if a.json {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
-    let r = labrig_dataset::lerobot::export(&episodes, out, a.overwrite, |done, _| bar.set_position(done as u64))?;
+    let format = labrig_dataset::lerobot::Format::parse(&a.format).map_err(anyhow::Error::msg)?;
+    let r =
+        labrig_dataset::lerobot::export(&episodes, out, format, a.overwrite, |done, _| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     if a.json {
         println!("{}", serde_json::to_string(&r)?);
     } else {
         println!(
-            "labrig export lerobot: {} episodes, {} frames, cameras {:?} -> {} (LeRobot v3.0, {:.1} MB, {:.1} s)",
+            "labrig export lerobot: {} episodes, {} frames, cameras {:?} -> {} (LeRobot {}, {:.1} MB, {:.1} s)",
             r.episodes,
             r.frames,
             r.cameras,
             r.out.display(),
+            r.format.version(),
             r.bytes as f64 / 1e6,
             r.seconds
         );

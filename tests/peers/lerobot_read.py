@@ -1,5 +1,6 @@
-"""LeRobot's own LeRobotDataset (PyPI lerobot 0.4.4, setup's venv-lerobot-data) reading a dataset
-labrig exported: offline, the PyAV video backend, an action chunk of 16 by delta_timestamps.
+"""LeRobot's own LeRobotDataset reading a dataset labrig exported: lerobot 0.4.4 (setup's
+venv-lerobot-data) for format v3.0, lerobot 0.3.3 (venv-lerobot-v21) for v2.1; offline, the PyAV
+video backend, an action chunk of 16 by delta_timestamps.
 
   lerobot_read.py <root>
 
@@ -35,8 +36,11 @@ def main():
     per_episode = {}
     bounds = {}
     for ep in range(ds.num_episodes):
-        e = ds.meta.episodes[ep]
-        bounds[ep] = (e["dataset_from_index"], e["dataset_to_index"])
+        if getattr(ds, "episode_data_index", None) is not None:  # 0.3.x (v2.1)
+            bounds[ep] = (int(ds.episode_data_index["from"][ep]), int(ds.episode_data_index["to"][ep]))
+        else:  # 0.4.x (v3.0)
+            e = ds.meta.episodes[ep]
+            bounds[ep] = (e["dataset_from_index"], e["dataset_to_index"])
     for i in range(len(ds)):
         it = ds[i]
         ep = int(it["episode_index"])
@@ -65,7 +69,10 @@ def main():
         feats = {k: ds.meta.features[k] for k in data}
         stats.append(compute_episode_stats(data, feats))
     agg = aggregate_stats(stats)
+    import lerobot
     out = {
+        "lerobot": getattr(lerobot, "__version__", "?"),
+        "codebase_version": ds.meta.info["codebase_version"],
         "episodes": ds.num_episodes,
         "frames": len(ds),
         "fps": ds.fps,

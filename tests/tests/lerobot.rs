@@ -1,12 +1,13 @@
-//! `labrig export lerobot` read by LeRobot's own `LeRobotDataset` (PyPI lerobot 0.4.4 in
-//! setup's venv-lerobot-data, offline, PyAV): two demo episodes of the simulated rig, every frame
-//! iterated with an action chunk of 16; state, action and timestamps equal labrig's steps,
-//! images within H.264's tolerance of the recorded JPEGs, and the statistics labrig wrote equal
-//! what LeRobot computes from the same frames.
+//! `labrig export lerobot` read by LeRobot's own `LeRobotDataset` (offline, PyAV): format v3.0
+//! by lerobot 0.4.4 (setup's venv-lerobot-data), v2.1 by lerobot 0.3.3 (venv-lerobot-v21, the
+//! line openpi pins). Two demo episodes of the simulated rig, every frame iterated with an action
+//! chunk of 16; state, action and timestamps equal labrig's steps, images within H.264's
+//! tolerance of the recorded JPEGs, and the statistics labrig wrote equal what LeRobot computes
+//! from the same frames.
 
 use labrig_msgs::labrig_msgs::Step;
 use labrig_msgs::sensor_msgs::CompressedImage;
-use labrig_tests::{domain_for, labrig_bin, lerobot_python, repo_root};
+use labrig_tests::{cache_dir, domain_for, labrig_bin, lerobot_python, repo_root};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -54,8 +55,17 @@ fn f32s(v: &Value) -> Vec<f32> {
     v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
 }
 
+/// The Python of setup's lerobot 0.3.3 venv.
+fn lerobot_v21_python() -> PathBuf {
+    let p = std::env::var_os("LABRIG_LEROBOT_V21_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| cache_dir().join("venv-lerobot-v21/bin/python"));
+    assert!(p.exists(), "{} is missing: run `bash scripts/setup.sh`", p.display());
+    p
+}
+
 #[test]
-fn lerobots_own_reader_loads_an_export_of_demo_episodes() {
+fn lerobots_own_readers_load_exports_of_demo_episodes() {
     for p in ["labrig-sim", "labrig-recorder", "labrig-control"] {
         labrig_tests::workspace_bin(p, p);
     }
@@ -76,25 +86,6 @@ fn lerobots_own_reader_loads_an_export_of_demo_episodes() {
         v
     };
     assert_eq!(episodes.len(), 2);
-    let ds = dir.path().join("lerobot");
-    let o =
-        Command::new(labrig_bin()).args(["export", "lerobot"]).args(&episodes).arg(&ds).arg("--json").output().unwrap();
-    assert!(o.status.success(), "export: {}", labrig_tests::output_text(&o));
-    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(report["episodes"], 2, "{report}");
-    assert!(!ds.with_extension("partial").exists());
-
-    let o = Command::new(lerobot_python())
-        .arg(repo_root().join("tests/peers/lerobot_read.py"))
-        .arg(&ds)
-        .env("HF_HUB_OFFLINE", "1")
-        .env("HF_DATASETS_OFFLINE", "1")
-        .env("HF_HOME", dir.path().join("hf"))
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "LeRobot: {}", labrig_tests::output_text(&o));
-    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
-
     let data: Vec<(Vec<Step>, String, PathBuf)> = episodes
         .iter()
         .map(|e| {
@@ -102,6 +93,35 @@ fn lerobots_own_reader_loads_an_export_of_demo_episodes() {
             (d.steps, d.metadata.unwrap().task_instruction, d.file)
         })
         .collect();
+    for (format, python, version) in [("v3.0", lerobot_python(), "0.4.4"), ("v2.1", lerobot_v21_python(), "0.3.3")] {
+        let ds = dir.path().join(format!("lerobot_{format}"));
+        let o = Command::new(labrig_bin())
+            .args(["export", "lerobot", "--format", format, "--json"])
+            .args(&episodes)
+            .arg(&ds)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "export {format}: {}", labrig_tests::output_text(&o));
+        let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(report["episodes"], 2, "{report}");
+        assert!(!ds.with_extension("partial").exists());
+        check(&ds, &python, version, format, &data, dir.path());
+    }
+}
+
+/// LeRobot `version` at `python` reads the export at `ds` (`format`) as labrig recorded `data`.
+fn check(ds: &Path, python: &Path, version: &str, format: &str, data: &[(Vec<Step>, String, PathBuf)], tmp: &Path) {
+    let o = Command::new(python)
+        .arg(repo_root().join("tests/peers/lerobot_read.py"))
+        .arg(ds)
+        .env("HF_HUB_OFFLINE", "1")
+        .env("HF_DATASETS_OFFLINE", "1")
+        .env("HF_HOME", tmp.join("hf"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "LeRobot {version}: {}", labrig_tests::output_text(&o));
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((r["lerobot"].as_str(), r["codebase_version"].as_str()), (Some(version), Some(format)));
     let total: usize = data.iter().map(|(s, _, _)| s.len()).sum();
     assert_eq!(
         (r["episodes"].as_u64(), r["frames"].as_u64(), r["fps"].as_u64()),
@@ -180,5 +200,7 @@ fn lerobots_own_reader_loads_an_export_of_demo_episodes() {
             compared += 1;
         }
     }
-    assert!(compared >= 15 * 10, "{compared} statistics compared");
+    // v3.0 carries the quantiles (10 statistics a feature), v2.1 min/max/mean/std/count.
+    let per = if format == "v3.0" { 10 } else { 5 };
+    assert!(compared >= 16 * per, "{format}: {compared} statistics compared");
 }
