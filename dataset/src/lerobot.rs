@@ -306,7 +306,10 @@ pub fn export(
     if out.exists() && !overwrite {
         return Err(bad(out, "exists: choose another output or pass --overwrite"));
     }
-    let partial = out.with_extension("partial");
+    // `<out>.partial` beside it (appended: `with_extension` would eat a dotted name's tail).
+    let mut partial_name = out.file_name().unwrap_or_default().to_os_string();
+    partial_name.push(".partial");
+    let partial = out.with_file_name(partial_name);
     let _ = std::fs::remove_dir_all(&partial);
     std::fs::create_dir_all(partial.join("meta")).map_err(io(&partial))?;
     let result = write_all(episodes, &partial, format, &mut progress);

@@ -41,7 +41,8 @@ enum Cmd {
 
 #[derive(Debug, Args)]
 struct ExportLerobotArgs {
-    /// Episodes (directories or MCAP files), folders holding them, then the output directory.
+    /// Episodes (directories or MCAP files), folders holding them or manifests listing them
+    /// (`labrig dataset retrieve`'s), then the output directory.
     #[arg(required = true, num_args = 2..)]
     paths: Vec<PathBuf>,
     /// LeRobot's dataset format: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, what openpi reads).
@@ -172,14 +173,17 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
     let (out, inputs) = a.paths.split_last().expect("two or more");
     let mut episodes = Vec::new();
     for p in inputs {
-        if p.is_file() || p.join(labrig_episode::episode::EPISODE_FILE).is_file() {
+        let mcap = p.is_file() && p.extension().is_some_and(|x| x == "mcap");
+        if mcap || p.join(labrig_episode::episode::EPISODE_FILE).is_file() {
             episodes.push(p.clone());
-        } else if p.is_dir() {
-            let found = labrig_episode::episode::find_episodes(p);
-            anyhow::ensure!(!found.is_empty(), "{}: no labrig episodes under it", p.display());
+        } else if p.exists() {
+            // A folder of episodes, or a manifest (`labrig dataset retrieve`'s JSON or a list of
+            // paths), so a retrieved co-training set exports as it trains.
+            let found = labrig_episode::episode::episodes_of(p).map_err(anyhow::Error::msg)?;
+            anyhow::ensure!(!found.is_empty(), "{}: no labrig episodes in it", p.display());
             episodes.extend(found);
         } else {
-            bail!("{}: no such episode or folder", p.display());
+            bail!("{}: no such episode, folder or manifest", p.display());
         }
     }
     let bar = indicatif::ProgressBar::new(episodes.len() as u64);

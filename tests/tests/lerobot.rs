@@ -93,18 +93,35 @@ fn lerobots_own_readers_load_exports_of_demo_episodes() {
             (d.steps, d.metadata.unwrap().task_instruction, d.file)
         })
         .collect();
+    // An unfinished recording (its file cut short) beside them, all listed in a manifest.
+    let broken = dir.path().join("broken");
+    std::fs::create_dir_all(&broken).unwrap();
+    let mcap = std::fs::read(episodes[0].join("episode_0.mcap")).unwrap();
+    std::fs::write(broken.join("episode_0.mcap"), &mcap[..mcap.len() / 2]).unwrap();
+    let manifest = dir.path().join("manifest.txt");
+    let listed: Vec<String> = episodes.iter().chain([&broken]).map(|p| p.display().to_string()).collect();
+    std::fs::write(&manifest, listed.join("\n") + "\n").unwrap();
     for (format, python, version) in [("v3.0", lerobot_python(), "0.4.4"), ("v2.1", lerobot_v21_python(), "0.3.3")] {
         let ds = dir.path().join(format!("lerobot_{format}"));
         let o = Command::new(labrig_bin())
             .args(["export", "lerobot", "--format", format, "--json"])
-            .args(&episodes)
+            .arg(&manifest)
             .arg(&ds)
             .output()
             .unwrap();
-        assert!(o.status.success(), "export {format}: {}", labrig_tests::output_text(&o));
+        // The bad episode is skipped and named (exit 2); the rest is a whole dataset.
+        assert_eq!(o.status.code(), Some(2), "export {format}: {}", labrig_tests::output_text(&o));
         let report: Value = serde_json::from_slice(&o.stdout).unwrap();
         assert_eq!(report["episodes"], 2, "{report}");
-        assert!(!ds.with_extension("partial").exists());
+        let skipped = report["skipped"].as_array().unwrap();
+        assert_eq!(skipped.len(), 1, "{report}");
+        assert_eq!(skipped[0][0], broken.display().to_string());
+        assert!(skipped[0][1].as_str().unwrap().contains("not finished"), "{report}");
+        assert!(!dir.path().join(format!("lerobot_{format}.partial")).exists());
+        // An existing output is refused, not mixed into.
+        let again = Command::new(labrig_bin()).args(["export", "lerobot"]).args(&episodes).arg(&ds).output().unwrap();
+        assert_eq!(again.status.code(), Some(1));
+        assert!(labrig_tests::output_text(&again).contains("exists: choose another output or pass --overwrite"));
         check(&ds, &python, version, format, &data, dir.path());
     }
 }
