@@ -445,7 +445,7 @@ fn write_all(
         let ints: [(&str, Vec<f64>); 4] = [
             ("frame_index", (0..n).map(|k| k as f64).collect()),
             ("episode_index", vec![ei as f64; n]),
-            ("index", (0..n).map(|k| (k + done[..ei].iter().map(|e| e.steps.len()).sum::<usize>()) as f64).collect()),
+            ("index", (0..n).map(|k| (e.first_index + k) as f64).collect()),
             ("task_index", vec![tasks.iter().position(|x| *x == e.task).expect("listed") as f64; n]),
         ];
         for (name, v) in ints {

@@ -207,6 +207,46 @@ fn camera_extrinsics(ep: &Episode, c: &Camera) -> Option<[f64; 6]> {
     }
 }
 
+/// The frame pass both exporters share: one H.264 writer per camera at `paths`, fed each step's
+/// frame as the episode's MCAP is scanned (`refs[camera][step]`; a step whose frame was never
+/// recorded gets the camera's previous one, also after its last); the frames written and the
+/// steps filled in, per camera. A camera without any recorded frame is an error.
+fn camera_videos(
+    file: &Path,
+    buf: &[u8],
+    cameras: &[Camera],
+    refs: &[Vec<labrig_msgs::labrig_msgs::CameraFrameRef>],
+    seen: &mut Seen,
+    paths: &[PathBuf],
+    fps: u32,
+) -> Result<(Vec<u64>, Vec<usize>), DroidError> {
+    let mut outs = Vec::with_capacity(cameras.len());
+    for (r, path) in refs.iter().zip(paths) {
+        outs.push(CameraOut {
+            refs: r.iter().map(|f| f.capture_ns).collect(),
+            next: 0,
+            last: None,
+            filled: 0,
+            writer: Mp4Writer::create(path, fps)?,
+        });
+    }
+    scan(file, buf, cameras, seen, |c, t, jpeg| Ok(outs[c].frame(t, jpeg)?), |_, _| {})?;
+    let (mut frames, mut filled) = (Vec::new(), Vec::new());
+    for (cam, mut out) in cameras.iter().zip(outs) {
+        if out.last.is_none() {
+            return Err(bad(file, format!("camera {} has no recorded frames: no video to export", cam.id)));
+        }
+        // Steps after the last recorded frame.
+        while out.next < out.refs.len() {
+            let last = out.last.clone().expect("checked");
+            out.frame(i64::MAX, &last)?;
+        }
+        filled.push(out.filled);
+        frames.push(out.writer.finish()?);
+    }
+    Ok((frames, filled))
+}
+
 /// An episode's steps and one video per camera, one frame per step (the frame the step used;
 /// a step without one gets the camera's previous frame), for other formats' exporters
 /// (LeRobot's, in labrig-dataset).
@@ -230,35 +270,11 @@ pub fn step_videos(source: &Path, fps: u32, video_path: impl Fn(&str) -> PathBuf
     let mut seen = Seen::new(&metadata);
     let cameras = droid::cameras_of(&steps, &metadata, &seen.intrinsics);
     let (refs, _) = droid::frame_refs(&steps, &cameras);
-    let mut outs: Vec<CameraOut> = Vec::new();
-    let mut paths = Vec::new();
-    for (cam, r) in cameras.iter().zip(&refs) {
-        let path = video_path(&cam.id);
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(io(dir))?;
-        }
-        outs.push(CameraOut {
-            refs: r.iter().map(|f| f.capture_ns).collect(),
-            next: 0,
-            last: None,
-            filled: 0,
-            writer: Mp4Writer::create(&path, fps)?,
-        });
-        paths.push(path);
+    let paths: Vec<PathBuf> = cameras.iter().map(|c| video_path(&c.id)).collect();
+    for dir in paths.iter().filter_map(|p| p.parent()) {
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
     }
-    scan(&file, &buf, &cameras, &mut seen, |c, t, jpeg| Ok(outs[c].frame(t, jpeg)?), |_, _| {})?;
-    let (mut frames, mut filled) = (Vec::new(), Vec::new());
-    for (cam, mut out) in cameras.iter().zip(outs) {
-        if out.last.is_none() {
-            return Err(bad(&file, format!("camera {} has no recorded frames: no video to export", cam.id)));
-        }
-        while out.next < out.refs.len() {
-            let last = out.last.clone().expect("checked");
-            out.frame(i64::MAX, &last)?;
-        }
-        filled.push(out.filled);
-        frames.push(out.writer.finish()?);
-    }
+    let (frames, filled) = camera_videos(&file, &buf, &cameras, &refs, &mut seen, &paths, fps)?;
     let mut cameras = cameras;
     for cam in cameras.iter_mut() {
         cam.k = seen.intrinsics.get(&cam.id).copied();
@@ -290,31 +306,9 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
     let mp4_dir = partial.join("recordings").join("MP4");
     std::fs::create_dir_all(&mp4_dir).map_err(io(&mp4_dir))?;
     let result = (|| -> Result<Exported, DroidError> {
-        let mut outs: Vec<CameraOut> = Vec::new();
-        for (cam, r) in cameras.iter().zip(&refs) {
-            outs.push(CameraOut {
-                refs: r.iter().map(|f| f.capture_ns).collect(),
-                next: 0,
-                last: None,
-                filled: 0,
-                writer: Mp4Writer::create(&mp4_dir.join(format!("{}.mp4", cam.serial)), FPS)?,
-            });
-        }
-        scan(&file, &buf, &cameras, &mut seen, |c, t, jpeg| Ok(outs[c].frame(t, jpeg)?), |_, _| {})?;
-        let mut mp4_frames = Vec::new();
-        let mut frames_filled = 0;
-        for (cam, mut out) in cameras.iter().zip(outs) {
-            if out.last.is_none() {
-                return Err(bad(&file, format!("camera {} has no recorded frames: no video to export", cam.id)));
-            }
-            // Steps after the last recorded frame.
-            while out.next < out.refs.len() {
-                let last = out.last.clone().expect("checked");
-                out.frame(i64::MAX, &last)?;
-            }
-            frames_filled += out.filled;
-            mp4_frames.push(out.writer.finish()?);
-        }
+        let paths: Vec<PathBuf> = cameras.iter().map(|c| mp4_dir.join(format!("{}.mp4", c.serial))).collect();
+        let (mp4_frames, filled) = camera_videos(&file, &buf, &cameras, &refs, &mut seen, &paths, FPS)?;
+        let frames_filled: usize = filled.iter().sum();
         for cam in cameras.iter_mut() {
             cam.k = seen.intrinsics.get(&cam.id).copied();
         }
