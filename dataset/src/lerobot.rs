@@ -289,6 +289,8 @@ struct Exported {
     /// The dataset-wide index of its first frame.
     first_index: usize,
     task: String,
+    /// The episode's labrig metadata (carried in the episodes table for `labrig import lerobot`).
+    metadata: labrig_episode::EpisodeMetadata,
     videos: Vec<(String, PathBuf)>,
     image_stats: Vec<(String, Stats, [usize; 2])>,
 }
@@ -553,10 +555,17 @@ fn write_all(
     }
     ep_cols.push((Field::new("meta/episodes/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])));
     ep_cols.push((Field::new("meta/episodes/file_index", DataType::Int64, true), i64s(vec![0; n_ep])));
-    // labrig's own: the DROID metadata LeRobot has no field for.
+    // labrig's own: the DROID metadata LeRobot has no field for (the whole record, as JSON, so
+    // `labrig import lerobot` gets it back).
     ep_cols.push((
         Field::new("labrig/uuid", DataType::Utf8, true),
         Arc::new(StringArray::from(done.iter().map(|e| e.steps[0].episode_id.clone()).collect::<Vec<_>>())),
+    ));
+    ep_cols.push((
+        Field::new("labrig/metadata", DataType::Utf8, true),
+        Arc::new(StringArray::from(
+            done.iter().map(|e| serde_json::to_string(&e.metadata).expect("json")).collect::<Vec<_>>(),
+        )),
     ));
     write_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), ep_cols, None)?;
 
@@ -602,7 +611,9 @@ fn write_v21_meta(
         "episodes.jsonl",
         done.iter()
             .enumerate()
-            .map(|(i, e)| json!({"episode_index": i, "tasks": [e.task], "length": e.steps.len()}))
+            .map(|(i, e)| {
+                json!({"episode_index": i, "tasks": [e.task], "length": e.steps.len(), "labrig_metadata": e.metadata})
+            })
             .collect(),
     )?;
     lines(
@@ -796,7 +807,7 @@ fn export_one(
     }
     let fill = v.cameras.iter().map(|(c, _)| c.id.clone()).zip(v.filled.iter().copied()).collect();
     let videos = v.cameras.into_iter().map(|(c, p)| (c.id, p)).collect();
-    Ok((Exported { steps: v.steps, first_index: 0, task, videos, image_stats }, fill))
+    Ok((Exported { steps: v.steps, first_index: 0, task, metadata: v.metadata, videos, image_stats }, fill))
 }
 
 fn write_parquet(path: &Path, cols: Vec<(Field, ArrayRef)>, meta: Option<(&str, String)>) -> Result<(), LeRobotError> {

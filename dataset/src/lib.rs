@@ -16,6 +16,7 @@
 pub mod bench;
 pub mod dv;
 pub mod lerobot;
+pub mod lerobot_import;
 pub mod recal;
 pub mod retrieve;
 pub mod rlds;

@@ -37,6 +37,28 @@ enum Cmd {
     Bench(BenchArgs),
     /// labrig episodes as a LeRobot dataset (format v3.0): `labrig export lerobot <episode|dir>... <out>`.
     ExportLerobot(ExportLerobotArgs),
+    /// A LeRobot dataset (v3.0, v2.1) as labrig episodes: `labrig import lerobot <root> [--episodes 0,3-5] <out>`.
+    ImportLerobot(ImportLerobotArgs),
+}
+
+#[derive(Debug, Args)]
+struct ImportLerobotArgs {
+    /// The dataset's root (the folder holding meta/info.json).
+    root: PathBuf,
+    /// Where the episodes go (the recorder's layout: <out>/success|failure/<date>/<time>).
+    out: PathBuf,
+    /// Only these episodes (LeRobot's indices: `0,3,5-9`).
+    #[arg(long)]
+    episodes: Option<String>,
+    /// Replace episodes imported before (the same uuid).
+    #[arg(long)]
+    overwrite: bool,
+    /// JPEG quality of the imported frames.
+    #[arg(long, default_value_t = 90)]
+    jpeg_quality: u8,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -159,6 +181,7 @@ fn main() -> ExitCode {
         Cmd::Bench(a) => bench(a),
         Cmd::Stats(a) => stats(a),
         Cmd::ExportLerobot(a) => export_lerobot(a),
+        Cmd::ImportLerobot(a) => import_lerobot(a),
     };
     match result {
         Ok(c) => c,
@@ -217,6 +240,56 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
         for (p, why) in &r.skipped {
             println!("  skipped {}: {why}", p.display());
         }
+    }
+    Ok(if r.skipped.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(2) })
+}
+
+fn import_lerobot(a: ImportLerobotArgs) -> anyhow::Result<ExitCode> {
+    use labrig_dataset::lerobot_import;
+    let only = a.episodes.as_deref().map(lerobot_import::parse_episodes).transpose().map_err(anyhow::Error::msg)?;
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("import lerobot {bar:30} {pos}/{len} episodes {elapsed}")
+            .expect("template"),
+    );
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let opts = labrig_droid::import::ImportOptions { overwrite: a.overwrite, jpeg_quality: a.jpeg_quality };
+    let r = lerobot_import::import(&a.root, only.as_deref(), &a.out, &opts, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    if a.json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else {
+        println!(
+            "labrig import lerobot: {} episodes ({} steps, {} frames, cameras {}) from {} (LeRobot {}) -> {} in {:.1} s",
+            r.episodes.len(),
+            r.steps,
+            r.frames,
+            r.cameras.iter().map(|c| format!("{} as {}", c.key, c.id)).collect::<Vec<_>>().join(", "),
+            r.source.display(),
+            r.version,
+            r.out.display(),
+            r.seconds
+        );
+        for (i, dir, steps, _) in &r.episodes {
+            println!("  episode {i}: {steps} steps -> {}", dir.display());
+        }
+        for (k, n) in &r.absent {
+            println!("  {k}: not in the dataset ({n} episodes): left at zero");
+        }
+        for w in &r.warnings {
+            println!("  warning: {w}");
+        }
+        for (i, why) in &r.skipped {
+            println!("  skipped episode {i}: {why}");
+        }
+    }
+    if r.episodes.is_empty() {
+        bail!("no episode could be imported from {}", a.root.display());
     }
     Ok(if r.skipped.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(2) })
 }

@@ -164,7 +164,7 @@ pub(crate) fn apply_attrs(doc: &h5doc::H5Doc, meta: &mut labrig_episode::metadat
 }
 
 /// Where an import's camera frames come from, as JPEG.
-pub(crate) trait FrameSource {
+pub trait FrameSource {
     /// The camera's image size (None: no images, so no camera_info either).
     fn size(&self, camera: usize) -> Option<(u32, u32)>;
     /// `camera`'s frame at `step`, asked once per step in order: the JPEG when `wanted` (the
@@ -263,7 +263,7 @@ impl FrameSource for Mp4Frames {
 /// Writes an imported episode under `out_root`'s recorder layout (into `<dir>.partial`, renamed
 /// at the end: a failed import leaves nothing); returns its directory and the frames written.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn write_imported(
+pub fn write_imported(
     meta: labrig_episode::metadata::EpisodeMetadata,
     steps: &[labrig_msgs::labrig_msgs::Step],
     cameras: &[Camera],

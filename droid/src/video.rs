@@ -138,13 +138,32 @@ pub struct Mp4Reader {
 
 impl Mp4Reader {
     pub fn open(path: &Path) -> Result<Mp4Reader, VideoError> {
+        Mp4Reader::open_range(path, None)
+    }
+
+    /// Decodes from `start` (seconds: the first frame whose time is at least `start` minus a
+    /// quarter frame at `fps`) for at most `frames` frames: one episode of a video holding many
+    /// (LeRobot's v3.0 files).
+    pub fn open_at(path: &Path, start: f64, fps: f64, frames: usize) -> Result<Mp4Reader, VideoError> {
+        Mp4Reader::open_range(path, Some(((start - 0.25 / fps).max(0.0), frames)))
+    }
+
+    fn open_range(path: &Path, range: Option<(f64, usize)>) -> Result<Mp4Reader, VideoError> {
         let (width, height, _) = probe(path, false)?;
+        let mut cmd = Command::new("ffmpeg");
+        cmd.args(["-hide_banner", "-nostdin", "-loglevel", "error"]);
+        if let Some((start, _)) = range {
+            // Before -i: an accurate seek (decoded from the keyframe before, frames before
+            // `start` dropped).
+            cmd.args(["-ss", &format!("{start:.6}")]);
+        }
+        cmd.arg("-i").arg(path);
+        if let Some((_, frames)) = range {
+            cmd.args(["-frames:v", &frames.to_string()]);
+        }
         let mut child = spawn(
             "ffmpeg",
-            Command::new("ffmpeg")
-                .args(["-hide_banner", "-nostdin", "-loglevel", "error", "-i"])
-                .arg(path)
-                .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "-fps_mode", "passthrough", "-"])
+            cmd.args(["-f", "rawvideo", "-pix_fmt", "rgb24", "-fps_mode", "passthrough", "-"])
                 .stdin(Stdio::null())
                 .stdout(Stdio::piped())
                 .stderr(Stdio::piped()),

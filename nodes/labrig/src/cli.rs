@@ -211,19 +211,19 @@ pub fn convert(verb: &str, args: &[String]) -> anyhow::Result<ExitCode> {
             forwarded.extend(args[1..].iter().cloned());
             node("labrig-droid", &forwarded)
         }
-        Some("lerobot") if verb == "export" => {
-            let mut forwarded = vec!["export-lerobot".to_owned()];
+        Some("lerobot") => {
+            let mut forwarded = vec![format!("{verb}-lerobot")];
             forwarded.extend(args[1..].iter().cloned());
             node("labrig-dataset", &forwarded)
         }
         Some("--help" | "-h") | None => {
             println!(
-                "usage: labrig {verb} droid|droid-mcap|lerobot ... (formats: droid = DROID's raw layout, droid-mcap = DROID's MCAP layout, lerobot = LeRobot's dataset format v3.0, export only)\n"
+                "usage: labrig {verb} droid|droid-mcap|lerobot ... (formats: droid = DROID's raw layout, droid-mcap = DROID's MCAP layout, lerobot = LeRobot's dataset format v3.0 or v2.1)\n"
             );
             node("labrig-droid", &[verb.to_owned(), "--help".to_owned()])
         }
         Some(other) => {
-            anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid, droid-mcap, lerobot (export))")
+            anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid, droid-mcap, lerobot)")
         }
     }
 }

@@ -1,0 +1,866 @@
+//! LeRobot datasets read by labrig: `labrig import lerobot <root> [--episodes ...] <out>` (to
+//! labrig episodes) and `labrig dataset index <root>` (read in place, no images).
+//!
+//! - Formats: v3.0 (LeRobot 0.4: many episodes per data file and per MP4, each episode's span in
+//!   `meta/episodes/`) and v2.1 / v2.0 (LeRobot 0.3: a data file and an MP4 per episode,
+//!   `meta/episodes.jsonl`). The layout is read from `meta/info.json` (its path templates).
+//! - Keys: DROID's, as the LeRobot DROID port and `labrig export lerobot` write them.
+//!   Joints: `observation.state.joint_position`, else `observation.state[0..7]` (7 joints +
+//!   gripper); the gripper: `observation.state.gripper_position`, else `observation.state[7]`;
+//!   the TCP pose: `observation.state.cartesian_position`, else the FR3's forward kinematics of
+//!   the joints (2F-85 TCP). The action likewise from `action.joint_position` /
+//!   `action.gripper_position` or `action[0..8]`; `action.cartesian_position`,
+//!   `.cartesian_velocity`, `.joint_velocity`, `.gripper_velocity` where the dataset has them
+//!   (zeros otherwise, said in the report). A dataset with another state layout is refused by
+//!   name.
+//! - Cameras: every video feature `observation.images.<key>`; the DROID port's and openpi's
+//!   camera names map to labrig's ids (`exterior_1_left` -> `ext1`, `exterior_2_left` -> `ext2`,
+//!   `wrist_left` -> `wrist`), other keys keep their name. Image features stored in the
+//!   Parquet (dtype `image`) are left out and said.
+//! - Time: step k at `start + k / fps` (LeRobot's grid); each camera's frame of step k is the
+//!   video's frame at the episode's `from_timestamp + k / fps`.
+//! - Metadata: a dataset exported by labrig carries each episode's labrig metadata
+//!   (`labrig/metadata`) and gets it back whole (uuid, task, outcome, scene, extrinsics ...).
+//!   Any other dataset: uuid `<dataset name>+episode_<index>`, the task from the episode's
+//!   tasks, the cameras' extrinsics from `camera_extrinsics.<key>` where present (the DROID
+//!   port's), the outcome a success (LeRobot's format has no outcome: its episodes are the
+//!   training set), episodes laid end to end from the time of `meta/info.json`.
+
+use crate::lerobot::LeRobotError;
+use arrow_array::{
+    Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, Float64Array, Int32Array, Int64Array,
+    LargeListArray, LargeStringArray, ListArray, RecordBatch, StringArray,
+};
+use arrow_schema::DataType;
+use labrig_arm::kinematics::{Fr3Kinematics, TcpOffset};
+use labrig_droid::droid::Camera;
+use labrig_droid::import::{FrameSource, ImportOptions};
+use labrig_droid::video::Mp4Reader;
+use labrig_episode::metadata::EpisodeMetadata;
+use labrig_msgs::Nanos;
+use labrig_msgs::labrig_msgs::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
+use labrig_msgs::std_msgs::Header;
+use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+fn bad(path: &Path, why: impl Into<String>) -> LeRobotError {
+    LeRobotError::Bad { path: path.to_owned(), why: why.into() }
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> LeRobotError + '_ {
+    move |e| LeRobotError::Io { path: path.to_owned(), source: e }
+}
+
+/// labrig's id for a LeRobot camera key (the part after `observation.images.`).
+pub fn camera_id(key: &str) -> String {
+    match key {
+        "exterior_1_left" | "exterior_image_1_left" => "ext1".into(),
+        "exterior_2_left" | "exterior_image_2_left" => "ext2".into(),
+        "wrist_left" | "wrist_image_left" => "wrist".into(),
+        other => other.into(),
+    }
+}
+
+/// A video feature: LeRobot's key and labrig's camera id.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CameraKey {
+    pub key: String,
+    pub id: String,
+}
+
+/// One episode as the dataset's metadata lists it.
+#[derive(Debug, Clone)]
+pub struct EpisodeEntry {
+    pub index: i64,
+    pub length: usize,
+    pub tasks: Vec<String>,
+    /// v3.0: the data file's (chunk, file).
+    data_file: Option<(i64, i64)>,
+    /// Per video key: (chunk, file, from_timestamp) in v3.0; v2.x has one file per episode.
+    videos: BTreeMap<String, (i64, i64, f64)>,
+    /// labrig's metadata (JSON), where labrig exported the dataset.
+    pub labrig_metadata: Option<String>,
+}
+
+/// A LeRobot dataset opened for reading.
+#[derive(Debug)]
+pub struct Dataset {
+    pub root: PathBuf,
+    pub version: String,
+    pub fps: f64,
+    pub features: serde_json::Map<String, Value>,
+    pub episodes: Vec<EpisodeEntry>,
+    pub cameras: Vec<CameraKey>,
+    /// Image features stored in the Parquet (dtype `image`): not read.
+    pub image_features: Vec<String>,
+    data_path: String,
+    video_path: String,
+    chunks_size: i64,
+    /// Where the first episode starts when the dataset carries no time of its own.
+    base_ns: i64,
+    cache: Option<(PathBuf, Vec<RecordBatch>)>,
+}
+
+/// An episode's steps and metadata.
+#[derive(Debug)]
+pub struct ReadEpisode {
+    pub metadata: EpisodeMetadata,
+    pub steps: Vec<Step>,
+    /// Keys the steps were made without (their fields left at zero).
+    pub absent: Vec<String>,
+}
+
+/// Fills a LeRobot path template: `{name}` and `{name:03d}`-style fields.
+fn fill(template: &str, values: &[(&str, String)]) -> String {
+    let mut out = String::new();
+    let mut rest = template;
+    while let Some(open) = rest.find('{') {
+        out.push_str(&rest[..open]);
+        let Some(close) = rest[open..].find('}') else { break };
+        let field = &rest[open + 1..open + close];
+        let (name, spec) = field.split_once(':').unwrap_or((field, ""));
+        let value = values.iter().find(|(n, _)| *n == name).map(|(_, v)| v.clone()).unwrap_or_default();
+        let width: usize = spec.trim_end_matches('d').trim_start_matches('0').parse().unwrap_or(0);
+        if width > 0 && value.parse::<i64>().is_ok() {
+            out.push_str(&format!("{value:0>width$}"));
+        } else {
+            out.push_str(&value);
+        }
+        rest = &rest[open + close + 1..];
+    }
+    out.push_str(rest);
+    out
+}
+
+pub(crate) fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>, LeRobotError> {
+    let file = std::fs::File::open(path).map_err(io(path))?;
+    let reader = ParquetRecordBatchReaderBuilder::try_new(file)
+        .and_then(|b| b.with_batch_size(8192).build())
+        .map_err(|e| bad(path, format!("not a readable Parquet file: {e}")))?;
+    reader.collect::<Result<Vec<_>, _>>().map_err(|e| bad(path, e.to_string()))
+}
+
+/// A numeric array's values as f64.
+fn floats(a: &dyn Array) -> Option<Vec<f64>> {
+    let any = a.as_any();
+    if let Some(x) = any.downcast_ref::<Float32Array>() {
+        return Some(x.values().iter().map(|v| f64::from(*v)).collect());
+    }
+    if let Some(x) = any.downcast_ref::<Float64Array>() {
+        return Some(x.values().to_vec());
+    }
+    if let Some(x) = any.downcast_ref::<Int64Array>() {
+        return Some(x.values().iter().map(|v| *v as f64).collect());
+    }
+    if let Some(x) = any.downcast_ref::<Int32Array>() {
+        return Some(x.values().iter().map(|v| f64::from(*v)).collect());
+    }
+    if let Some(x) = any.downcast_ref::<BooleanArray>() {
+        return Some((0..x.len()).map(|i| if x.value(i) { 1.0 } else { 0.0 }).collect());
+    }
+    None
+}
+
+/// A column's rows as vectors (a scalar column: vectors of one).
+fn rows_of(a: &ArrayRef) -> Option<Vec<Vec<f64>>> {
+    match a.data_type() {
+        DataType::FixedSizeList(_, n) => {
+            let l = a.as_any().downcast_ref::<FixedSizeListArray>()?;
+            let v = floats(l.values().as_ref())?;
+            let n = *n as usize;
+            Some(v.chunks(n.max(1)).take(l.len()).map(<[f64]>::to_vec).collect())
+        }
+        DataType::List(_) => {
+            let l = a.as_any().downcast_ref::<ListArray>()?;
+            (0..l.len()).map(|i| floats(l.value(i).as_ref())).collect()
+        }
+        DataType::LargeList(_) => {
+            let l = a.as_any().downcast_ref::<LargeListArray>()?;
+            (0..l.len()).map(|i| floats(l.value(i).as_ref())).collect()
+        }
+        _ => floats(a.as_ref()).map(|v| v.into_iter().map(|x| vec![x]).collect()),
+    }
+}
+
+/// A column of strings (or lists of strings: each row's first).
+fn strings_of(a: &ArrayRef) -> Option<Vec<Vec<String>>> {
+    let any = a.as_any();
+    if let Some(s) = any.downcast_ref::<StringArray>() {
+        return Some((0..s.len()).map(|i| vec![s.value(i).to_owned()]).collect());
+    }
+    if let Some(s) = any.downcast_ref::<LargeStringArray>() {
+        return Some((0..s.len()).map(|i| vec![s.value(i).to_owned()]).collect());
+    }
+    if let Some(l) = any.downcast_ref::<ListArray>() {
+        return (0..l.len()).map(|i| strings_of(&l.value(i)).map(|v| v.into_iter().flatten().collect())).collect();
+    }
+    if let Some(l) = any.downcast_ref::<LargeListArray>() {
+        return (0..l.len()).map(|i| strings_of(&l.value(i)).map(|v| v.into_iter().flatten().collect())).collect();
+    }
+    None
+}
+
+/// A column over several batches.
+fn column<T>(batches: &[RecordBatch], name: &str, f: impl Fn(&ArrayRef) -> Option<Vec<T>>) -> Option<Vec<T>> {
+    let mut out = Vec::new();
+    for b in batches {
+        out.extend(f(b.column_by_name(name)?)?);
+    }
+    Some(out)
+}
+
+impl Dataset {
+    /// Opens the dataset at `root` (its `meta/info.json` names the format).
+    pub fn open(root: &Path) -> Result<Dataset, LeRobotError> {
+        let info_path = root.join("meta/info.json");
+        let text = std::fs::read_to_string(&info_path)
+            .map_err(|e| bad(root, format!("not a LeRobot dataset (meta/info.json: {e})")))?;
+        let info: Value = serde_json::from_str(&text).map_err(|e| bad(&info_path, format!("not JSON: {e}")))?;
+        let version = info["codebase_version"].as_str().unwrap_or("").to_owned();
+        if !matches!(version.as_str(), "v3.0" | "v2.1" | "v2.0") {
+            return Err(bad(&info_path, format!("codebase_version {version:?}: labrig reads v3.0, v2.1 and v2.0")));
+        }
+        let fps = info["fps"].as_f64().filter(|f| *f > 0.0).ok_or_else(|| bad(&info_path, "no positive `fps`"))?;
+        let features = info["features"].as_object().cloned().ok_or_else(|| bad(&info_path, "no `features`"))?;
+        let text_of = |k: &str| info[k].as_str().map(str::to_owned).ok_or_else(|| bad(&info_path, format!("no `{k}`")));
+        let data_path = text_of("data_path")?;
+        let video_path = info["video_path"].as_str().unwrap_or("").to_owned();
+        let chunks_size = info["chunks_size"].as_i64().unwrap_or(1000).max(1);
+        let mut cameras = Vec::new();
+        let mut image_features = Vec::new();
+        for (key, f) in &features {
+            let Some(name) = key.strip_prefix("observation.images.") else { continue };
+            match f["dtype"].as_str() {
+                Some("video") => cameras.push(CameraKey { key: key.clone(), id: camera_id(name) }),
+                _ => image_features.push(key.clone()),
+            }
+        }
+        let base_ns = std::fs::metadata(&info_path)
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_secs() as i64 * 1_000_000_000);
+        let mut ds = Dataset {
+            root: root.to_owned(),
+            version,
+            fps,
+            features,
+            episodes: Vec::new(),
+            cameras,
+            image_features,
+            data_path,
+            video_path,
+            chunks_size,
+            base_ns,
+            cache: None,
+        };
+        ds.episodes = if ds.version == "v3.0" { ds.episodes_v30()? } else { ds.episodes_v2()? };
+        ds.episodes.sort_by_key(|e| e.index);
+        Ok(ds)
+    }
+
+    fn episodes_v30(&self) -> Result<Vec<EpisodeEntry>, LeRobotError> {
+        let dir = self.root.join("meta/episodes");
+        let mut files: Vec<PathBuf> = Vec::new();
+        for chunk in std::fs::read_dir(&dir).map_err(io(&dir))?.flatten() {
+            if let Ok(rd) = std::fs::read_dir(chunk.path()) {
+                files.extend(rd.flatten().map(|e| e.path()).filter(|p| p.extension().is_some_and(|x| x == "parquet")));
+            }
+        }
+        files.sort();
+        let mut out = Vec::new();
+        for f in files {
+            let batches = read_parquet(&f)?;
+            let int = |name: &str| -> Result<Vec<i64>, LeRobotError> {
+                column(&batches, name, |a| floats(a.as_ref()))
+                    .map(|v| v.into_iter().map(|x| x as i64).collect())
+                    .ok_or_else(|| bad(&f, format!("no integer column `{name}`")))
+            };
+            let index = int("episode_index")?;
+            let length = int("length")?;
+            let chunk = int("data/chunk_index")?;
+            let file = int("data/file_index")?;
+            let tasks = column(&batches, "tasks", strings_of).ok_or_else(|| bad(&f, "no `tasks` column"))?;
+            let meta = column(&batches, "labrig/metadata", strings_of);
+            let mut videos: Vec<BTreeMap<String, (i64, i64, f64)>> = vec![BTreeMap::new(); index.len()];
+            for cam in &self.cameras {
+                let k = format!("videos/{}", cam.key);
+                let c = int(&format!("{k}/chunk_index"))?;
+                let fi = int(&format!("{k}/file_index"))?;
+                let from = column(&batches, &format!("{k}/from_timestamp"), |a| floats(a.as_ref()))
+                    .ok_or_else(|| bad(&f, format!("no `{k}/from_timestamp`")))?;
+                for i in 0..index.len() {
+                    videos[i].insert(cam.key.clone(), (c[i], fi[i], from[i]));
+                }
+            }
+            for i in 0..index.len() {
+                out.push(EpisodeEntry {
+                    index: index[i],
+                    length: length[i].max(0) as usize,
+                    tasks: tasks[i].clone(),
+                    data_file: Some((chunk[i], file[i])),
+                    videos: std::mem::take(&mut videos[i]),
+                    labrig_metadata: meta.as_ref().and_then(|m| m[i].first().cloned()).filter(|s| !s.is_empty()),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    fn episodes_v2(&self) -> Result<Vec<EpisodeEntry>, LeRobotError> {
+        let path = self.root.join("meta/episodes.jsonl");
+        let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+        let mut out = Vec::new();
+        for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+            let v: Value = serde_json::from_str(line).map_err(|e| bad(&path, format!("line {}: {e}", n + 1)))?;
+            let index =
+                v["episode_index"].as_i64().ok_or_else(|| bad(&path, format!("line {}: no episode_index", n + 1)))?;
+            out.push(EpisodeEntry {
+                index,
+                length: v["length"].as_u64().unwrap_or(0) as usize,
+                tasks: v["tasks"]
+                    .as_array()
+                    .map(|a| a.iter().filter_map(|t| t.as_str().map(str::to_owned)).collect())
+                    .unwrap_or_default(),
+                data_file: None,
+                videos: BTreeMap::new(),
+                labrig_metadata: v.get("labrig_metadata").map(|m| m.to_string()),
+            });
+        }
+        Ok(out)
+    }
+
+    fn data_file(&self, e: &EpisodeEntry) -> PathBuf {
+        let values = match e.data_file {
+            Some((c, f)) => vec![("chunk_index", c.to_string()), ("file_index", f.to_string())],
+            None => vec![
+                ("episode_chunk", (e.index / self.chunks_size).to_string()),
+                ("episode_index", e.index.to_string()),
+            ],
+        };
+        self.root.join(fill(&self.data_path, &values))
+    }
+
+    /// The MP4 holding `camera`'s frames of `e`, and the time of the episode's first frame in it.
+    pub fn video(&self, e: &EpisodeEntry, camera: &CameraKey) -> (PathBuf, f64) {
+        let (values, from) = match e.videos.get(&camera.key) {
+            Some((c, f, from)) => (
+                vec![("video_key", camera.key.clone()), ("chunk_index", c.to_string()), ("file_index", f.to_string())],
+                *from,
+            ),
+            None => (
+                vec![
+                    ("video_key", camera.key.clone()),
+                    ("episode_chunk", (e.index / self.chunks_size).to_string()),
+                    ("episode_index", e.index.to_string()),
+                ],
+                0.0,
+            ),
+        };
+        (self.root.join(fill(&self.video_path, &values)), from)
+    }
+
+    /// The rows of `e` in its data file, in frame order.
+    fn rows(&mut self, e: &EpisodeEntry) -> Result<Vec<RecordBatch>, LeRobotError> {
+        let path = self.data_file(e);
+        if self.cache.as_ref().is_none_or(|(p, _)| *p != path) {
+            self.cache = Some((path.clone(), read_parquet(&path)?));
+        }
+        let (_, batches) = self.cache.as_ref().expect("cached");
+        let mut out = Vec::new();
+        for b in batches {
+            let idx = b
+                .column_by_name("episode_index")
+                .and_then(|a| floats(a.as_ref()))
+                .ok_or_else(|| bad(&path, "no `episode_index` column"))?;
+            // An episode's rows are consecutive.
+            let mut k = 0;
+            while k < idx.len() {
+                if idx[k] as i64 != e.index {
+                    k += 1;
+                    continue;
+                }
+                let start = k;
+                while k < idx.len() && idx[k] as i64 == e.index {
+                    k += 1;
+                }
+                out.push(b.slice(start, k - start));
+            }
+        }
+        Ok(out)
+    }
+
+    /// Episode `e`'s steps and metadata (no images). `kin` computes the TCP pose where the
+    /// dataset has no `observation.state.cartesian_position`.
+    pub fn read(&mut self, e: &EpisodeEntry, kin: &Fr3Kinematics) -> Result<ReadEpisode, LeRobotError> {
+        let path = self.data_file(e);
+        let rows = self.rows(e)?;
+        let n = rows.iter().map(RecordBatch::num_rows).sum::<usize>();
+        if n == 0 {
+            return Err(bad(&path, format!("episode {}: no rows", e.index)));
+        }
+        if e.length != 0 && e.length != n {
+            return Err(bad(&path, format!("episode {}: {n} rows, the metadata says {}", e.index, e.length)));
+        }
+        let frame_index: Vec<i64> = column(&rows, "frame_index", |a| floats(a.as_ref()))
+            .map(|v| v.into_iter().map(|x| x as i64).collect())
+            .unwrap_or_else(|| (0..n as i64).collect());
+        if frame_index.iter().enumerate().any(|(k, f)| *f != k as i64) {
+            return Err(bad(&path, format!("episode {}: frame_index is not 0..{n} in order", e.index)));
+        }
+        let mut absent = Vec::new();
+        let get = |key: &str, width: usize| -> Result<Option<Vec<Vec<f64>>>, LeRobotError> {
+            let Some(v) = column(&rows, key, rows_of) else {
+                if rows.first().is_some_and(|b| b.column_by_name(key).is_some()) {
+                    return Err(bad(&path, format!("`{key}` is not numeric")));
+                }
+                return Ok(None);
+            };
+            if let Some((k, r)) = v.iter().enumerate().find(|(_, r)| r.len() < width) {
+                return Err(bad(
+                    &path,
+                    format!("episode {}, frame {k}: `{key}` has {} values, labrig reads {width}", e.index, r.len()),
+                ));
+            }
+            if let Some(k) = v.iter().position(|r| r.iter().any(|x| !x.is_finite())) {
+                return Err(bad(&path, format!("episode {}, frame {k}: `{key}` is not finite", e.index)));
+            }
+            Ok(Some(v))
+        };
+        let state = get("observation.state", 0)?;
+        let width = |v: &Option<Vec<Vec<f64>>>| v.as_ref().and_then(|v| v.first()).map_or(0, Vec::len);
+        let joints = match get("observation.state.joint_position", 7)? {
+            Some(j) => j,
+            None if width(&state) >= 8 => state.clone().expect("wide"),
+            None => {
+                return Err(bad(
+                    &path,
+                    format!(
+                        "observation.state has {} values and there is no observation.state.joint_position: labrig reads DROID's layout (7 joints + gripper)",
+                        width(&state)
+                    ),
+                ));
+            }
+        };
+        let gripper = match get("observation.state.gripper_position", 1)? {
+            Some(g) => g.into_iter().map(|r| r[0]).collect::<Vec<_>>(),
+            None if width(&state) >= 8 => state.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
+            None => {
+                return Err(bad(
+                    &path,
+                    "no gripper: neither observation.state.gripper_position nor observation.state[7]",
+                ));
+            }
+        };
+        let cartesian = get("observation.state.cartesian_position", 6)?;
+        let action = get("action", 0)?;
+        let a_joints = match get("action.joint_position", 7)? {
+            Some(j) => j,
+            None if width(&action) >= 8 => action.clone().expect("wide"),
+            None => {
+                return Err(bad(
+                    &path,
+                    format!(
+                        "action has {} values and there is no action.joint_position: labrig reads DROID's action (7 joint positions + gripper)",
+                        width(&action)
+                    ),
+                ));
+            }
+        };
+        let a_gripper: Vec<f64> = match get("action.gripper_position", 1)? {
+            Some(g) => g.into_iter().map(|r| r[0]).collect(),
+            None if width(&action) >= 8 => action.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
+            None => return Err(bad(&path, "no gripper action: neither action.gripper_position nor action[7]")),
+        };
+        let mut optional = |key: &str, w: usize| -> Result<Vec<Vec<f64>>, LeRobotError> {
+            Ok(match get(key, w)? {
+                Some(v) => v,
+                None => {
+                    absent.push(key.to_owned());
+                    vec![vec![0.0; w]; n]
+                }
+            })
+        };
+        let a_cart = optional("action.cartesian_position", 6)?;
+        let a_cvel = optional("action.cartesian_velocity", 6)?;
+        let a_jvel = optional("action.joint_velocity", 7)?;
+        let a_gvel = optional("action.gripper_velocity", 1)?;
+        let j_vel = optional("observation.state.joint_velocity", 7)?;
+        absent.retain(|k| k != "observation.state.joint_velocity");
+
+        let mut metadata = match &e.labrig_metadata {
+            Some(text) => {
+                let v: Value = serde_json::from_str(text).map_err(|x| bad(&path, format!("labrig/metadata: {x}")))?;
+                // v2.x keeps it as an object; v3.0 as a JSON string.
+                let v = match v {
+                    Value::String(s) => {
+                        serde_json::from_str(&s).map_err(|x| bad(&path, format!("labrig/metadata: {x}")))?
+                    }
+                    other => other,
+                };
+                serde_json::from_value::<EpisodeMetadata>(v).map_err(|x| bad(&path, format!("labrig/metadata: {x}")))?
+            }
+            None => self.metadata_of(e, &rows, n),
+        };
+        metadata.trajectory_length = n as u64;
+        let dt = (1e9 / self.fps).round() as i64;
+        let arr = |v: &[f64]| -> [f64; 7] { std::array::from_fn(|i| v[i]) };
+        let arr6 = |v: &[f64]| -> [f64; 6] { std::array::from_fn(|i| v[i]) };
+        let mut steps = Vec::with_capacity(n);
+        for k in 0..n {
+            let t = metadata.start_ns + k as i64 * dt;
+            let header = Header { stamp: Nanos(t).into(), frame_id: String::new() };
+            let q = arr(&joints[k]);
+            let cart = match &cartesian {
+                Some(c) => arr6(&c[k]),
+                None => labrig_arm::ik::xyz_euler(&kin.tcp_pose(&q)),
+            };
+            steps.push(Step {
+                header: header.clone(),
+                episode_id: metadata.uuid.clone(),
+                step_index: k as u64,
+                robot_state: RobotState {
+                    header,
+                    cartesian_position: cart,
+                    gripper_position: gripper[k],
+                    joint_positions: q,
+                    joint_velocities: arr(&j_vel[k]),
+                    prev_command_successful: true,
+                    mode: RobotState::MODE_MOVING,
+                    ..RobotState::default()
+                },
+                cameras: self
+                    .cameras
+                    .iter()
+                    .map(|c| CameraFrameRef {
+                        camera_id: c.id.clone(),
+                        sequence: k as u64,
+                        capture_ns: t,
+                        arrival_ns: t,
+                        ..CameraFrameRef::default()
+                    })
+                    .collect(),
+                timing: ControlTiming {
+                    step_start: t,
+                    policy_start: t,
+                    sleep_start: t,
+                    control_start: t,
+                    step_end: t + dt,
+                    ..ControlTiming::default()
+                },
+                action: ActionDict {
+                    cartesian_velocity: arr6(&a_cvel[k]),
+                    cartesian_position: arr6(&a_cart[k]),
+                    joint_velocity: arr(&a_jvel[k]),
+                    joint_position: arr(&a_joints[k]),
+                    gripper_velocity: a_gvel[k][0],
+                    gripper_position: a_gripper[k],
+                    target_cartesian_position: arr6(&a_cart[k]),
+                    target_gripper_position: a_gripper[k],
+                    ..ActionDict::default()
+                },
+                action_source: Step::SOURCE_TELEOP,
+                movement_enabled: true,
+                ..Step::default()
+            });
+        }
+        Ok(ReadEpisode { metadata, steps, absent })
+    }
+
+    /// The metadata of an episode labrig did not export.
+    fn metadata_of(&self, e: &EpisodeEntry, rows: &[RecordBatch], n: usize) -> EpisodeMetadata {
+        let name = self.root.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "lerobot".into());
+        // Episodes end to end, a second apart, in index order.
+        let before: f64 =
+            self.episodes.iter().take_while(|x| x.index < e.index).map(|x| x.length as f64 / self.fps + 1.0).sum();
+        let mut extrinsics = BTreeMap::new();
+        let mut serials = BTreeMap::new();
+        for c in &self.cameras {
+            let short = c.key.trim_start_matches("observation.images.");
+            serials.insert(c.id.clone(), short.to_owned());
+            for key in [format!("camera_extrinsics.{short}"), format!("observation.camera_extrinsics.{short}")] {
+                if let Some(v) = column(rows, &key, rows_of).and_then(|v| v.into_iter().next())
+                    && v.len() == 6
+                    && v.iter().all(|x| x.is_finite())
+                {
+                    extrinsics.insert(c.id.clone(), std::array::from_fn(|i| v[i]));
+                }
+            }
+        }
+        // The DROID port's per-frame copies of its episode metadata.
+        let text = |key: &str| -> String {
+            column(rows, key, strings_of)
+                .and_then(|v| v.into_iter().next())
+                .and_then(|v| v.into_iter().next())
+                .unwrap_or_default()
+        };
+        let success = column(rows, "is_episode_successful", rows_of).and_then(|v| v.first().map(|r| r[0] != 0.0));
+        EpisodeMetadata {
+            uuid: format!("{name}+episode_{:06}", e.index),
+            lab: "lerobot".into(),
+            building: text("building"),
+            user: text("collector_id"),
+            scene_id: String::new(),
+            task_instruction: e.tasks.first().cloned().unwrap_or_default(),
+            success: Some(success.unwrap_or(true)),
+            robot_serial: String::new(),
+            camera_serials: serials,
+            extrinsics,
+            start_ns: self.base_ns + (before * 1e9) as i64,
+            trajectory_length: n as u64,
+            sim_scene: None,
+            recovered: None,
+            policy: None,
+            calibration: None,
+            takeovers: None,
+            operator_steps: None,
+        }
+    }
+}
+
+/// What an import did.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ImportReport {
+    pub source: PathBuf,
+    pub version: String,
+    pub out: PathBuf,
+    /// Each imported episode: its LeRobot index, labrig directory, steps and frames.
+    pub episodes: Vec<(i64, PathBuf, usize, u64)>,
+    pub cameras: Vec<CameraKey>,
+    /// Keys the dataset lacks (the steps' fields left at zero), with how many episodes.
+    pub absent: BTreeMap<String, usize>,
+    pub warnings: Vec<String>,
+    /// Episodes left out, each with why.
+    pub skipped: Vec<(i64, String)>,
+    pub steps: usize,
+    pub frames: u64,
+    pub seconds: f64,
+}
+
+/// One camera's frames of an episode, decoded from its span of the MP4.
+struct VideoFrames {
+    readers: Vec<Option<Mp4Reader>>,
+    ids: Vec<String>,
+    quality: u8,
+    path: PathBuf,
+    short: Vec<bool>,
+    warnings: Vec<String>,
+    steps: usize,
+}
+
+impl FrameSource for VideoFrames {
+    fn size(&self, camera: usize) -> Option<(u32, u32)> {
+        self.readers[camera].as_ref().map(|r| (r.width, r.height))
+    }
+
+    fn frame(&mut self, camera: usize, step: usize, wanted: bool) -> Result<Option<Vec<u8>>, labrig_droid::DroidError> {
+        let Some(r) = self.readers[camera].as_mut() else { return Ok(None) };
+        let pixels = if self.short[camera] { None } else { r.next_frame()? };
+        let Some(pixels) = pixels else {
+            if !self.short[camera] {
+                self.short[camera] = true;
+                self.warnings.push(format!(
+                    "camera {}: the video ends at frame {step} of {} steps (the rest imported without images)",
+                    self.ids[camera], self.steps
+                ));
+            }
+            return Ok(None);
+        };
+        if !wanted {
+            return Ok(None);
+        }
+        labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, self.quality).map(Some).map_err(
+            |e| labrig_droid::DroidError::Io {
+                path: self.path.clone(),
+                source: std::io::Error::other(format!("camera {}: {e}", self.ids[camera])),
+            },
+        )
+    }
+
+    fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), labrig_droid::DroidError> {
+        warnings.append(&mut self.warnings);
+        Ok(())
+    }
+}
+
+/// Parses `--episodes` (`0,3,5-9`).
+pub fn parse_episodes(s: &str) -> Result<Vec<i64>, String> {
+    let mut out = Vec::new();
+    for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        let num =
+            |x: &str| x.trim().parse::<i64>().map_err(|_| format!("--episodes {s}: `{x}` is not an episode index"));
+        match part.split_once('-') {
+            Some((a, b)) => {
+                let (a, b) = (num(a)?, num(b)?);
+                if b < a {
+                    return Err(format!("--episodes {s}: the range {part} is empty"));
+                }
+                out.extend(a..=b);
+            }
+            None => out.push(num(part)?),
+        }
+    }
+    Ok(out)
+}
+
+/// Imports the episodes of the LeRobot dataset at `root` (all, or `only`) as labrig episodes
+/// under `out` (the recorder's layout). A bad episode is skipped and named; nothing of it is
+/// left. `progress(done, total)`.
+pub fn import(
+    root: &Path,
+    only: Option<&[i64]>,
+    out: &Path,
+    opts: &ImportOptions,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<ImportReport, LeRobotError> {
+    let started = std::time::Instant::now();
+    let mut ds = Dataset::open(root)?;
+    let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(None), TcpOffset::ROBOTIQ_2F85)
+        .map_err(|e| bad(root, format!("the FR3 model: {e}")))?;
+    let entries: Vec<EpisodeEntry> = match only {
+        None => ds.episodes.clone(),
+        Some(want) => {
+            let missing: Vec<&i64> = want.iter().filter(|i| !ds.episodes.iter().any(|e| e.index == **i)).collect();
+            if !missing.is_empty() {
+                return Err(bad(
+                    root,
+                    format!("no episode {missing:?} in the dataset (it has {} episodes)", ds.episodes.len()),
+                ));
+            }
+            ds.episodes.iter().filter(|e| want.contains(&e.index)).cloned().collect()
+        }
+    };
+    let mut report = ImportReport {
+        source: root.to_owned(),
+        version: ds.version.clone(),
+        out: out.to_owned(),
+        episodes: Vec::new(),
+        cameras: ds.cameras.clone(),
+        absent: BTreeMap::new(),
+        warnings: ds
+            .image_features
+            .iter()
+            .map(|k| format!("{k}: stored as images in the Parquet, not imported"))
+            .collect(),
+        skipped: Vec::new(),
+        steps: 0,
+        frames: 0,
+        seconds: 0.0,
+    };
+    for (done, e) in entries.iter().enumerate() {
+        progress(done, entries.len());
+        match import_one(&mut ds, e, &kin, out, opts) {
+            Ok((dir, read, frames, warnings)) => {
+                for k in read.absent {
+                    *report.absent.entry(k).or_default() += 1;
+                }
+                report.warnings.extend(warnings.into_iter().map(|w| format!("episode {}: {w}", e.index)));
+                report.steps += read.steps.len();
+                report.frames += frames;
+                report.episodes.push((e.index, dir, read.steps.len(), frames));
+            }
+            Err(why) => report.skipped.push((e.index, why)),
+        }
+    }
+    progress(entries.len(), entries.len());
+    report.seconds = started.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+type Imported = (PathBuf, ReadEpisode, u64, Vec<String>);
+
+fn import_one(
+    ds: &mut Dataset,
+    e: &EpisodeEntry,
+    kin: &Fr3Kinematics,
+    out: &Path,
+    opts: &ImportOptions,
+) -> Result<Imported, String> {
+    let read = ds.read(e, kin).map_err(|x| x.to_string())?;
+    let n = read.steps.len();
+    let mut readers = Vec::new();
+    for c in &ds.cameras {
+        let (path, from) = ds.video(e, c);
+        if !path.is_file() {
+            return Err(format!("camera {}: no video {}", c.key, path.display()));
+        }
+        readers.push(Some(Mp4Reader::open_at(&path, from, ds.fps, n).map_err(|x| x.to_string())?));
+    }
+    let cameras: Vec<Camera> = ds
+        .cameras
+        .iter()
+        .map(|c| Camera {
+            id: c.id.clone(),
+            serial: read.metadata.camera_serials.get(&c.id).cloned().unwrap_or_else(|| c.id.clone()),
+            k: None,
+        })
+        .collect();
+    let mut frames = VideoFrames {
+        short: vec![false; readers.len()],
+        readers,
+        ids: ds.cameras.iter().map(|c| c.id.clone()).collect(),
+        quality: opts.jpeg_quality,
+        path: ds.root.clone(),
+        warnings: Vec::new(),
+        steps: n,
+    };
+    let mut warnings = Vec::new();
+    let note = format!("imported from LeRobot {} {}", ds.version, ds.root.display());
+    let (dir, written) = labrig_droid::import::write_imported(
+        read.metadata.clone(),
+        &read.steps,
+        &cameras,
+        None,
+        out,
+        opts,
+        &mut frames,
+        &[],
+        &mut warnings,
+        &note,
+    )
+    .map_err(|x| x.to_string())?;
+    Ok((dir, read, written, warnings))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn templates_fill_as_python_formats_them() {
+        assert_eq!(
+            fill(
+                "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+                &[("chunk_index", "0".into()), ("file_index", "12".into())]
+            ),
+            "data/chunk-000/file-012.parquet"
+        );
+        assert_eq!(
+            fill(
+                "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4",
+                &[
+                    ("episode_chunk", "1".into()),
+                    ("video_key", "observation.images.ext1".into()),
+                    ("episode_index", "1042".into())
+                ]
+            ),
+            "videos/chunk-001/observation.images.ext1/episode_001042.mp4"
+        );
+    }
+
+    #[test]
+    fn episode_lists_parse_and_bad_ones_are_named() {
+        assert_eq!(parse_episodes("0,3,5-7").unwrap(), vec![0, 3, 5, 6, 7]);
+        assert!(parse_episodes("1,x").unwrap_err().contains("`x`"));
+        assert!(parse_episodes("5-2").unwrap_err().contains("empty"));
+    }
+
+    #[test]
+    fn droid_port_cameras_get_labrigs_ids() {
+        assert_eq!(camera_id("exterior_1_left"), "ext1");
+        assert_eq!(camera_id("wrist_image_left"), "wrist");
+        assert_eq!(camera_id("top"), "top");
+    }
+}
