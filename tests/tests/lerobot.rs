@@ -123,7 +123,213 @@ fn lerobots_own_readers_load_exports_of_demo_episodes() {
         assert_eq!(again.status.code(), Some(1));
         assert!(labrig_tests::output_text(&again).contains("exists: choose another output or pass --overwrite"));
         check(&ds, &python, version, format, &data, dir.path());
+        round_trip(&ds, format, &data, &dir.path().join(format!("back_{format}")));
     }
+}
+
+/// The export at `ds` imported back (`labrig import lerobot`) equals what labrig recorded: the
+/// steps' state and actions (at LeRobot's float32), the metadata whole, each step's frame within
+/// the codecs' tolerance; and an imported episode replays in the sim as the original did.
+fn round_trip(ds: &Path, format: &str, data: &[(Vec<Step>, String, PathBuf)], out: &Path) {
+    let o = Command::new(labrig_bin()).args(["import", "lerobot", "--json"]).arg(ds).arg(out).output().unwrap();
+    assert!(o.status.success(), "import {format}: {}", labrig_tests::output_text(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["version"], format);
+    // labrig's export carries every DROID key: nothing was left at zero.
+    assert_eq!(report["absent"], serde_json::json!({}), "{report}");
+    let imported = report["episodes"].as_array().unwrap();
+    assert_eq!(imported.len(), 2, "{report}");
+    let f = |x: f64| x as f32;
+    for (k, row) in imported.iter().enumerate() {
+        let (steps, _, file) = &data[k];
+        let dir = PathBuf::from(row[1].as_str().unwrap());
+        let back = labrig_episode::read_episode(&dir).unwrap();
+        let (orig_meta, back_meta) =
+            (labrig_episode::read_episode(file.parent().unwrap()).unwrap().metadata.unwrap(), back.metadata.unwrap());
+        assert_eq!(back_meta, orig_meta, "{format} episode {k}: the metadata");
+        assert_eq!(back.steps.len(), steps.len());
+        for (i, (a, b)) in steps.iter().zip(&back.steps).enumerate() {
+            let at = format!("{format} episode {k} step {i}");
+            assert_eq!(b.episode_id, a.episode_id, "{at}");
+            assert_eq!(b.robot_state.joint_positions.map(f), a.robot_state.joint_positions.map(f), "{at}");
+            assert_eq!(f(b.robot_state.gripper_position), f(a.robot_state.gripper_position), "{at}");
+            assert_eq!(b.robot_state.cartesian_position.map(f), a.robot_state.cartesian_position.map(f), "{at}");
+            let (x, y) = (&a.action, &b.action);
+            assert_eq!(y.joint_position.map(f), x.joint_position.map(f), "{at}");
+            assert_eq!(f(y.gripper_position), f(x.gripper_position), "{at}");
+            assert_eq!(y.cartesian_position.map(f), x.cartesian_position.map(f), "{at}");
+            assert_eq!(y.cartesian_velocity.map(f), x.cartesian_velocity.map(f), "{at}");
+            assert_eq!(y.joint_velocity.map(f), x.joint_velocity.map(f), "{at}");
+            assert_eq!(f(y.gripper_velocity), f(x.gripper_velocity), "{at}");
+            // Steps on LeRobot's grid from the episode's start.
+            let t = labrig_msgs::Nanos::from(b.header.stamp).0;
+            assert_eq!(t, orig_meta.start_ns + i as i64 * 50_000_000, "{at}");
+        }
+        // Images: every step's frame, imported (MP4 -> JPEG) against the recorded JPEG.
+        let (ours, theirs) = (frames_of(file), frames_of(&back.file));
+        let mut compared = 0;
+        for (i, (a, b)) in steps.iter().zip(&back.steps).enumerate() {
+            for r in &b.cameras {
+                let orig = a.cameras.iter().find(|c| c.camera_id == r.camera_id).expect("the camera");
+                let decode = |j: &Vec<u8>| {
+                    let img = labrig_episode::jpeg::decode_rgb(j).unwrap();
+                    blocks(&img.pixels, img.width as usize, img.height as usize)
+                };
+                let x = decode(&ours[&(r.camera_id.clone(), orig.capture_ns)]);
+                let y = decode(&theirs[&(r.camera_id.clone(), r.capture_ns)]);
+                let worst = x
+                    .iter()
+                    .flatten()
+                    .flatten()
+                    .zip(y.iter().flatten().flatten())
+                    .map(|(p, q)| (p - q).abs())
+                    .fold(0.0, f64::max);
+                assert!(worst < 0.04, "{format} episode {k} step {i} {}: block means differ by {worst}", r.camera_id);
+                compared += 1;
+            }
+        }
+        assert_eq!(compared, steps.len() * 5);
+    }
+    // The imported episode replays against its scene (carried in the metadata) as recorded.
+    let first = PathBuf::from(imported[0][1].as_str().unwrap());
+    let r = Command::new(labrig_bin()).args(["replay", "--sim"]).arg(&first).output().unwrap();
+    let text = labrig_tests::output_text(&r);
+    assert!(r.status.success() && text.contains("PASS"), "replay of an imported episode: {text}");
+    assert!(text.contains("task success: recorded true, replayed true"), "{text}");
+}
+
+/// A dataset written by LeRobot's own writer (tests/peers/lerobot_write.py, the DROID port's
+/// keys): v3.0 by lerobot 0.4.4 (episodes sharing one data file and one AV1 MP4 per camera, at
+/// 20 fps), v2.1 by lerobot 0.3.3 (at the port's 15 fps). Every value imported equals what the
+/// writer wrote, each frame is the one written for that step (seeking into the shared MP4), the
+/// port's cameras get labrig's ids and its extrinsics land in the metadata; an imported episode
+/// replays in the sim; bad requests are named.
+#[test]
+fn datasets_lerobot_wrote_import_and_replay() {
+    labrig_tests::workspace_bin("labrig-dataset", "labrig-dataset");
+    labrig_tests::workspace_bin("labrig-sim", "labrig-sim");
+    let dir = tempfile::tempdir().unwrap();
+    for (format, python, fps) in [("v3.0", lerobot_python(), 20u32), ("v2.1", lerobot_v21_python(), 15)] {
+        let ds = dir.path().join(format!("written_{format}"));
+        let truth_path = dir.path().join(format!("truth_{format}.json"));
+        let o = Command::new(&python)
+            .arg(repo_root().join("tests/peers/lerobot_write.py"))
+            .arg(&ds)
+            .args(["3", "30", &fps.to_string()])
+            .arg(&truth_path)
+            .env("HF_HUB_OFFLINE", "1")
+            .env("HF_HOME", dir.path().join("hf"))
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "LeRobot's writer ({format}): {}", labrig_tests::output_text(&o));
+        let truth: Value = serde_json::from_str(&std::fs::read_to_string(&truth_path).unwrap()).unwrap();
+        let info: Value = serde_json::from_str(&std::fs::read_to_string(ds.join("meta/info.json")).unwrap()).unwrap();
+        assert_eq!(info["codebase_version"], format);
+
+        let out = dir.path().join(format!("imported_{format}"));
+        let o = Command::new(labrig_bin()).args(["import", "lerobot", "--json"]).arg(&ds).arg(&out).output().unwrap();
+        assert!(o.status.success(), "import {format}: {}", labrig_tests::output_text(&o));
+        let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+        let ids: Vec<&str> = report["cameras"].as_array().unwrap().iter().map(|c| c["id"].as_str().unwrap()).collect();
+        assert_eq!(ids, ["ext1", "wrist"], "{report}");
+        let imported = report["episodes"].as_array().unwrap();
+        assert_eq!(imported.len(), 3, "{report}");
+        let dt = (1e9 / f64::from(fps)).round() as i64;
+        for (k, row) in imported.iter().enumerate() {
+            let want = &truth["episodes"][k];
+            let back = labrig_episode::read_episode(Path::new(row[1].as_str().unwrap())).unwrap();
+            let meta = back.metadata.as_ref().unwrap();
+            assert_eq!(meta.task_instruction, want["task"].as_str().unwrap());
+            assert_eq!(meta.extrinsics["ext1"].map(|x| x as f32).to_vec(), f32s(&want["extrinsics_ext1"]));
+            assert_eq!(meta.camera_serials["ext1"], "exterior_1_left");
+            assert_eq!(meta.success, Some(true));
+            let frames = want["frames"].as_array().unwrap();
+            assert_eq!(back.steps.len(), frames.len());
+            let jpegs = frames_of(&back.file);
+            for (i, (s, w)) in back.steps.iter().zip(frames).enumerate() {
+                let at = format!("{format} episode {k} frame {i}");
+                let t = labrig_msgs::Nanos::from(s.header.stamp).0;
+                assert_eq!(t - meta.start_ns, i as i64 * dt, "{at}");
+                assert_eq!(s.robot_state.joint_positions.map(|x| x as f32).to_vec(), f32s(&w["joints"]), "{at}");
+                assert_eq!(s.robot_state.gripper_position as f32, w["gripper"].as_f64().unwrap() as f32, "{at}");
+                assert_eq!(s.robot_state.cartesian_position.map(|x| x as f32).to_vec(), f32s(&w["cartesian"]), "{at}");
+                assert_eq!(s.action.joint_position.map(|x| x as f32).to_vec(), f32s(&w["action_joints"]), "{at}");
+                assert_eq!(
+                    s.action.cartesian_position.map(|x| x as f32).to_vec(),
+                    f32s(&w["action_cartesian"]),
+                    "{at}"
+                );
+                for (cam, key) in [("ext1", "ext1"), ("wrist", "wrist")] {
+                    let r = s.cameras.iter().find(|c| c.camera_id == cam).expect("a frame per camera");
+                    let img = labrig_episode::jpeg::decode_rgb(&jpegs[&(cam.to_owned(), r.capture_ns)]).unwrap();
+                    let ours = blocks(&img.pixels, img.width as usize, img.height as usize);
+                    let differ = |w: &Value| {
+                        let theirs: Vec<Vec<Vec<f64>>> = serde_json::from_value(w[key].clone()).unwrap();
+                        ours.iter()
+                            .flatten()
+                            .flatten()
+                            .zip(theirs.iter().flatten().flatten())
+                            .map(|(a, b)| (a - b).abs())
+                            .fold(0.0, f64::max)
+                    };
+                    // AV1 (LeRobot's default) at 64x48 then JPEG: within 0.15 of the frame
+                    // written for the step, and nearer it than the next frame written (a frame off
+                    // by one moves the blue bar two rows, 0.3 in its blocks).
+                    let worst = differ(w);
+                    assert!(worst < 0.15, "{at} {cam}: block means differ by up to {worst}");
+                    if let Some(next) = frames.get(i + 1) {
+                        let other = differ(next);
+                        assert!(worst < other, "{at} {cam}: nearer the next frame ({other}) than its own ({worst})");
+                    }
+                }
+            }
+        }
+        if format == "v3.0" {
+            // No sim scene in a dataset LeRobot wrote: replayed against a named one, every step.
+            let second = PathBuf::from(imported[1][1].as_str().unwrap());
+            let r = Command::new(labrig_bin())
+                .args(["replay", "--sim", "--scene", "pick_place", "--seed", "1"])
+                .arg(&second)
+                .output()
+                .unwrap();
+            let text = labrig_tests::output_text(&r);
+            assert!(text.contains("speed:") && text.contains("steps/s"), "replay: {text}");
+            // Only episode 1 asked for: named when it is missing.
+            let bad = Command::new(labrig_bin())
+                .args(["import", "lerobot", "--episodes", "1,7"])
+                .arg(&ds)
+                .arg(dir.path().join("none"))
+                .output()
+                .unwrap();
+            assert_eq!(bad.status.code(), Some(1));
+            assert!(
+                labrig_tests::output_text(&bad).contains("no episode [7] in the dataset"),
+                "{}",
+                labrig_tests::output_text(&bad)
+            );
+            let one = Command::new(labrig_bin())
+                .args(["import", "lerobot", "--json", "--episodes", "1"])
+                .arg(&ds)
+                .arg(dir.path().join("one"))
+                .output()
+                .unwrap();
+            let r: Value = serde_json::from_slice(&one.stdout).unwrap();
+            assert_eq!(r["episodes"].as_array().unwrap().len(), 1);
+            assert_eq!(r["episodes"][0][0], 1);
+            // Importing the same episodes again is refused, naming the episode already there.
+            let again = Command::new(labrig_bin()).args(["import", "lerobot"]).arg(&ds).arg(&out).output().unwrap();
+            assert_ne!(again.status.code(), Some(0));
+        }
+    }
+    // Not a dataset: said.
+    let o = Command::new(labrig_bin())
+        .args(["import", "lerobot"])
+        .arg(dir.path())
+        .arg(dir.path().join("x"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(labrig_tests::output_text(&o).contains("not a LeRobot dataset"), "{}", labrig_tests::output_text(&o));
 }
 
 /// LeRobot `version` at `python` reads the export at `ds` (`format`) as labrig recorded `data`.
