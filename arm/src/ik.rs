@@ -53,6 +53,29 @@ pub fn xyz_euler(p: &Isometry3<f64>) -> [f64; 6] {
     [t.x, t.y, t.z, r, pi, y]
 }
 
+/// A rotation's quaternion on the hemisphere of the top-down grasp (x >= 0; q and -q are the
+/// same rotation), as (x, y, z, w). The same rule everywhere, with no history: training and
+/// the policy server give a pose the same numbers. (A top-down grasp has w near 0, where the
+/// usual `w >= 0` rule flips x between +1 and -1 from one step to the next; this one is
+/// continuous for every orientation within a quarter turn of top-down, the tabletop's.)
+pub fn canonical_quaternion(q: &UnitQuaternion<f64>) -> [f64; 4] {
+    let v = [q.i, q.j, q.k, q.w];
+    if v[0] < 0.0 { v.map(|x| -x) } else { v }
+}
+
+/// The axis-angle vector of a rotation from its [`canonical_quaternion`]: angle in [0, 2 pi)
+/// about the axis on the top-down hemisphere, so a top-down grasp reads about (pi, 0, 0)
+/// whichever way its roll wobbles, never (-pi, 0, 0) on the next step.
+pub fn canonical_axis_angle(q: &UnitQuaternion<f64>) -> [f64; 3] {
+    let [x, y, z, w] = canonical_quaternion(q);
+    let s = (x * x + y * y + z * z).sqrt();
+    if s < 1e-12 {
+        return [0.0; 3];
+    }
+    let angle = 2.0 * s.atan2(w);
+    [x / s * angle, y / s * angle, z / s * angle]
+}
+
 /// A pose from x y z (m) + an axis-angle rotation vector (rad).
 pub fn pose_from_xyz_axis_angle(a: &[f64; 6]) -> Isometry3<f64> {
     Isometry3::from_parts(

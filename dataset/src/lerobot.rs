@@ -26,7 +26,7 @@ use arrow_array::{
     ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, LargeStringArray, ListArray, RecordBatch,
     StringArray,
 };
-use arrow_schema::{DataType, Field, Schema};
+use arrow_schema::{DataType, Field};
 use labrig_msgs::labrig_msgs::Step;
 use parquet::arrow::ArrowWriter;
 use serde_json::{Value, json};
@@ -81,6 +81,48 @@ impl Format {
         match self {
             Format::V30 => "v3.0",
             Format::V21 => "v2.1",
+        }
+    }
+}
+
+/// Which keys the dataset carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub enum Schema {
+    /// DROID's keys, as the LeRobot DROID port: `observation.state` = 7 joints + gripper,
+    /// `action` = the commanded joints + gripper, DROID's sub-keys beside them.
+    Droid,
+    /// The flat keys openpi's `pi05_droid_finetune` reads (its `LeRobotDROIDDataConfig`):
+    /// `exterior_image_1_left`, `exterior_image_2_left`, `wrist_image_left`, `joint_position`
+    /// (7), `gripper_position` (1), `actions` (8: the joint velocity + the gripper position, as
+    /// openpi's DROID converter writes it); the task is the prompt.
+    OpenpiDroid,
+    /// What labrig's Diffusion Policy trains on, so that LeRobot's trainer learns the same
+    /// policy and `labrig policy import-lerobot` brings it back to the rig: `observation.state`
+    /// = the TCP position + its quaternion (x, y, z, w; labrig's canonical sign) + the gripper,
+    /// `action` = the target position + axis-angle + gripper (`eef_axis_angle`).
+    Labrig,
+}
+
+impl Schema {
+    pub fn parse(s: &str) -> Result<Schema, String> {
+        match s {
+            "droid" => Ok(Schema::Droid),
+            "openpi-droid" => Ok(Schema::OpenpiDroid),
+            "labrig" => Ok(Schema::Labrig),
+            other => Err(format!("--schema {other}: droid (default), openpi-droid or labrig")),
+        }
+    }
+
+    /// The feature key of a labrig camera; None: not in this schema.
+    pub fn camera_key(&self, camera: &str) -> Option<String> {
+        match self {
+            Schema::Droid | Schema::Labrig => Some(format!("observation.images.{camera}")),
+            Schema::OpenpiDroid => match camera {
+                "ext1" => Some("exterior_image_1_left".into()),
+                "ext2" => Some("exterior_image_2_left".into()),
+                "wrist" => Some("wrist_image_left".into()),
+                _ => None,
+            },
         }
     }
 }
@@ -227,36 +269,65 @@ impl Stats {
 /// A numeric feature: its key, width and values at a step.
 type Feature = (&'static str, usize, fn(&Step) -> Vec<f64>);
 
-/// The numeric features of a frame.
-fn numeric_features() -> Vec<Feature> {
-    vec![
-        ("observation.state", 8, |s| {
-            let mut v = s.robot_state.joint_positions.to_vec();
-            v.push(s.robot_state.gripper_position);
-            v
-        }),
-        ("observation.state.joint_position", 7, |s| s.robot_state.joint_positions.to_vec()),
-        ("observation.state.cartesian_position", 6, |s| s.robot_state.cartesian_position.to_vec()),
-        ("observation.state.gripper_position", 1, |s| vec![s.robot_state.gripper_position]),
-        ("action", 8, |s| {
-            let mut v = s.action.joint_position.to_vec();
-            v.push(s.action.gripper_position);
-            v
-        }),
-        ("action.joint_position", 7, |s| s.action.joint_position.to_vec()),
-        ("action.gripper_position", 1, |s| vec![s.action.gripper_position]),
-        ("action.cartesian_position", 6, |s| s.action.cartesian_position.to_vec()),
-        ("action.cartesian_velocity", 6, |s| s.action.cartesian_velocity.to_vec()),
-        ("action.joint_velocity", 7, |s| s.action.joint_velocity.to_vec()),
-        ("action.gripper_velocity", 1, |s| vec![s.action.gripper_velocity]),
-    ]
+/// The numeric features of a frame in `schema`.
+fn numeric_features(schema: Schema) -> Vec<Feature> {
+    match schema {
+        Schema::Droid => vec![
+            ("observation.state", 8, |s| {
+                let mut v = s.robot_state.joint_positions.to_vec();
+                v.push(s.robot_state.gripper_position);
+                v
+            }),
+            ("observation.state.joint_position", 7, |s| s.robot_state.joint_positions.to_vec()),
+            ("observation.state.cartesian_position", 6, |s| s.robot_state.cartesian_position.to_vec()),
+            ("observation.state.gripper_position", 1, |s| vec![s.robot_state.gripper_position]),
+            ("action", 8, |s| {
+                let mut v = s.action.joint_position.to_vec();
+                v.push(s.action.gripper_position);
+                v
+            }),
+            ("action.joint_position", 7, |s| s.action.joint_position.to_vec()),
+            ("action.gripper_position", 1, |s| vec![s.action.gripper_position]),
+            ("action.cartesian_position", 6, |s| s.action.cartesian_position.to_vec()),
+            ("action.cartesian_velocity", 6, |s| s.action.cartesian_velocity.to_vec()),
+            ("action.joint_velocity", 7, |s| s.action.joint_velocity.to_vec()),
+            ("action.gripper_velocity", 1, |s| vec![s.action.gripper_velocity]),
+        ],
+        Schema::OpenpiDroid => vec![
+            ("joint_position", 7, |s| s.robot_state.joint_positions.to_vec()),
+            ("gripper_position", 1, |s| vec![s.robot_state.gripper_position]),
+            ("actions", 8, |s| {
+                let mut v = s.action.joint_velocity.to_vec();
+                v.push(s.action.gripper_position);
+                v
+            }),
+        ],
+        Schema::Labrig => vec![
+            ("observation.state", 8, |s| {
+                let p = &s.robot_state.cartesian_position;
+                let q = labrig_arm::ik::canonical_quaternion(&labrig_arm::ik::pose_from_xyz_euler(p).rotation);
+                vec![p[0], p[1], p[2], q[0], q[1], q[2], q[3], s.robot_state.gripper_position]
+            }),
+            ("action", 7, |s| {
+                let p = &s.action.cartesian_position;
+                let r = labrig_arm::ik::canonical_axis_angle(&labrig_arm::ik::pose_from_xyz_euler(p).rotation);
+                vec![p[0], p[1], p[2], r[0], r[1], r[2], s.action.gripper_position]
+            }),
+        ],
+    }
 }
 
-fn names(key: &str, dim: usize) -> Value {
+fn names(schema: Schema, key: &str, dim: usize) -> Value {
     let joints = |n: usize| (0..n).map(|i| format!("joint_{i}")).collect::<Vec<_>>();
     let pose = ["x", "y", "z", "roll", "pitch", "yaw"].map(String::from).to_vec();
     let v: Vec<String> = match (key, dim) {
-        ("observation.state" | "action", 8) => {
+        ("observation.state", 8) if schema == Schema::Labrig => {
+            ["x", "y", "z", "qx", "qy", "qz", "qw", "gripper"].map(String::from).to_vec()
+        }
+        ("action", 7) if schema == Schema::Labrig => {
+            ["x", "y", "z", "rx", "ry", "rz", "gripper"].map(String::from).to_vec()
+        }
+        ("observation.state" | "action" | "actions", 8) => {
             let mut v = joints(7);
             v.push("gripper".into());
             v
@@ -268,11 +339,20 @@ fn names(key: &str, dim: usize) -> Value {
     json!(v)
 }
 
+/// What to write: the format, the keys, the cameras (None: every recorded one).
+#[derive(Debug, Clone)]
+pub struct Spec {
+    pub format: Format,
+    pub schema: Schema,
+    pub cameras: Option<Vec<String>>,
+}
+
 /// What an export did.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ExportReport {
     pub out: PathBuf,
     pub format: Format,
+    pub schema: Schema,
     pub episodes: usize,
     pub frames: usize,
     pub cameras: Vec<String>,
@@ -300,7 +380,7 @@ struct Exported {
 pub fn export(
     episodes: &[PathBuf],
     out: &Path,
-    format: Format,
+    spec: &Spec,
     overwrite: bool,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<ExportReport, LeRobotError> {
@@ -314,7 +394,7 @@ pub fn export(
     let partial = out.with_file_name(partial_name);
     let _ = std::fs::remove_dir_all(&partial);
     std::fs::create_dir_all(partial.join("meta")).map_err(io(&partial))?;
-    let result = write_all(episodes, &partial, format, &mut progress);
+    let result = write_all(episodes, &partial, spec, &mut progress);
     let mut report = match result {
         Ok(r) => r,
         Err(e) => {
@@ -342,15 +422,12 @@ fn dir_bytes(dir: &Path) -> u64 {
         .sum()
 }
 
-fn video_rel(format: Format, camera: &str, episode: usize) -> String {
+/// Where `key`'s video of `episode` goes.
+fn video_rel(format: Format, key: &str, episode: usize) -> String {
     match format {
-        Format::V30 => format!(
-            "videos/observation.images.{camera}/chunk-{:03}/file-{:03}.mp4",
-            episode / CHUNKS_SIZE,
-            episode % CHUNKS_SIZE
-        ),
+        Format::V30 => format!("videos/{key}/chunk-{:03}/file-{:03}.mp4", episode / CHUNKS_SIZE, episode % CHUNKS_SIZE),
         Format::V21 => {
-            format!("videos/chunk-{:03}/observation.images.{camera}/episode_{episode:06}.mp4", episode / CHUNKS_SIZE)
+            format!("videos/chunk-{:03}/{key}/episode_{episode:06}.mp4", episode / CHUNKS_SIZE)
         }
     }
 }
@@ -358,9 +435,10 @@ fn video_rel(format: Format, camera: &str, episode: usize) -> String {
 fn write_all(
     episodes: &[PathBuf],
     root: &Path,
-    format: Format,
+    spec: &Spec,
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<ExportReport, LeRobotError> {
+    let format = spec.format;
     let mut done: Vec<Exported> = Vec::new();
     let mut skipped = Vec::new();
     let mut cameras: Option<Vec<String>> = None;
@@ -369,7 +447,7 @@ fn write_all(
     for (k, src) in episodes.iter().enumerate() {
         progress(k, episodes.len());
         let index = done.len();
-        match export_one(src, root, format, index) {
+        match export_one(src, root, spec, index) {
             Ok((e, fill)) => {
                 let cams: Vec<String> = e.videos.iter().map(|(c, _)| c.clone()).collect();
                 let same_sizes = e.image_stats.iter().all(|(c, _, wh)| sizes.get(c).is_none_or(|s| s == wh));
@@ -421,16 +499,18 @@ fn write_all(
             tasks.push(e.task.clone());
         }
     }
-    let feats = numeric_features();
+    let feats = numeric_features(spec.schema);
     let total: usize = done.iter().map(|e| e.steps.len()).sum();
 
     // The frames: one data file (v3.0), or one per episode (v2.1).
     match format {
-        Format::V30 => write_data(&root.join("data/chunk-000/file-000.parquet"), &done, 0, &tasks, "List")?,
+        Format::V30 => {
+            write_data(&root.join("data/chunk-000/file-000.parquet"), &done, 0, &tasks, "List", spec.schema)?
+        }
         Format::V21 => {
             for ei in 0..done.len() {
                 let path = root.join(format!("data/chunk-{:03}/episode_{ei:06}.parquet", ei / CHUNKS_SIZE));
-                write_data(&path, &done[ei..=ei], ei, &tasks, "Sequence")?;
+                write_data(&path, &done[ei..=ei], ei, &tasks, "Sequence", spec.schema)?;
             }
         }
     }
@@ -456,16 +536,14 @@ fn write_all(
         let t: Vec<f64> = (0..n).map(|k| f64::from(k as f32 / FPS as f32)).collect();
         per_feature.entry("timestamp".into()).or_default().push(feature_stats(&t, 1, n as u64));
         for (c, s, _) in &e.image_stats {
-            per_feature.entry(format!("observation.images.{c}")).or_default().push(s.clone());
+            per_feature.entry(c.clone()).or_default().push(s.clone());
         }
     }
     if format == Format::V21 {
-        return write_v21_meta(root, &done, &tasks, &cameras, &sizes, &per_feature, filled, skipped);
+        return write_v21_meta(root, spec.schema, &done, &tasks, &cameras, &sizes, &per_feature, filled, skipped);
     }
-    let stats: serde_json::Map<String, Value> = per_feature
-        .iter()
-        .map(|(k, v)| (k.clone(), aggregate(v).to_json(k.starts_with("observation.images."))))
-        .collect();
+    let stats: serde_json::Map<String, Value> =
+        per_feature.iter().map(|(k, v)| (k.clone(), aggregate(v).to_json(cameras.contains(k)))).collect();
     std::fs::write(root.join("meta/stats.json"), serde_json::to_string_pretty(&stats).expect("json"))
         .map_err(io(root))?;
 
@@ -535,7 +613,7 @@ fn write_all(
         (Field::new("dataset_to_index", DataType::Int64, true), i64s(tos)),
     ];
     for c in &cameras {
-        let key = format!("videos/observation.images.{c}");
+        let key = format!("videos/{c}");
         ep_cols.push((
             Field::new(format!("{key}/chunk_index"), DataType::Int64, true),
             i64s((0..n_ep).map(|i| (i / CHUNKS_SIZE) as i64).collect()),
@@ -570,12 +648,13 @@ fn write_all(
     write_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), ep_cols, None)?;
 
     // meta/info.json
-    let info = info_json(Format::V30, n_ep, total, tasks.len(), &cameras, &sizes);
+    let info = info_json(Format::V30, spec.schema, n_ep, total, tasks.len(), &cameras, &sizes);
     std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
         .map_err(io(root))?;
     Ok(ExportReport {
         out: root.to_owned(),
         format: Format::V30,
+        schema: spec.schema,
         episodes: n_ep,
         frames: total,
         cameras,
@@ -594,6 +673,7 @@ fn write_all(
 #[allow(clippy::too_many_arguments)]
 fn write_v21_meta(
     root: &Path,
+    schema: Schema,
     done: &[Exported],
     tasks: &[String],
     cameras: &[String],
@@ -623,7 +703,7 @@ fn write_v21_meta(
                 let stats: serde_json::Map<String, Value> = per_feature
                     .iter()
                     .map(|(k, v)| {
-                        let mut j = v[i].to_json(k.starts_with("observation.images."));
+                        let mut j = v[i].to_json(cameras.contains(k));
                         if let Value::Object(m) = &mut j {
                             m.retain(|key, _| !key.starts_with('q'));
                         }
@@ -636,7 +716,7 @@ fn write_v21_meta(
     )?;
     lines("tasks.jsonl", tasks.iter().enumerate().map(|(i, t)| json!({"task_index": i, "task": t})).collect())?;
     let total: usize = done.iter().map(|e| e.steps.len()).sum();
-    let mut info = info_json(Format::V21, done.len(), total, tasks.len(), cameras, sizes);
+    let mut info = info_json(Format::V21, schema, done.len(), total, tasks.len(), cameras, sizes);
     info["total_videos"] = json!(done.len() * cameras.len());
     info["total_chunks"] = json!(done.len().div_ceil(CHUNKS_SIZE));
     std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
@@ -644,6 +724,7 @@ fn write_v21_meta(
     Ok(ExportReport {
         out: root.to_owned(),
         format: Format::V21,
+        schema,
         episodes: done.len(),
         frames: total,
         cameras: cameras.to_vec(),
@@ -655,8 +736,10 @@ fn write_v21_meta(
 }
 
 /// info.json for `format`.
+#[allow(clippy::too_many_arguments)]
 fn info_json(
     format: Format,
+    schema: Schema,
     episodes: usize,
     frames: usize,
     tasks: usize,
@@ -667,7 +750,7 @@ fn info_json(
     for c in cameras {
         let [w, h] = sizes[c];
         features.insert(
-            format!("observation.images.{c}"),
+            c.clone(),
             json!({
                 "dtype": "video", "shape": [h, w, 3], "names": ["height", "width", "channels"],
                 "info": {"video.height": h, "video.width": w, "video.codec": "h264", "video.pix_fmt": "yuv420p",
@@ -675,8 +758,9 @@ fn info_json(
             }),
         );
     }
-    for (name, dim, _) in &numeric_features() {
-        features.insert((*name).into(), json!({"dtype": "float32", "shape": [dim], "names": names(name, *dim)}));
+    for (name, dim, _) in &numeric_features(schema) {
+        features
+            .insert((*name).into(), json!({"dtype": "float32", "shape": [dim], "names": names(schema, name, *dim)}));
     }
     features.insert("timestamp".into(), json!({"dtype": "float32", "shape": [1], "names": null}));
     for name in ["frame_index", "episode_index", "index", "task_index"] {
@@ -714,8 +798,9 @@ fn write_data(
     first: usize,
     tasks: &[String],
     list_type: &str,
+    schema: Schema,
 ) -> Result<(), LeRobotError> {
-    let feats = numeric_features();
+    let feats = numeric_features(schema);
     let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
     let mut hf = serde_json::Map::new();
     for (name, dim, f) in &feats {
@@ -762,11 +847,41 @@ fn write_data(
 fn export_one(
     src: &Path,
     root: &Path,
-    format: Format,
+    spec: &Spec,
     index: usize,
 ) -> Result<(Exported, Vec<(String, usize)>), LeRobotError> {
-    let v = labrig_droid::export::step_videos(src, FPS, |cam| root.join(video_rel(format, cam, index)))
-        .map_err(|e| bad(src, e.to_string()))?;
+    let wanted = |cam: &str| spec.cameras.as_ref().is_none_or(|c| c.iter().any(|x| x == cam));
+    let key = |cam: &str| spec.schema.camera_key(cam).filter(|_| wanted(cam));
+    let v = labrig_droid::export::step_videos(src, FPS, |cam| {
+        key(cam).map(|k| root.join(video_rel(spec.format, &k, index)))
+    })
+    .map_err(|e| bad(src, e.to_string()))?;
+    // Every camera asked for (and openpi's three) must be in the episode.
+    let needed: Vec<String> = match (&spec.cameras, spec.schema) {
+        (Some(c), _) => c.clone(),
+        (None, Schema::OpenpiDroid) => vec!["ext1".into(), "ext2".into(), "wrist".into()],
+        (None, _) => Vec::new(),
+    };
+    for c in &needed {
+        if !v.cameras.iter().any(|(cam, _)| cam.id == *c) {
+            for (_, p) in &v.cameras {
+                let _ = std::fs::remove_file(p);
+            }
+            let have: Vec<&str> =
+                v.steps.first().map(|s| s.cameras.iter().map(|c| c.camera_id.as_str()).collect()).unwrap_or_default();
+            return Err(bad(
+                src,
+                format!(
+                    "no camera {c} (it has {have:?}){}",
+                    if spec.schema == Schema::OpenpiDroid {
+                        ": openpi's DROID schema needs ext1, ext2 and wrist"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
+    }
     let task = v.metadata.task_instruction.clone();
     let mut image_stats = Vec::new();
     let picks = sample_indices(v.steps.len());
@@ -803,10 +918,10 @@ fn export_one(
         for q in &mut s.quantiles {
             q.iter_mut().for_each(|x| *x /= 255.0);
         }
-        image_stats.push((cam.id.clone(), s, [w, h]));
+        image_stats.push((key(&cam.id).expect("exported"), s, [w, h]));
     }
-    let fill = v.cameras.iter().map(|(c, _)| c.id.clone()).zip(v.filled.iter().copied()).collect();
-    let videos = v.cameras.into_iter().map(|(c, p)| (c.id, p)).collect();
+    let fill = v.cameras.iter().map(|(c, _)| key(&c.id).expect("exported")).zip(v.filled.iter().copied()).collect();
+    let videos = v.cameras.into_iter().map(|(c, p)| (key(&c.id).expect("exported"), p)).collect();
     Ok((Exported { steps: v.steps, first_index: 0, task, metadata: v.metadata, videos, image_stats }, fill))
 }
 
@@ -816,7 +931,7 @@ fn write_parquet(path: &Path, cols: Vec<(Field, ArrayRef)>, meta: Option<(&str, 
     }
     let (fields, arrays): (Vec<Field>, Vec<ArrayRef>) = cols.into_iter().unzip();
     let md: HashMap<String, String> = meta.map(|(k, v)| (k.to_owned(), v)).into_iter().collect();
-    let schema = Arc::new(Schema::new_with_metadata(fields, md));
+    let schema = Arc::new(arrow_schema::Schema::new_with_metadata(fields, md));
     let batch = RecordBatch::try_new(schema.clone(), arrays).map_err(|e| bad(path, e.to_string()))?;
     let file = std::fs::File::create(path).map_err(io(path))?;
     let mut w = ArrowWriter::try_new(file, schema, None).map_err(|e| bad(path, e.to_string()))?;

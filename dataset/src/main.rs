@@ -67,9 +67,18 @@ struct ExportLerobotArgs {
     /// (`labrig dataset retrieve`'s), then the output directory.
     #[arg(required = true, num_args = 2..)]
     paths: Vec<PathBuf>,
-    /// LeRobot's dataset format: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, what openpi reads).
-    #[arg(long, default_value = "v3.0")]
-    format: String,
+    /// LeRobot's dataset format: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, what openpi reads);
+    /// default v3.0, v2.1 with `--schema openpi-droid`.
+    #[arg(long)]
+    format: Option<String>,
+    /// The keys: `droid` (DROID's, as the LeRobot DROID port), `openpi-droid` (the flat keys of
+    /// openpi's pi05_droid_finetune), `labrig` (what labrig's Diffusion Policy trains on: TCP
+    /// pose + gripper -> eef_axis_angle, for LeRobot's trainer and `labrig policy import-lerobot`).
+    #[arg(long, default_value = "droid")]
+    schema: String,
+    /// Only these cameras (labrig's ids, e.g. `ext1,ext2`); default every recorded one.
+    #[arg(long, value_delimiter = ',')]
+    cameras: Option<Vec<String>>,
     /// Replace an existing output.
     #[arg(long)]
     overwrite: bool,
@@ -217,9 +226,16 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
     if a.json {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
-    let format = labrig_dataset::lerobot::Format::parse(&a.format).map_err(anyhow::Error::msg)?;
+    use labrig_dataset::lerobot::{Format, Schema, Spec};
+    let schema = Schema::parse(&a.schema).map_err(anyhow::Error::msg)?;
+    let format = match (&a.format, schema) {
+        (Some(f), _) => Format::parse(f).map_err(anyhow::Error::msg)?,
+        (None, Schema::OpenpiDroid) => Format::V21,
+        (None, _) => Format::V30,
+    };
+    let spec = Spec { format, schema, cameras: a.cameras.clone() };
     let r =
-        labrig_dataset::lerobot::export(&episodes, out, format, a.overwrite, |done, _| bar.set_position(done as u64))?;
+        labrig_dataset::lerobot::export(&episodes, out, &spec, a.overwrite, |done, _| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     if a.json {
         println!("{}", serde_json::to_string(&r)?);

@@ -263,14 +263,21 @@ pub struct StepVideos {
 }
 
 /// Reads the finished episode at `source` and writes each camera's frames, one per step, to
-/// `video_path(camera id)` as H.264 MP4 at `fps` (a camera with no recorded frame is an error).
-pub fn step_videos(source: &Path, fps: u32, video_path: impl Fn(&str) -> PathBuf) -> Result<StepVideos, DroidError> {
+/// `video_path(camera id)` as H.264 MP4 at `fps` (a camera with no recorded frame is an error;
+/// a camera `video_path` gives no path for is left out).
+pub fn step_videos(
+    source: &Path,
+    fps: u32,
+    video_path: impl Fn(&str) -> Option<PathBuf>,
+) -> Result<StepVideos, DroidError> {
     let (file, metadata, steps) = read_checked(source)?;
     let buf = std::fs::read(&file).map_err(io(&file))?;
     let mut seen = Seen::new(&metadata);
-    let cameras = droid::cameras_of(&steps, &metadata, &seen.intrinsics);
+    let (cameras, paths): (Vec<Camera>, Vec<PathBuf>) = droid::cameras_of(&steps, &metadata, &seen.intrinsics)
+        .into_iter()
+        .filter_map(|c| video_path(&c.id).map(|p| (c, p)))
+        .unzip();
     let (refs, _) = droid::frame_refs(&steps, &cameras);
-    let paths: Vec<PathBuf> = cameras.iter().map(|c| video_path(&c.id)).collect();
     for dir in paths.iter().filter_map(|p| p.parent()) {
         std::fs::create_dir_all(dir).map_err(io(dir))?;
     }

@@ -91,6 +91,15 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
                 cameras.push((at, cam.to_owned(), shape));
             }
             (None, "observation.state") => state_dim = shape.first().copied(),
+            // DROID's sub-keys: a dataset of DROID's keys, whose `observation.state` is joints.
+            (None, other) if other.starts_with("observation.state.") => {
+                return Err(bad(
+                    path,
+                    format!(
+                        "input `{other}`: trained on DROID's keys (a joint-space observation.state); labrig's Diffusion Policy reads the TCP pose: train on `labrig export lerobot --schema labrig`"
+                    ),
+                ));
+            }
             (None, other) => return Err(unsupported("input_features", &Value::String(other.into()), "this input")),
         }
     }
@@ -164,7 +173,9 @@ pub fn config_of(path: &Path, text: &str, c: &Value) -> Result<DiffusionConfig, 
         } else {
             crate::schedule::Prediction::Epsilon
         },
-        gripper_state: false,
+        // labrig's state is the TCP pose (7) and, 8 wide, the gripper after it: what
+        // `labrig export lerobot --schema labrig` writes as `observation.state`.
+        gripper_state: state_dim == 8,
         encoder: crate::encoder::Backbone::Resnet18,
         encoder_width: 16,
         image_obs_steps: 0,

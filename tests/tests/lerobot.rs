@@ -427,3 +427,197 @@ fn check(ds: &Path, python: &Path, version: &str, format: &str, data: &[(Vec<Ste
     let per = if format == "v3.0" { 10 } else { 5 };
     assert!(compared >= 16 * per, "{format}: {compared} statistics compared");
 }
+
+/// One demo episode of the simulated rig (1 seed), its episodes and each one's steps.
+fn one_demo(dir: &Path, key: &str) -> (PathBuf, Vec<Step>, String) {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-dataset"] {
+        labrig_tests::workspace_bin(p, p);
+    }
+    let demo = dir.join("demo");
+    let out = Command::new(labrig_bin())
+        .args(["demo", "--episodes", "1", "--first-seed", "7", "--json"])
+        .args(["--domain-id", &domain_for(key).to_string(), "--out"])
+        .arg(&demo)
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("{key}_{}", std::process::id()))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "demo: {}", labrig_tests::output_text(&out));
+    let episodes = labrig_episode::episode::find_episodes(&demo.join("episodes"));
+    assert_eq!(episodes.len(), 1);
+    let d = labrig_episode::read_episode(&episodes[0]).unwrap();
+    (demo.join("episodes"), d.steps, d.metadata.unwrap().task_instruction)
+}
+
+/// `--schema openpi-droid` (v2.1 by default) read as openpi's `pi05_droid_finetune` reads its
+/// dataset (tests/peers/openpi_droid_read.py: LeRobot 0.3.3, its repack keys, a 16-step
+/// `actions` chunk): the state is the joints + gripper, each chunk row the recorded joint
+/// velocity + gripper position, the prompt the instruction, the three images uint8 HWC.
+#[test]
+fn the_openpi_droid_schema_reads_as_openpis_droid_finetuning_reads_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let (episodes, steps, task) = one_demo(dir.path(), "lerobot_openpi_schema");
+    let ds = dir.path().join("openpi_droid");
+    let o = Command::new(labrig_bin())
+        .args(["export", "lerobot", "--schema", "openpi-droid", "--json"])
+        .arg(&episodes)
+        .arg(&ds)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "export: {}", labrig_tests::output_text(&o));
+    let o = Command::new(lerobot_v21_python())
+        .arg(repo_root().join("tests/peers/openpi_droid_read.py"))
+        .arg(&ds)
+        .env("HF_HUB_OFFLINE", "1")
+        .env("HF_DATASETS_OFFLINE", "1")
+        .env("HF_HOME", dir.path().join("hf"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "openpi's reading: {}", labrig_tests::output_text(&o));
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((r["codebase_version"].as_str(), r["fps"].as_u64()), (Some("v2.1"), Some(20)));
+    let frames = r["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), steps.len());
+    for f in frames {
+        let k = f["frame"].as_u64().unwrap() as usize;
+        let s = &steps[k];
+        let mut state: Vec<f32> = s.robot_state.joint_positions.iter().map(|&x| x as f32).collect();
+        state.push(s.robot_state.gripper_position as f32);
+        assert_eq!(f32s(&f["state"]), state, "frame {k}");
+        let chunk = f["actions"].as_array().unwrap();
+        assert_eq!(chunk.len(), 16);
+        for (i, row) in chunk.iter().enumerate() {
+            let j = (k + i).min(steps.len() - 1);
+            let mut a: Vec<f32> = steps[j].action.joint_velocity.iter().map(|&x| x as f32).collect();
+            a.push(steps[j].action.gripper_position as f32);
+            assert_eq!(f32s(row), a, "frame {k} row {i}");
+            assert_eq!(f["pad"][i].as_bool(), Some(k + i >= steps.len()));
+        }
+        assert_eq!(f["prompt"], task.as_str());
+        for key in ["exterior_image_1_left", "exterior_image_2_left", "wrist_image_left"] {
+            assert_eq!(f["images"][format!("observation/{key}")], serde_json::json!([[128, 128, 3], "uint8"]));
+        }
+    }
+    // openpi's DROID schema needs its three cameras: asked for without one, refused by name.
+    let o = Command::new(labrig_bin())
+        .args(["export", "lerobot", "--schema", "openpi-droid", "--cameras", "ext1,wrist,top"])
+        .arg(&episodes)
+        .arg(dir.path().join("bad"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(labrig_tests::output_text(&o).contains("no camera top"), "{}", labrig_tests::output_text(&o));
+}
+
+/// The proof that an export trains: `labrig export lerobot --schema labrig` (two cameras) is
+/// trained by LeRobot's own `lerobot-train` (lerobot 0.4.4, a Diffusion Policy, 2 steps on the
+/// CPU), `labrig policy import-lerobot` converts what it saved, and the policy runs on the sim
+/// rig (`labrig rollout`): its rows drive the arm. The exported state and action are labrig's
+/// own training's (the TCP pose with its canonical quaternion + gripper; eef_axis_angle).
+#[test]
+fn a_labrig_export_trains_in_lerobot_and_comes_back_to_the_rig() {
+    labrig_tests::workspace_bin("labrig-policies", "labrig-policies");
+    labrig_tests::workspace_bin("labrig-policy", "labrig-policy-server");
+    let dir = tempfile::tempdir().unwrap();
+    let (episodes, steps, _) = one_demo(dir.path(), "lerobot_train_demo");
+    let ds = dir.path().join("labrig_schema");
+    let o = Command::new(labrig_bin())
+        .args(["export", "lerobot", "--schema", "labrig", "--cameras", "ext1,ext2", "--json"])
+        .arg(&episodes)
+        .arg(&ds)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "export: {}", labrig_tests::output_text(&o));
+    // What LeRobot reads: the pose + gripper state, the eef_axis_angle action.
+    let o = Command::new(lerobot_python())
+        .arg(repo_root().join("tests/peers/lerobot_read.py"))
+        .arg(&ds)
+        .env("HF_HUB_OFFLINE", "1")
+        .env("HF_DATASETS_OFFLINE", "1")
+        .env("HF_HOME", dir.path().join("hf"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "LeRobot: {}", labrig_tests::output_text(&o));
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["cameras"], serde_json::json!(["observation.images.ext1", "observation.images.ext2"]));
+    for f in r["frames_data"].as_array().unwrap() {
+        let k = f["frame"].as_u64().unwrap() as usize;
+        let (rs, a) = (&steps[k].robot_state, &steps[k].action);
+        let p = &rs.cartesian_position;
+        let q = labrig_arm::ik::canonical_quaternion(&labrig_arm::ik::pose_from_xyz_euler(p).rotation);
+        let want = [p[0], p[1], p[2], q[0], q[1], q[2], q[3], rs.gripper_position].map(|x| x as f32);
+        assert_eq!(f32s(&f["state"]), want, "frame {k}");
+        let t = &a.cartesian_position;
+        let aa = labrig_arm::ik::canonical_axis_angle(&labrig_arm::ik::pose_from_xyz_euler(t).rotation);
+        let want = [t[0], t[1], t[2], aa[0], aa[1], aa[2], a.gripper_position].map(|x| x as f32);
+        assert_eq!(f32s(&f["action"][0]), want, "frame {k}");
+    }
+
+    // LeRobot's trainer, offline on the CPU: a small Diffusion Policy labrig's model implements.
+    let train = lerobot_python().with_file_name("lerobot-train");
+    let out = dir.path().join("train");
+    let o = Command::new(&train)
+        .arg("--dataset.repo_id=local/labrig")
+        .arg(format!("--dataset.root={}", ds.display()))
+        .args(["--dataset.video_backend=pyav", "--policy.type=diffusion", "--policy.device=cpu"])
+        .args(["--policy.push_to_hub=false", "--policy.use_separate_rgb_encoder_per_camera=true"])
+        .args(["--policy.noise_scheduler_type=DDIM", "--policy.num_inference_steps=10"])
+        .args(["--policy.down_dims=[64,128]", "--policy.crop_shape=[116,116]"])
+        .args(["--steps=2", "--batch_size=2", "--save_freq=2", "--log_freq=1", "--eval_freq=0"])
+        .args(["--num_workers=0", "--wandb.enable=false"])
+        .arg(format!("--output_dir={}", out.display()))
+        .env("HF_HUB_OFFLINE", "1")
+        .env("HF_DATASETS_OFFLINE", "1")
+        .env("HF_HOME", dir.path().join("hf"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "lerobot-train: {}", labrig_tests::output_text(&o));
+    let pretrained = out.join("checkpoints/last/pretrained_model");
+    assert!(pretrained.join("model.safetensors").is_file());
+
+    let ckpt = dir.path().join("imported");
+    let o = Command::new(labrig_bin())
+        .args(["policy", "import-lerobot"])
+        .arg(&pretrained)
+        .arg("--out")
+        .arg(&ckpt)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "import-lerobot: {}", labrig_tests::output_text(&o));
+    let meta: Value = serde_json::from_str(&std::fs::read_to_string(ckpt.join("checkpoint.json")).unwrap()).unwrap();
+    let c = &meta["config"];
+    assert_eq!(
+        (&c["cameras"], &c["state_dim"], &c["gripper_state"], &c["action_space"]),
+        (
+            &serde_json::json!(["ext1", "ext2"]),
+            &serde_json::json!(8),
+            &serde_json::json!(true),
+            &serde_json::json!("eef_axis_angle")
+        )
+    );
+
+    let key = "lerobot_trained_rollout";
+    let o = Command::new(labrig_bin())
+        .args(["rollout", "--threads", "1", "--json", "--episodes", "1", "--max-steps", "30"])
+        .args(["--domain-id", &domain_for(key).to_string(), "--policy"])
+        .arg(&ckpt)
+        .arg("--out")
+        .arg(dir.path().join("rollout"))
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("{key}_{}", std::process::id()))
+        .current_dir(repo_root())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{e}: {}", labrig_tests::output_text(&o)));
+    assert_eq!(o.status.code(), Some(0), "{report:#}");
+    let run = &report["rollouts"][0];
+    assert_eq!(run["reason"], "the step budget (30 steps) was spent", "{report:#}");
+    let rows = report["control"]["source"]["rows_executed"].as_u64().unwrap();
+    assert!(rows >= 20, "{rows} of 30 steps ran the imported policy's rows: {report:#}");
+    let rec = labrig_episode::read_episode(Path::new(run["dir"].as_str().unwrap())).unwrap();
+    assert!(
+        rec.steps.iter().filter(|s| s.chunk_id > 0).all(|s| s.policy_id.starts_with("imported@")),
+        "{:?}",
+        rec.steps.last().map(|s| &s.policy_id)
+    );
+}
