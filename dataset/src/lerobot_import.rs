@@ -100,7 +100,8 @@ pub struct Dataset {
     chunks_size: i64,
     /// Where the first episode starts when the dataset carries no time of its own.
     base_ns: i64,
-    cache: Option<(PathBuf, Vec<RecordBatch>)>,
+    /// The data file read last: its batches, each with its episode_index column.
+    cache: Option<(PathBuf, Vec<(RecordBatch, Vec<i64>)>)>,
 }
 
 /// An episode's steps and metadata.
@@ -366,24 +367,28 @@ impl Dataset {
     fn rows(&mut self, e: &EpisodeEntry) -> Result<Vec<RecordBatch>, LeRobotError> {
         let path = self.data_file(e);
         if self.cache.as_ref().is_none_or(|(p, _)| *p != path) {
-            self.cache = Some((path.clone(), read_parquet(&path)?));
+            let mut batches = Vec::new();
+            for b in read_parquet(&path)? {
+                let idx = b
+                    .column_by_name("episode_index")
+                    .and_then(|a| floats(a.as_ref()))
+                    .ok_or_else(|| bad(&path, "no `episode_index` column"))?;
+                batches.push((b, idx.into_iter().map(|x| x as i64).collect::<Vec<i64>>()));
+            }
+            self.cache = Some((path.clone(), batches));
         }
         let (_, batches) = self.cache.as_ref().expect("cached");
         let mut out = Vec::new();
-        for b in batches {
-            let idx = b
-                .column_by_name("episode_index")
-                .and_then(|a| floats(a.as_ref()))
-                .ok_or_else(|| bad(&path, "no `episode_index` column"))?;
+        for (b, idx) in batches {
             // An episode's rows are consecutive.
             let mut k = 0;
             while k < idx.len() {
-                if idx[k] as i64 != e.index {
+                if idx[k] != e.index {
                     k += 1;
                     continue;
                 }
                 let start = k;
-                while k < idx.len() && idx[k] as i64 == e.index {
+                while k < idx.len() && idx[k] == e.index {
                     k += 1;
                 }
                 out.push(b.slice(start, k - start));

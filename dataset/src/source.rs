@@ -1,7 +1,9 @@
 //! Episodes to index rows, by auto-detection: labrig MCAP episodes (a directory holding
 //! `episode_0.mcap`), DROID raw episodes (a directory holding `trajectory.h5` and
 //! `metadata_<uuid>.json`), DROID-layout MCAP files (`trajectory.mcap`, any `*.mcap` not in a
-//! labrig episode) and DROID's RLDS shards (`*.tfrecord-NNNNN-of-NNNNN`, many episodes each).
+//! labrig episode), DROID's RLDS shards (`*.tfrecord-NNNNN-of-NNNNN`, many episodes each) and
+//! LeRobot datasets (a directory holding `meta/info.json`, v3.0 or v2.x: the LeRobot DROID
+//! port's keys or a labrig export, read in place by [`crate::lerobot_import::Dataset`]).
 //! Only low-dimensional data is derived: no image is decoded.
 
 use crate::INDEX_VERSION;
@@ -26,6 +28,8 @@ pub enum Format {
     DroidMcap,
     /// A TFRecord shard of an RLDS dataset (its `dir` is the file).
     Rlds,
+    /// A LeRobot dataset (its `dir` is the root), many episodes.
+    LeRobot,
 }
 
 impl Format {
@@ -35,6 +39,7 @@ impl Format {
             Format::DroidRaw => "droid_raw",
             Format::DroidMcap => "droid_mcap",
             Format::Rlds => "rlds",
+            Format::LeRobot => "lerobot",
         }
     }
 }
@@ -51,6 +56,11 @@ pub fn discover(root: &Path) -> Vec<Found> {
         )
         .collect();
     found.extend(tfrecords(root).into_iter().map(|dir| Found { dir, format: Format::Rlds }));
+    found.extend(
+        labrig_episode::episode::dirs_holding(root, "meta/info.json")
+            .into_iter()
+            .map(|dir| Found { dir, format: Format::LeRobot }),
+    );
     found.extend(
         labrig_droid::droid_mcap::find_droid_mcaps(root)
             .into_iter()
@@ -103,6 +113,19 @@ pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
     if matches!(found.format, Format::Rlds | Format::DroidMcap) {
         return Ok(vec![found.dir.clone()]);
     }
+    if found.format == Format::LeRobot {
+        // Its metadata and data files (the videos are not read).
+        let mut files = Vec::new();
+        let mut stack = vec![found.dir.join("meta"), found.dir.join("data")];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d)? {
+                let p = e?.path();
+                if p.is_dir() { stack.push(p) } else { files.push(p) }
+            }
+        }
+        files.sort();
+        return Ok(files);
+    }
     let mut files = Vec::new();
     for e in std::fs::read_dir(&found.dir)? {
         let p = e?.path();
@@ -112,7 +135,7 @@ pub fn files_of(found: &Found) -> std::io::Result<Vec<PathBuf>> {
                 name.ends_with(".mcap") || name == "metadata.yaml" || name == labrig_episode::judge::JUDGED_FILE
             }
             Format::DroidRaw => name == "trajectory.h5" || (name.starts_with("metadata_") && name.ends_with(".json")),
-            Format::Rlds | Format::DroidMcap => false,
+            Format::Rlds | Format::DroidMcap | Format::LeRobot => false,
         };
         if keep {
             files.push(p);
@@ -144,8 +167,9 @@ pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, String> {
         Format::DroidRaw => vec![read_droid_raw(&found.dir)?],
         Format::DroidMcap => vec![read_droid_mcap(&found.dir)?],
         Format::Rlds => read_rlds(&found.dir)?,
+        Format::LeRobot => read_lerobot(&found.dir)?,
     };
-    let many = read.len() > 1 || found.format == Format::Rlds;
+    let many = read.len() > 1 || matches!(found.format, Format::Rlds | Format::LeRobot);
     read.into_iter()
         .enumerate()
         .map(|(k, r)| {
@@ -314,6 +338,31 @@ fn read_droid_raw(dir: &Path) -> Result<Read, String> {
         }
     }
     Ok((meta, xyz, gripper, instructions))
+}
+
+/// A LeRobot dataset's episodes: the metadata `labrig import lerobot` would give them, the TCP
+/// positions (`observation.state.cartesian_position`, else the FR3's kinematics of the joints),
+/// the commanded gripper (the action's) and the episode's tasks.
+fn read_lerobot(root: &Path) -> Result<Vec<Read>, String> {
+    use labrig_arm::kinematics::{Fr3Kinematics, TcpOffset};
+    let mut ds = crate::lerobot_import::Dataset::open(root).map_err(|e| e.to_string())?;
+    let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(None), TcpOffset::ROBOTIQ_2F85)
+        .map_err(|e| format!("the FR3 model: {e}"))?;
+    let mut out = Vec::new();
+    for e in ds.episodes.clone() {
+        let r = ds.read(&e, &kin).map_err(|x| x.to_string())?;
+        let xyz = r.steps.iter().map(|s| {
+            let c = s.robot_state.cartesian_position;
+            [c[0], c[1], c[2]]
+        });
+        let gripper = r.steps.iter().map(|s| s.action.gripper_position).collect();
+        let mut instructions = e.tasks.clone();
+        if instructions.is_empty() {
+            instructions.push(r.metadata.task_instruction.clone());
+        }
+        out.push((r.metadata, xyz.collect(), gripper, instructions));
+    }
+    Ok(out)
 }
 
 /// The features an RLDS episode is indexed by.

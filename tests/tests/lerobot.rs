@@ -127,6 +127,22 @@ fn lerobots_own_readers_load_exports_of_demo_episodes() {
     }
 }
 
+/// `labrig dataset index <roots>` into `out`, its rows as JSON objects (read with pyarrow).
+fn index_rows(roots: &[&Path], out: &Path) -> Vec<serde_json::Map<String, Value>> {
+    let o = Command::new(labrig_bin()).args(["dataset", "index"]).args(roots).arg("--out").arg(out).output().unwrap();
+    assert!(o.status.success(), "index: {}", labrig_tests::output_text(&o));
+    let py = "import json,sys,glob,pyarrow.parquet as pq\n\
+              rows=[r for f in sorted(glob.glob(sys.argv[1]+'/*.parquet')) for r in pq.read_table(f).to_pylist()]\n\
+              print(json.dumps(sorted(rows,key=lambda r:r['episode_id'])))";
+    let o = Command::new(lerobot_python()).args(["-c", py]).arg(out).output().unwrap();
+    assert!(o.status.success(), "reading the index: {}", labrig_tests::output_text(&o));
+    serde_json::from_slice::<Vec<Value>>(&o.stdout)
+        .unwrap()
+        .into_iter()
+        .map(|v| v.as_object().unwrap().clone())
+        .collect()
+}
+
 /// The export at `ds` imported back (`labrig import lerobot`) equals what labrig recorded: the
 /// steps' state and actions (at LeRobot's float32), the metadata whole, each step's frame within
 /// the codecs' tolerance; and an imported episode replays in the sim as the original did.
@@ -189,6 +205,31 @@ fn round_trip(ds: &Path, format: &str, data: &[(Vec<Step>, String, PathBuf)], ou
             }
         }
         assert_eq!(compared, steps.len() * 5);
+    }
+    // `labrig dataset index` reads the export in place as it reads the recorded episodes: the
+    // same rows (the positions at LeRobot's float32), only the source differs.
+    let originals: Vec<&Path> = data.iter().map(|(_, _, f)| f.parent().unwrap()).collect();
+    let (a, b) =
+        (index_rows(&originals, &out.with_extension("idx_orig")), index_rows(&[ds], &out.with_extension("idx_lr")));
+    assert_eq!(a.len(), 2);
+    assert_eq!(b.len(), 2);
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(y["source_format"], "lerobot");
+        let mut compared = 0;
+        for (k, v) in x {
+            if ["source_path", "source_format", "file_size", "file_mtime_ns"].contains(&k.as_str()) {
+                continue;
+            }
+            match (v.as_f64(), y[k].as_f64()) {
+                (Some(p), Some(q)) if v.is_f64() => {
+                    assert!((p - q).abs() <= 1e-5 * (1.0 + p.abs()), "{format} index {k}: {p} vs {q}")
+                }
+                _ => assert_eq!(&y[k], v, "{format} index {k}"),
+            }
+            compared += 1;
+        }
+        assert!(compared > 40, "{compared} columns compared");
+        assert!(x.iter().any(|(k, v)| k.starts_with("object") && v.is_f64()), "the object position is derived: {x:?}");
     }
     // The imported episode replays against its scene (carried in the metadata) as recorded.
     let first = PathBuf::from(imported[0][1].as_str().unwrap());
@@ -283,6 +324,16 @@ fn datasets_lerobot_wrote_import_and_replay() {
                     }
                 }
             }
+        }
+        // Indexed in place: one row per episode, the port's extrinsics and tasks.
+        let rows = index_rows(&[&ds], &dir.path().join(format!("index_{format}")));
+        assert_eq!(rows.len(), 3);
+        for (k, r) in rows.iter().enumerate() {
+            assert_eq!(r["source_format"], "lerobot");
+            assert_eq!(r["instruction"], truth["episodes"][k]["task"]);
+            assert_eq!(r["length"], 30);
+            assert_eq!(r["ext1_serial"], "exterior_1_left");
+            assert_eq!(r["ext1_x"].as_f64().unwrap() as f32, f32s(&truth["episodes"][k]["extrinsics_ext1"])[0]);
         }
         if format == "v3.0" {
             // No sim scene in a dataset LeRobot wrote: replayed against a named one, every step.
