@@ -101,8 +101,11 @@ pub struct Dataset {
     /// Where the first episode starts when the dataset carries no time of its own.
     base_ns: i64,
     /// The data file read last: its batches, each with its episode_index column.
-    cache: Option<(PathBuf, Vec<(RecordBatch, Vec<i64>)>)>,
+    cache: Option<(PathBuf, Vec<Batch>)>,
 }
+
+/// A batch of a data file with its `episode_index` column.
+type Batch = (RecordBatch, Vec<i64>);
 
 /// An episode's steps and metadata.
 #[derive(Debug)]
