@@ -422,6 +422,28 @@ fn dir_bytes(dir: &Path) -> u64 {
         .sum()
 }
 
+/// Removes whatever videos a failed export of the episode at `index` left.
+fn remove_videos_of(root: &Path, format: Format, index: usize) {
+    let (chunk, name) = match format {
+        Format::V30 => (format!("chunk-{:03}", index / CHUNKS_SIZE), format!("file-{:03}.mp4", index % CHUNKS_SIZE)),
+        Format::V21 => (format!("chunk-{:03}", index / CHUNKS_SIZE), format!("episode_{index:06}.mp4")),
+    };
+    let mut stack = vec![root.join("videos")];
+    while let Some(d) = stack.pop() {
+        let Ok(rd) = std::fs::read_dir(&d) else { continue };
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.file_name().is_some_and(|n| *n == *name)
+                && p.ancestors().any(|a| a.file_name().is_some_and(|n| *n == *chunk))
+            {
+                let _ = std::fs::remove_file(&p);
+            }
+        }
+    }
+}
+
 /// Where `key`'s video of `episode` goes.
 fn video_rel(format: Format, key: &str, episode: usize) -> String {
     match format {
@@ -439,16 +461,45 @@ fn write_all(
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<ExportReport, LeRobotError> {
     let format = spec.format;
+    // Episodes in parallel (each one's MP4s are written by its own ffmpeg processes), a worker
+    // per core; each writes its videos under its place in the input, renumbered below once the
+    // skipped ones are known.
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get()).min(episodes.len()).max(1);
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let (tx, rx) = std::sync::mpsc::channel();
+    let mut results: Vec<Option<Result<(Exported, Vec<(String, usize)>), LeRobotError>>> =
+        (0..episodes.len()).map(|_| None).collect();
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            let (tx, next) = (tx.clone(), &next);
+            scope.spawn(move || {
+                loop {
+                    let k = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    let Some(src) = episodes.get(k) else { break };
+                    let r = export_one(src, root, spec, k);
+                    if r.is_err() {
+                        remove_videos_of(root, format, k);
+                    }
+                    if tx.send((k, r)).is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+        drop(tx);
+        for (received, (k, r)) in rx.iter().enumerate() {
+            results[k] = Some(r);
+            progress(received + 1, episodes.len());
+        }
+    });
     let mut done: Vec<Exported> = Vec::new();
     let mut skipped = Vec::new();
     let mut cameras: Option<Vec<String>> = None;
     let mut sizes: BTreeMap<String, [usize; 2]> = BTreeMap::new();
     let mut filled: BTreeMap<String, usize> = BTreeMap::new();
-    for (k, src) in episodes.iter().enumerate() {
-        progress(k, episodes.len());
-        let index = done.len();
-        match export_one(src, root, spec, index) {
-            Ok((e, fill)) => {
+    for (k, (src, result)) in episodes.iter().zip(results).enumerate() {
+        match result.expect("every episode was exported or failed") {
+            Ok((mut e, fill)) => {
                 let cams: Vec<String> = e.videos.iter().map(|(c, _)| c.clone()).collect();
                 let same_sizes = e.image_stats.iter().all(|(c, _, wh)| sizes.get(c).is_none_or(|s| s == wh));
                 match &cameras {
@@ -465,6 +516,15 @@ fn write_all(
                     None => cameras = Some(cams),
                     _ => {}
                 }
+                // Its place in the dataset (earlier ones skipped: its videos move down).
+                let index = done.len();
+                if index != k {
+                    for (key, path) in &mut e.videos {
+                        let to = root.join(video_rel(format, key, index));
+                        std::fs::rename(&*path, &to).map_err(io(&to))?;
+                        *path = to;
+                    }
+                }
                 for (c, _, wh) in &e.image_stats {
                     sizes.insert(c.clone(), *wh);
                 }
@@ -473,12 +533,7 @@ fn write_all(
                 }
                 done.push(e);
             }
-            Err(why) => {
-                for c in cameras.iter().flatten() {
-                    let _ = std::fs::remove_file(root.join(video_rel(format, c, index)));
-                }
-                skipped.push((src.clone(), why.to_string()));
-            }
+            Err(why) => skipped.push((src.clone(), why.to_string())),
         }
     }
     progress(episodes.len(), episodes.len());

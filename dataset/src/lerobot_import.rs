@@ -241,6 +241,8 @@ impl Dataset {
                 _ => image_features.push(key.clone()),
             }
         }
+        // In info.json's order (the writer's, e.g. the rig's), which a parsed object loses.
+        cameras.sort_by_key(|c: &CameraKey| text.find(&format!("\"{}\"", c.key)).unwrap_or(usize::MAX));
         let base_ns = std::fs::metadata(&info_path)
             .and_then(|m| m.modified())
             .ok()

@@ -99,7 +99,9 @@ fn lerobots_own_readers_load_exports_of_demo_episodes() {
     let mcap = std::fs::read(episodes[0].join("episode_0.mcap")).unwrap();
     std::fs::write(broken.join("episode_0.mcap"), &mcap[..mcap.len() / 2]).unwrap();
     let manifest = dir.path().join("manifest.txt");
-    let listed: Vec<String> = episodes.iter().chain([&broken]).map(|p| p.display().to_string()).collect();
+    // The broken one between the two: the second episode's videos move to its place (episodes
+    // are exported in parallel, each first under its place in the input).
+    let listed: Vec<String> = [&episodes[0], &broken, &episodes[1]].iter().map(|p| p.display().to_string()).collect();
     std::fs::write(&manifest, listed.join("\n") + "\n").unwrap();
     for (format, python, version) in [("v3.0", lerobot_python(), "0.4.4"), ("v2.1", lerobot_v21_python(), "0.3.3")] {
         let ds = dir.path().join(format!("lerobot_{format}"));
