@@ -467,8 +467,7 @@ fn write_all(
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get()).min(episodes.len()).max(1);
     let next = std::sync::atomic::AtomicUsize::new(0);
     let (tx, rx) = std::sync::mpsc::channel();
-    let mut results: Vec<Option<Result<(Exported, Vec<(String, usize)>), LeRobotError>>> =
-        (0..episodes.len()).map(|_| None).collect();
+    let mut results: Vec<Option<OneExport>> = (0..episodes.len()).map(|_| None).collect();
     std::thread::scope(|scope| {
         for _ in 0..workers {
             let (tx, next) = (tx.clone(), &next);
@@ -899,12 +898,10 @@ fn write_data(
     write_parquet(path, cols, Some(("huggingface", hf_meta)))
 }
 
-fn export_one(
-    src: &Path,
-    root: &Path,
-    spec: &Spec,
-    index: usize,
-) -> Result<(Exported, Vec<(String, usize)>), LeRobotError> {
+/// One episode exported, with the steps each camera filled in.
+type OneExport = Result<(Exported, Vec<(String, usize)>), LeRobotError>;
+
+fn export_one(src: &Path, root: &Path, spec: &Spec, index: usize) -> OneExport {
     let wanted = |cam: &str| spec.cameras.as_ref().is_none_or(|c| c.iter().any(|x| x == cam));
     let key = |cam: &str| spec.schema.camera_key(cam).filter(|_| wanted(cam));
     let v = labrig_droid::export::step_videos(src, FPS, |cam| {
