@@ -685,6 +685,33 @@ fn write_all(
             Arc::new(Float64Array::from(lengths.iter().map(|&l| l as f64 / f64::from(FPS)).collect::<Vec<_>>())),
         ));
     }
+    // Each episode's own statistics (`stats/<feature>/<stat>`), as LeRobot 0.4 keeps them
+    // (its dataset tools, e.g. deleting episodes, re-aggregate from these).
+    for (feature, per_episode) in &per_feature {
+        let image = cameras.contains(feature);
+        let mut stat_cols: Vec<(String, Vec<Vec<f64>>)> = ["min", "max", "mean", "std"]
+            .iter()
+            .map(|k| (k.to_string(), Vec::new()))
+            .chain(QUANTILES.iter().map(|(_, k)| (k.to_string(), Vec::new())))
+            .collect();
+        for st in per_episode {
+            let values = [&st.min, &st.max, &st.mean, &st.std].into_iter().chain(st.quantiles.iter());
+            for ((_, col), v) in stat_cols.iter_mut().zip(values) {
+                col.push(v.clone());
+            }
+        }
+        for (stat, rows) in stat_cols {
+            let name = format!("stats/{feature}/{stat}");
+            ep_cols.push(if image { image_stat_column(&name, &rows)? } else { list_column(&name, &rows)? });
+        }
+        let counts: Vec<i64> = per_episode.iter().map(|st| st.count as i64).collect();
+        let item = Arc::new(Field::new("element", DataType::Int64, true));
+        let mut ones = arrow_array::builder::OffsetBufferBuilder::<i32>::new(n_ep);
+        (0..n_ep).for_each(|_| ones.push_length(1));
+        let arr = ListArray::try_new(item.clone(), ones.finish(), Arc::new(Int64Array::from(counts)), None)
+            .map_err(|e| bad(root, e.to_string()))?;
+        ep_cols.push((Field::new(format!("stats/{feature}/count"), DataType::List(item), true), Arc::new(arr)));
+    }
     ep_cols.push((Field::new("meta/episodes/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])));
     ep_cols.push((Field::new("meta/episodes/file_index", DataType::Int64, true), i64s(vec![0; n_ep])));
     // labrig's own: the DROID metadata LeRobot has no field for (the whole record, as JSON, so
@@ -896,6 +923,44 @@ fn write_data(
     }
     let hf_meta = json!({"info": {"features": Value::Object(hf)}}).to_string();
     write_parquet(path, cols, Some(("huggingface", hf_meta)))
+}
+
+/// A list<double> column, a row a vector.
+fn list_column(name: &str, rows: &[Vec<f64>]) -> Result<(Field, ArrayRef), LeRobotError> {
+    let item = Arc::new(Field::new("element", DataType::Float64, true));
+    let mut offsets = arrow_array::builder::OffsetBufferBuilder::<i32>::new(rows.len());
+    for r in rows {
+        offsets.push_length(r.len());
+    }
+    let values = Float64Array::from(rows.concat());
+    let arr = ListArray::try_new(item.clone(), offsets.finish(), Arc::new(values), None)
+        .map_err(|e| bad(Path::new(name), e.to_string()))?;
+    Ok((Field::new(name, DataType::List(item), true), Arc::new(arr)))
+}
+
+/// An image statistic's column: per row the channels as LeRobot shapes them, (3, 1, 1):
+/// list<list<list<double>>>.
+fn image_stat_column(name: &str, rows: &[Vec<f64>]) -> Result<(Field, ArrayRef), LeRobotError> {
+    let err = |e: arrow_schema::ArrowError| bad(Path::new(name), e.to_string());
+    let leaf = Arc::new(Field::new("element", DataType::Float64, true));
+    let values: Vec<f64> = rows.concat();
+    let n = values.len();
+    let ones = |k: usize| {
+        let mut b = arrow_array::builder::OffsetBufferBuilder::<i32>::new(k);
+        (0..k).for_each(|_| b.push_length(1));
+        b.finish()
+    };
+    // [v] per channel value, then [[v]], then the channels of a row.
+    let inner = ListArray::try_new(leaf.clone(), ones(n), Arc::new(Float64Array::from(values)), None).map_err(err)?;
+    let mid_field = Arc::new(Field::new("element", DataType::List(leaf), true));
+    let mid = ListArray::try_new(mid_field.clone(), ones(n), Arc::new(inner), None).map_err(err)?;
+    let top_field = Arc::new(Field::new("element", DataType::List(mid_field), true));
+    let mut offsets = arrow_array::builder::OffsetBufferBuilder::<i32>::new(rows.len());
+    for r in rows {
+        offsets.push_length(r.len());
+    }
+    let top = ListArray::try_new(top_field.clone(), offsets.finish(), Arc::new(mid), None).map_err(err)?;
+    Ok((Field::new(name, DataType::List(top_field), true), Arc::new(top)))
 }
 
 /// One episode exported, with the steps each camera filled in.

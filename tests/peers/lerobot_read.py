@@ -69,6 +69,25 @@ def main():
         feats = {k: ds.meta.features[k] for k in data}
         stats.append(compute_episode_stats(data, feats))
     agg = aggregate_stats(stats)
+    # v3.0 keeps each episode's statistics in its episodes table (`stats/<feature>/<stat>`), read
+    # as LeRobot's dataset tools (delete_episodes, split_dataset) read them.
+    episode_stats_file = []
+    if getattr(ds, "episode_data_index", None) is None:
+        from lerobot.datasets.dataset_tools import _load_episode_with_stats
+
+        def plain(v):
+            # pandas gives nested object arrays for the images' (3, 1, 1).
+            if isinstance(v, np.ndarray) and v.dtype == object:
+                return [plain(x) for x in v]
+            return np.asarray(v).tolist()
+
+        for ep in range(ds.num_episodes):
+            per = {}
+            for key, v in _load_episode_with_stats(ds, ep).items():
+                if key.startswith("stats/"):
+                    _, feature, stat = key.split("/")
+                    per.setdefault(feature, {})[stat] = plain(v)
+            episode_stats_file.append(per)
     import lerobot
     out = {
         "lerobot": getattr(lerobot, "__version__", "?"),
@@ -80,6 +99,8 @@ def main():
         "frames_data": frames,
         "stats_lerobot": {k: {s: np.asarray(v).tolist() for s, v in d.items()} for k, d in agg.items()},
         "stats_file": {k: {s: np.asarray(v).tolist() for s, v in d.items()} for k, d in ds.meta.stats.items()},
+        "episode_stats_lerobot": [{k: {s: np.asarray(v).tolist() for s, v in d.items()} for k, d in e.items()} for e in stats],
+        "episode_stats_file": episode_stats_file,
     }
     print(json.dumps(out))
 

@@ -39,8 +39,12 @@ features = {
     "action.joint_velocity": f32(JOINTS),
     "action.gripper_velocity": f32(["gripper_velocity"]),
     "camera_extrinsics.exterior_1_left": f32(POSE),
+    # The port's per-frame copies of its episode metadata.
+    "is_episode_successful": {"dtype": "bool", "shape": (1,), "names": None},
+    "building": {"dtype": "string", "shape": (1,), "names": None},
+    "collector_id": {"dtype": "string", "shape": (1,), "names": None},
 }
-SCALARS = ["observation.state.gripper_position", "action.gripper_position", "action.gripper_velocity"]
+SCALARS = ["observation.state.gripper_position", "action.gripper_position", "action.gripper_velocity", "is_episode_successful"]
 v4 = "vcodec" in LeRobotDataset.create.__code__.co_varnames
 ds = LeRobotDataset.create(repo_id="local/droid_port_like", root=root, fps=fps, features=features, robot_type="Franka", use_videos=True)
 
@@ -85,6 +89,10 @@ for ep in range(episodes):
             "action.joint_velocity": np.full(7, -0.2, np.float32),
             "action.gripper_velocity": np.array([0.3], np.float32),
             "camera_extrinsics.exterior_1_left": ext,
+            # The last episode failed (the port keeps failures too).
+            "is_episode_successful": np.array([ep != episodes - 1], bool),
+            "building": f"lab {ep}",
+            "collector_id": "c0ffee",
         }
         rows.append({
             "joints": q.tolist(), "gripper": float(g), "cartesian": pose.tolist(),
@@ -100,7 +108,7 @@ for ep in range(episodes):
     for k in SCALARS:
         ds.episode_buffer[k] = [np.asarray(v).reshape(()) for v in ds.episode_buffer[k]]
     ds.save_episode()
-    truth.append({"task": task, "extrinsics_ext1": ext.tolist(), "frames": rows})
+    truth.append({"task": task, "extrinsics_ext1": ext.tolist(), "success": ep != episodes - 1, "building": f"lab {ep}", "frames": rows})
 if hasattr(ds, "finalize"):
     ds.finalize()
 truth_path.write_text(json.dumps({"fps": fps, "episodes": truth}))

@@ -193,9 +193,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("torchscript_rollout", 170, 1),
     ("openpi_remote_timing", 171, 1),
     ("lerobot_export_demo", 172, 1),
-    ("lerobot_openpi_schema", 173, 1),
-    ("lerobot_train_demo", 174, 1),
-    ("lerobot_trained_rollout", 175, 1),
+    ("lerobot_trained_rollout", 173, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

@@ -127,6 +127,9 @@ fn lerobots_own_readers_load_exports_of_demo_episodes() {
         check(&ds, &python, version, format, &data, dir.path());
         round_trip(&ds, format, &data, &dir.path().join(format!("back_{format}")));
     }
+    // The same two episodes in openpi's DROID schema and in labrig's, trained by lerobot-train.
+    openpi_droid_schema(&demo.join("episodes"), &data, dir.path());
+    trains_in_lerobot_and_comes_back(&demo.join("episodes"), &data, dir.path());
 }
 
 /// `labrig dataset index <roots>` into `out`, its rows as JSON objects (read with pyarrow).
@@ -208,6 +211,10 @@ fn round_trip(ds: &Path, format: &str, data: &[(Vec<Step>, String, PathBuf)], ou
         }
         assert_eq!(compared, steps.len() * 5);
     }
+    if format != "v3.0" {
+        // (The index and the replay read what the import gave, alike for both formats.)
+        return;
+    }
     // `labrig dataset index` reads the export in place as it reads the recorded episodes: the
     // same rows (the positions at LeRobot's float32), only the source differs.
     let originals: Vec<&Path> = data.iter().map(|(_, _, f)| f.parent().unwrap()).collect();
@@ -285,7 +292,11 @@ fn datasets_lerobot_wrote_import_and_replay() {
             assert_eq!(meta.task_instruction, want["task"].as_str().unwrap());
             assert_eq!(meta.extrinsics["ext1"].map(|x| x as f32).to_vec(), f32s(&want["extrinsics_ext1"]));
             assert_eq!(meta.camera_serials["ext1"], "exterior_1_left");
-            assert_eq!(meta.success, Some(true));
+            // The port's is_episode_successful (the last episode written as a failure), building
+            // and collector.
+            assert_eq!(meta.success, want["success"].as_bool(), "{format} episode {k}");
+            assert_eq!(meta.building, want["building"].as_str().unwrap());
+            assert_eq!(meta.user, "c0ffee");
             let frames = want["frames"].as_array().unwrap();
             assert_eq!(back.steps.len(), frames.len());
             let jpegs = frames_of(&back.file);
@@ -450,8 +461,31 @@ fn check(ds: &Path, python: &Path, version: &str, format: &str, data: &[(Vec<Ste
     assert_eq!(checked_images, 2 * 3 * 5);
 
     // The statistics labrig wrote (meta/stats.json, as LeRobot loaded them) against LeRobot's own
-    // computation from the frames it read.
-    let (theirs, ours) = (&r["stats_lerobot"], &r["stats_file"]);
+    // computation from the frames it read; in v3.0 also each episode's (its episodes table).
+    let mut compared = 0;
+    if format == "v3.0" {
+        let (theirs, ours) =
+            (r["episode_stats_lerobot"].as_array().unwrap(), r["episode_stats_file"].as_array().unwrap());
+        assert_eq!((theirs.len(), ours.len()), (2, 2));
+        let mut per_episode = 0;
+        for (t, o) in theirs.iter().zip(ours) {
+            per_episode += compare_stats(t, o);
+        }
+        assert!(per_episode >= 2 * 16 * 10, "{per_episode} per-episode statistics compared");
+        // The images' statistics are there too, shaped (3, 1, 1).
+        let img = &ours[0]["observation.images.ext1"];
+        assert_eq!(img["mean"].as_array().map(Vec::len), Some(3), "{img}");
+        assert!(img["q99"][0][0][0].is_f64(), "{img}");
+    }
+    compared += compare_stats(&r["stats_lerobot"], &r["stats_file"]);
+    // v3.0 carries the quantiles (10 statistics a feature), v2.1 min/max/mean/std/count.
+    let per = if format == "v3.0" { 10 } else { 5 };
+    assert!(compared >= 16 * per, "{format}: {compared} statistics compared");
+}
+
+/// LeRobot's statistics (`theirs`, computed from the frames) against labrig's (`ours`) for every
+/// feature and statistic LeRobot computed; how many were compared.
+fn compare_stats(theirs: &Value, ours: &Value) -> usize {
     let mut compared = 0;
     for (feature, t) in theirs.as_object().unwrap() {
         let o = &ours[feature];
@@ -476,43 +510,18 @@ fn check(ds: &Path, python: &Path, version: &str, format: &str, data: &[(Vec<Ste
             compared += 1;
         }
     }
-    // v3.0 carries the quantiles (10 statistics a feature), v2.1 min/max/mean/std/count.
-    let per = if format == "v3.0" { 10 } else { 5 };
-    assert!(compared >= 16 * per, "{format}: {compared} statistics compared");
-}
-
-/// One demo episode of the simulated rig (1 seed), its episodes and each one's steps.
-fn one_demo(dir: &Path, key: &str) -> (PathBuf, Vec<Step>, String) {
-    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-dataset"] {
-        labrig_tests::workspace_bin(p, p);
-    }
-    let demo = dir.join("demo");
-    let out = Command::new(labrig_bin())
-        .args(["demo", "--episodes", "1", "--first-seed", "7", "--json"])
-        .args(["--domain-id", &domain_for(key).to_string(), "--out"])
-        .arg(&demo)
-        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("{key}_{}", std::process::id()))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "demo: {}", labrig_tests::output_text(&out));
-    let episodes = labrig_episode::episode::find_episodes(&demo.join("episodes"));
-    assert_eq!(episodes.len(), 1);
-    let d = labrig_episode::read_episode(&episodes[0]).unwrap();
-    (demo.join("episodes"), d.steps, d.metadata.unwrap().task_instruction)
+    compared
 }
 
 /// `--schema openpi-droid` (v2.1 by default) read as openpi's `pi05_droid_finetune` reads its
 /// dataset (tests/peers/openpi_droid_read.py: LeRobot 0.3.3, its repack keys, a 16-step
 /// `actions` chunk): the state is the joints + gripper, each chunk row the recorded joint
 /// velocity + gripper position, the prompt the instruction, the three images uint8 HWC.
-#[test]
-fn the_openpi_droid_schema_reads_as_openpis_droid_finetuning_reads_it() {
-    let dir = tempfile::tempdir().unwrap();
-    let (episodes, steps, task) = one_demo(dir.path(), "lerobot_openpi_schema");
-    let ds = dir.path().join("openpi_droid");
+fn openpi_droid_schema(episodes: &Path, data: &[(Vec<Step>, String, PathBuf)], tmp: &Path) {
+    let ds = tmp.join("openpi_droid");
     let o = Command::new(labrig_bin())
         .args(["export", "lerobot", "--schema", "openpi-droid", "--json"])
-        .arg(&episodes)
+        .arg(episodes)
         .arg(&ds)
         .output()
         .unwrap();
@@ -522,16 +531,17 @@ fn the_openpi_droid_schema_reads_as_openpis_droid_finetuning_reads_it() {
         .arg(&ds)
         .env("HF_HUB_OFFLINE", "1")
         .env("HF_DATASETS_OFFLINE", "1")
-        .env("HF_HOME", dir.path().join("hf"))
+        .env("HF_HOME", tmp.join("hf"))
         .output()
         .unwrap();
     assert!(o.status.success(), "openpi's reading: {}", labrig_tests::output_text(&o));
     let r: Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((r["codebase_version"].as_str(), r["fps"].as_u64()), (Some("v2.1"), Some(20)));
     let frames = r["frames"].as_array().unwrap();
-    assert_eq!(frames.len(), steps.len());
+    assert_eq!(frames.len(), data.iter().map(|(s, _, _)| s.len()).sum::<usize>());
     for f in frames {
         let k = f["frame"].as_u64().unwrap() as usize;
+        let (steps, task, _) = &data[f["episode"].as_u64().unwrap() as usize];
         let s = &steps[k];
         let mut state: Vec<f32> = s.robot_state.joint_positions.iter().map(|&x| x as f32).collect();
         state.push(s.robot_state.gripper_position as f32);
@@ -553,8 +563,8 @@ fn the_openpi_droid_schema_reads_as_openpis_droid_finetuning_reads_it() {
     // openpi's DROID schema needs its three cameras: asked for without one, refused by name.
     let o = Command::new(labrig_bin())
         .args(["export", "lerobot", "--schema", "openpi-droid", "--cameras", "ext1,wrist,top"])
-        .arg(&episodes)
-        .arg(dir.path().join("bad"))
+        .arg(episodes)
+        .arg(tmp.join("bad"))
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
@@ -566,48 +576,48 @@ fn the_openpi_droid_schema_reads_as_openpis_droid_finetuning_reads_it() {
 /// CPU), `labrig policy import-lerobot` converts what it saved, and the policy runs on the sim
 /// rig (`labrig rollout`): its rows drive the arm. The exported state and action are labrig's
 /// own training's (the TCP pose with its canonical quaternion + gripper; eef_axis_angle).
-#[test]
-fn a_labrig_export_trains_in_lerobot_and_comes_back_to_the_rig() {
+fn trains_in_lerobot_and_comes_back(episodes: &Path, data: &[(Vec<Step>, String, PathBuf)], tmp: &Path) {
     labrig_tests::workspace_bin("labrig-policies", "labrig-policies");
     labrig_tests::workspace_bin("labrig-policy", "labrig-policy-server");
-    let dir = tempfile::tempdir().unwrap();
-    let (episodes, steps, _) = one_demo(dir.path(), "lerobot_train_demo");
-    let ds = dir.path().join("labrig_schema");
+    let ds = tmp.join("labrig_schema");
     let o = Command::new(labrig_bin())
         .args(["export", "lerobot", "--schema", "labrig", "--cameras", "ext1,ext2", "--json"])
-        .arg(&episodes)
+        .arg(episodes)
         .arg(&ds)
         .output()
         .unwrap();
     assert!(o.status.success(), "export: {}", labrig_tests::output_text(&o));
-    // What LeRobot reads: the pose + gripper state, the eef_axis_angle action.
+    // The pose + gripper state, the eef_axis_angle action (the data file, read with pyarrow; the
+    // trainer below reads it through LeRobotDataset).
+    let py = "import json,sys,pyarrow.parquet as pq\n\
+              t=pq.read_table(sys.argv[1]).to_pydict()\n\
+              print(json.dumps({k:t[k] for k in ['episode_index','frame_index','observation.state','action']}))";
     let o = Command::new(lerobot_python())
-        .arg(repo_root().join("tests/peers/lerobot_read.py"))
-        .arg(&ds)
-        .env("HF_HUB_OFFLINE", "1")
-        .env("HF_DATASETS_OFFLINE", "1")
-        .env("HF_HOME", dir.path().join("hf"))
+        .args(["-c", py])
+        .arg(ds.join("data/chunk-000/file-000.parquet"))
         .output()
         .unwrap();
-    assert!(o.status.success(), "LeRobot: {}", labrig_tests::output_text(&o));
-    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(r["cameras"], serde_json::json!(["observation.images.ext1", "observation.images.ext2"]));
-    for f in r["frames_data"].as_array().unwrap() {
-        let k = f["frame"].as_u64().unwrap() as usize;
-        let (rs, a) = (&steps[k].robot_state, &steps[k].action);
+    assert!(o.status.success(), "pyarrow: {}", labrig_tests::output_text(&o));
+    let t: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let rows = t["frame_index"].as_array().unwrap().len();
+    assert_eq!(rows, data.iter().map(|(s, _, _)| s.len()).sum::<usize>());
+    for i in 0..rows {
+        let (ep, k) =
+            (t["episode_index"][i].as_u64().unwrap() as usize, t["frame_index"][i].as_u64().unwrap() as usize);
+        let (rs, a) = (&data[ep].0[k].robot_state, &data[ep].0[k].action);
         let p = &rs.cartesian_position;
         let q = labrig_arm::ik::canonical_quaternion(&labrig_arm::ik::pose_from_xyz_euler(p).rotation);
         let want = [p[0], p[1], p[2], q[0], q[1], q[2], q[3], rs.gripper_position].map(|x| x as f32);
-        assert_eq!(f32s(&f["state"]), want, "frame {k}");
-        let t = &a.cartesian_position;
-        let aa = labrig_arm::ik::canonical_axis_angle(&labrig_arm::ik::pose_from_xyz_euler(t).rotation);
-        let want = [t[0], t[1], t[2], aa[0], aa[1], aa[2], a.gripper_position].map(|x| x as f32);
-        assert_eq!(f32s(&f["action"][0]), want, "frame {k}");
+        assert_eq!(f32s(&t["observation.state"][i]), want, "episode {ep} frame {k}");
+        let g = &a.cartesian_position;
+        let aa = labrig_arm::ik::canonical_axis_angle(&labrig_arm::ik::pose_from_xyz_euler(g).rotation);
+        let want = [g[0], g[1], g[2], aa[0], aa[1], aa[2], a.gripper_position].map(|x| x as f32);
+        assert_eq!(f32s(&t["action"][i]), want, "episode {ep} frame {k}");
     }
 
     // LeRobot's trainer, offline on the CPU: a small Diffusion Policy labrig's model implements.
     let train = lerobot_python().with_file_name("lerobot-train");
-    let out = dir.path().join("train");
+    let out = tmp.join("train");
     let o = Command::new(&train)
         .arg("--dataset.repo_id=local/labrig")
         .arg(format!("--dataset.root={}", ds.display()))
@@ -620,14 +630,14 @@ fn a_labrig_export_trains_in_lerobot_and_comes_back_to_the_rig() {
         .arg(format!("--output_dir={}", out.display()))
         .env("HF_HUB_OFFLINE", "1")
         .env("HF_DATASETS_OFFLINE", "1")
-        .env("HF_HOME", dir.path().join("hf"))
+        .env("HF_HOME", tmp.join("hf"))
         .output()
         .unwrap();
     assert!(o.status.success(), "lerobot-train: {}", labrig_tests::output_text(&o));
     let pretrained = out.join("checkpoints/last/pretrained_model");
     assert!(pretrained.join("model.safetensors").is_file());
 
-    let ckpt = dir.path().join("imported");
+    let ckpt = tmp.join("imported");
     let o = Command::new(labrig_bin())
         .args(["policy", "import-lerobot"])
         .arg(&pretrained)
@@ -654,7 +664,7 @@ fn a_labrig_export_trains_in_lerobot_and_comes_back_to_the_rig() {
         .args(["--domain-id", &domain_for(key).to_string(), "--policy"])
         .arg(&ckpt)
         .arg("--out")
-        .arg(dir.path().join("rollout"))
+        .arg(tmp.join("rollout"))
         .env(labrig_runtime::frames::NAMESPACE_ENV, format!("{key}_{}", std::process::id()))
         .current_dir(repo_root())
         .output()
