@@ -16,7 +16,8 @@
 //! - Cameras: every video feature `observation.images.<key>`; the DROID port's and openpi's
 //!   camera names map to labrig's ids (`exterior_1_left` -> `ext1`, `exterior_2_left` -> `ext2`,
 //!   `wrist_left` -> `wrist`), other keys keep their name. Image features stored in the
-//!   Parquet (dtype `image`) are left out and said.
+//!   Parquet (dtype `image`, as openpi's DROID converter writes them: PNG or JPEG bytes per
+//!   frame) are cameras too: a JPEG is kept as it is, a PNG re-encoded.
 //! - Time: step k at `start + k / fps` (LeRobot's grid); each camera's frame of step k is the
 //!   video's frame at the episode's `from_timestamp + k / fps`.
 //! - Metadata: a dataset exported by labrig carries each episode's labrig metadata
@@ -63,11 +64,14 @@ pub fn camera_id(key: &str) -> String {
     }
 }
 
-/// A video feature: LeRobot's key and labrig's camera id.
+/// A camera feature: LeRobot's key, labrig's camera id, and where its frames are: a video
+/// (dtype `video`) or the data file itself (dtype `image`: PNG or JPEG bytes per frame, as
+/// openpi's DROID converter writes them).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct CameraKey {
     pub key: String,
     pub id: String,
+    pub video: bool,
 }
 
 /// One episode as the dataset's metadata lists it.
@@ -93,7 +97,7 @@ pub struct Dataset {
     pub features: serde_json::Map<String, Value>,
     pub episodes: Vec<EpisodeEntry>,
     pub cameras: Vec<CameraKey>,
-    /// Image features stored in the Parquet (dtype `image`): not read.
+    /// Camera features of another dtype: not read.
     pub image_features: Vec<String>,
     data_path: String,
     video_path: String,
@@ -235,9 +239,16 @@ impl Dataset {
         let mut cameras = Vec::new();
         let mut image_features = Vec::new();
         for (key, f) in &features {
-            let Some(name) = key.strip_prefix("observation.images.") else { continue };
+            // `observation.images.<name>`, or openpi's flat DROID image keys.
+            let name = match key.strip_prefix("observation.images.") {
+                Some(name) => name,
+                None if matches!(f["dtype"].as_str(), Some("video" | "image")) && key.contains("image") => key.as_str(),
+                None => continue,
+            };
             match f["dtype"].as_str() {
-                Some("video") => cameras.push(CameraKey { key: key.clone(), id: camera_id(name) }),
+                Some(d @ ("video" | "image")) => {
+                    cameras.push(CameraKey { key: key.clone(), id: camera_id(name), video: d == "video" })
+                }
                 _ => image_features.push(key.clone()),
             }
         }
@@ -291,7 +302,7 @@ impl Dataset {
             let tasks = column(&batches, "tasks", strings_of).ok_or_else(|| bad(&f, "no `tasks` column"))?;
             let meta = column(&batches, "labrig/metadata", strings_of);
             let mut videos: Vec<BTreeMap<String, (i64, i64, f64)>> = vec![BTreeMap::new(); index.len()];
-            for cam in &self.cameras {
+            for cam in self.cameras.iter().filter(|c| c.video) {
                 let k = format!("videos/{}", cam.key);
                 let c = int(&format!("{k}/chunk_index"))?;
                 let fi = int(&format!("{k}/file_index"))?;
@@ -397,6 +408,33 @@ impl Dataset {
                     k += 1;
                 }
                 out.push(b.slice(start, k - start));
+            }
+        }
+        Ok(out)
+    }
+
+    /// Episode `e`'s frames of an image feature (dtype `image`): each frame's encoded bytes.
+    pub fn image_frames(&mut self, e: &EpisodeEntry, key: &str) -> Result<Vec<Vec<u8>>, LeRobotError> {
+        let path = self.data_file(e);
+        let rows = self.rows(e)?;
+        let mut out = Vec::new();
+        for b in &rows {
+            let col = b.column_by_name(key).ok_or_else(|| bad(&path, format!("no column `{key}`")))?;
+            let st = col
+                .as_any()
+                .downcast_ref::<arrow_array::StructArray>()
+                .ok_or_else(|| bad(&path, format!("`{key}` is not an image struct (bytes, path)")))?;
+            let bytes = st.column_by_name("bytes").ok_or_else(|| bad(&path, format!("`{key}` has no `bytes`")))?;
+            let any = bytes.as_any();
+            for i in 0..st.len() {
+                let v = if let Some(x) = any.downcast_ref::<arrow_array::BinaryArray>() {
+                    x.value(i).to_vec()
+                } else if let Some(x) = any.downcast_ref::<arrow_array::LargeBinaryArray>() {
+                    x.value(i).to_vec()
+                } else {
+                    return Err(bad(&path, format!("`{key}.bytes` is not binary")));
+                };
+                out.push(v);
             }
         }
         Ok(out)
@@ -649,9 +687,51 @@ pub struct ImportReport {
     pub seconds: f64,
 }
 
-/// One camera's frames of an episode, decoded from its span of the MP4.
+/// Where one camera's frames of an episode come from.
+enum Frames {
+    /// Its span of the MP4, decoded.
+    Video(Mp4Reader),
+    /// Its encoded images from the data file (JPEG kept as is, PNG re-encoded), and their size.
+    Images { encoded: Vec<Vec<u8>>, width: u32, height: u32 },
+}
+
+/// The size of an encoded PNG or JPEG image.
+fn image_size(bytes: &[u8]) -> Result<(u32, u32), String> {
+    if bytes.starts_with(&[0xff, 0xd8]) {
+        let img = labrig_episode::jpeg::decode_rgb(bytes).map_err(|e| e.to_string())?;
+        return Ok((img.width as u32, img.height as u32));
+    }
+    let r =
+        png::Decoder::new(std::io::Cursor::new(bytes)).read_info().map_err(|e| format!("not a PNG or JPEG: {e}"))?;
+    let info = r.info();
+    Ok((info.width, info.height))
+}
+
+/// An encoded image as JPEG: a JPEG as it is, a PNG (8-bit RGB, RGBA or grey) re-encoded.
+fn as_jpeg(bytes: &[u8], quality: u8) -> Result<Vec<u8>, String> {
+    if bytes.starts_with(&[0xff, 0xd8]) {
+        return Ok(bytes.to_vec());
+    }
+    let mut r =
+        png::Decoder::new(std::io::Cursor::new(bytes)).read_info().map_err(|e| format!("not a PNG or JPEG: {e}"))?;
+    let mut buf = vec![0u8; r.output_buffer_size().ok_or("a PNG too large")?];
+    let info = r.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    if info.bit_depth != png::BitDepth::Eight {
+        return Err(format!("a {:?}-bit PNG (labrig reads 8-bit images)", info.bit_depth));
+    }
+    let px = &buf[..info.buffer_size()];
+    let rgb: Vec<u8> = match info.color_type {
+        png::ColorType::Rgb => px.to_vec(),
+        png::ColorType::Rgba => px.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
+        png::ColorType::Grayscale => px.iter().flat_map(|&g| [g, g, g]).collect(),
+        other => return Err(format!("a {other:?} PNG (labrig reads RGB, RGBA and grey)")),
+    };
+    labrig_episode::jpeg::encode_rgb(&rgb, info.width as u16, info.height as u16, quality).map_err(|e| e.to_string())
+}
+
+/// One camera's frames of an episode, decoded from its span of the MP4 (or its images).
 struct VideoFrames {
-    readers: Vec<Option<Mp4Reader>>,
+    readers: Vec<Option<Frames>>,
     ids: Vec<String>,
     quality: u8,
     path: PathBuf,
@@ -662,11 +742,29 @@ struct VideoFrames {
 
 impl FrameSource for VideoFrames {
     fn size(&self, camera: usize) -> Option<(u32, u32)> {
-        self.readers[camera].as_ref().map(|r| (r.width, r.height))
+        self.readers[camera].as_ref().map(|r| match r {
+            Frames::Video(r) => (r.width, r.height),
+            Frames::Images { width, height, .. } => (*width, *height),
+        })
     }
 
     fn frame(&mut self, camera: usize, step: usize, wanted: bool) -> Result<Option<Vec<u8>>, labrig_droid::DroidError> {
-        let Some(r) = self.readers[camera].as_mut() else { return Ok(None) };
+        let failed = |path: &Path, what: String| labrig_droid::DroidError::Io {
+            path: path.to_owned(),
+            source: std::io::Error::other(what),
+        };
+        let r = match self.readers[camera].as_mut() {
+            None => return Ok(None),
+            Some(Frames::Images { encoded, .. }) => {
+                return match encoded.get(step) {
+                    Some(bytes) if wanted => as_jpeg(bytes, self.quality)
+                        .map(Some)
+                        .map_err(|e| failed(&self.path, format!("camera {} frame {step}: {e}", self.ids[camera]))),
+                    _ => Ok(None),
+                };
+            }
+            Some(Frames::Video(r)) => r,
+        };
         let pixels = if self.short[camera] { None } else { r.next_frame()? };
         let Some(pixels) = pixels else {
             if !self.short[camera] {
@@ -681,12 +779,9 @@ impl FrameSource for VideoFrames {
         if !wanted {
             return Ok(None);
         }
-        labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, self.quality).map(Some).map_err(
-            |e| labrig_droid::DroidError::Io {
-                path: self.path.clone(),
-                source: std::io::Error::other(format!("camera {}: {e}", self.ids[camera])),
-            },
-        )
+        labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, self.quality)
+            .map(Some)
+            .map_err(|e| failed(&self.path, format!("camera {}: {e}", self.ids[camera])))
     }
 
     fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), labrig_droid::DroidError> {
@@ -791,12 +886,19 @@ fn import_one(
     let read = ds.read(e, kin).map_err(|x| x.to_string())?;
     let n = read.steps.len();
     let mut readers = Vec::new();
-    for c in &ds.cameras {
-        let (path, from) = ds.video(e, c);
+    for c in ds.cameras.clone() {
+        if !c.video {
+            let encoded = ds.image_frames(e, &c.key).map_err(|x| x.to_string())?;
+            let first = encoded.first().ok_or_else(|| format!("camera {}: no images", c.key))?;
+            let (width, height) = image_size(first).map_err(|x| format!("camera {} frame 0: {x}", c.key))?;
+            readers.push(Some(Frames::Images { encoded, width, height }));
+            continue;
+        }
+        let (path, from) = ds.video(e, &c);
         if !path.is_file() {
             return Err(format!("camera {}: no video {}", c.key, path.display()));
         }
-        readers.push(Some(Mp4Reader::open_at(&path, from, ds.fps, n).map_err(|x| x.to_string())?));
+        readers.push(Some(Frames::Video(Mp4Reader::open_at(&path, from, ds.fps, n).map_err(|x| x.to_string())?)));
     }
     let cameras: Vec<Camera> = ds
         .cameras

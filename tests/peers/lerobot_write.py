@@ -27,6 +27,8 @@ f32 = lambda names: {"dtype": "float32", "shape": (len(names),), "names": names}
 features = {
     "observation.images.exterior_1_left": video,
     "observation.images.wrist_left": video,
+    # Stored in the Parquet as PNG (dtype image), as openpi's DROID converter stores its cameras.
+    "observation.images.exterior_2_left": {"dtype": "image", "shape": (H, W, 3), "names": ["height", "width", "channels"]},
     "observation.state": f32(JOINTS + ["gripper"]),
     "observation.state.joint_position": f32(JOINTS),
     "observation.state.cartesian_position": f32(POSE),
@@ -74,9 +76,11 @@ for ep in range(episodes):
         img[:, : W // 2, 1] = 200
         img[(2 * f) % H:(2 * f) % H + 6, :, 2] = 255
         wrist = (255 - img).copy()
+        side = np.roll(img, 7 * f, axis=1)
         frame = {
             "observation.images.exterior_1_left": img,
             "observation.images.wrist_left": wrist,
+            "observation.images.exterior_2_left": side,
             "observation.state": np.concatenate([q, [g]]).astype(np.float32),
             "observation.state.joint_position": q,
             "observation.state.cartesian_position": pose,
@@ -97,7 +101,7 @@ for ep in range(episodes):
         rows.append({
             "joints": q.tolist(), "gripper": float(g), "cartesian": pose.tolist(),
             "action_joints": aq.tolist(), "action_cartesian": (pose + 0.001).tolist(),
-            "ext1": blocks(img), "wrist": blocks(wrist),
+            "ext1": blocks(img), "wrist": blocks(wrist), "ext2": blocks(side),
         })
         if v4:
             ds.add_frame({**frame, "task": task})

@@ -281,7 +281,8 @@ fn datasets_lerobot_wrote_import_and_replay() {
         assert!(o.status.success(), "import {format}: {}", labrig_tests::output_text(&o));
         let report: Value = serde_json::from_slice(&o.stdout).unwrap();
         let ids: Vec<&str> = report["cameras"].as_array().unwrap().iter().map(|c| c["id"].as_str().unwrap()).collect();
-        assert_eq!(ids, ["ext1", "wrist"], "{report}");
+        // Two videos and (ext2) images stored in the Parquet as PNG.
+        assert_eq!(ids, ["ext1", "wrist", "ext2"], "{report}");
         let imported = report["episodes"].as_array().unwrap();
         assert_eq!(imported.len(), 3, "{report}");
         let dt = (1e9 / f64::from(fps)).round() as i64;
@@ -313,7 +314,7 @@ fn datasets_lerobot_wrote_import_and_replay() {
                     f32s(&w["action_cartesian"]),
                     "{at}"
                 );
-                for (cam, key) in [("ext1", "ext1"), ("wrist", "wrist")] {
+                for (cam, key) in [("ext1", "ext1"), ("wrist", "wrist"), ("ext2", "ext2")] {
                     let r = s.cameras.iter().find(|c| c.camera_id == cam).expect("a frame per camera");
                     let img = labrig_episode::jpeg::decode_rgb(&jpegs[&(cam.to_owned(), r.capture_ns)]).unwrap();
                     let ours = blocks(&img.pixels, img.width as usize, img.height as usize);
