@@ -35,7 +35,7 @@ use arrow_array::{
 use arrow_schema::DataType;
 use labrig_arm::kinematics::{Fr3Kinematics, TcpOffset};
 use labrig_droid::droid::Camera;
-use labrig_droid::import::{FrameSource, ImportOptions};
+use labrig_droid::import::{FrameSource, ImportOptions, StepFrame, next_step_frame};
 use labrig_droid::video::Mp4Reader;
 use labrig_episode::metadata::EpisodeMetadata;
 use labrig_msgs::Nanos;
@@ -765,23 +765,8 @@ impl FrameSource for VideoFrames {
             }
             Some(Frames::Video(r)) => r,
         };
-        let pixels = if self.short[camera] { None } else { r.next_frame()? };
-        let Some(pixels) = pixels else {
-            if !self.short[camera] {
-                self.short[camera] = true;
-                self.warnings.push(format!(
-                    "camera {}: the video ends at frame {step} of {} steps (the rest imported without images)",
-                    self.ids[camera], self.steps
-                ));
-            }
-            return Ok(None);
-        };
-        if !wanted {
-            return Ok(None);
-        }
-        labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, self.quality)
-            .map(Some)
-            .map_err(|e| failed(&self.path, format!("camera {}: {e}", self.ids[camera])))
+        let at = StepFrame { camera: &self.ids[camera], step, steps: self.steps, wanted, quality: self.quality };
+        next_step_frame(r, &mut self.short[camera], &at, &mut self.warnings, &self.path)
     }
 
     fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), labrig_droid::DroidError> {

@@ -174,6 +174,44 @@ pub trait FrameSource {
     fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), DroidError>;
 }
 
+/// Which step's frame [`next_step_frame`] reads, and how.
+#[derive(Debug)]
+pub struct StepFrame<'a> {
+    pub camera: &'a str,
+    pub step: usize,
+    /// The episode's steps (for the warning of a short video).
+    pub steps: usize,
+    /// Encode it (else it is read and dropped).
+    pub wanted: bool,
+    pub quality: u8,
+}
+
+/// The next frame of a video holding one frame per step: read whether or not it is wanted (so
+/// the next step's comes next), JPEG-encoded when it is; past the video's end None, said once
+/// in `warnings` (`short` remembers it).
+pub fn next_step_frame(
+    r: &mut Mp4Reader,
+    short: &mut bool,
+    at: &StepFrame,
+    warnings: &mut Vec<String>,
+    source: &Path,
+) -> Result<Option<Vec<u8>>, DroidError> {
+    let pixels = if *short { None } else { r.next_frame()? };
+    let Some(pixels) = pixels else {
+        if !*short {
+            *short = true;
+            warnings.push(format!("camera {}: the video ends at frame {} of {} steps", at.camera, at.step, at.steps));
+        }
+        return Ok(None);
+    };
+    if !at.wanted {
+        return Ok(None);
+    }
+    labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, at.quality)
+        .map(Some)
+        .map_err(|e| bad(source, format!("camera {}: {e}", at.camera)))
+}
+
 /// The MP4s of a DROID raw episode: one frame per step, encoded to JPEG.
 struct Mp4Frames {
     readers: Vec<Option<Mp4Reader>>,
@@ -223,24 +261,8 @@ impl FrameSource for Mp4Frames {
 
     fn frame(&mut self, camera: usize, step: usize, wanted: bool) -> Result<Option<Vec<u8>>, DroidError> {
         let Some(r) = self.readers[camera].as_mut() else { return Ok(None) };
-        // The video holds one frame per step, read whether or not it is written.
-        let pixels = if self.short[camera] { None } else { r.next_frame()? };
-        let Some(pixels) = pixels else {
-            if !self.short[camera] {
-                self.short[camera] = true;
-                self.warnings.push(format!(
-                    "camera {}: the video ends at frame {step} of {} steps",
-                    self.ids[camera], self.steps
-                ));
-            }
-            return Ok(None);
-        };
-        if !wanted {
-            return Ok(None);
-        }
-        labrig_episode::jpeg::encode_rgb(&pixels, r.width as u16, r.height as u16, self.quality)
-            .map(Some)
-            .map_err(|e| bad(&self.source, format!("camera {}: {e}", self.ids[camera])))
+        let at = StepFrame { camera: &self.ids[camera], step, steps: self.steps, wanted, quality: self.quality };
+        next_step_frame(r, &mut self.short[camera], &at, &mut self.warnings, &self.source)
     }
 
     fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), DroidError> {
