@@ -650,20 +650,13 @@ impl Dataset {
             lab: "lerobot".into(),
             building: text("building"),
             user: text("collector_id"),
-            scene_id: String::new(),
             task_instruction: e.tasks.first().cloned().unwrap_or_default(),
             success: Some(success.unwrap_or(true)),
-            robot_serial: String::new(),
             camera_serials: serials,
             extrinsics,
             start_ns: self.base_ns + (before * 1e9) as i64,
             trajectory_length: n as u64,
-            sim_scene: None,
-            recovered: None,
-            policy: None,
-            calibration: None,
-            takeovers: None,
-            operator_steps: None,
+            ..EpisodeMetadata::default()
         }
     }
 }

@@ -420,23 +420,10 @@ fn read_rlds(file: &Path) -> Result<Vec<Read>, String> {
                 (None, Some(p)) => p.clone(),
                 _ => format!("{}#{k}", file.display()),
             },
-            lab: String::new(),
             building: text("episode_metadata/building").unwrap_or_default(),
-            user: String::new(),
-            scene_id: String::new(),
             task_instruction: text("steps/language_instruction").unwrap_or_default(),
-            success: None,
-            robot_serial: String::new(),
-            camera_serials: std::collections::BTreeMap::new(),
-            extrinsics: std::collections::BTreeMap::new(),
-            start_ns: 0,
             trajectory_length: steps as u64,
-            sim_scene: None,
-            recovered: None,
-            policy: None,
-            calibration: None,
-            takeovers: None,
-            operator_steps: None,
+            ..EpisodeMetadata::default()
         };
         meta.success = file_path.as_deref().map(|p| p.contains("/success/"));
         for (id, key) in [

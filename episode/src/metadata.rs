@@ -52,8 +52,8 @@ impl Default for RigIdentity {
     }
 }
 
-/// One episode's DROID metadata.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// One episode's DROID metadata (`Default`: every field empty, for importers that fill some).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeMetadata {
     pub uuid: String,
     pub lab: String,
