@@ -11,8 +11,10 @@
 //!   the joints (2F-85 TCP). The action likewise from `action.joint_position` /
 //!   `action.gripper_position` or `action[0..8]`; `action.cartesian_position`,
 //!   `.cartesian_velocity`, `.joint_velocity`, `.gripper_velocity` where the dataset has them
-//!   (zeros otherwise, said in the report). A dataset with another state layout is refused by
-//!   name.
+//!   (zeros otherwise, said in the report). openpi's flat DROID keys (`joint_position`,
+//!   `gripper_position`, `actions` = joint velocity + gripper) are read too, the commanded
+//!   joint position being where the joints went next. A dataset with another state layout is
+//!   refused by name.
 //! - Cameras: every video feature `observation.images.<key>`; the DROID port's and openpi's
 //!   camera names map to labrig's ids (`exterior_1_left` -> `ext1`, `exterior_2_left` -> `ext2`,
 //!   `wrist_left` -> `wrist`), other keys keep their name. Image features stored in the
@@ -479,9 +481,15 @@ impl Dataset {
         };
         let state = get("observation.state", 0)?;
         let width = |v: &Option<Vec<Vec<f64>>>| v.as_ref().and_then(|v| v.first()).map_or(0, Vec::len);
+        // openpi's flat DROID keys (`labrig export lerobot --schema openpi-droid`, openpi's own
+        // converter): `joint_position`, `gripper_position`, `actions` = joint velocity + gripper.
+        let flat_joints = get("joint_position", 7)?;
+        let flat_gripper = get("gripper_position", 1)?;
+        let flat_actions = get("actions", 8)?;
         let joints = match get("observation.state.joint_position", 7)? {
             Some(j) => j,
             None if width(&state) >= 8 => state.clone().expect("wide"),
+            None if flat_joints.is_some() => flat_joints.clone().expect("there"),
             None => {
                 return Err(bad(
                     &path,
@@ -495,6 +503,7 @@ impl Dataset {
         let gripper = match get("observation.state.gripper_position", 1)? {
             Some(g) => g.into_iter().map(|r| r[0]).collect::<Vec<_>>(),
             None if width(&state) >= 8 => state.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
+            None if flat_gripper.is_some() => flat_gripper.as_ref().expect("there").iter().map(|r| r[0]).collect(),
             None => {
                 return Err(bad(
                     &path,
@@ -507,6 +516,8 @@ impl Dataset {
         let a_joints = match get("action.joint_position", 7)? {
             Some(j) => j,
             None if width(&action) >= 8 => action.clone().expect("wide"),
+            // openpi's `actions` are velocities: the commanded position is where the joints went.
+            None if flat_actions.is_some() => (0..n).map(|k| joints[(k + 1).min(n - 1)].clone()).collect(),
             None => {
                 return Err(bad(
                     &path,
@@ -520,6 +531,7 @@ impl Dataset {
         let a_gripper: Vec<f64> = match get("action.gripper_position", 1)? {
             Some(g) => g.into_iter().map(|r| r[0]).collect(),
             None if width(&action) >= 8 => action.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
+            None if flat_actions.is_some() => flat_actions.as_ref().expect("there").iter().map(|r| r[7]).collect(),
             None => return Err(bad(&path, "no gripper action: neither action.gripper_position nor action[7]")),
         };
         let mut optional = |key: &str, w: usize| -> Result<Vec<Vec<f64>>, LeRobotError> {
@@ -533,7 +545,10 @@ impl Dataset {
         };
         let a_cart = optional("action.cartesian_position", 6)?;
         let a_cvel = optional("action.cartesian_velocity", 6)?;
-        let a_jvel = optional("action.joint_velocity", 7)?;
+        let a_jvel = match &flat_actions {
+            Some(a) if get("action.joint_velocity", 7)?.is_none() => a.iter().map(|r| r[..7].to_vec()).collect(),
+            _ => optional("action.joint_velocity", 7)?,
+        };
         let a_gvel = optional("action.gripper_velocity", 1)?;
         let j_vel = optional("observation.state.joint_velocity", 7)?;
         absent.retain(|k| k != "observation.state.joint_velocity");

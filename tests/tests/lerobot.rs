@@ -561,6 +561,35 @@ fn openpi_droid_schema(episodes: &Path, data: &[(Vec<Step>, String, PathBuf)], t
             assert_eq!(f["images"][format!("observation/{key}")], serde_json::json!([[128, 128, 3], "uint8"]));
         }
     }
+    // Imported back (openpi's flat keys): the joints, gripper, joint velocities and gripper
+    // action as recorded, the commanded joint position where the joints went next, the three
+    // cameras; the keys openpi's schema lacks are named.
+    let o = Command::new(labrig_bin())
+        .args(["import", "lerobot", "--json"])
+        .arg(&ds)
+        .arg(tmp.join("openpi_back"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "import: {}", labrig_tests::output_text(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let ids: Vec<&str> = report["cameras"].as_array().unwrap().iter().map(|c| c["id"].as_str().unwrap()).collect();
+    assert_eq!(ids, ["ext1", "ext2", "wrist"], "{report}");
+    assert_eq!(report["absent"]["action.cartesian_position"], 2, "{report}");
+    let f = |x: f64| x as f32;
+    for (k, row) in report["episodes"].as_array().unwrap().iter().enumerate() {
+        let back = labrig_episode::read_episode(Path::new(row[1].as_str().unwrap())).unwrap();
+        let steps = &data[k].0;
+        assert_eq!(back.steps.len(), steps.len());
+        for (i, (a, b)) in steps.iter().zip(&back.steps).enumerate() {
+            assert_eq!(b.robot_state.joint_positions.map(f), a.robot_state.joint_positions.map(f), "step {i}");
+            assert_eq!(f(b.robot_state.gripper_position), f(a.robot_state.gripper_position), "step {i}");
+            assert_eq!(b.action.joint_velocity.map(f), a.action.joint_velocity.map(f), "step {i}");
+            assert_eq!(f(b.action.gripper_position), f(a.action.gripper_position), "step {i}");
+            let next = &steps[(i + 1).min(steps.len() - 1)].robot_state.joint_positions;
+            assert_eq!(b.action.joint_position.map(f), next.map(f), "step {i}");
+            assert_eq!(b.cameras.len(), 3);
+        }
+    }
     // openpi's DROID schema needs its three cameras: asked for without one, refused by name.
     let o = Command::new(labrig_bin())
         .args(["export", "lerobot", "--schema", "openpi-droid", "--cameras", "ext1,wrist,top"])
