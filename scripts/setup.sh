@@ -247,7 +247,7 @@ tool_venv() {
     rm -rf "$venv"
     "$PYTHON" -m venv "$venv"
     if [ ! -f "$wheels/.labrig-stamp" ] || [ "$(cat "$wheels/.labrig-stamp")" != "$want" ]; then
-        # Kept across changes of the pins: pip fetches only the wheels not there yet.
+        rm -rf "$wheels"
         mkdir -p "$wheels"
         PIP_CACHE_DIR="$LABRIG_CACHE/pip" "$venv/bin/python" -m pip wheel -q \
             --disable-pip-version-check -w "$wheels" "$@"
@@ -281,9 +281,10 @@ tool_venv openpi "openpi_client.websocket_client_policy, openpi_server.websocket
     openpi-client==0.1.2 openpi-server==0.1.0 typing_extensions==4.16.0 numpy==1.26.4 \
     msgpack==1.2.4 websockets==17.4 dm-tree==0.1.10 pillow==13.0.0
 # LeRobot's own dataset code (issue 34): the real reader labrig's LeRobot export is checked
-# with, and (venv-lerobot-data) the real `lerobot-train` a labrig export trains with. PyPI's torch is a CUDA build: the pinned closure in scripts/lerobot/requirements.txt
-# (torch 2.10 + the 12 nvidia wheels it links, no cusolver/nvrtc/triton) installs with
-# --no-deps from a wheelhouse of its own; cuDNN's and CUPTI's GPU-only libraries are removed.
+# with, and (venv-lerobot-data) the real `lerobot-train` a labrig export trains with. PyPI's
+# torch is a CUDA build: the pinned closure in scripts/lerobot/requirements.txt (torch 2.10 +
+# the 12 nvidia wheels it links, no cusolver/nvrtc/triton) installs with --no-deps from a
+# wheelhouse of its own; cuDNN's and CUPTI's GPU-only libraries are removed.
 # lerobot_venv NAME REQUIREMENTS -> $LABRIG_CACHE/venv-NAME (wheelhouse wheels-NAME)
 lerobot_venv() {
     local name="$1" req="$2"

@@ -45,7 +45,7 @@ use labrig_msgs::labrig_msgs::{ActionDict, CameraFrameRef, ControlTiming, RobotS
 use labrig_msgs::std_msgs::Header;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use serde_json::Value;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 fn bad(path: &Path, why: impl Into<String>) -> LeRobotError {
@@ -88,6 +88,9 @@ pub struct EpisodeEntry {
     videos: BTreeMap<String, (i64, i64, f64)>,
     /// labrig's metadata (JSON), where labrig exported the dataset.
     pub labrig_metadata: Option<String>,
+    /// Where it starts on the timeline of a dataset without times of its own (s after the
+    /// first): episodes end to end, a second apart, in index order.
+    offset_s: f64,
 }
 
 /// A LeRobot dataset opened for reading.
@@ -106,12 +109,9 @@ pub struct Dataset {
     chunks_size: i64,
     /// Where the first episode starts when the dataset carries no time of its own.
     base_ns: i64,
-    /// The data file read last: its batches, each with its episode_index column.
-    cache: Option<(PathBuf, Vec<Batch>)>,
+    /// The data file read last: each episode's rows in it, split once when it is read.
+    cache: Option<(PathBuf, HashMap<i64, Vec<RecordBatch>>)>,
 }
-
-/// A batch of a data file with its `episode_index` column.
-type Batch = (RecordBatch, Vec<i64>);
 
 /// An episode's steps and metadata.
 #[derive(Debug)]
@@ -277,6 +277,11 @@ impl Dataset {
         };
         ds.episodes = if ds.version == "v3.0" { ds.episodes_v30()? } else { ds.episodes_v2()? };
         ds.episodes.sort_by_key(|e| e.index);
+        let mut offset_s = 0.0;
+        for e in &mut ds.episodes {
+            e.offset_s = offset_s;
+            offset_s += e.length as f64 / ds.fps + 1.0;
+        }
         Ok(ds)
     }
 
@@ -322,6 +327,7 @@ impl Dataset {
                     data_file: Some((chunk[i], file[i])),
                     videos: std::mem::take(&mut videos[i]),
                     labrig_metadata: meta.as_ref().and_then(|m| m[i].first().cloned()).filter(|s| !s.is_empty()),
+                    offset_s: 0.0,
                 });
             }
         }
@@ -346,6 +352,7 @@ impl Dataset {
                 data_file: None,
                 videos: BTreeMap::new(),
                 labrig_metadata: v.get("labrig_metadata").map(|m| m.to_string()),
+                offset_s: 0.0,
             });
         }
         Ok(out)
@@ -385,34 +392,25 @@ impl Dataset {
     fn rows(&mut self, e: &EpisodeEntry) -> Result<Vec<RecordBatch>, LeRobotError> {
         let path = self.data_file(e);
         if self.cache.as_ref().is_none_or(|(p, _)| *p != path) {
-            let mut batches = Vec::new();
+            // Each run of one episode's rows (they are consecutive), by episode.
+            let mut by_episode: HashMap<i64, Vec<RecordBatch>> = HashMap::new();
             for b in read_parquet(&path)? {
                 let idx = b
                     .column_by_name("episode_index")
                     .and_then(|a| floats(a.as_ref()))
                     .ok_or_else(|| bad(&path, "no `episode_index` column"))?;
-                batches.push((b, idx.into_iter().map(|x| x as i64).collect::<Vec<i64>>()));
-            }
-            self.cache = Some((path.clone(), batches));
-        }
-        let (_, batches) = self.cache.as_ref().expect("cached");
-        let mut out = Vec::new();
-        for (b, idx) in batches {
-            // An episode's rows are consecutive.
-            let mut k = 0;
-            while k < idx.len() {
-                if idx[k] != e.index {
-                    k += 1;
-                    continue;
+                let mut start = 0;
+                for k in 1..=idx.len() {
+                    if k == idx.len() || idx[k] != idx[start] {
+                        by_episode.entry(idx[start] as i64).or_default().push(b.slice(start, k - start));
+                        start = k;
+                    }
                 }
-                let start = k;
-                while k < idx.len() && idx[k] == e.index {
-                    k += 1;
-                }
-                out.push(b.slice(start, k - start));
             }
+            self.cache = Some((path.clone(), by_episode));
         }
-        Ok(out)
+        let (_, by_episode) = self.cache.as_ref().expect("cached");
+        Ok(by_episode.get(&e.index).cloned().unwrap_or_default())
     }
 
     /// Episode `e`'s frames of an image feature (dtype `image`): each frame's encoded bytes.
@@ -635,9 +633,6 @@ impl Dataset {
     /// The metadata of an episode labrig did not export.
     fn metadata_of(&self, e: &EpisodeEntry, rows: &[RecordBatch], n: usize) -> EpisodeMetadata {
         let name = self.root.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "lerobot".into());
-        // Episodes end to end, a second apart, in index order.
-        let before: f64 =
-            self.episodes.iter().take_while(|x| x.index < e.index).map(|x| x.length as f64 / self.fps + 1.0).sum();
         let mut extrinsics = BTreeMap::new();
         let mut serials = BTreeMap::new();
         for c in &self.cameras {
@@ -669,7 +664,7 @@ impl Dataset {
             success: Some(success.unwrap_or(true)),
             camera_serials: serials,
             extrinsics,
-            start_ns: self.base_ns + (before * 1e9) as i64,
+            start_ns: self.base_ns + (e.offset_s * 1e9) as i64,
             trajectory_length: n as u64,
             ..EpisodeMetadata::default()
         }

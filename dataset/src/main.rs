@@ -201,6 +201,16 @@ fn main() -> ExitCode {
     }
 }
 
+/// A progress bar of `len` steps drawn with `template`; hidden when the output is JSON.
+fn progress(len: usize, template: &'static str, json: bool) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len as u64);
+    bar.set_style(indicatif::ProgressStyle::with_template(template).expect("static template"));
+    if json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    bar
+}
+
 fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
     let (out, inputs) = a.paths.split_last().expect("two or more");
     let mut episodes = Vec::new();
@@ -218,14 +228,7 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
             bail!("{}: no such episode, folder or manifest", p.display());
         }
     }
-    let bar = indicatif::ProgressBar::new(episodes.len() as u64);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("export lerobot {bar:30} {pos}/{len} episodes {elapsed}")
-            .expect("template"),
-    );
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar = progress(episodes.len(), "export lerobot {bar:30} {pos}/{len} episodes {elapsed}", a.json);
     use labrig_dataset::lerobot::{Format, Schema, Spec};
     let schema = Schema::parse(&a.schema).map_err(anyhow::Error::msg)?;
     let format = match (&a.format, schema) {
@@ -263,14 +266,7 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
 fn import_lerobot(a: ImportLerobotArgs) -> anyhow::Result<ExitCode> {
     use labrig_dataset::lerobot_import;
     let only = a.episodes.as_deref().map(lerobot_import::parse_episodes).transpose().map_err(anyhow::Error::msg)?;
-    let bar = indicatif::ProgressBar::new(0);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("import lerobot {bar:30} {pos}/{len} episodes {elapsed}")
-            .expect("template"),
-    );
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar = progress(0, "import lerobot {bar:30} {pos}/{len} episodes {elapsed}", a.json);
     let opts = labrig_droid::import::ImportOptions { overwrite: a.overwrite, jpeg_quality: a.jpeg_quality };
     let r = lerobot_import::import(&a.root, only.as_deref(), &a.out, &opts, |done, total| {
         bar.set_length(total as u64);
@@ -366,14 +362,7 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
     } else {
         BTreeMap::new()
     };
-    let bar = indicatif::ProgressBar::new(mine.len() as u64);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} episodes [{elapsed}] {msg}")
-            .expect("static template"),
-    );
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar = progress(mine.len(), "{bar:30} {pos}/{len} episodes [{elapsed}] {msg}", a.json);
     let (mut rows, mut bad, mut skipped) = (Vec::new(), Vec::new(), 0usize);
     let mut bytes = 0u64;
     for f in &mine {
