@@ -194,6 +194,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("openpi_remote_timing", 171, 1),
     ("lerobot_export_demo", 172, 1),
     ("lerobot_trained_rollout", 173, 1),
+    ("experiment_retrieval_ci", 174, 2),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

@@ -35,6 +35,10 @@ pub enum Command {
     /// A policy's closed-loop success rate in the simulated rig: seeded rollouts, each a
     /// recorded episode judged by the sim (`labrig rollout --policy <checkpoint>`).
     Rollout(crate::rollout::RolloutArgs),
+    /// Experiments that run end to end on the simulated rig: `labrig experiment retrieval
+    /// [--config experiments/retrieval/full.toml] [--out DIR]` (the paper's co-training result).
+    #[command(subcommand)]
+    Experiment(crate::experiment::ExperimentCommand),
     /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
     #[command(disable_help_flag = true)]
     Sim {
@@ -338,6 +342,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Launch(a) => crate::launch::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Rollout(a) => crate::rollout::run(a),
+        Command::Experiment(a) => crate::experiment::run(a),
         Command::Episode(a) => crate::episode::run(a),
         Command::Replay { args } => replay(&args),
         Command::Export { args } => convert("export", &args),

@@ -12,6 +12,7 @@ pub mod calib_capture;
 pub mod cli;
 pub mod demo;
 pub mod episode;
+pub mod experiment;
 pub mod inspect;
 pub mod json;
 pub mod launch;

@@ -1,0 +1,166 @@
+//! `labrig experiment retrieval` at CI size (experiments/retrieval/ci.toml): the same scenes
+//! and conditions as the documented run, a few demos, two training steps and one short rollout
+//! per condition. It checks the mechanics the full run relies on: the data recorded by two rigs
+//! at once, every condition's manifest (each retrieval's episodes from the sets that can match
+//! it), training on the right sets, rollouts and the summary; a run cut off is continued (the
+//! finished stages are not run again, a training resumes, cut rollouts run again); a run made
+//! by another experiment is refused.
+
+use labrig_tests::{domains_for, labrig_bin, output_text, repo_root, workspace_bin};
+use serde_json::Value;
+use std::path::Path;
+use std::process::Command;
+
+fn read(p: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).unwrap()
+}
+
+fn experiment(config: &Path, out: &Path, domain: u16, extra: &[&str]) -> std::process::Output {
+    Command::new(labrig_bin())
+        .args(["experiment", "retrieval", "--config"])
+        .arg(config)
+        .arg("--out")
+        .arg(out)
+        .args(["--domain-id", &domain.to_string(), "--threads", "2"])
+        .args(extra)
+        .current_dir(repo_root())
+        .output()
+        .unwrap()
+}
+
+/// The manifest's episode paths.
+fn retrieved(out: &Path, condition: &str) -> Vec<String> {
+    let m = read(&out.join("conditions").join(condition).join("manifest.json"));
+    m["episodes"].as_array().unwrap().iter().map(|e| e["path"].as_str().unwrap().to_owned()).collect()
+}
+
+#[test]
+fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut() {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-policy", "labrig-dataset", "labrig-policies"] {
+        workspace_bin(p, p);
+    }
+    let (domain, count) = domains_for("experiment_retrieval_ci");
+    assert_eq!(count, 2, "two demo rigs at once");
+    let config = repo_root().join("experiments/retrieval/ci.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("exp");
+
+    let first = experiment(&config, &out, domain, &["--json"]);
+    assert!(first.status.success(), "{}", output_text(&first));
+    let stdout = String::from_utf8_lossy(&first.stdout);
+    let results: Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let conditions = results["conditions"].as_array().unwrap();
+    let names: Vec<&str> = conditions.iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["target_only", "all", "camPose+objSpat", "camPose", "objSpat", "objTex"]);
+    assert_eq!(results["target_successful"], 2, "{results}");
+    assert_eq!(results["prior_episodes"], 3, "{results}");
+
+    // Every condition trained its two steps on the right sets and was judged.
+    for c in conditions {
+        let name = c["name"].as_str().unwrap();
+        assert_eq!(c["status"], "done", "{name}: {c}");
+        assert_eq!(c["steps"], 2, "{name}");
+        assert_eq!(c["rollouts"], 1, "{name}");
+        let run = read(&out.join("conditions").join(name).join("run/run.json"));
+        let rollouts = read(&out.join("conditions").join(name).join("rollouts/rollouts.json"));
+        assert_eq!(rollouts["rollouts"].as_array().unwrap().len(), 1, "{name}");
+        assert_eq!(rollouts["first_seed"], 1000, "{name}");
+        assert!(
+            rollouts["scene"].as_str().unwrap().ends_with("experiments/retrieval/target.toml"),
+            "{name}: {rollouts}"
+        );
+        assert!(rollouts["policy"].as_str().unwrap().contains(&format!("conditions/{name}/run")), "{name}: {rollouts}");
+        // Target episodes: 2 recorded, one held out for validation.
+        assert_eq!(run["target_episodes"].as_u64().unwrap() + run["val_episodes"].as_u64().unwrap(), 2, "{name}");
+        match name {
+            "target_only" => {
+                assert_eq!(run["cotrain_episodes"], 0);
+                assert_eq!(run["drawn_cotrain"], 0);
+                assert!(!out.join("conditions/target_only/manifest.json").exists());
+            }
+            "all" => {
+                assert_eq!(run["cotrain_episodes"], 3, "{run}");
+                assert!(run["drawn_cotrain"].as_u64().unwrap() > 0, "{run}");
+            }
+            _ => {
+                let kept = retrieved(&out, name);
+                assert_eq!(run["cotrain_episodes"].as_u64().unwrap() as usize, kept.len(), "{name}: {run}");
+                assert!(run["drawn_cotrain"].as_u64().unwrap() > 0, "{name}: {run}");
+                let m = read(&out.join("conditions").join(name).join("manifest.json"));
+                let stages: Vec<&str> =
+                    m["funnel"].as_array().unwrap().iter().map(|s| s["stage"].as_str().unwrap()).collect();
+                assert_eq!(stages[0], "all", "{name}: {m}");
+                assert_eq!(m["funnel"][0]["kept"], 3, "{name}: {m}");
+            }
+        }
+    }
+    // What each retrieval kept (ci.toml chooses the prior's seeds so that each keeps some, not
+    // all): objSpat only the target's object region, camPose only demos whose ext1 is in the
+    // target's bin (seeds noted in ci.toml), camPose+objSpat exactly both, objTex the red cube.
+    let region_a = |p: &String| p.contains("pick_place_region_A");
+    let obj_spat = retrieved(&out, "objSpat");
+    assert!(!obj_spat.is_empty() && obj_spat.iter().all(region_a), "{obj_spat:?}");
+    let cam_pose = retrieved(&out, "camPose");
+    assert!(!cam_pose.is_empty() && cam_pose.len() < 3, "{cam_pose:?}");
+    let both = retrieved(&out, "camPose+objSpat");
+    let expected: Vec<String> = cam_pose.iter().filter(|p| obj_spat.contains(p)).cloned().collect();
+    assert!(!both.is_empty(), "{both:?}");
+    assert_eq!(both, expected, "camPose+objSpat = camPose and objSpat");
+    assert!(cam_pose.iter().any(|p| !region_a(p)), "camPose keeps the other object region too: {cam_pose:?}");
+    let obj_tex = retrieved(&out, "objTex");
+    assert!(!obj_tex.is_empty() && obj_tex.len() < 3, "{obj_tex:?}");
+
+    // The summary: a table naming every condition and a figure.
+    let md = std::fs::read_to_string(out.join("results.md")).unwrap();
+    for n in &names {
+        assert!(md.contains(&format!("| {n} |")), "{md}");
+    }
+    let png = std::fs::read(out.join("results.png")).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+
+    // Cut off: objSpat's rollouts half written, camPose's training before its run.json.
+    let run_json = out.join("conditions/camPose/run/run.json");
+    std::fs::remove_file(&run_json).unwrap();
+    std::fs::remove_file(out.join("conditions/objSpat/rollouts/rollouts.json")).unwrap();
+    let objtex_run = out.join("conditions/objTex/run/run.json");
+    let objtex_mtime = std::fs::metadata(&objtex_run).unwrap().modified().unwrap();
+    let again = experiment(&config, &out, domain, &[]);
+    assert!(again.status.success(), "{}", output_text(&again));
+    let text = String::from_utf8_lossy(&again.stdout);
+    for line in [
+        "[data] target: recorded earlier (2 episodes, 2 successful)",
+        "[train] target_only: trained earlier (2 steps)",
+        "[train] camPose: 2 steps (resumed)",
+        "[train] objSpat: trained earlier (2 steps)",
+        "[rollout] objSpat: ",
+        "[rollout] objTex: done earlier",
+    ] {
+        assert!(text.contains(line), "`{line}` missing from:\n{text}");
+    }
+    assert!(!text.contains("[rollout] objTex: 0 of") && !text.contains("[rollout] objTex: 1 of"), "{text}");
+    assert_eq!(
+        std::fs::metadata(&objtex_run).unwrap().modified().unwrap(),
+        objtex_mtime,
+        "objTex was not trained again"
+    );
+    assert!(run_json.exists() && out.join("conditions/objSpat/rollouts/rollouts.json").exists());
+    assert!(text.contains("success on the target's rollouts"), "{text}");
+
+    // Another experiment in the same folder is refused, naming what differs.
+    let other = dir.path().join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    for f in ["target.toml", "prior_region_A.toml", "prior_region_B.toml"] {
+        std::fs::copy(repo_root().join("experiments/retrieval").join(f), other.join(f)).unwrap();
+    }
+    let text = std::fs::read_to_string(&config).unwrap().replace("steps = 2\n", "steps = 3\n");
+    std::fs::write(other.join("ci.toml"), text).unwrap();
+    let refused = experiment(&other.join("ci.toml"), &out, domain, &[]);
+    assert!(!refused.status.success());
+    let err = output_text(&refused);
+    assert!(err.contains("made by another experiment") && err.contains("steps"), "{err}");
+
+    // --summary-only builds the table without running anything.
+    let summary = experiment(&config, &out, domain, &["--summary-only"]);
+    assert!(summary.status.success(), "{}", output_text(&summary));
+    assert!(String::from_utf8_lossy(&summary.stdout).contains("camPose+objSpat"));
+}
