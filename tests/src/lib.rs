@@ -198,7 +198,8 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
-pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 70..=79];
+/// (`labrig experiment retrieval`: 50 and, with `--jobs`, up to seven more.)
+pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 50..=57, 70..=79];
 
 /// The DDS domain registered for `key` in [`TEST_DOMAINS`].
 pub fn domain_for(key: &str) -> u16 {

@@ -52,7 +52,7 @@ pub struct RetrievalArgs {
     pub jobs: usize,
     /// DDS domain ids from this one: the demo rigs take this one and the next `--jobs - 1`,
     /// the rollout rig this one.
-    #[arg(long, default_value_t = 44)]
+    #[arg(long, default_value_t = 50)]
     pub domain_id: u16,
     /// Training's intra-op threads (default: every core).
     #[arg(long)]
@@ -166,6 +166,8 @@ impl ConditionSpec {
     }
 }
 
+/// Demo rigs at once at most (their domains: `--domain-id` and the next seven).
+const MAX_JOBS: usize = 8;
 const BUILT_IN_SCENES: [&str; 3] = ["pick_place", "drawer_open", "drawer_close"];
 const DIMS: [&str; 5] = ["object", "skill", "camPose", "objTex", "objSpat"];
 
@@ -386,7 +388,7 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
             cfg.condition.iter().map(|k| k.name.as_str()).collect::<Vec<_>>().join(", ")
         );
     }
-    ensure!(args.jobs >= 1, "--jobs must be at least 1");
+    ensure!((1..=MAX_JOBS).contains(&args.jobs), "--jobs must be in 1..={MAX_JOBS}");
     std::fs::create_dir_all(&args.out)?;
     let out = std::fs::canonicalize(&args.out)?;
     let layout = Layout { out };
@@ -491,7 +493,7 @@ fn record_data(
     }
     let queue = std::sync::Mutex::new(todo.into_iter());
     let errors = std::sync::Mutex::new(Vec::new());
-    let jobs = args.jobs.min(8);
+    let jobs = args.jobs;
     std::thread::scope(|s| {
         for j in 0..jobs {
             let (queue, errors) = (&queue, &errors);
