@@ -110,8 +110,8 @@ fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut(
     };
     assert_eq!(sorted(retrieved(&out, "camPose")), sorted(vec![a100.clone(), b225]), "camPose");
     assert_eq!(sorted(retrieved(&out, "objSpat")), sorted(vec![a100.clone(), a101]), "objSpat");
-    assert_eq!(retrieved(&out, "camPose+objSpat"), [a100.clone()], "camPose+objSpat");
-    assert_eq!(retrieved(&out, "objTex"), [a100], "objTex");
+    assert_eq!(retrieved(&out, "camPose+objSpat"), [a100.as_str()], "camPose+objSpat");
+    assert_eq!(retrieved(&out, "objTex"), [a100.as_str()], "objTex");
 
     // The summary: a table naming every condition and a figure.
     let md = std::fs::read_to_string(out.join("results.md")).unwrap();
