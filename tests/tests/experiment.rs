@@ -162,6 +162,24 @@ fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut(
     let err = output_text(&refused);
     assert!(err.contains("made by another experiment") && err.contains("steps"), "{err}");
 
+    // A seed set added later: only it runs (for the condition asked), and the condition's
+    // success counts both sets; the others are reported as partly judged.
+    let text = std::fs::read_to_string(&config)
+        .unwrap()
+        .replace("rollout_first_seed = 1000\n", "rollout_first_seed = 1000\nmore_rollout_seeds = [2000]\n");
+    assert!(text.contains("more_rollout_seeds"));
+    std::fs::write(other.join("ci.toml"), text).unwrap();
+    let more = experiment(&other.join("ci.toml"), &out, domain, &["--conditions", "objTex", "--json"]);
+    assert!(more.status.success(), "{}", output_text(&more));
+    let r: Value = serde_json::from_str(String::from_utf8_lossy(&more.stdout).lines().last().unwrap()).unwrap();
+    let objtex = r["conditions"].as_array().unwrap().iter().find(|c| c["name"] == "objTex").unwrap();
+    assert_eq!((objtex["status"].as_str(), objtex["rollouts"].as_u64()), (Some("done"), Some(2)), "{objtex}");
+    assert_eq!(objtex["by_seed_set"][1][0], 2000, "{objtex}");
+    let rollouts = read(&out.join("conditions/objTex/rollouts_2000/rollouts.json"));
+    assert_eq!(rollouts["first_seed"], 2000);
+    let all = r["conditions"].as_array().unwrap().iter().find(|c| c["name"] == "all").unwrap();
+    assert_eq!((all["status"].as_str(), all["rollouts"].as_u64()), (Some("partly judged"), Some(1)), "{all}");
+
     // --summary-only builds the table without running anything.
     let summary = experiment(&config, &out, domain, &["--summary-only"]);
     assert!(summary.status.success(), "{}", output_text(&summary));

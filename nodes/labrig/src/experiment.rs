@@ -90,6 +90,10 @@ pub struct ExperimentConfig {
     pub rollouts: u64,
     #[serde(default = "default_rollout_seed")]
     pub rollout_first_seed: u64,
+    /// More sets of `rollouts` rollouts each, from these first seeds (e.g. [2000]): a condition's
+    /// success counts every set. May be added to a run later (the done sets are kept).
+    #[serde(default)]
+    pub more_rollout_seeds: Vec<u64>,
     /// A rollout not solved after this many steps fails.
     #[serde(default = "default_max_steps")]
     pub max_steps: u64,
@@ -178,12 +182,33 @@ impl ExperimentConfig {
         Ok(cfg)
     }
 
+    /// The first seed of each set of rollouts, the main set first.
+    fn seed_sets(&self) -> Vec<u64> {
+        std::iter::once(self.rollout_first_seed).chain(self.more_rollout_seeds.iter().copied()).collect()
+    }
+
+    /// A seed set's folder in a condition's: `rollouts` for the main set, `rollouts_<first seed>`.
+    fn rollouts_dir(&self, first_seed: u64) -> String {
+        if first_seed == self.rollout_first_seed { "rollouts".to_owned() } else { format!("rollouts_{first_seed}") }
+    }
+
     fn validate(&self) -> anyhow::Result<()> {
         let name_ok = |n: &str| {
             !n.is_empty() && n.chars().all(|c| c.is_ascii_alphanumeric() || "_-+.".contains(c)) && !n.starts_with('.')
         };
         ensure!(self.steps >= 1, "steps must be at least 1");
         ensure!((1..=1000).contains(&self.rollouts), "rollouts must be in 1..=1000");
+        let mut sets = self.seed_sets();
+        sets.sort_unstable();
+        for w in sets.windows(2) {
+            ensure!(
+                w[1] >= w[0] + self.rollouts,
+                "rollout seed sets from {} and {} overlap ({} rollouts each)",
+                w[0],
+                w[1],
+                self.rollouts
+            );
+        }
         ensure!((0.0..=1.0).contains(&self.w), "w must be in 0..=1 (it is {})", self.w);
         let mut names = BTreeSet::new();
         for d in std::iter::once(&self.target).chain(&self.prior) {
@@ -685,14 +710,28 @@ fn run_condition(
             r["last_val_loss"].as_f64().unwrap_or(f64::NAN),
         ));
     }
-    // Rollouts on the target's seeds: all again when cut off.
-    let rollouts = dir.join("rollouts");
-    let stage = format!("[rollout] {}", c.name);
+    // Rollouts on the target's seeds, set by set; a set cut off runs again.
+    for first in cfg.seed_sets() {
+        roll_out(cfg, c, config_dir, layout, args, say, first)?;
+    }
+    Ok(())
+}
+
+/// One set of rollouts of a condition's policy, from `first` seed.
+fn roll_out(
+    cfg: &ExperimentConfig,
+    c: &ConditionSpec,
+    config_dir: &Path,
+    layout: &Layout,
+    args: &RetrievalArgs,
+    say: &(dyn Fn(String) + Sync),
+    first: u64,
+) -> anyhow::Result<()> {
+    let dir = layout.condition(&c.name);
+    let rollouts = dir.join(cfg.rollouts_dir(first));
+    let stage = format!("[rollout] {} seeds {first}..{}", c.name, first + cfg.rollouts - 1);
     let report_path = rollouts.join("rollouts.json");
-    let done =
-        read_json(&report_path).is_some_and(|r| r["rollouts"].as_array().map(Vec::len) == Some(cfg.rollouts as usize));
-    if done {
-        let r = read_json(&report_path).unwrap_or_default();
+    if let Some(r) = complete_rollouts(cfg, &report_path) {
         say(format!("{stage}: done earlier ({} of {})", r["successes"], cfg.rollouts));
         return Ok(());
     }
@@ -703,13 +742,13 @@ fn run_condition(
     let a = strings(&[
         "rollout",
         "--policy",
-        &path_str(&run_dir),
+        &path_str(&dir.join("run")),
         "--scene",
         &resolve_scene(&cfg.target.scene, config_dir)?,
         "--episodes",
         &cfg.rollouts.to_string(),
         "--first-seed",
-        &cfg.rollout_first_seed.to_string(),
+        &first.to_string(),
         "--max-steps",
         &cfg.max_steps.to_string(),
         "--out",
@@ -718,14 +757,15 @@ fn run_condition(
         &args.domain_id.to_string(),
         "--json",
     ]);
-    let result = labrig(&stage, &a, &[], &layout.log(&format!("{}_rollout", c.name)), quiet);
+    let log = layout.log(&format!("{}_{}", c.name, cfg.rollouts_dir(first).replace("rollouts", "rollout")));
+    let result = labrig(&stage, &a, &[], &log, args.json);
     if result.is_err() {
         // An incomplete report must not count as done.
         let _ = std::fs::remove_file(&report_path);
     }
     result?;
     let wall = add_wall(&dir.join("rollout_time.json"), t.elapsed().as_secs_f64())?;
-    let r = read_json(&report_path).context("the rollouts wrote no rollouts.json")?;
+    let r = complete_rollouts(cfg, &report_path).context("the rollouts wrote no complete rollouts.json")?;
     let k = r["successes"].as_u64().unwrap_or(0);
     let [lo, hi] = wilson95(k, cfg.rollouts);
     say(format!(
@@ -737,6 +777,11 @@ fn run_condition(
         minutes(wall)
     ));
     Ok(())
+}
+
+/// A set's report when it holds every rollout.
+fn complete_rollouts(cfg: &ExperimentConfig, report: &Path) -> Option<Value> {
+    read_json(report).filter(|r| r["rollouts"].as_array().map(Vec::len) == Some(cfg.rollouts as usize))
 }
 
 /// One condition's row of the table.
@@ -763,9 +808,12 @@ pub struct ConditionResult {
     pub samples_per_s: Option<f64>,
     pub last_val_loss: Option<f64>,
     pub open_loop_mm: Option<f64>,
+    /// Over the seed sets judged so far.
     pub successes: Option<u64>,
     pub rollouts: Option<u64>,
     pub ci95: Option<[f64; 2]>,
+    /// Each judged set: its first seed and its successes.
+    pub by_seed_set: Vec<(u64, u64)>,
     pub rollout_wall_s: Option<f64>,
     pub inference_ms_p50: Option<f64>,
 }
@@ -783,6 +831,8 @@ pub struct Results {
     pub batch_size: Option<u64>,
     pub rollouts: u64,
     pub rollout_first_seed: u64,
+    /// Every seed set's first seed (`rollouts` rollouts each).
+    pub seed_sets: Vec<u64>,
     pub max_steps: u64,
     pub conditions: Vec<ConditionResult>,
 }
@@ -797,8 +847,19 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
         let dir = layout.condition(&c.name);
         let manifest = read_json(&dir.join("manifest.json"));
         let run = read_json(&dir.join("run/run.json")).filter(|r| r["steps"].as_u64() == Some(cfg.steps));
-        let rollouts = read_json(&dir.join("rollouts/rollouts.json"))
-            .filter(|r| r["rollouts"].as_array().map(Vec::len) == Some(cfg.rollouts as usize));
+        let sets: Vec<(u64, Value)> = cfg
+            .seed_sets()
+            .into_iter()
+            .filter_map(|first| {
+                Some((first, complete_rollouts(cfg, &dir.join(cfg.rollouts_dir(first)).join("rollouts.json"))?))
+            })
+            .collect();
+        let by_seed_set: Vec<(u64, u64)> =
+            sets.iter().map(|(first, r)| (*first, r["successes"].as_u64().unwrap_or(0))).collect();
+        let judged = by_seed_set.len() as u64 * cfg.rollouts;
+        let succeeded: u64 = by_seed_set.iter().map(|(_, k)| k).sum();
+        let all_sets = sets.len() == cfg.seed_sets().len();
+        let rollouts = sets.first().map(|(_, r)| r.clone());
         let funnel: Vec<(String, u64)> = manifest
             .as_ref()
             .and_then(|m| m["funnel"].as_array().cloned())
@@ -815,7 +876,8 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             retrieved
         };
         let status = match (&run, &rollouts, retrieved) {
-            (Some(_), Some(_), _) => "done",
+            (Some(_), Some(_), _) if all_sets => "done",
+            (Some(_), Some(_), _) => "partly judged",
             (Some(_), None, _) => "trained",
             (None, _, Some(0)) => "retrieved nothing",
             (None, _, Some(_)) => "retrieved",
@@ -844,9 +906,10 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             samples_per_s: f(&run, "samples_per_s"),
             last_val_loss: f(&run, "last_val_loss"),
             open_loop_mm: f(&run, "last_open_loop_mm"),
-            successes: u(&rollouts, "successes"),
-            rollouts: rollouts.as_ref().map(|_| cfg.rollouts),
-            ci95: rollouts.as_ref().map(|r| wilson95(r["successes"].as_u64().unwrap_or(0), cfg.rollouts)),
+            successes: rollouts.as_ref().map(|_| succeeded),
+            rollouts: rollouts.as_ref().map(|_| judged),
+            ci95: rollouts.as_ref().map(|_| wilson95(succeeded, judged)),
+            by_seed_set,
             rollout_wall_s: rollouts
                 .as_ref()
                 .and_then(|_| read_json(&dir.join("rollout_time.json")))
@@ -866,6 +929,7 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
         batch_size: cfg.batch_size,
         rollouts: cfg.rollouts,
         rollout_first_seed: cfg.rollout_first_seed,
+        seed_sets: cfg.seed_sets(),
         max_steps: cfg.max_steps,
         conditions: rows,
     };
@@ -879,22 +943,33 @@ fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
     v.map_or("-".to_owned(), |v| v.to_string())
 }
 
+/// The success over the judged sets, each set's count when there are several, and the status
+/// when not every set is judged.
 fn success_text(r: &ConditionResult) -> String {
     match (r.successes, r.rollouts, r.ci95) {
         (Some(k), Some(n), Some([lo, hi])) => {
-            format!("{k}/{n} ({:.0}%, {:.0}-{:.0}%)", 100.0 * k as f64 / n as f64, 100.0 * lo, 100.0 * hi)
+            let mut t = format!("{k}/{n} ({:.0}%, {:.0}-{:.0}%)", 100.0 * k as f64 / n as f64, 100.0 * lo, 100.0 * hi);
+            if r.by_seed_set.len() > 1 {
+                let sets: Vec<String> = r.by_seed_set.iter().map(|(_, k)| k.to_string()).collect();
+                t += &format!(" [{}]", sets.join(" + "));
+            }
+            if r.status != "done" {
+                t += &format!(" ({})", r.status);
+            }
+            t
         }
-        _ => "-".to_owned(),
+        _ => r.status.clone(),
     }
 }
 
+/// The seed sets as text: `1000..1019, 2000..2019`.
+fn seeds_text(r: &Results) -> String {
+    r.seed_sets.iter().map(|f| format!("{f}..{}", f + r.rollouts - 1)).collect::<Vec<_>>().join(", ")
+}
+
 fn table_text(r: &Results) -> String {
-    let mut s = format!(
-        "{}: success on the target's rollouts (seeds {}..{}), 95% Wilson intervals\n",
-        r.experiment,
-        r.rollout_first_seed,
-        r.rollout_first_seed + r.rollouts - 1
-    );
+    let mut s =
+        format!("{}: success on the target's rollouts (seeds {}), 95% Wilson intervals\n", r.experiment, seeds_text(r));
     s += &format!(
         "  {:<16} {:<40} {:>9} {:>7} {:>10} {:>9}  {}\n",
         "condition", "co-training", "episodes", "steps", "train", "val loss", "success"
@@ -908,7 +983,7 @@ fn table_text(r: &Results) -> String {
             opt(c.steps),
             c.train_wall_s.map_or("-".to_owned(), minutes),
             c.last_val_loss.map_or("-".to_owned(), |v| format!("{v:.4}")),
-            if c.status == "done" { success_text(c) } else { c.status.clone() }
+            success_text(c)
         );
     }
     s
@@ -918,8 +993,9 @@ fn table_markdown(r: &Results) -> String {
     let mut s = format!(
         "# {}: co-training on retrieved data (labrig experiment retrieval)\n\n\
          Target: `{}`, {} demos (seeds {}..{}; {} successful). Prior: {} episodes ({}). \
-         Training: preset `{}`, {} steps{} for every condition. Judged by {} rollouts of at most {} steps \
-         on the target scene's seeds {}..{} (lockstep). Success with its 95% Wilson interval.\n\n",
+         Training: preset `{}`, {} steps{} for every condition. Judged by {} rollouts per seed set of at most {} steps \
+         on the target scene's seeds {} (lockstep). Success with its 95% Wilson interval (over every set; \
+         each set's count in brackets).\n\n",
         r.experiment,
         r.target.scene,
         r.target.episodes,
@@ -937,8 +1013,7 @@ fn table_markdown(r: &Results) -> String {
         r.batch_size.map_or(String::new(), |b| format!(" at batch {b}")),
         r.rollouts,
         r.max_steps,
-        r.rollout_first_seed,
-        r.rollout_first_seed + r.rollouts - 1,
+        seeds_text(r),
     );
     s += "| condition | co-training set | retrieval funnel | co-training episodes (used) | w | samples drawn target / co-training | steps | train wall | samples/s | val loss | open loop (mm) | success | rollouts wall |\n";
     s += "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
@@ -963,7 +1038,7 @@ fn table_markdown(r: &Results) -> String {
             c.samples_per_s.map_or("-".to_owned(), |v| format!("{v:.0}")),
             c.last_val_loss.map_or("-".to_owned(), |v| format!("{v:.4}")),
             c.open_loop_mm.map_or("-".to_owned(), |v| format!("{v:.1}")),
-            if c.status == "done" { success_text(c) } else { c.status.clone() },
+            success_text(c),
             c.rollout_wall_s.map_or("-".to_owned(), minutes),
         );
     }
@@ -980,8 +1055,7 @@ fn plot(r: &Results, path: &Path) -> anyhow::Result<()> {
     let root = BitMapBackend::new(path, (160 * n as u32 + 200, 560)).into_drawing_area();
     let e = |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("{e:?}");
     root.fill(&WHITE).map_err(e)?;
-    let title =
-        format!("{}: success on the target task ({} rollouts each, 95% Wilson intervals)", r.experiment, r.rollouts);
+    let title = format!("{}: success on the target task (seeds {}; 95% Wilson intervals)", r.experiment, seeds_text(r));
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 20))
         .margin(14)
@@ -1054,4 +1128,52 @@ fn plot(r: &Results, path: &Path) -> anyhow::Result<()> {
     }
     root.present().map_err(e)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> anyhow::Result<ExperimentConfig> {
+        let cfg: ExperimentConfig = labrig_runtime::config::parse_config(text, Path::new("test.toml"))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// A config: `top` among the top-level keys, `conditions` after the tables.
+    fn config(top: &str, conditions: &str) -> String {
+        format!(
+            "name = \"t\"\npreset = \"small\"\nsteps = 10\nrollouts = 20\n{top}\
+             [target]\nname = \"target\"\nscene = \"pick_place\"\nepisodes = 2\nfirst_seed = 0\n\
+             [[prior]]\nname = \"p\"\nscene = \"pick_place\"\nepisodes = 2\nfirst_seed = 100\n{conditions}"
+        )
+    }
+
+    #[test]
+    fn the_committed_configs_parse_and_bad_ones_are_named() {
+        for f in ["full.toml", "ci.toml"] {
+            let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../experiments/retrieval").join(f);
+            let cfg = ExperimentConfig::load(&path).unwrap();
+            assert_eq!(cfg.condition.len(), 6, "{f}");
+            let dir = path.parent().unwrap();
+            for d in std::iter::once(&cfg.target).chain(&cfg.prior) {
+                resolve_scene(&d.scene, dir).unwrap();
+            }
+        }
+        let a = "[[condition]]\nname = \"a\"\n";
+        let ok = parse(&config("more_rollout_seeds = [2000]\n", &format!("{a}all = true\n"))).unwrap();
+        assert_eq!(ok.seed_sets(), [1000, 2000]);
+        assert_eq!((ok.rollouts_dir(1000), ok.rollouts_dir(2000)), ("rollouts".to_owned(), "rollouts_2000".to_owned()));
+        let err = |top: &str, conditions: &str| format!("{:#}", parse(&config(top, conditions)).unwrap_err());
+        assert!(err("more_rollout_seeds = [1010]\n", a).contains("overlap"));
+        assert!(err("", &format!("{a}all = true\nalign = [\"camPose\"]\n")).contains("exclude each other"));
+        assert!(err("", &format!("{a}align = [\"campose\"]\n")).contains("unknown alignment `campose`"));
+        assert!(err("", &format!("{a}{a}")).contains("two conditions are named `a`"));
+        assert!(err("", "[[condition]]\nname = \"../a\"\n").contains("condition name `../a`"));
+        assert!(err("w = 1.5\n", a).contains("w must be in 0..=1"));
+        assert!(err("", "").contains("condition"));
+        assert!(
+            format!("{:#}", resolve_scene("nope.toml", Path::new("/")).unwrap_err()).contains("not a built-in scene")
+        );
+    }
 }
