@@ -358,7 +358,10 @@ fn read_json(path: &Path) -> Option<Value> {
 /// stage, the exit status, the log and its last lines.
 fn labrig(stage: &str, args: &[String], env: &[(&str, String)], log: &Path, quiet: bool) -> anyhow::Result<String> {
     std::fs::create_dir_all(log.parent().unwrap_or(Path::new(".")))?;
-    let exe = std::env::current_exe()?;
+    // This very binary, even when a rebuild has replaced the file meanwhile (a long run keeps
+    // the labrig it started with; `current_exe` would name the deleted file).
+    let exe = Path::new("/proc/self/exe");
+    let exe = if exe.exists() { exe.to_owned() } else { std::env::current_exe()? };
     let mut file = std::fs::OpenOptions::new().create(true).append(true).open(log)?;
     use std::io::Write;
     writeln!(file, "\n$ labrig {}", args.join(" "))?;
@@ -453,7 +456,7 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
             say(format!(
                 "[index] the prior data: {} episodes ({} unreadable) in {}",
                 r["in_shard"],
-                r["bad"],
+                r["bad"].as_array().map_or(0, Vec::len),
                 minutes(t.elapsed().as_secs_f64())
             ));
         }
@@ -764,7 +767,9 @@ fn roll_out(
         let _ = std::fs::remove_file(&report_path);
     }
     result?;
-    let wall = add_wall(&dir.join("rollout_time.json"), t.elapsed().as_secs_f64())?;
+    // The set's own wall time (a set cut off runs again from scratch: its time is the last run's).
+    let wall = t.elapsed().as_secs_f64();
+    write_json(&rollouts.join("wall.json"), &json!({"wall_s": wall}))?;
     let r = complete_rollouts(cfg, &report_path).context("the rollouts wrote no complete rollouts.json")?;
     let k = r["successes"].as_u64().unwrap_or(0);
     let [lo, hi] = wilson95(k, cfg.rollouts);
@@ -910,10 +915,19 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             rollouts: rollouts.as_ref().map(|_| judged),
             ci95: rollouts.as_ref().map(|_| wilson95(succeeded, judged)),
             by_seed_set,
-            rollout_wall_s: rollouts
-                .as_ref()
-                .and_then(|_| read_json(&dir.join("rollout_time.json")))
-                .and_then(|t| t["wall_s"].as_f64()),
+            rollout_wall_s: rollouts.as_ref().map(|_| {
+                sets.iter()
+                    .filter_map(|(first, _)| {
+                        let set = dir.join(cfg.rollouts_dir(*first));
+                        // (Runs before the per-set file kept the main set's in the condition's folder.)
+                        read_json(&set.join("wall.json"))
+                            .or_else(|| {
+                                read_json(&dir.join("rollout_time.json")).filter(|_| *first == cfg.rollout_first_seed)
+                            })
+                            .and_then(|t| t["wall_s"].as_f64())
+                    })
+                    .sum()
+            }),
             inference_ms_p50: f(&rollouts, "inference_ms_p50"),
         });
     }
