@@ -9,7 +9,7 @@
 
 use labrig_tests::{cache_dir, labrig_bin, repo_root, workspace_bin};
 use serde_json::{Value, json};
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeSet;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -371,101 +371,6 @@ fn the_dataset_bench_reports_every_combination_and_the_index_throughput() {
     let t = &r["index_throughput"];
     assert_eq!((t["sources"].as_u64(), t["indexed"].as_u64()), (Some(1), Some(9)), "{t}");
     assert!(t["index_episodes_per_s"].as_f64().unwrap() > 0.0, "{t}");
-}
-
-/// The end to end: simulated episodes recorded by `labrig demo` from the specs
-/// dataset/scenes/region_c<C>o<O>.toml, two camera regions (ext1 in a narrow window at azimuth
-/// +45 or -45 deg; the other cameras the same in all) x two object regions (y < 0 or y > 0),
-/// two seeds each; retrieval aligned with one camera
-/// region and one object region (a TOML target, then a folder of episodes as the target)
-/// returns exactly the episodes generated there; `labrig train --cotrain` trains on the
-/// retrieved manifest.
-#[test]
-fn sim_episodes_from_two_camera_and_two_object_regions_are_retrieved_by_their_own() {
-    for p in ["labrig-sim", "labrig-recorder", "labrig-control"] {
-        workspace_bin(p, p);
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let episodes = dir.path().join("episodes");
-    let mut ids = BTreeMap::new();
-    for (cam, obj) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
-        let spec = repo_root().join(format!("dataset/scenes/region_c{cam}o{obj}.toml"));
-        let out_dir = episodes.join(format!("c{cam}o{obj}"));
-        let domain = labrig_tests::domain_for(&format!("dataset_sim_c{cam}o{obj}")).to_string();
-        let out = Command::new(labrig_bin())
-            .args([
-                "demo",
-                "--scene",
-                s(&spec),
-                "--episodes",
-                "2",
-                "--domain-id",
-                &domain,
-                "--json",
-                "--out",
-                s(&out_dir),
-            ])
-            .env(labrig_runtime::frames::NAMESPACE_ENV, format!("dataset_sim_{}", std::process::id()))
-            .output()
-            .unwrap();
-        let r = ok_json(&out);
-        assert_eq!((r["recorded"].as_u64(), r["successes"].as_u64()), (Some(2), Some(2)), "c{cam}o{obj}: {r}");
-        let uuids: BTreeSet<String> = r["episodes"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|e| e["inspect"]["metadata"]["uuid"].as_str().unwrap().to_owned())
-            .collect();
-        assert_eq!(uuids.len(), 2, "{r}");
-        ids.insert((cam, obj), uuids);
-    }
-    let index = dir.path().join("index");
-    let r = ok_json(&labrig(&["dataset", "index", s(&episodes), "--out", s(&index), "--json"]));
-    assert_eq!(r["by_format"], json!({"labrig": 8}), "{r}");
-
-    // A TOML target in camera region 0 and object region 0 (ext1's window centre, the cube's box centre).
-    let (polar, az, radius) = (51f64.to_radians(), 45f64.to_radians(), 1.01);
-    let cam = [0.5 + radius * polar.sin() * az.cos(), radius * polar.sin() * az.sin(), radius * polar.cos()];
-    let target = dir.path().join("target.toml");
-    std::fs::write(
-        &target,
-        format!(
-            "cameras = [[{}, {}, {}]]\nobject_position = [0.475, -0.195, 0.05]\nobject = \"cube\"\n",
-            cam[0], cam[1], cam[2]
-        ),
-    )
-    .unwrap();
-    let manifest = dir.path().join("c0o0.json");
-    let (r, m) = retrieve(&index, &target, "object,camPose,objSpat", &manifest);
-    let funnel: Vec<u64> = r["funnel"].as_array().unwrap().iter().map(|f| f["kept"].as_u64().unwrap()).collect();
-    assert_eq!(funnel, [8, 8, 4, 2], "all, object, camPose, objSpat: {r}");
-    assert_eq!(strings(&m["episodes"], "id"), ids[&(0, 0)]);
-
-    // The episodes of camera region 1 x object region 1 as the target: exactly themselves.
-    let manifest = dir.path().join("c1o1.json");
-    let (_, m) = retrieve(&index, &episodes.join("c1o1"), "camPose,objSpat", &manifest);
-    assert_eq!(strings(&m["episodes"], "id"), ids[&(1, 1)]);
-    // Each alone keeps the region it aligns: camPose the two object regions of camera region 1.
-    let (_, m) = retrieve(&index, &episodes.join("c1o1"), "camPose", &dir.path().join("cam.json"));
-    assert_eq!(strings(&m["episodes"], "id"), &ids[&(1, 0)] | &ids[&(1, 1)]);
-    let (_, m) = retrieve(&index, &episodes.join("c1o1"), "objSpat", &dir.path().join("obj.json"));
-    assert_eq!(strings(&m["episodes"], "id"), &ids[&(0, 1)] | &ids[&(1, 1)]);
-
-    // The trainer co-trains on the retrieved manifest (labrig-format episodes).
-    workspace_bin("labrig-policies", "labrig-policies");
-    let out = Command::new(labrig_bin())
-        .args(["train", "--target", s(&episodes.join("c0o0")), "--cotrain", s(&manifest), "--w", "0.5"])
-        .args(["--preset", "small_lowdim", "--batch-size", "8", "--steps", "2", "--json", "--out"])
-        .arg(dir.path().join("run"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", text(&out));
-    // Its progress lines come first on stdout, then the report.
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let r: Value = serde_json::from_str(&stdout[stdout.find("\n{").map(|i| i + 1).unwrap_or(0)..])
-        .unwrap_or_else(|e| panic!("{e}: {}", text(&out)));
-    assert_eq!(r["cotrain_episodes"], 2, "{r}");
-    assert!(r["drawn_cotrain"].as_u64().unwrap() > 0, "{r}");
 }
 
 /// DROID's RLDS release: the committed shard (tests/fixtures/rlds, written by the PyPI

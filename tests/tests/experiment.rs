@@ -4,7 +4,8 @@
 //! at once, every condition's manifest (each retrieval's episodes from the sets that can match
 //! it), training on the right sets, rollouts and the summary; a run cut off is continued (the
 //! finished stages are not run again, a training resumes, cut rollouts run again); a run made
-//! by another experiment is refused.
+//! by another experiment is refused. The retrievals' expected episodes are exact (by the demos'
+//! seeds), for the target demos as the target and for a TOML target.
 
 use labrig_tests::{domains_for, labrig_bin, output_text, repo_root, workspace_bin};
 use serde_json::Value;
@@ -112,6 +113,34 @@ fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut(
     assert_eq!(sorted(retrieved(&out, "objSpat")), sorted(vec![a100.clone(), a101]), "objSpat");
     assert_eq!(retrieved(&out, "camPose+objSpat"), [a100.as_str()], "camPose+objSpat");
     assert_eq!(retrieved(&out, "objTex"), [a100.as_str()], "objTex");
+    let m = read(&out.join("conditions/camPose+objSpat/manifest.json"));
+    let funnel: Vec<u64> = m["funnel"].as_array().unwrap().iter().map(|f| f["kept"].as_u64().unwrap()).collect();
+    assert_eq!(funnel, [3, 3, 3, 2, 1], "all, object, skill, camPose, objSpat: {m}");
+
+    // A task with no demos yet, as a TOML target (ext1 at target.toml's window centre, the cube
+    // box of region A) retrieves from the same index what the target demos did.
+    let (polar, az, radius) = (52f64.to_radians(), 45f64.to_radians(), 1.02);
+    let cam = [0.5 + radius * polar.sin() * az.cos(), radius * polar.sin() * az.sin(), radius * polar.cos()];
+    let spec = dir.path().join("target_spec.toml");
+    let text = format!(
+        "cameras = [[{}, {}, {}]]\nobject_position = [0.47, -0.15, 0.05]\nobject = \"cube\"\n",
+        cam[0], cam[1], cam[2]
+    );
+    std::fs::write(&spec, text).unwrap();
+    let manifest = dir.path().join("spec.json");
+    let o = Command::new(labrig_bin())
+        .args(["dataset", "retrieve", "--index"])
+        .arg(out.join("index"))
+        .arg("--target")
+        .arg(&spec)
+        .args(["--align", "object,camPose,objSpat", "--obj-box-m", "0.2,0.2,0.3", "--out"])
+        .arg(&manifest)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", output_text(&o));
+    let m = read(&manifest);
+    let kept: Vec<&str> = m["episodes"].as_array().unwrap().iter().map(|e| e["path"].as_str().unwrap()).collect();
+    assert_eq!(kept, [a100.as_str()], "{m}");
 
     // The summary: a table naming every condition and a figure.
     let md = std::fs::read_to_string(out.join("results.md")).unwrap();
@@ -135,12 +164,12 @@ fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut(
         "[train] target_only: trained earlier (2 steps)",
         "[train] camPose: 2 steps (resumed)",
         "[train] objSpat: trained earlier (2 steps)",
-        "[rollout] objSpat: ",
-        "[rollout] objTex: done earlier",
+        "[rollout] objSpat seeds 1000..1000: ",
+        "[rollout] objTex seeds 1000..1000: done earlier",
     ] {
         assert!(text.contains(line), "`{line}` missing from:\n{text}");
     }
-    assert!(!text.contains("[rollout] objTex: 0 of") && !text.contains("[rollout] objTex: 1 of"), "{text}");
+    assert!(!text.contains("[rollout] objSpat seeds 1000..1000: done earlier"), "{text}");
     assert_eq!(
         std::fs::metadata(&objtex_run).unwrap().modified().unwrap(),
         objtex_mtime,

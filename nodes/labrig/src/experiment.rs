@@ -257,6 +257,23 @@ fn resolve_scene(scene: &str, config_dir: &Path) -> anyhow::Result<String> {
     Ok(scene.to_owned())
 }
 
+/// What every stage of a run reads.
+struct Run<'a> {
+    cfg: &'a ExperimentConfig,
+    config_dir: &'a Path,
+    layout: &'a Layout,
+    args: &'a RetrievalArgs,
+}
+
+impl Run<'_> {
+    /// A stage's line on stdout (none with --json).
+    fn say(&self, line: String) {
+        if !self.args.json {
+            println!("{line}");
+        }
+    }
+}
+
 /// The experiment's folders.
 struct Layout {
     out: PathBuf,
@@ -365,14 +382,15 @@ fn labrig(stage: &str, args: &[String], env: &[(&str, String)], log: &Path, quie
     let mut file = std::fs::OpenOptions::new().create(true).append(true).open(log)?;
     use std::io::Write;
     writeln!(file, "\n$ labrig {}", args.join(" "))?;
-    let mut child = Command::new(&exe)
-        .args(args)
+    let mut cmd = Command::new(&exe);
+    cmd.args(args)
         .envs(env.iter().map(|(k, v)| (*k, v.as_str())))
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
-        .stderr(Stdio::from(file))
-        .spawn()
-        .with_context(|| format!("{stage}: cannot start {}", exe.display()))?;
+        .stderr(Stdio::from(file));
+    // A stage never outlives the experiment (killed, it would keep writing what a rerun redoes).
+    crate::launch::stop_with_launcher(&mut cmd);
+    let mut child = cmd.spawn().with_context(|| format!("{stage}: cannot start {}", exe.display()))?;
     let bar = progress(stage, 0, quiet)?;
     let mut out = String::new();
     child.stdout.take().context("stdout")?.read_to_string(&mut out)?;
@@ -422,11 +440,8 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
     let layout = Layout { out };
     let identity = run_identity(&cfg, &config_dir)?;
     let quiet = args.json;
-    let say = |line: String| {
-        if !quiet {
-            println!("{line}");
-        }
-    };
+    let run = Run { cfg: &cfg, config_dir: &config_dir, layout: &layout, args: &args };
+    let say = |line: String| run.say(line);
     if !args.summary_only {
         check_identity(&layout.out.join("experiment.json"), &identity)?;
         let started = Instant::now();
@@ -438,7 +453,7 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
             cfg.steps,
             cfg.rollouts
         ));
-        record_data(&cfg, &config_dir, &layout, &args, &say)?;
+        record_data(&run)?;
         let chosen: Vec<&ConditionSpec> =
             cfg.condition.iter().filter(|c| args.conditions.is_empty() || args.conditions.contains(&c.name)).collect();
         if chosen.iter().any(|c| !c.align.is_empty()) {
@@ -461,7 +476,7 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
             ));
         }
         for c in chosen {
-            run_condition(&cfg, c, &config_dir, &layout, &args, &say)?;
+            run_condition(&run, c)?;
             // The table after every condition: a run cut off later keeps what it has.
             let _ = summarise(&cfg, &config_dir, &layout)?;
         }
@@ -492,13 +507,9 @@ fn path_str(p: &Path) -> String {
 /// Records every data set not yet complete, `--jobs` rigs at once (each its own DDS domain and
 /// frame namespace). A set is complete when its `demo.json` (the demo's report, written last)
 /// is there; a set without one was cut off and is recorded again from scratch.
-fn record_data(
-    cfg: &ExperimentConfig,
-    config_dir: &Path,
-    layout: &Layout,
-    args: &RetrievalArgs,
-    say: &(dyn Fn(String) + Sync),
-) -> anyhow::Result<()> {
+fn record_data(run: &Run) -> anyhow::Result<()> {
+    let &Run { cfg, config_dir, layout, args } = run;
+    let say = |line: String| run.say(line);
     let mut todo = Vec::new();
     for (d, target) in std::iter::once((&cfg.target, true)).chain(cfg.prior.iter().map(|d| (d, false))) {
         let dir = layout.data(&d.name, target);
@@ -531,7 +542,7 @@ fn record_data(
                     let Some((d, target, scene)) = next else { break };
                     let domain = args.domain_id + j as u16;
                     let ns = format!("exp{}j{j}", std::process::id());
-                    if let Err(e) = record_set(cfg, layout, &d, target, &scene, domain, &ns, say)
+                    if let Err(e) = record_set(run, &d, target, &scene, domain, &ns)
                         && let Ok(mut v) = errors.lock()
                     {
                         v.push(format!("{e:#}"));
@@ -545,17 +556,9 @@ fn record_data(
     Ok(())
 }
 
-#[allow(clippy::too_many_arguments)]
-fn record_set(
-    cfg: &ExperimentConfig,
-    layout: &Layout,
-    d: &DataSpec,
-    target: bool,
-    scene: &str,
-    domain: u16,
-    ns: &str,
-    say: &(dyn Fn(String) + Sync),
-) -> anyhow::Result<()> {
+fn record_set(run: &Run, d: &DataSpec, target: bool, scene: &str, domain: u16, ns: &str) -> anyhow::Result<()> {
+    let &Run { cfg, layout, .. } = run;
+    let say = |line: String| run.say(line);
     let dir = layout.data(&d.name, target);
     let t = Instant::now();
     let mut a = strings(&["demo", "--scene", scene]);
@@ -599,14 +602,9 @@ fn record_set(
 }
 
 /// One condition: its manifest, its training, its rollouts; each skipped when done.
-fn run_condition(
-    cfg: &ExperimentConfig,
-    c: &ConditionSpec,
-    config_dir: &Path,
-    layout: &Layout,
-    args: &RetrievalArgs,
-    say: &(dyn Fn(String) + Sync),
-) -> anyhow::Result<()> {
+fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
+    let &Run { cfg, config_dir, layout, args } = run;
+    let say = |line: String| run.say(line);
     let quiet = args.json;
     let dir = layout.condition(&c.name);
     std::fs::create_dir_all(&dir)?;
@@ -715,21 +713,15 @@ fn run_condition(
     }
     // Rollouts on the target's seeds, set by set; a set cut off runs again.
     for first in cfg.seed_sets() {
-        roll_out(cfg, c, config_dir, layout, args, say, first)?;
+        roll_out(run, c, first)?;
     }
     Ok(())
 }
 
 /// One set of rollouts of a condition's policy, from `first` seed.
-fn roll_out(
-    cfg: &ExperimentConfig,
-    c: &ConditionSpec,
-    config_dir: &Path,
-    layout: &Layout,
-    args: &RetrievalArgs,
-    say: &(dyn Fn(String) + Sync),
-    first: u64,
-) -> anyhow::Result<()> {
+fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
+    let &Run { cfg, config_dir, layout, args } = run;
+    let say = |line: String| run.say(line);
     let dir = layout.condition(&c.name);
     let rollouts = dir.join(cfg.rollouts_dir(first));
     let stage = format!("[rollout] {} seeds {first}..{}", c.name, first + cfg.rollouts - 1);

@@ -239,9 +239,10 @@ fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Resul
 /// ends: `labrig launch` forks every node, restarts included, from its main thread (the
 /// supervisor runs in `block_on`); the demo, rollouts, the calibration capture and the benches
 /// supervise from a tokio worker thread, which lives until their runtime shuts down, after the
-/// rig is stopped. Nothing here may fork nodes from a thread that ends earlier (a
-/// `spawn_blocking` or `block_in_place` thread).
-fn stop_with_launcher(cmd: &mut Command) {
+/// rig is stopped; `labrig experiment` forks each stage from the thread that waits for it.
+/// Nothing here may fork nodes from a thread that ends earlier (a `spawn_blocking` or
+/// `block_in_place` thread).
+pub(crate) fn stop_with_launcher(cmd: &mut Command) {
     use std::os::unix::process::CommandExt;
     let launcher = nix::unistd::getpid();
     // SAFETY: the closure runs in the child between fork and exec, and calls only prctl(2),
