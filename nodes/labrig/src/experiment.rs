@@ -1160,7 +1160,7 @@ mod tests {
         for f in ["full.toml", "ci.toml"] {
             let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../experiments/retrieval").join(f);
             let cfg = ExperimentConfig::load(&path).unwrap();
-            assert_eq!(cfg.condition.len(), 6, "{f}");
+            assert!(cfg.condition.len() >= 6, "{f}");
             let dir = path.parent().unwrap();
             for d in std::iter::once(&cfg.target).chain(&cfg.prior) {
                 resolve_scene(&d.scene, dir).unwrap();
