@@ -410,8 +410,9 @@ fn minutes(s: f64) -> String {
 
 /// Adds `seconds` to the wall time kept in `path` (a stage run in several sittings).
 fn add_wall(path: &Path, seconds: f64) -> anyhow::Result<f64> {
-    let before = read_json(path).and_then(|v| v["wall_s"].as_f64()).unwrap_or(0.0);
-    let sittings = read_json(path).and_then(|v| v["sittings"].as_u64()).unwrap_or(0);
+    let kept = read_json(path).unwrap_or_default();
+    let before = kept["wall_s"].as_f64().unwrap_or(0.0);
+    let sittings = kept["sittings"].as_u64().unwrap_or(0);
     write_json(path, &json!({"wall_s": before + seconds, "sittings": sittings + 1}))?;
     Ok(before + seconds)
 }
