@@ -2,6 +2,8 @@
 //!
 //! - `labrig dataset index <root>... --out <index dir> [--shard I/N] [--json]`: one row per
 //!   episode (labrig MCAP and DROID raw, found by auto-detection) into a Parquet part;
+//! - `labrig dataset merge <parts dir> --out <index dir> [--json]`: a whole set of shard parts
+//!   as one index, hive-partitioned by source format (`source_format=<f>/part-*.parquet`);
 //! - `labrig dataset retrieve --index <dir> --target <episodes dir|index dir|target.toml>
 //!   --align object,skill,camPose,objTex,objSpat --out manifest.json [--json]`.
 
@@ -28,6 +30,8 @@ struct Cli {
 enum Cmd {
     /// Index episodes (labrig MCAP, DROID raw) into a directory of Parquet parts.
     Index(IndexArgs),
+    /// Merge a whole set of shard parts into one index, hive-partitioned by source format.
+    Merge(MergeArgs),
     /// Retrieve the demos aligned with a target into a manifest.
     Retrieve(RetrieveArgs),
     /// What an index holds, by bin, object and primitive; with --target, the funnel; --plot a PNG.
@@ -151,6 +155,17 @@ struct IndexArgs {
 }
 
 #[derive(Debug, Args)]
+struct MergeArgs {
+    /// The directory the shards wrote (`labrig dataset index --shard I/N --out <parts dir>`).
+    parts: PathBuf,
+    /// The merged index: `<out>/source_format=<f>/part-*.parquet` and `_index.json`.
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, Args)]
 struct RetrieveArgs {
     /// The index directory to retrieve from.
     #[arg(long)]
@@ -186,6 +201,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.cmd {
         Cmd::Index(a) => index(a),
+        Cmd::Merge(a) => merge(a),
         Cmd::Retrieve(a) => retrieve_cmd(a),
         Cmd::Bench(a) => bench(a),
         Cmd::Stats(a) => stats(a),
@@ -442,6 +458,29 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
         }
         for b in &bad {
             println!("    skipped {}: {}", b["path"].as_str().unwrap_or(""), b["reason"].as_str().unwrap_or(""));
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn merge(a: MergeArgs) -> anyhow::Result<ExitCode> {
+    let t0 = Instant::now();
+    anyhow::ensure!(
+        !a.out.exists() || a.parts.canonicalize().ok() != a.out.canonicalize().ok(),
+        "--out must be another directory than the parts ({})",
+        a.parts.display()
+    );
+    let m = table::merge(&a.parts, &a.out)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    if a.json {
+        let mut v = serde_json::to_value(&m)?;
+        v["index"] = serde_json::json!(a.out);
+        v["seconds"] = serde_json::json!(seconds);
+        println!("{v}");
+    } else {
+        println!("{}: {} episodes from {} shards, {seconds:.1} s", a.out.display(), m.rows, m.shards);
+        for (f, k) in &m.by_format {
+            println!("    {}={f}: {k}", table::PARTITION_KEY);
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -21,6 +21,7 @@ use parquet::arrow::ArrowWriter;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::basic::Compression;
 use parquet::file::properties::WriterProperties;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -36,6 +37,8 @@ pub enum TableError {
     Version { path: String, found: u32 },
     #[error("{0}: no index parts (part-*.parquet) there")]
     Empty(String),
+    #[error("{path}: {why}")]
+    Incomplete { path: String, why: String },
 }
 
 /// The file of shard `i` of `n`.
@@ -248,8 +251,17 @@ fn rows_of(path: &str, b: &RecordBatch) -> Result<Vec<IndexRow>, TableError> {
         .collect())
 }
 
-/// The parts of an index directory, sorted.
-pub fn parts(dir: &Path) -> Result<Vec<PathBuf>, TableError> {
+/// The shard of a part's file name: `part-00003-of-00016.parquet` is shard 3 of 16.
+pub fn shard_of_name(path: &Path) -> Option<(usize, usize)> {
+    let n = path.file_name()?.to_str()?.strip_prefix("part-")?.strip_suffix(".parquet")?;
+    let (i, n) = n.split_once("-of-")?;
+    Some((i.parse().ok()?, n.parse().ok()?))
+}
+
+/// The directory a merged index keeps `source_format`'s rows in (hive partitioning).
+pub const PARTITION_KEY: &str = "source_format";
+
+fn part_files(dir: &Path) -> Result<Vec<PathBuf>, TableError> {
     let io = |error| TableError::Io { path: dir.display().to_string(), error };
     let mut parts: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(io)?
@@ -264,17 +276,148 @@ pub fn parts(dir: &Path) -> Result<Vec<PathBuf>, TableError> {
     Ok(parts)
 }
 
-/// Every row of an index directory (all its parts).
+/// The partitions of a merged index (`source_format=<f>` folders), sorted.
+fn partitions(dir: &Path) -> Result<Vec<PathBuf>, TableError> {
+    let io = |error| TableError::Io { path: dir.display().to_string(), error };
+    let prefix = format!("{PARTITION_KEY}=");
+    let mut p: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io)?
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.is_dir() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with(&prefix)))
+        .collect();
+    p.sort();
+    Ok(p)
+}
+
+/// The parts of an index directory, sorted: `labrig dataset index`'s shards
+/// (`part-<I>-of-<N>.parquet`), or a merged index's partitions (`source_format=<f>/part-*`).
+pub fn parts(dir: &Path) -> Result<Vec<PathBuf>, TableError> {
+    let flat = part_files(dir)?;
+    if !flat.is_empty() {
+        return Ok(flat);
+    }
+    let mut parts = Vec::new();
+    for p in partitions(dir)? {
+        parts.extend(part_files(&p)?);
+    }
+    Ok(parts)
+}
+
+/// Why a directory of shard parts is not one whole index.
+pub fn incomplete(parts: &[PathBuf]) -> Option<String> {
+    let shards: Vec<(usize, usize)> = parts.iter().filter_map(|p| shard_of_name(p)).collect();
+    let counts: BTreeSet<usize> = shards.iter().map(|s| s.1).collect();
+    if counts.len() > 1 {
+        let names: Vec<String> = counts.iter().map(|n| format!("of {n}")).collect();
+        return Some(format!(
+            "parts of {} shardings ({}): delete the stale parts, or index again with one --shard N",
+            counts.len(),
+            names.join(", ")
+        ));
+    }
+    let n = *counts.first()?;
+    let have: BTreeSet<usize> = shards.iter().map(|s| s.0).collect();
+    let missing: Vec<String> = (0..n).filter(|i| !have.contains(i)).map(|i| format!("{i}/{n}")).collect();
+    (!missing.is_empty()).then(|| format!("shards {} missing (of {n})", missing.join(", ")))
+}
+
+/// Every row of an index directory (all its parts). Shard parts must form one whole set.
 pub fn read_index(dir: &Path) -> Result<Vec<IndexRow>, TableError> {
     let parts = parts(dir)?;
     if parts.is_empty() {
         return Err(TableError::Empty(dir.display().to_string()));
+    }
+    if parts.iter().all(|p| p.parent() == Some(dir))
+        && let Some(why) = incomplete(&parts)
+    {
+        return Err(TableError::Incomplete { path: dir.display().to_string(), why });
     }
     let mut rows = Vec::new();
     for p in parts {
         rows.extend(read_part(&p)?);
     }
     Ok(rows)
+}
+
+/// What `merge` wrote (also `_index.json` in the merged index).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize, PartialEq)]
+pub struct Merged {
+    pub index_version: u32,
+    pub rows: usize,
+    pub shards: usize,
+    pub by_format: BTreeMap<String, usize>,
+    /// The `--extrinsics` stamp every part was made with ("" for none).
+    pub extrinsics_override: String,
+    pub files: Vec<PathBuf>,
+}
+
+/// The file a merged index describes itself in.
+pub const MERGED_FILE: &str = "_index.json";
+
+/// Merges the shard parts in `parts_dir` (one whole set) into `out`, hive-partitioned by
+/// source format: `<out>/source_format=<f>/part-00000-of-00001.parquet`, rows sorted by source
+/// path, plus `_index.json`. Partitions of an earlier merge that no longer have rows are removed.
+pub fn merge(parts_dir: &Path, out: &Path) -> Result<Merged, TableError> {
+    let parts = part_files(parts_dir)?;
+    if parts.is_empty() {
+        return Err(TableError::Empty(parts_dir.display().to_string()));
+    }
+    let dir = parts_dir.display().to_string();
+    if let Some(why) = incomplete(&parts) {
+        return Err(TableError::Incomplete { path: dir, why });
+    }
+    let stamps: BTreeSet<String> = parts.iter().map(|p| part_recalibration(p).unwrap_or_default()).collect();
+    if stamps.len() > 1 {
+        return Err(TableError::Incomplete {
+            path: dir,
+            why: "its parts were indexed with different --extrinsics files: index every shard with the same one".into(),
+        });
+    }
+    let mut rows = Vec::new();
+    for p in &parts {
+        rows.extend(read_part(p)?);
+    }
+    rows.sort_by(|a, b| a.source_path.cmp(&b.source_path));
+    if let Some(w) = rows.windows(2).find(|w| w[0].source_path == w[1].source_path) {
+        return Err(TableError::Incomplete {
+            path: dir,
+            why: format!("{} is in more than one part: the parts overlap", w[0].source_path),
+        });
+    }
+    let io = |p: &Path, error| TableError::Io { path: p.display().to_string(), error };
+    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    let stamp = stamps.into_iter().next().unwrap_or_default();
+    let mut by_format: BTreeMap<String, Vec<IndexRow>> = BTreeMap::new();
+    for r in rows {
+        by_format.entry(r.source_format.clone()).or_default().push(r);
+    }
+    let mut files = Vec::new();
+    for (format, rows) in &by_format {
+        let p = out.join(format!("{PARTITION_KEY}={format}"));
+        std::fs::create_dir_all(&p).map_err(|e| io(&p, e))?;
+        let file = p.join(part_name(0, 1));
+        write_part(&file, rows, &stamp)?;
+        files.push(file);
+    }
+    for p in partitions(out)? {
+        let format = p.file_name().and_then(|n| n.to_str()).unwrap_or("")[PARTITION_KEY.len() + 1..].to_owned();
+        if !by_format.contains_key(&format) {
+            std::fs::remove_dir_all(&p).map_err(|e| io(&p, e))?;
+        }
+    }
+    let merged = Merged {
+        index_version: INDEX_VERSION,
+        rows: by_format.values().map(Vec::len).sum(),
+        shards: parts.len(),
+        by_format: by_format.iter().map(|(f, r)| (f.clone(), r.len())).collect(),
+        extrinsics_override: stamp,
+        files,
+    };
+    let json = out.join(MERGED_FILE);
+    std::fs::write(&json, serde_json::to_string_pretty(&merged).expect("plain data") + "\n")
+        .map_err(|e| io(&json, e))?;
+    Ok(merged)
 }
 
 #[cfg(test)]
@@ -312,5 +455,45 @@ mod tests {
         let path = dir.path().join(part_name(0, 1));
         write_part(&path, &rows, "").unwrap();
         assert_eq!(read_index(dir.path()).unwrap(), rows);
+    }
+
+    #[test]
+    fn shards_merge_into_a_hive_partitioned_index_only_when_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let (parts, out) = (dir.path().join("parts"), dir.path().join("index"));
+        std::fs::create_dir_all(&parts).unwrap();
+        let mut rows: Vec<IndexRow> = (0..9).map(sample).collect();
+        for r in rows.iter_mut().skip(6) {
+            r.source_format = "rlds".into();
+        }
+        for i in 0..3 {
+            let mine: Vec<IndexRow> = rows.iter().skip(i).step_by(3).cloned().collect();
+            write_part(&parts.join(part_name(i, 3)), &mine, "").unwrap();
+        }
+        // A stale part of another sharding is named, not read twice.
+        write_part(&parts.join(part_name(0, 1)), &rows, "").unwrap();
+        let e = merge(&parts, &out).unwrap_err().to_string();
+        assert!(e.contains("2 shardings"), "{e}");
+        assert!(read_index(&parts).unwrap_err().to_string().contains("2 shardings"));
+        std::fs::remove_file(parts.join(part_name(0, 1))).unwrap();
+        std::fs::rename(parts.join(part_name(1, 3)), dir.path().join("away")).unwrap();
+        let e = merge(&parts, &out).unwrap_err().to_string();
+        assert!(e.contains("shards 1/3 missing"), "{e}");
+        std::fs::rename(dir.path().join("away"), parts.join(part_name(1, 3))).unwrap();
+        let m = merge(&parts, &out).unwrap();
+        assert_eq!((m.rows, m.shards), (9, 3));
+        assert_eq!(m.by_format, BTreeMap::from([("droid_raw".into(), 6), ("rlds".into(), 3)]));
+        assert!(out.join("source_format=rlds").join(part_name(0, 1)).is_file());
+        let mut back = read_index(&out).unwrap();
+        back.sort_by(|a, b| a.source_path.cmp(&b.source_path));
+        rows.sort_by(|a, b| a.source_path.cmp(&b.source_path));
+        assert_eq!(back, rows);
+        // A partition whose rows are gone goes too.
+        for i in 0..3 {
+            let mine: Vec<IndexRow> = rows.iter().take(6).skip(i).step_by(3).cloned().collect();
+            write_part(&parts.join(part_name(i, 3)), &mine, "").unwrap();
+        }
+        assert_eq!(merge(&parts, &out).unwrap().rows, 6);
+        assert!(!out.join("source_format=rlds").exists());
     }
 }
