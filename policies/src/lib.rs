@@ -22,6 +22,7 @@
 pub mod bench;
 pub mod checkpoint;
 pub mod data;
+pub mod dist;
 pub mod encoder;
 pub mod infer;
 pub mod lerobot;

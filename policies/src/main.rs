@@ -120,6 +120,10 @@ struct TrainArgs {
     /// Override the preset's seed.
     #[arg(long)]
     seed: Option<u64>,
+    /// Data-parallel runs (WORLD_SIZE > 1 from the launcher): how long a rank waits for the
+    /// others (joining, and at each step) before it gives up with an error.
+    #[arg(long, default_value_t = 1800)]
+    dist_timeout_s: u64,
     /// Print the run's report as JSON.
     #[arg(long)]
     json: bool,
@@ -184,6 +188,22 @@ fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         (None, Some(e)) => labrig_policies::train::Length::Epochs(e),
         (None, None) => anyhow::bail!("say how long to train: --steps N or --epochs N"),
     };
+    // Data-parallel when a launcher (torchrun --no-python, srun, ...) set WORLD_SIZE > 1.
+    let dist = match labrig_policies::dist::Launch::from_env()? {
+        None => None,
+        Some(l) => {
+            let timeout = std::time::Duration::from_secs(a.dist_timeout_s);
+            eprintln!(
+                "rank {} of {}: joining the process group (Gloo) at {}:{}{}",
+                l.rank,
+                l.world,
+                l.master_addr,
+                l.master_port,
+                if l.agent_store { " (the launcher's store)" } else { "" }
+            );
+            Some(std::sync::Arc::new(labrig_policies::dist::Group::join(&l, timeout)?))
+        }
+    };
     let opts = RunOptions {
         target,
         cotrain,
@@ -199,8 +219,14 @@ fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             CorrectionsArg::All => labrig_policies::train::Corrections::All,
             CorrectionsArg::Operator => labrig_policies::train::Corrections::Operator { before: a.before_takeover },
         },
+        dist,
     };
     let r = labrig_policies::train::run(&opts)?;
+    if opts.dist.as_ref().is_some_and(|g| g.rank != 0) {
+        // Rank 0 reports (and wrote run.json); the others only say they finished.
+        eprintln!("rank {} done: {} steps", opts.dist.as_ref().map(|g| g.rank).unwrap_or(0), r.steps);
+        return Ok(ExitCode::SUCCESS);
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {

@@ -460,6 +460,8 @@ pub struct RunOptions {
     pub progress: bool,
     /// Which samples of correction episodes are trained on.
     pub corrections: Corrections,
+    /// Data-parallel: this process is one rank of the group (see [`crate::dist`]).
+    pub dist: Option<std::sync::Arc<crate::dist::Group>>,
 }
 
 /// The figures of a run (also `run.json`).
@@ -503,7 +505,18 @@ pub struct RunReport {
     pub loader_share: f64,
     pub decode_s: f64,
     pub threads: i32,
+    /// Data-parallel ranks (1: one process); `samples_per_s` counts all of them.
+    #[serde(default = "one")]
+    pub world_size: usize,
+    /// Data-parallel: the largest difference between a rank's final weights and rank 0's,
+    /// summed over the ranks (0 when they stayed in step, as they must).
+    #[serde(default)]
+    pub ranks_weight_diff: Option<f64>,
     pub checkpoint: PathBuf,
+}
+
+fn one() -> usize {
+    1
 }
 
 /// diffusers' cosine schedule with linear warm-up: the learning rate's factor at `step`.
@@ -630,33 +643,69 @@ impl Trainer {
         rng_noise: &Tensor,
         t: &[i64],
     ) -> Result<f64, (&'static str, Vec<String>)> {
+        self.step_in(batch, lr, rng_noise, t, None).map_err(|e| match e {
+            StepError::Refused(what, eps) => (what, eps),
+            StepError::Dist(_) => unreachable!("no process group"),
+        })
+    }
+
+    /// [`Trainer::step`] as one rank of `group`: the gradients are averaged over the ranks
+    /// before the optimiser steps (the loss returned is the ranks' mean), and a step any rank
+    /// refuses is refused by all, so the ranks' weights stay identical.
+    pub fn step_in(
+        &mut self,
+        batch: &Batch,
+        lr: f64,
+        rng_noise: &Tensor,
+        t: &[i64],
+        group: Option<&crate::dist::Group>,
+    ) -> Result<f64, StepError> {
         let finite = |x: &Tensor| x.isfinite().all().int64_value(&[]) == 1;
+        let mut refused: Option<&'static str> = None;
         if !batch.images.iter().all(finite)
             || !finite(&batch.state)
             || !finite(&batch.action)
             || !finite(&batch.waypoint)
         {
-            return Err(("the batch", batch.episodes.clone()));
+            refused = Some("the batch");
         }
-        let loss = self
-            .policy
-            .loss(&batch.images, &batch.state, &batch.action, Some(&batch.waypoint), rng_noise, t, true)
-            .map_err(|_| ("the batch's shape", batch.episodes.clone()))?;
-        let value = loss.double_value(&[]);
-        if !value.is_finite() {
-            return Err(("the loss", batch.episodes.clone()));
+        let loss = match refused {
+            Some(_) => None,
+            None => self
+                .policy
+                .loss(&batch.images, &batch.state, &batch.action, Some(&batch.waypoint), rng_noise, t, true)
+                .map_err(|_| refused = Some("the batch's shape"))
+                .ok(),
+        };
+        let mut value = loss.as_ref().map(|l| l.double_value(&[])).unwrap_or(f64::NAN);
+        if refused.is_none() && !value.is_finite() {
+            refused = Some("the loss");
+        }
+        self.opt.zero_grad();
+        if let (None, Some(loss)) = (refused, &loss) {
+            loss.backward();
+            let grads_finite = self.vs.trainable_variables().iter().all(|v| {
+                let g = v.grad();
+                !g.defined() || finite(&g)
+            });
+            if !grads_finite {
+                refused = Some("a gradient");
+            }
+        }
+        if let Some(g) = group {
+            // One all-reduce carries the gradients, the loss and whether any rank refused.
+            let mut extra = [if refused.is_some() { 0.0 } else { value }, refused.is_some() as u8 as f64];
+            g.average_grads(&self.vs.trainable_variables(), &mut extra).map_err(StepError::Dist)?;
+            if extra[1] > 0.0 && refused.is_none() {
+                refused = Some("another rank's batch");
+            }
+            value = extra[0] / g.world as f64;
+        }
+        if let Some(what) = refused {
+            self.opt.zero_grad();
+            return Err(StepError::Refused(what, batch.episodes.clone()));
         }
         self.opt.set_lr(lr);
-        self.opt.zero_grad();
-        loss.backward();
-        let grads_finite = self.vs.trainable_variables().iter().all(|v| {
-            let g = v.grad();
-            !g.defined() || finite(&g)
-        });
-        if !grads_finite {
-            self.opt.zero_grad();
-            return Err(("a gradient", batch.episodes.clone()));
-        }
         self.opt.clip_grad_norm(self.cfg.grad_clip_norm);
         self.opt.step();
         self.step += 1;
@@ -671,6 +720,40 @@ impl Trainer {
         });
         Ok(value)
     }
+
+    /// How far this rank's weights are from rank 0's (the largest difference), summed over
+    /// the ranks: 0 when every rank holds the same model.
+    pub fn weight_diff(&self, group: &crate::dist::Group) -> Result<f64, crate::dist::DistError> {
+        let mut v: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        let own = Tensor::cat(&v.iter().map(|(_, t)| t.detach().reshape([-1])).collect::<Vec<_>>(), 0);
+        let lead = own.copy();
+        group.broadcast(std::slice::from_ref(&lead), 0)?;
+        group.sum((&lead - &own).abs().max().double_value(&[]))
+    }
+
+    /// Every rank's weights, EMA weights and step made rank 0's (after a fresh start or a
+    /// resume, so the ranks begin identical whatever their seeds).
+    pub fn share_weights(&mut self, group: &crate::dist::Group) -> Result<(), crate::dist::DistError> {
+        let sorted = |vs: &nn::VarStore| {
+            let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            v.into_iter().map(|(_, t)| t).collect::<Vec<_>>()
+        };
+        group.broadcast(&sorted(&self.vs), 0)?;
+        group.broadcast(&sorted(&self.ema_vs), 0)?;
+        let step = group.sum(if group.rank == 0 { self.step as f64 } else { 0.0 })?;
+        self.step = step as u64;
+        Ok(())
+    }
+}
+
+/// Why a step was not taken.
+#[derive(Debug)]
+pub enum StepError {
+    /// What was not finite, and the episodes of the batch.
+    Refused(&'static str, Vec<String>),
+    Dist(crate::dist::DistError),
 }
 
 /// The validation loss of the EMA weights on a fixed set: the first `n` samples spread over
@@ -886,12 +969,24 @@ pub fn plot_loss(rows: &[LossRow], title: &str, path: &Path) -> Result<(), Train
 pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let Preset { model, train: tc } = &opts.preset;
     let threads = tch::get_num_threads();
+    let group = opts.dist.as_deref();
+    let (rank, world) = group.map(|g| (g.rank, g.world)).unwrap_or((0, 1));
+    // Rank 0 alone writes the run's files; the others train beside it.
+    let lead = rank == 0;
     std::fs::create_dir_all(&opts.out).map_err(io(&opts.out, "creating the run directory"))?;
+    let dist_err = |e: crate::dist::DistError| TrainError::Setup(e.to_string());
     let decode_started = Instant::now();
-    let (target, skipped_t) =
-        load_set(&opts.target, model, &opts.cache, opts.include_failures, opts.progress, "target")?;
+    // Rank 0 decodes first and fills the frame cache; the others then read it.
+    if let (Some(g), false) = (group, lead) {
+        g.sum(0.0).map_err(dist_err)?;
+    }
+    let progress = opts.progress && lead;
+    let (target, skipped_t) = load_set(&opts.target, model, &opts.cache, opts.include_failures, progress, "target")?;
     let (cotrain, skipped_c) =
-        load_set(&opts.cotrain, model, &opts.cache, opts.include_failures, opts.progress, "co-training")?;
+        load_set(&opts.cotrain, model, &opts.cache, opts.include_failures, progress, "co-training")?;
+    if let (Some(g), true) = (group, lead) {
+        g.sum(0.0).map_err(dist_err)?;
+    }
     let decode_s = decode_started.elapsed().as_secs_f64();
     if target.is_empty() {
         return Err(TrainError::Setup(format!(
@@ -966,19 +1061,29 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     drop((train_eps, val_eps, cotrain));
     let stats = (&state_stats, &action_stats);
     let w = if co_set.is_empty() { 1.0 } else { opts.w };
+    if let Some(g) = group {
+        trainer.share_weights(g).map_err(dist_err)?;
+    }
+    // Every rank draws the same global batch (world x batch size) and trains on its slice.
     let mut sampler = CotrainSampler::new(train_set.len(), co_set.len(), w, tc.seed ^ trainer.step)?;
-    let validation = Validation::new(&val_set, stats, model, tc.val_samples, tc.batch_size, tc.seed)?;
+    // Rank 0 validates (every rank holds the same held-out split; the others skip it).
+    let empty = SampleSet::new(&[], model);
+    let validation =
+        Validation::new(if lead { &val_set } else { &empty }, stats, model, tc.val_samples, tc.batch_size, tc.seed)?;
 
     let ckpt_dir = opts.out.join("checkpoints");
     let csv = opts.out.join("loss.csv");
     let mut log = if resumed_from.is_some() { read_loss_csv(&csv, trainer.step) } else { Vec::new() };
     let total = match opts.length {
         Length::Steps(n) => n as u64,
-        Length::Epochs(e) => (e * train_set.len() as f64 / tc.batch_size as f64).ceil() as u64,
+        Length::Epochs(e) => (e * train_set.len() as f64 / (tc.batch_size * world) as f64).ceil() as u64,
     };
     let warmup = tc.warmup_steps.min(total as usize / 10);
     let mut last_ckpt = last.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "none yet".into());
     let save = |trainer: &Trainer, last_ckpt: &mut String| -> Result<PathBuf, TrainError> {
+        if !lead {
+            return Ok(ckpt_dir.join(format!("step_{}", trainer.step)));
+        }
         let name = format!("step_{}", trainer.step);
         let dir = ckpt_dir.join(&name);
         let meta = CheckpointMeta {
@@ -1013,8 +1118,13 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
             first_waypoint_mm,
         });
     }
+    let ranks = if world > 1 {
+        format!(", rank {rank} of {world} (global batch {})", tc.batch_size * world)
+    } else {
+        String::new()
+    };
     println!(
-        "training {} ({} steps, batch {}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {w}, {} threads",
+        "training {} ({} steps, batch {}{ranks}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {w}, {} threads",
         if resumed_from.is_some() { "resumed" } else { "from scratch" },
         total,
         tc.batch_size,
@@ -1025,7 +1135,7 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         co_set.len(),
         threads
     );
-    let bar = if opts.progress { indicatif::ProgressBar::new(total) } else { indicatif::ProgressBar::hidden() };
+    let bar = if progress { indicatif::ProgressBar::new(total) } else { indicatif::ProgressBar::hidden() };
     bar.set_style(
         indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  ETA {eta}")
             .expect("a valid template"),
@@ -1041,7 +1151,24 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(tc.seed.wrapping_add(trainer.step).wrapping_mul(0x9E37_79B9));
     while trainer.step < total {
         let t0 = Instant::now();
-        let draws = sampler.batch(tc.batch_size);
+        let b = tc.batch_size as i64;
+        let global = sampler.batch(tc.batch_size * world);
+        // Noise and timesteps belong to a draw of the global batch, so a rank's slice gets what
+        // one process with the whole batch would give those samples.
+        tch::manual_seed(tc.seed.wrapping_mul(0x9E37_79B9).wrapping_add(trainer.step) as i64);
+        let noise_all = Tensor::randn([b * world as i64, model.horizon, model.action_dim], (Kind::Float, Device::Cpu));
+        let t_all: Vec<i64> = (0..global.len()).map(|_| rng.random_range(0..model.train_steps as i64)).collect();
+        // The random crops differ by rank.
+        tch::manual_seed(
+            tc.seed.wrapping_mul(0x85EB_CA6B).wrapping_add(trainer.step * world as u64 + rank as u64) as i64
+        );
+        let mine = (rank * tc.batch_size)..((rank + 1) * tc.batch_size);
+        let draws = &global[mine.clone()];
+        // The batch holds the target's samples, then the co-training set's.
+        let order: Vec<usize> = (0..draws.len())
+            .filter(|&k| matches!(draws[k], Draw::Target(_)))
+            .chain((0..draws.len()).filter(|&k| matches!(draws[k], Draw::Cotrain(_))))
+            .collect();
         let (ti, ci): (Vec<usize>, Vec<usize>) = draws.iter().fold((Vec::new(), Vec::new()), |(mut t, mut c), d| {
             match *d {
                 Draw::Target(i) => t.push(i),
@@ -1057,21 +1184,21 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
             parts.push(co_set.batch(&ci, stats)?);
         }
         let batch = concat(parts);
-        let b = tc.batch_size as i64;
-        let noise = Tensor::randn([b, model.horizon, model.action_dim], (Kind::Float, Device::Cpu));
-        let t: Vec<i64> = (0..b).map(|_| rng.random_range(0..model.train_steps as i64)).collect();
+        let rows_at: Vec<i64> = order.iter().map(|&k| (mine.start + k) as i64).collect();
+        let noise = noise_all.index_select(0, &Tensor::from_slice(&rows_at));
+        let t: Vec<i64> = order.iter().map(|&k| t_all[mine.start + k]).collect();
         let t1 = Instant::now();
         let lr = tc.lr * lr_factor(trainer.step as usize, warmup, total as usize);
-        let loss = trainer.step(&batch, lr, &noise, &t).map_err(|(what, episodes)| TrainError::NotFinite {
-            step: trainer.step,
-            what,
-            episodes,
-            last_checkpoint: last_ckpt.clone(),
+        let loss = trainer.step_in(&batch, lr, &noise, &t, group).map_err(|e| match e {
+            StepError::Refused(what, episodes) => {
+                TrainError::NotFinite { step: trainer.step, what, episodes, last_checkpoint: last_ckpt.clone() }
+            }
+            StepError::Dist(e) => dist_err(e),
         })?;
         let t2 = Instant::now();
         load_s += (t1 - t0).as_secs_f64();
         step_s += (t2 - t0).as_secs_f64();
-        samples += b as u64;
+        samples += (b * world as i64) as u64;
         last_train = loss;
         let at = trainer.step;
         let mut row = LossRow {
@@ -1083,7 +1210,7 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
             waypoint_mm: None,
             first_waypoint_mm: None,
         };
-        if at % tc.val_every as u64 == 0 || at == total {
+        if lead && (at % tc.val_every as u64 == 0 || at == total) {
             row.val = validation.loss(&trainer.ema)?;
             row.open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
             (row.waypoint_mm, row.first_waypoint_mm) = validation.waypoint_mm(&trainer.ema)?;
@@ -1114,7 +1241,7 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
             });
         }
         log.push(row);
-        if at % tc.checkpoint_every as u64 == 0 || at == total {
+        if lead && (at % tc.checkpoint_every as u64 == 0 || at == total) {
             save(&trainer, &mut last_ckpt)?;
             write_loss_csv(&csv, &log)?;
         }
@@ -1122,15 +1249,23 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         bar.inc(1);
     }
     bar.finish_and_clear();
+    let ranks_weight_diff = match group {
+        None => None,
+        Some(g) => Some(trainer.weight_diff(g).map_err(dist_err)?),
+    };
     let checkpoint = match last_checkpoint(&opts.out) {
         Some(dir) => dir,
         None => save(&trainer, &mut last_ckpt)?,
     };
-    write_loss_csv(&csv, &log)?;
-    let title =
-        format!("labrig train: {} target + {} co-training episodes, w = {w}, batch {}", n_train, n_co, tc.batch_size);
-    if let Err(e) = plot_loss(&log, &title, &opts.out.join("loss.png")) {
-        eprintln!("warning: {e}");
+    if lead {
+        write_loss_csv(&csv, &log)?;
+        let title = format!(
+            "labrig train: {} target + {} co-training episodes, w = {w}, batch {}",
+            n_train, n_co, tc.batch_size
+        );
+        if let Err(e) = plot_loss(&log, &title, &opts.out.join("loss.png")) {
+            eprintln!("warning: {e}");
+        }
     }
     let report = RunReport {
         steps: trainer.step,
@@ -1156,8 +1291,13 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         loader_share: load_s / step_s.max(1e-9),
         decode_s,
         threads,
+        world_size: world,
+        ranks_weight_diff,
         checkpoint,
     };
+    if !lead {
+        return Ok(report);
+    }
     let path = opts.out.join("run.json");
     let mut f = std::fs::File::create(&path).map_err(io(&path, "writing"))?;
     f.write_all(serde_json::to_string_pretty(&report).unwrap_or_default().as_bytes()).map_err(io(&path, "writing"))?;

@@ -191,6 +191,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("lerobot_export_demo", 172, 1),
     ("lerobot_trained_rollout", 173, 1),
     ("experiment_retrieval_ci", 174, 2),
+    ("train_distributed_demo", 111, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
