@@ -512,6 +512,10 @@ pub struct RunReport {
     /// summed over the ranks (0 when they stayed in step, as they must).
     #[serde(default)]
     pub ranks_weight_diff: Option<f64>,
+    /// Data-parallel: the share of a step's time rank 0 spent in the gradients' all-reduce
+    /// (waiting for the slowest rank included).
+    #[serde(default)]
+    pub allreduce_share: Option<f64>,
     pub checkpoint: PathBuf,
 }
 
@@ -601,6 +605,8 @@ pub struct Trainer {
     opt: nn::Optimizer,
     pub cfg: TrainConfig,
     pub step: u64,
+    /// Seconds spent in the gradients' all-reduce (data-parallel runs).
+    pub comm_s: f64,
 }
 
 impl Trainer {
@@ -612,7 +618,7 @@ impl Trainer {
         ema_vs.copy(&vs)?;
         let opt = nn::Adam { beta1: cfg.betas[0], beta2: cfg.betas[1], wd: cfg.weight_decay, ..Default::default() }
             .build(&vs, cfg.lr)?;
-        Ok(Trainer { vs, policy, ema_vs, ema, opt, cfg: cfg.clone(), step: 0 })
+        Ok(Trainer { vs, policy, ema_vs, ema, opt, cfg: cfg.clone(), step: 0, comm_s: 0.0 })
     }
 
     /// Continues from a checkpoint's weights, EMA weights and step (the optimiser's moments
@@ -695,7 +701,9 @@ impl Trainer {
         if let Some(g) = group {
             // One all-reduce carries the gradients, the loss and whether any rank refused.
             let mut extra = [if refused.is_some() { 0.0 } else { value }, refused.is_some() as u8 as f64];
+            let t0 = Instant::now();
             g.average_grads(&self.vs.trainable_variables(), &mut extra).map_err(StepError::Dist)?;
+            self.comm_s += t0.elapsed().as_secs_f64();
             if extra[1] > 0.0 && refused.is_none() {
                 refused = Some("another rank's batch");
             }
@@ -1293,6 +1301,7 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         threads,
         world_size: world,
         ranks_weight_diff,
+        allreduce_share: group.map(|_| trainer.comm_s / step_s.max(1e-9)),
         checkpoint,
     };
     if !lead {
