@@ -2,7 +2,7 @@
 //! own copy, through the small shim in `csrc/c10d_shim.cpp`, since tch binds none of
 //! torch.distributed), joined the way torchrun, srun or any launcher asks:
 //!
-//! - `WORLD_SIZE` and `RANK` (or Slurm's `SLURM_NTASKS` and `SLURM_PROCID`): a world of one, or
+//! - `WORLD_SIZE` and `RANK` (or, under srun, `SLURM_STEP_NUM_TASKS` and `SLURM_PROCID`): a world of one, or
 //!   neither set, is a plain single-process run;
 //! - `MASTER_ADDR` (default 127.0.0.1) and `MASTER_PORT` (default 29500): the rendezvous store.
 //!   Rank 0 serves it on exactly that address (not on every interface, c10d's own default),
@@ -88,7 +88,8 @@ impl Launch {
                 })
                 .transpose()
         };
-        let (world, rank) = match (num("WORLD_SIZE")?, num("SLURM_NTASKS")?) {
+        // Slurm: srun's step variables (a batch script's own SLURM_NTASKS is not a launch).
+        let (world, rank) = match (num("WORLD_SIZE")?, num("SLURM_STEP_NUM_TASKS")?) {
             (Some(w), _) => (w, num("RANK")?),
             (None, Some(w)) => (w, num("SLURM_PROCID")?),
             (None, None) => return Ok(None),
@@ -314,8 +315,9 @@ mod tests {
         assert!(l.agent_store);
         assert_eq!(l.prefix, "/worker/attempt_3");
         // srun's variables stand in for torchrun's.
-        let l = launch(&[("SLURM_NTASKS", "4"), ("SLURM_PROCID", "3")]).unwrap().unwrap();
+        let l = launch(&[("SLURM_STEP_NUM_TASKS", "4"), ("SLURM_PROCID", "3")]).unwrap().unwrap();
         assert_eq!((l.rank, l.world), (3, 4));
+        assert_eq!(launch(&[("SLURM_NTASKS", "4"), ("SLURM_PROCID", "0")]).unwrap(), None);
         let e = launch(&[("WORLD_SIZE", "2")]).unwrap_err().to_string();
         assert!(e.contains("RANK") && e.contains("unset"), "{e}");
         let e = launch(&[("WORLD_SIZE", "2"), ("RANK", "2")]).unwrap_err().to_string();

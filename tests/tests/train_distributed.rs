@@ -28,7 +28,7 @@ fn train(args: &[&str]) -> Command {
     workspace_bin("labrig-policies", "labrig-policies");
     let mut c = Command::new(labrig_bin());
     c.arg("train").args(args).args(["--threads", "1", "--json"]).env("OMP_NUM_THREADS", "1");
-    for v in ["WORLD_SIZE", "RANK", "MASTER_ADDR", "MASTER_PORT", "SLURM_NTASKS", "SLURM_PROCID"] {
+    for v in ["WORLD_SIZE", "RANK", "MASTER_ADDR", "MASTER_PORT", "SLURM_STEP_NUM_TASKS", "SLURM_PROCID"] {
         c.env_remove(v);
     }
     c
