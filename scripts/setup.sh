@@ -60,6 +60,10 @@ apt_install libopencv-dev libopencv-contrib-dev clang
 # The operator station's page is tested in a real browser (issue 22): Debian's chromium,
 # headless, driven by playwright-core (below). ~14 s to install here.
 apt_install chromium
+# DROID-scale indexing (issue 36): a one-node Slurm on localhost (scripts/scale/slurm_local.sh)
+# runs the index as a job array in the tests; libgloo-dev: the collective backend for
+# multi-process training.
+apt_install slurm-wlm munge libgloo-dev
 
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.
@@ -280,6 +284,11 @@ tool_venv realsense "pyrealsense2, numpy" pyrealsense2==2.59.1.11053 numpy==2.4.
 tool_venv openpi "openpi_client.websocket_client_policy, openpi_server.websocket_policy_server" \
     openpi-client==0.1.2 openpi-server==0.1.0 typing_extensions==4.16.0 numpy==1.26.4 \
     msgpack==1.2.4 websockets==17.4 dm-tree==0.1.10 pillow==13.0.0
+# DROID-scale indexing (issue 36): Ray runs one `labrig dataset index --shard` per task
+# (scripts/scale/ray_index.py; ray[default] for `ray start`'s dashboard and `ray job submit`),
+# DuckDB and pyarrow query the merged, hive-partitioned index in the tests.
+tool_venv scale "ray, ray.job_submission, duckdb, pyarrow" \
+    "ray[default]==2.60.0" duckdb==2.0.1 pyarrow==26.0.1
 # LeRobot's own dataset code (issue 34): the real reader labrig's LeRobot export is checked
 # with, and (venv-lerobot-data) the real `lerobot-train` a labrig export trains with. PyPI's
 # torch is a CUDA build: the pinned closure in scripts/lerobot/requirements.txt (torch 2.10 +
@@ -363,6 +372,7 @@ export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
 export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
 export LABRIG_OPENPI_PYTHON=\"$LABRIG_CACHE/venv-openpi/bin/python\"
+export LABRIG_SCALE_PYTHON=\"$LABRIG_CACHE/venv-scale/bin/python\"
 export LABRIG_LEROBOT_PYTHON=\"$LABRIG_CACHE/venv-lerobot-data/bin/python\"
 export LABRIG_LEROBOT_V21_PYTHON=\"$LABRIG_CACHE/venv-lerobot-v21/bin/python\"
 export LABRIG_NODE=\"$NODE_BIN\"

@@ -1,5 +1,7 @@
 //! The index on disk: a directory of Parquet parts, `part-<I>-of-<N>.parquet` (one per shard
-//! of `labrig dataset index --shard I/N`; together they are the index), snappy-compressed, with
+//! of `labrig dataset index --shard I/N`; together they are the index), or the merged index
+//! `labrig dataset merge` makes of them (hive-partitioned: `source_format=<f>/part-*.parquet`,
+//! that column in the folder name only), snappy-compressed, with
 //! flat columns any Parquet reader (pyarrow, DuckDB, Spark) can query by name:
 //!
 //! `index_version, episode_id, source_path, source_format, file_size, file_mtime_ns, success,
@@ -46,7 +48,7 @@ pub fn part_name(i: usize, n: usize) -> String {
     format!("part-{i:05}-of-{n:05}.parquet")
 }
 
-fn columns(rows: &[IndexRow]) -> Vec<(Field, ArrayRef)> {
+fn columns(rows: &[IndexRow], with_format: bool) -> Vec<(Field, ArrayRef)> {
     fn text(name: &str, rows: &[IndexRow], f: impl Fn(&IndexRow) -> Option<&str>) -> (Field, ArrayRef) {
         let a: StringArray = rows.iter().map(f).collect();
         (Field::new(name, DataType::Utf8, true), Arc::new(a))
@@ -62,7 +64,6 @@ fn columns(rows: &[IndexRow]) -> Vec<(Field, ArrayRef)> {
         ),
         text("episode_id", rows, |r| Some(&r.episode_id)),
         text("source_path", rows, |r| Some(&r.source_path)),
-        text("source_format", rows, |r| Some(&r.source_format)),
         (
             Field::new("file_size", DataType::UInt64, false),
             Arc::new(rows.iter().map(|r| r.file_size).collect::<UInt64Array>()),
@@ -86,6 +87,9 @@ fn columns(rows: &[IndexRow]) -> Vec<(Field, ArrayRef)> {
             Arc::new(rows.iter().map(|r| r.length).collect::<UInt64Array>()),
         ),
     ];
+    if with_format {
+        c.insert(3, text("source_format", rows, |r| Some(&r.source_format)));
+    }
     for (k, cam) in CAMERAS.iter().enumerate() {
         let at = |r: &IndexRow| r.cameras.get(k).cloned().unwrap_or_default();
         c.push(text(&format!("{cam}_serial"), rows, |r| r.cameras.get(k).and_then(|c| c.serial.as_deref())));
@@ -116,9 +120,13 @@ fn columns(rows: &[IndexRow]) -> Vec<(Field, ArrayRef)> {
 /// Writes `rows` as one Parquet file (through a temporary name, so a reader never sees half).
 /// `recalibration` is the stamp of the `--extrinsics` file the rows were made with ("" for none).
 pub fn write_part(path: &Path, rows: &[IndexRow], recalibration: &str) -> Result<(), TableError> {
+    write(path, rows, recalibration, true)
+}
+
+fn write(path: &Path, rows: &[IndexRow], recalibration: &str, with_format: bool) -> Result<(), TableError> {
     let pq = |error| TableError::Parquet { path: path.display().to_string(), error };
     let io = |error| TableError::Io { path: path.display().to_string(), error };
-    let (fields, arrays): (Vec<Field>, Vec<ArrayRef>) = columns(rows).into_iter().unzip();
+    let (fields, arrays): (Vec<Field>, Vec<ArrayRef>) = columns(rows, with_format).into_iter().unzip();
     let schema = Arc::new(Schema::new(fields));
     let batch = RecordBatch::try_new(schema.clone(), arrays).map_err(|e| pq(e.into()))?;
     let tmp = path.with_extension("parquet.tmp");
@@ -190,7 +198,24 @@ fn rows_of(path: &str, b: &RecordBatch) -> Result<Vec<IndexRow>, TableError> {
     };
     let id = text("episode_id")?;
     let source = text("source_path")?;
-    let format = text("source_format")?;
+    // A merged index's files leave the partition key to their folder's name (hive style).
+    let format = match b.column_by_name("source_format") {
+        Some(_) => text("source_format")?,
+        None => {
+            let key = Path::new(path)
+                .parent()
+                .and_then(|d| d.file_name())
+                .and_then(|n| n.to_str())
+                .and_then(|n| n.strip_prefix(PARTITION_KEY))
+                .and_then(|n| n.strip_prefix('='))
+                .ok_or_else(|| TableError::Column {
+                    path: path.to_owned(),
+                    column: "source_format".into(),
+                    what: format!("is missing, and the file is in no `{PARTITION_KEY}=<f>` folder"),
+                })?;
+            vec![Some(key.to_owned()); b.num_rows()]
+        }
+    };
     let size = u64s("file_size")?;
     let mtime: Vec<Option<i64>> =
         col("file_mtime_ns")?.as_primitive_opt::<Int64Type>().ok_or_else(|| wrong("file_mtime_ns"))?.iter().collect();
@@ -356,8 +381,9 @@ pub struct Merged {
 pub const MERGED_FILE: &str = "_index.json";
 
 /// Merges the shard parts in `parts_dir` (one whole set) into `out`, hive-partitioned by
-/// source format: `<out>/source_format=<f>/part-00000-of-00001.parquet`, rows sorted by source
-/// path, plus `_index.json`. Partitions of an earlier merge that no longer have rows are removed.
+/// source format: `<out>/source_format=<f>/part-00000-of-00001.parquet` (the column itself left
+/// to the folder name, as hive readers expect: pyarrow refuses a key that is also a column),
+/// rows sorted by source path, plus `_index.json`. Partitions of an earlier merge that no longer have rows are removed.
 pub fn merge(parts_dir: &Path, out: &Path) -> Result<Merged, TableError> {
     let parts = part_files(parts_dir)?;
     if parts.is_empty() {
@@ -397,7 +423,7 @@ pub fn merge(parts_dir: &Path, out: &Path) -> Result<Merged, TableError> {
         let p = out.join(format!("{PARTITION_KEY}={format}"));
         std::fs::create_dir_all(&p).map_err(|e| io(&p, e))?;
         let file = p.join(part_name(0, 1));
-        write_part(&file, rows, &stamp)?;
+        write(&file, rows, &stamp, false)?;
         files.push(file);
     }
     for p in partitions(out)? {
