@@ -2,7 +2,9 @@
 //! this test is the launcher (WORLD_SIZE, RANK, MASTER_ADDR = 127.0.0.1, MASTER_PORT per rank,
 //! what torchrun --no-python and srun set), so every socket stays on loopback. Two ranks of
 //! batch 8 must train as one process of batch 16 does (the same losses step by step, within
-//! float tolerance), end with identical weights, resume, and name a broken launch.
+//! float tolerance), end with identical weights, resume, and name a broken launch. The same
+//! run launched by `srun -n 2` on a one-node Slurm (scripts/scale/slurm_local.sh, daemons on
+//! 127.0.0.1) takes its ranks from srun's step and trains the same.
 
 use labrig_tests::{domain_for, labrig_bin, workspace_bin};
 use serde_json::Value;
@@ -59,6 +61,35 @@ fn ranks(world: usize, args: &[&str]) -> Vec<Output> {
         })
         .collect();
     children.into_iter().map(|c| c.wait_with_output().unwrap()).collect()
+}
+
+/// A one-node Slurm on loopback (scripts/scale/slurm_local.sh), stopped on drop. Port base
+/// 23600: clear of tests/tests/scale_index.rs's (23350) and of DDS's ports.
+struct Slurm {
+    state: tempfile::TempDir,
+}
+
+impl Slurm {
+    fn start() -> Slurm {
+        let state = tempfile::tempdir().unwrap();
+        let o = Command::new("bash")
+            .arg(labrig_tests::repo_root().join("scripts/scale/slurm_local.sh"))
+            .args(["start", state.path().to_str().unwrap(), "23600"])
+            .output()
+            .unwrap();
+        let slurm = Slurm { state };
+        assert!(o.status.success(), "slurm_local.sh start: {}", labrig_tests::output_text(&o));
+        slurm
+    }
+}
+
+impl Drop for Slurm {
+    fn drop(&mut self) {
+        let _ = Command::new("bash")
+            .arg(labrig_tests::repo_root().join("scripts/scale/slurm_local.sh"))
+            .args(["stop", self.state.path().to_str().unwrap()])
+            .output();
+    }
 }
 
 fn report(o: &Output) -> Value {
@@ -164,6 +195,30 @@ fn two_gloo_ranks_train_as_one_process_with_the_doubled_batch() {
     let outs = ranks(2, &strs(&v));
     let r4 = report(&outs[0]);
     assert_eq!(r4["ranks_weight_diff"].as_f64(), Some(0.0), "{r4}");
+
+    // srun -n 2 on a one-node Slurm: the ranks from srun's step, the same losses again.
+    let slurm = Slurm::start();
+    let srun_out = dir.path().join("srun");
+    let mut cmd = Command::new("timeout");
+    cmd.args(["120", "srun", "-n", "2", "--cpus-per-task", "1", "--kill-on-bad-exit=1"])
+        .arg(labrig_bin())
+        .arg("train")
+        .args(strs(&common(&srun_out, "8", "6")))
+        .args(["--threads", "1", "--json"])
+        .env("SLURM_CONF", slurm.state.path().join("slurm.conf"))
+        .env("MASTER_ADDR", "127.0.0.1")
+        .env("MASTER_PORT", free_port().to_string())
+        .env("OMP_NUM_THREADS", "1");
+    for v in ["WORLD_SIZE", "RANK"] {
+        cmd.env_remove(v);
+    }
+    let o = cmd.output().unwrap();
+    drop(slurm);
+    let r5 = report(&o);
+    assert_eq!((r5["world_size"].as_u64(), r5["ranks_weight_diff"].as_f64()), (Some(2), Some(0.0)), "{r5}");
+    for (x, y) in l1.iter().zip(&losses(&srun_out)) {
+        assert!(close(x.1, y.1), "srun: train loss at step {}: {} vs {}", x.0, x.1, y.1);
+    }
 
     // A launch without RANK, and a rank whose peer never comes, are named.
     let o = train(&strs(&a)).env("WORLD_SIZE", "2").output().unwrap();
