@@ -14,6 +14,11 @@ fn main() {
     };
     let dir = std::fs::canonicalize(&dir).map(|p| p.display().to_string()).unwrap_or(dir);
     println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}/lib");
+    // labrig-policy-server shares this script for the rpath; the shim comes to it with the
+    // labrig-policies library it links.
+    if std::env::var("CARGO_PKG_NAME").as_deref() != Ok("labrig-policies") {
+        return;
+    }
     let gloo = std::path::Path::new("/usr/include/gloo/context.h");
     assert!(gloo.is_file(), "{} is missing: install Debian's libgloo-dev (scripts/setup.sh does)", gloo.display());
     cc::Build::new()
