@@ -3,6 +3,8 @@
 //!
 //! Peers are real processes; nothing here stands in for them. Every wait is bounded.
 
+pub mod droid_raw;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

@@ -12,10 +12,10 @@
 //! 127.0.0.1 only (checked with `ss`); the Ray head takes only drivers holding its token; every
 //! wait is bounded.
 
+use labrig_tests::droid_raw::{CAMS, OBJECTS};
 use labrig_tests::{cache_dir, labrig_bin, repo_root, workspace_bin};
 use serde_json::{Value, json};
 use std::collections::BTreeSet;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -87,49 +87,11 @@ fn labrig_json(args: &[&str]) -> Value {
     ok_json(&format!("labrig {}", args.join(" ")), &bounded("labrig", cmd, Duration::from_secs(120)))
 }
 
-/// Two camera regions x two object regions, three episodes each, plus one that names no
-/// object (as tests/tests/dataset.rs writes them).
-const CAMS: [[f64; 6]; 2] = [[0.3, 0.6, 0.5, -2.3, 0.0, -1.6], [1.1, -0.5, 0.5, -2.3, 0.0, 2.4]];
-const OBJECTS: [[f64; 3]; 2] = [[0.5, 0.1, 0.05], [0.5, 0.5, 0.05]];
-
-fn write_droid_raw(root: &Path) {
-    let mut eps = Vec::new();
-    for (c, cam) in CAMS.iter().enumerate() {
-        for (o, obj) in OBJECTS.iter().enumerate() {
-            for k in 0..3 {
-                eps.push(json!({
-                    "name": format!("c{c}o{o}k{k}"), "success": k != 2, "uuid": format!("FIX+op+c{c}o{o}k{k}"),
-                    "task": "Put the red cube in the bin", "steps": 80,
-                    "ext1": cam, "ext2": [0.5, -0.9, 0.7, -2.0, 0.0, 0.0],
-                    "grasp_step": 40, "grasp_xyz": obj, "accidental_step": 12, "decoy_xyz": [0.9, 0.9, 0.3],
-                }));
-            }
-        }
-    }
-    eps.push(json!({
-        "name": "wipe", "success": true, "uuid": "FIX+op+wipe", "task": "wipe the table", "steps": 30,
-        "ext1": CAMS[0], "ext2": CAMS[0], "grasp_step": null, "grasp_xyz": [0, 0, 0],
-    }));
-    let mut child = Command::new(venv_python("LABRIG_DROID_PYTHON", "venv-droid"))
-        .arg(repo_root().join("tests/peers/make_droid_raw.py"))
-        .arg(root)
-        .stdin(Stdio::piped())
-        .spawn()
-        .unwrap();
-    child.stdin.take().unwrap().write_all(serde_json::to_string(&eps).unwrap().as_bytes()).unwrap();
-    assert!(child.wait().unwrap().success(), "make_droid_raw.py failed");
-    // A damaged one: listed as bad by its shard, in no index.
-    let bad = root.join("success/2026-11-26/damaged");
-    std::fs::create_dir_all(&bad).unwrap();
-    std::fs::write(bad.join("trajectory.h5"), b"not hdf5").unwrap();
-    std::fs::write(bad.join("metadata_FIX+op+bad.json"), r#"{"uuid": "FIX+op+bad"}"#).unwrap();
-}
-
 /// The three roots: 14 DROID raw episodes (one damaged), the RLDS shard (9 episodes) and one
 /// labrig episode: 16 sources, 23 rows.
 fn fixtures(dir: &Path) -> Vec<PathBuf> {
     let raw = dir.join("droid_raw");
-    write_droid_raw(&raw);
+    labrig_tests::droid_raw::write(&raw);
     let rlds = dir.join("rlds");
     std::fs::create_dir_all(&rlds).unwrap();
     let shard = "droid_101-train.tfrecord-00000-of-00001";
