@@ -84,7 +84,10 @@ AccountingStorageType=accounting_storage/none
 JobCompType=jobcomp/none
 MpiDefault=none
 SwitchType=switch/none
-SchedulerType=sched/backfill
+# One node, a handful of jobs: the builtin FIFO scheduler, started without delay (backfill's
+# cycles and the batch delay took an array + dependent merge from 5 s to 9 s).
+SchedulerType=sched/builtin
+SchedulerParameters=sched_min_interval=0,batch_sched_delay=0
 SelectType=select/cons_tres
 SelectTypeParameters=CR_Core_Memory
 DefMemPerCPU=512
@@ -121,6 +124,10 @@ EOF
 stop)
     [ -d "$state" ] || exit 0
     state="$(cd "$state" && pwd)"
+    # All three told at once, then each waited for (KILLed after 5 s).
+    for d in slurmd slurmctld munged; do
+        [ -f "$state/run/$d.pid" ] && kill -TERM "$(cat "$state/run/$d.pid")" 2>/dev/null || true
+    done
     stop_pidfile "$state/run/slurmd.pid"
     stop_pidfile "$state/run/slurmctld.pid"
     stop_pidfile "$state/run/munged.pid"

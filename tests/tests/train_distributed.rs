@@ -119,7 +119,7 @@ fn close(a: f64, b: f64) -> bool {
 fn two_gloo_ranks_train_as_one_process_with_the_doubled_batch() {
     let dir = tempfile::tempdir().unwrap();
     let eps = dir.path().join("demo");
-    demo(&eps, 3);
+    demo(&eps, 2);
     let cache = dir.path().join("cache");
     let (one, two) = (dir.path().join("one"), dir.path().join("two"));
     let s = |p: &Path| p.to_str().unwrap().to_owned();
