@@ -22,7 +22,8 @@
 # on by itself for a head started where ~/.ray/auth_token exists, which a plain local
 # `ray.init()` writes; the head and its clients must then agree, so it is never left to that.)
 # Clients (a driver, `ray job submit`, `ray status`) take it from the environment:
-#   source <temp dir>/env.sh    # RAY_ADDRESS, RAY_API_SERVER_ADDRESS, RAY_AUTH_MODE=token, RAY_AUTH_TOKEN_PATH
+#   source <temp dir>/env.sh    # RAY_ADDRESS, RAY_API_SERVER_ADDRESS, RAY_AUTH_MODE=token, RAY_AUTH_TOKEN_PATH,
+#                               # RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 (a driver stays on loopback)
 #
 # Ray is `ray` on PATH or that of $LABRIG_SCALE_PYTHON's venv (scripts/setup.sh). Sizes:
 # RAY_LOCAL_NUM_CPUS (default 2), RAY_LOCAL_OBJECT_STORE_BYTES (default 256 MB: the jobs pass
@@ -60,7 +61,9 @@ start)
     export RAY_USAGE_STATS_ENABLED=0
     (umask 077 && head -c 32 /dev/urandom | od -An -tx1 | tr -d ' \n' >"$temp/auth_token")
     export RAY_AUTH_MODE=token RAY_AUTH_TOKEN_PATH="$temp/auth_token"
-    printf 'export RAY_ADDRESS=127.0.0.1:%s\nexport RAY_API_SERVER_ADDRESS=http://127.0.0.1:%s\nexport RAY_AUTH_MODE=token\nexport RAY_AUTH_TOKEN_PATH=%s\n' \
+    # RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 for the drivers too: without it a driver's own node
+    # address becomes the machine's outward one and it never reaches the loopback GCS.
+    printf 'export RAY_ADDRESS=127.0.0.1:%s\nexport RAY_API_SERVER_ADDRESS=http://127.0.0.1:%s\nexport RAY_AUTH_MODE=token\nexport RAY_AUTH_TOKEN_PATH=%s\nexport RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0\nexport RAY_USAGE_STATS_ENABLED=0\n' \
         "$base" "$((base + 1))" "$temp/auth_token" >"$temp/env.sh"
     # The venv first on the head's PATH: a job's entrypoint (`ray job submit -- python ...`)
     # runs under it and finds Ray's Python.
