@@ -8,7 +8,6 @@
 // headers: the Gloo code that runs is the copy inside libtorch_cpu.
 fn main() {
     println!("cargo:rerun-if-env-changed=LIBTORCH");
-    println!("cargo:rerun-if-changed=csrc/c10d_shim.cpp");
     let Ok(dir) = std::env::var("LIBTORCH") else {
         panic!("LIBTORCH is not set: run scripts/setup.sh (it assembles libtorch and points .cargo/config.toml at it)")
     };
@@ -17,8 +16,10 @@ fn main() {
     // labrig-policy-server shares this script for the rpath; the shim comes to it with the
     // labrig-policies library it links.
     if std::env::var("CARGO_PKG_NAME").as_deref() != Ok("labrig-policies") {
+        // (A rerun-if-changed naming a file the package lacks would rebuild it every time.)
         return;
     }
+    println!("cargo:rerun-if-changed=csrc/c10d_shim.cpp");
     let gloo = std::path::Path::new("/usr/include/gloo/context.h");
     assert!(gloo.is_file(), "{} is missing: install Debian's libgloo-dev (scripts/setup.sh does)", gloo.display());
     cc::Build::new()
