@@ -732,9 +732,7 @@ impl Trainer {
     /// How far this rank's weights are from rank 0's (the largest difference), summed over
     /// the ranks: 0 when every rank holds the same model.
     pub fn weight_diff(&self, group: &crate::dist::Group) -> Result<f64, crate::dist::DistError> {
-        let mut v: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
-        v.sort_by(|a, b| a.0.cmp(&b.0));
-        let own = Tensor::cat(&v.iter().map(|(_, t)| t.detach().reshape([-1])).collect::<Vec<_>>(), 0);
+        let own = Tensor::cat(&by_name(&self.vs).iter().map(|t| t.detach().reshape([-1])).collect::<Vec<_>>(), 0);
         let lead = own.copy();
         group.broadcast(std::slice::from_ref(&lead), 0)?;
         group.sum((&lead - &own).abs().max().double_value(&[]))
@@ -743,17 +741,19 @@ impl Trainer {
     /// Every rank's weights, EMA weights and step made rank 0's (after a fresh start or a
     /// resume, so the ranks begin identical whatever their seeds).
     pub fn share_weights(&mut self, group: &crate::dist::Group) -> Result<(), crate::dist::DistError> {
-        let sorted = |vs: &nn::VarStore| {
-            let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
-            v.sort_by(|a, b| a.0.cmp(&b.0));
-            v.into_iter().map(|(_, t)| t).collect::<Vec<_>>()
-        };
-        group.broadcast(&sorted(&self.vs), 0)?;
-        group.broadcast(&sorted(&self.ema_vs), 0)?;
+        group.broadcast(&by_name(&self.vs), 0)?;
+        group.broadcast(&by_name(&self.ema_vs), 0)?;
         let step = group.sum(if group.rank == 0 { self.step as f64 } else { 0.0 })?;
         self.step = step as u64;
         Ok(())
     }
+}
+
+/// A var store's variables in name order (the same on every rank).
+fn by_name(vs: &nn::VarStore) -> Vec<Tensor> {
+    let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v.into_iter().map(|(_, t)| t).collect()
 }
 
 /// Why a step was not taken.
