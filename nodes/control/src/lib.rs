@@ -1,5 +1,8 @@
 //! labrig-control: the 20 Hz rig loop.
 //!
+//! - [`config`]: the node's keys (the loop, the source, the clock, `[policy]`); [`report`]:
+//!   what a run reports (episodes, the summary's figures, DROID's action dictionary);
+//!   [`info`]: what a policy server serves. These import no module above them.
 //! - [`frames`]: per camera, the recent frames' times; the frame nearest a tick; skew.
 //! - [`episode`]: the episode state machine (idle -> recording -> success | failure |
 //!   discarded -> resetting -> idle), driven by events.
@@ -14,20 +17,24 @@
 //! - [`node`]: the node (`labrig-control run`) feeding the state machine from ROS 2 and shared
 //!   memory on the sim's or the wall clock.
 
+pub mod config;
 pub mod episode;
 pub mod frames;
+pub mod info;
 pub mod node;
 pub mod policy;
 pub mod remote;
+pub mod report;
 pub mod rig;
 pub mod source;
 pub mod step;
 pub mod takeover;
 
+use config::{ClockKind, ControlConfig, SourceKind};
 use labrig_msgs::Invalid;
 use labrig_runtime::node::{is_false, negated};
 use labrig_runtime::{RosConfig, Shutdown};
-use node::{ClockKind, ControlConfig, SourceKind, Summary};
+use report::Summary;
 use std::path::Path;
 
 /// The rig loop node: `labrig-control run` (`labrig_runtime::node_main`).
@@ -103,5 +110,64 @@ impl labrig_runtime::Node for ControlNode {
             "control loop stopped"
         );
         Ok(summary)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    /// The modules' references to each other (`crate::<module>` outside comments), per module.
+    fn imports() -> BTreeMap<String, Vec<String>> {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+        let mut graph = BTreeMap::new();
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            let name = path.file_stem().unwrap().to_string_lossy().into_owned();
+            if path.extension().is_none_or(|e| e != "rs") || name == "lib" || name == "main" {
+                continue;
+            }
+            let mut uses: Vec<String> = Vec::new();
+            for line in std::fs::read_to_string(&path).unwrap().lines() {
+                let code = line.split("//").next().unwrap_or("");
+                for (i, _) in code.match_indices("crate::") {
+                    let rest = &code[i + "crate::".len()..];
+                    let module: String = rest.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+                    if !module.is_empty() && module != name && !uses.contains(&module) {
+                        uses.push(module);
+                    }
+                }
+            }
+            graph.insert(name, uses);
+        }
+        graph
+    }
+
+    /// The modules import each other in one direction only: the node's config and report
+    /// sit below the loop, the policy source and the node (a cycle made every change to
+    /// one of them a change to all).
+    #[test]
+    fn the_modules_import_each_other_without_a_cycle() {
+        let graph = imports();
+        assert!(graph.len() >= 10 && graph["node"].contains(&"rig".to_string()), "{graph:?}");
+        // Depth-first search; a module met again on the current path closes a cycle.
+        fn visit(m: &str, graph: &BTreeMap<String, Vec<String>>, path: &mut Vec<String>, done: &mut Vec<String>) {
+            if done.iter().any(|d| d == m) {
+                return;
+            }
+            if let Some(at) = path.iter().position(|p| p == m) {
+                panic!("the modules import each other in a circle: {} -> {m}", path[at..].join(" -> "));
+            }
+            path.push(m.to_string());
+            for next in graph.get(m).into_iter().flatten() {
+                visit(next, graph, path, done);
+            }
+            path.pop();
+            done.push(m.to_string());
+        }
+        let mut done = Vec::new();
+        for m in graph.keys() {
+            visit(m, &graph, &mut Vec::new(), &mut done);
+        }
     }
 }

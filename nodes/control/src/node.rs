@@ -23,278 +23,30 @@
 //! runs and the arm node's watchdog stays fed. Step timing (DROID's step_start ..
 //! step_end) is on the loop's clock: in sim, the tick's sim time plus wall time spent in it.
 
+use crate::config::{ClockKind, ControlConfig, SourceKind, TakeoverKind};
 use crate::frames::FrameTimes;
-use crate::policy::{PolicySource, PolicySourceConfig};
+use crate::policy::PolicySource;
+use crate::report::{Summary, percentiles_us};
 use crate::rig::{RigLoop, RigOutputs};
 use crate::source::RgbFrame;
 use crate::source::{ActionSource, ScriptedExpert};
-use crate::takeover::{ExpertRule, Takeover, TakeoverKind};
+use crate::takeover::{ExpertRule, Takeover};
 use anyhow::Context;
-use labrig_arm::ik::{Ik, IkConfig, delta_to_velocity, pose_error, xyz_euler};
-use labrig_arm::safety::{SafetyConfig, SafetyFilter};
-use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
-use labrig_msgs::Invalid;
+use labrig_arm::ik::{Ik, IkConfig};
+use labrig_arm::safety::SafetyFilter;
+use labrig_arm::{Fr3Kinematics, TcpOffset};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{
-    ActionDict, ArmCommand, ArmCommandMode, EpisodeEvent, GripperCommand, GripperState, RIG_CAMERAS, RobotState, Step,
-};
+use labrig_msgs::labrig_msgs::{ArmCommand, EpisodeEvent, GripperCommand, GripperState, RobotState, Step};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
+use labrig_runtime::Shutdown;
 use labrig_runtime::frames::FrameEncoding;
 use labrig_runtime::frames::{FrameNode, FrameSubscriber};
 use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
-use labrig_runtime::{RosConfig, Shutdown};
-use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::collections::VecDeque;
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-/// DROID's `max_gripper_delta`: a full-scale gripper velocity moves it this far per step.
-pub const MAX_GRIPPER_DELTA: f64 = 0.25;
-/// DROID's per-joint `max_joint_delta` (rad per step at full-scale joint velocity).
-pub const MAX_JOINT_DELTA: f64 = 0.2;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "snake_case")]
-pub enum SourceKind {
-    /// The sim bridge's scripted expert (`labrig sim run --expert`).
-    Scripted,
-    /// No source: the arm holds; episodes only from `/rig/request`.
-    Hold,
-    /// The Quest teleop node (`labrig-teleop`): `/teleop/action`, deadman on `/teleop/state`;
-    /// episodes from `/rig/request` (the operator's and the controller's A/B).
-    Teleop,
-    /// The policy server (`labrig-policy run`): action chunks for the loop's observations
-    /// (`[policy]`); in the sim `/sim/task` judges success, on a real rig the operator.
-    Policy,
-    /// A policy behind openpi's websocket protocol (pi0 / pi0.5-DROID on openpi's server, or
-    /// `labrig policy run --openpi`): `[remote]` maps DROID's observation and 15 Hz joint
-    /// velocity chunks; scheduled, judged and made safe as `policy` is (`[policy]`).
-    Remote,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "snake_case")]
-pub enum ClockKind {
-    /// The sim bridge's time: one tick per new `/arm/state` stamp.
-    Sim,
-    /// The monotonic wall clock (the real rig).
-    Wall,
-}
-
-/// The node's config (TOML; every key optional, unknown keys refused).
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ControlConfig {
-    pub ros: RosConfig,
-    pub source: SourceKind,
-    pub clock: ClockKind,
-    /// Control period (s); DROID: 0.05 (20 Hz).
-    pub period_s: f64,
-    /// Start episodes without an operator (the scripted expert).
-    pub auto_start: bool,
-    /// Episodes to run before the node exits (0: until stopped).
-    pub episodes: u64,
-    /// Sim only: a new scene per episode through `/sim/reset`, seeds from `first_seed`.
-    pub reseed: bool,
-    pub first_seed: u64,
-    /// An episode longer than this many steps fails.
-    pub max_steps: u64,
-    /// The cameras whose frames each step references.
-    pub cameras: Vec<String>,
-    pub frames_namespace: Option<String>,
-    /// A camera frame older than this at a tick is stale (s).
-    pub stale_frame_s: f64,
-    /// A source action older than this at a tick is refused (s; realtime only, lockstep
-    /// waits for the tick's own action).
-    pub max_action_age_s: f64,
-    /// Teleop: an action that arrived longer ago than this is not followed (s). The headset
-    /// sends ~72 readings/s, so 35 ms is ~2 missed ones; with a 50 ms tick a vanished
-    /// controller holds the arm within 35 + 50 ms.
-    pub teleop_max_age_s: f64,
-    /// How long a lockstep tick waits for the source's action before holding (s).
-    pub source_timeout_s: f64,
-    /// On the sim's clock, no new tick for this long (s, wall time: the sim or the arm node is
-    /// gone, its clock stopped): the open episode stops, naming it, and the node exits with
-    /// an error.
-    pub tick_timeout_s: f64,
-    /// The arm counts as home when every joint is this close to DROID's reset pose (rad).
-    pub home_tolerance_rad: f64,
-    /// Giving up on reaching home after this long (s of the loop's clock): the node stops.
-    pub reset_timeout_s: f64,
-    /// On the wall clock, run the loop's thread at this SCHED_FIFO priority (1..99; 0: off).
-    /// Needs root or CAP_SYS_NICE; without them the loop runs at normal priority, warned.
-    pub realtime_priority: u8,
-    /// DROID's uuid parts: `<lab>+<user>+<timestamp>`.
-    pub lab: String,
-    pub user: String,
-    pub safety: SafetyConfig,
-    /// The FR3 URDF (default: the one setup installs).
-    pub urdf: Option<PathBuf>,
-    /// The policy source (`source = "policy"`, and the scheduling of `source = "remote"`).
-    pub policy: PolicySourceConfig,
-    /// The openpi server and DROID's conventions (`source = "remote"`).
-    pub remote: crate::remote::RemoteConfig,
-    /// The rig's camera calibrations (a folder of `<camera>.json`, e.g. `calibration/<rig>`):
-    /// the loop warns at start for each of `cameras` whose calibration is missing, unreadable
-    /// or older than `calibration_max_age_s` (DROID's GUI warns after an hour).
-    pub calibration: Option<PathBuf>,
-    pub calibration_max_age_s: f64,
-}
-
-impl Default for ControlConfig {
-    fn default() -> Self {
-        ControlConfig {
-            ros: RosConfig::default(),
-            source: SourceKind::Scripted,
-            clock: ClockKind::Sim,
-            period_s: 0.05,
-            auto_start: true,
-            episodes: 0,
-            reseed: true,
-            first_seed: 0,
-            max_steps: 400,
-            cameras: RIG_CAMERAS.iter().map(|c| c.to_string()).collect(),
-            frames_namespace: labrig_runtime::frames::default_namespace(),
-            stale_frame_s: 0.1,
-            max_action_age_s: 0.15,
-            teleop_max_age_s: 0.035,
-            source_timeout_s: 5.0,
-            tick_timeout_s: 2.0,
-            home_tolerance_rad: 0.02,
-            reset_timeout_s: 20.0,
-            realtime_priority: 20,
-            lab: "LABRIG".into(),
-            user: "operator".into(),
-            // The loop makes its own commands each tick: no age check on them.
-            safety: SafetyConfig { max_command_age_s: 0.0, ..SafetyConfig::default() },
-            urdf: None,
-            policy: PolicySourceConfig::default(),
-            remote: crate::remote::RemoteConfig::default(),
-            calibration: None,
-            calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
-        }
-    }
-}
-
-impl ControlConfig {
-    pub fn validate(&self) -> Result<(), Invalid> {
-        if !(self.period_s.is_finite() && (0.001..=1.0).contains(&self.period_s)) {
-            return Err(Invalid::new("period_s", format!("period_s = {} must be in 0.001..=1", self.period_s)));
-        }
-        if (self.safety.period_s - self.period_s).abs() > 1e-9 {
-            return Err(Invalid::new(
-                "safety.period_s",
-                format!(
-                    "safety.period_s = {} must equal period_s = {} (the per-step limits are per period)",
-                    self.safety.period_s, self.period_s
-                ),
-            ));
-        }
-        for (name, v) in [
-            ("stale_frame_s", self.stale_frame_s),
-            ("max_action_age_s", self.max_action_age_s),
-            ("source_timeout_s", self.source_timeout_s),
-            ("tick_timeout_s", self.tick_timeout_s),
-            ("home_tolerance_rad", self.home_tolerance_rad),
-            ("reset_timeout_s", self.reset_timeout_s),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Invalid::new(name, format!("{name} = {v} must be > 0")));
-            }
-        }
-        if self.realtime_priority > 99 {
-            return Err(Invalid::new(
-                "realtime_priority",
-                format!("realtime_priority = {} must be 0..=99", self.realtime_priority),
-            ));
-        }
-        if self.max_steps == 0 {
-            return Err(Invalid::new("max_steps", "max_steps must be > 0"));
-        }
-        if self.source == SourceKind::Hold && self.auto_start {
-            return Err(Invalid::new("auto_start", "auto_start needs an action source (source = \"hold\" has none)"));
-        }
-        if self.source == SourceKind::Teleop && self.auto_start {
-            return Err(Invalid::new(
-                "auto_start",
-                "auto_start: teleop episodes start on /rig/request (the operator), not by themselves",
-            ));
-        }
-        if !(self.teleop_max_age_s.is_finite() && self.teleop_max_age_s > 0.0) {
-            return Err(Invalid::new(
-                "teleop_max_age_s",
-                format!("teleop_max_age_s: {} must be positive", self.teleop_max_age_s),
-            ));
-        }
-        // Both become a Duration (and a deadline after now) when the node starts: 1e300 passed
-        // the checks above and panicked there.
-        for (name, v) in [("source_timeout_s", self.source_timeout_s), ("teleop_max_age_s", self.teleop_max_age_s)] {
-            if v > 86_400.0 {
-                return Err(Invalid::new(name, format!("{name} = {v} must be at most 86400 (a day)")));
-            }
-        }
-        self.policy.validate()?;
-        if self.source == SourceKind::Remote {
-            self.remote.validate()?;
-        }
-        self.safety.validate()
-    }
-}
-
-/// One finished episode, as the loop saw it.
-#[derive(Debug, Clone, Serialize)]
-pub struct EpisodeReport {
-    pub episode_id: String,
-    pub seed: Option<u64>,
-    pub instruction: String,
-    pub outcome: String,
-    pub steps: u64,
-    /// A policy rollout's operator takeovers ([`crate::takeover`]) and the steps the operator
-    /// acted (0 and 0 for other sources).
-    pub takeovers: u64,
-    pub operator_steps: u64,
-}
-
-/// What a run did.
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Summary {
-    pub ticks: u64,
-    pub episodes: Vec<EpisodeReport>,
-    /// Ticks whose source action was refused (NaN, stale) or missing: the arm held.
-    pub held_ticks: u64,
-    pub refused: u64,
-    /// Ticks that came more than 1.5 periods after the previous one.
-    pub missed_ticks: u64,
-    /// Wall-clock period deviation of consecutive ticks (us): p50, p99, max.
-    pub jitter_us: [f64; 3],
-    /// Recorded steps with a camera missing, or with a frame older than `stale_frame_s`.
-    pub steps_missing_frames: u64,
-    pub steps_stale_frames: u64,
-    /// Camera skew per recorded step (us): p50, p99, max.
-    pub skew_us: [f64; 3],
-    /// Episode starts held back because the recorder took no episode (a full disk).
-    pub starts_refused: u64,
-    /// Policy rollouts: operator takeovers and the steps operators acted, over all episodes.
-    pub takeovers: u64,
-    pub operator_steps: u64,
-    /// Episodes stopped because the arm node reported a fault.
-    pub arm_faults: u64,
-    /// On the sim's clock, ticks started by the sim's `/clock` (the rest by the arm's state).
-    pub clock_ticks: u64,
-    /// What the action source reported (the policy source: requests, chunks, skipped rows,
-    /// round trips).
-    pub source: Option<serde_json::Value>,
-    /// How late ticks began after their boundary (us): p50, p99, max. On the wall clock, from
-    /// the scheduled instant; on the sim's clock, from the sim's `/clock` message of the
-    /// boundary (sent the moment its step is done). The same figure in both clock modes;
-    /// `jitter_us` is the spread of tick-to-tick wall intervals, which on the sim's clock also
-    /// holds the sim's own step-to-step variation.
-    pub tick_lateness_us: [f64; 3],
-    pub seconds: f64,
-}
 
 struct Pubs {
     arm: RosPublisher<ArmCommand>,
@@ -748,64 +500,6 @@ impl RigOutputs for RosOutputs {
     }
 }
 
-/// p50, p99 and max of `v` (ns) in us; NaN when empty.
-pub(crate) fn percentiles_us(v: &mut [i64]) -> [f64; 3] {
-    v.sort_unstable();
-    let at = |q: f64| v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).map_or(f64::NAN, |&x| x as f64 / 1e3);
-    [at(0.5), at(0.99), at(1.0)]
-}
-
-/// DROID's uuid `<lab>+<user>+<YYYY-MM-DD-HHh-MMm-SSs>` (wall time); a second episode in the
-/// same second gets `-2`, `-3`, ...
-pub(crate) fn episode_uuid(lab: &str, user: &str, earlier: &[EpisodeReport]) -> String {
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs() as i64);
-    let base = format!("{lab}+{user}+{}", droid_timestamp(secs));
-    let taken = |id: &str| earlier.iter().any(|e| e.episode_id == id);
-    if !taken(&base) {
-        return base;
-    }
-    (2..).map(|k| format!("{base}-{k}")).find(|id| !taken(id)).expect("unbounded")
-}
-
-/// `YYYY-MM-DD-HHh-MMm-SSs` in UTC for Unix seconds.
-fn droid_timestamp(secs: i64) -> String {
-    chrono::DateTime::from_timestamp(secs, 0).unwrap_or_default().format("%Y-%m-%d-%Hh-%Mm-%Ss").to_string()
-}
-
-/// DROID's action dictionary for one step: the checked joint targets and every other form of
-/// the same action (target pose by FK, velocities as the normalised deltas DROID records).
-pub(crate) fn action_dict(
-    kin: &Fr3Kinematics,
-    robot: &RobotState,
-    gripper: Option<&GripperState>,
-    wanted: &ArmCommand,
-    joints: &Joints,
-    gripper_target: f64,
-) -> ActionDict {
-    let here = kin.tcp_pose(&robot.joint_positions);
-    let target = kin.tcp_pose(joints);
-    let (lin, rot) = pose_error(&here, &target);
-    let joint_velocity =
-        std::array::from_fn(|i| ((joints[i] - robot.joint_positions[i]) / MAX_JOINT_DELTA).clamp(-1.0, 1.0));
-    let measured_gripper = gripper.map_or(robot.gripper_position, |g| g.position);
-    let requested = if wanted.mode == ArmCommandMode::CartesianPosition as u8 {
-        wanted.cartesian_position
-    } else {
-        xyz_euler(&target)
-    };
-    ActionDict {
-        cartesian_velocity: delta_to_velocity(&lin, &rot),
-        cartesian_position: xyz_euler(&target),
-        joint_velocity,
-        joint_position: *joints,
-        gripper_velocity: ((gripper_target - measured_gripper) / MAX_GRIPPER_DELTA).clamp(-1.0, 1.0),
-        gripper_position: gripper_target,
-        target_cartesian_position: requested,
-        target_gripper_position: wanted.gripper_position,
-        ..Default::default()
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -831,31 +525,6 @@ mod tests {
         assert!(ring.at(Nanos(600)).is_none());
         assert_eq!(ring.frames.len(), 2);
         assert_eq!(ring.at(Nanos(600)).unwrap().capture_ns, 400);
-    }
-
-    #[test]
-    fn droid_timestamps_are_utc_calendar_dates() {
-        // 2023-07-07 09:42:23 UTC (DROID's own example episode).
-        assert_eq!(droid_timestamp(1_688_722_943), "2023-07-07-09h-42m-23s");
-        assert_eq!(droid_timestamp(0), "1970-01-01-00h-00m-00s");
-        assert_eq!(droid_timestamp(951_782_400), "2000-02-29-00h-00m-00s");
-    }
-
-    #[test]
-    fn episode_ids_in_the_same_second_differ() {
-        let first = episode_uuid("LAB", "op", &[]);
-        let report = |id: &str| EpisodeReport {
-            episode_id: id.into(),
-            seed: None,
-            instruction: String::new(),
-            outcome: "success".into(),
-            steps: 1,
-            takeovers: 0,
-            operator_steps: 0,
-        };
-        let second = episode_uuid("LAB", "op", &[report(&first)]);
-        assert_ne!(first, second);
-        assert!(first.starts_with("LAB+op+20"));
     }
 
     /// The grip cannot be both the policy's deadman and the operator's takeover; the expert

@@ -16,7 +16,7 @@
 //! (a new handshake) within `policy.server_timeout_s`, past which the episode fails as an
 //! unanswered request does; a chunk of the wrong shape fails the episode, naming the shape.
 
-use crate::policy::PolicyInfo;
+use crate::info::PolicyInfo;
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
 use labrig_msgs::std_msgs::{Header, StringMsg};

@@ -15,11 +15,10 @@
 //! 5. [`RigLoop::act`]: the action (the source's while recording, home while resetting, else
 //!    hold) through the safety layer, the commands, the Step record, the status.
 
+use crate::config::{ClockKind, ControlConfig, SourceKind};
 use crate::episode::{Effect, Ending, Episodes, State};
 use crate::frames::{FrameBook, FrameTimes};
-use crate::node::{
-    ClockKind, ControlConfig, EpisodeReport, SourceKind, Summary, action_dict, episode_uuid, percentiles_us,
-};
+use crate::report::{EpisodeReport, Summary, action_dict, episode_uuid, percentiles_us};
 use crate::source::{ActionSource, Proposal, TickView, Verdict};
 use crate::step::{Decision, Observation, TickTimes, make_step};
 use labrig_arm::safety::{ArmView, Refusal, SafetyFilter};
@@ -820,7 +819,7 @@ mod tests {
     //! The loop driven tick by tick on a manual clock, with an in-memory action source and
     //! outputs: no processes, no DDS.
     use super::*;
-    use crate::node::SourceKind;
+    use crate::config::SourceKind;
     use crate::source::SourceError;
     use labrig_arm::TcpOffset;
     use labrig_arm::ik::{Ik, IkConfig};

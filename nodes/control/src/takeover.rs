@@ -20,25 +20,11 @@
 //! Quest, SCRIPTED for the expert), so no message changes; the loop counts takeovers and
 //! operator steps from that.
 
-use crate::policy::PolicySourceConfig;
+use crate::config::PolicySourceConfig;
 use crate::source::{ActionSource, Guidance, Proposal, SourceError, TickView, Verdict};
 use labrig_msgs::Nanos;
 use labrig_runtime::ros::RosError;
-use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
-
-/// Who may take over from the policy (`policy.takeover`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum TakeoverKind {
-    /// Nobody: the policy acts every tick.
-    #[default]
-    None,
-    /// The Quest operator, by holding the grip.
-    Teleop,
-    /// The sim's scripted expert, by [`ExpertRule`].
-    Expert,
-}
 
 /// When the scripted expert takes over from the policy and hands back; deterministic in
 /// lockstep (it sees only the tick's TCP and the expert's status stamped at the tick).
