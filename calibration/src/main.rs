@@ -208,6 +208,9 @@ const EXIT_REJECTED: u8 = 4;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if labrig_msgs::parse_only() {
+        return ExitCode::SUCCESS;
+    }
     let result = match cli.cmd {
         Some(Cmd::Board(a)) => board_cmd(a),
         Some(Cmd::Solve(a)) => solve_cmd(a),

@@ -199,6 +199,9 @@ struct RetrieveArgs {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if labrig_msgs::parse_only() {
+        return ExitCode::SUCCESS;
+    }
     let result = match cli.cmd {
         Cmd::Index(a) => index(a),
         Cmd::Merge(a) => merge(a),

@@ -307,6 +307,9 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if labrig_msgs::parse_only() {
+        return ExitCode::SUCCESS;
+    }
     let r = match cli.command {
         Command::Export(a) => episodes(&a.source).map(|items| {
             let opts = ExportOptions { overwrite: a.overwrite };

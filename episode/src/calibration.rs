@@ -130,48 +130,9 @@ fn human(s: i64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_msgs::calibration::{BoardSpec, Intrinsics, Mount, Pose, SplitCheck};
 
     fn file(camera: &str, unix_time_s: i64) -> CalibrationFile {
-        let pose = Pose { position: [0.1, 0.2, 0.3], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] };
-        CalibrationFile {
-            version: CALIBRATION_VERSION,
-            rig: "lab".into(),
-            camera: camera.into(),
-            mount: Mount::EyeToHand,
-            parent_frame: "base".into(),
-            child_frame: format!("{camera}_optical"),
-            pose,
-            droid_extrinsics: [0.1, 0.2, 0.3, 0.0, 0.0, 0.0],
-            closed_form: pose,
-            method: "daniilidis+refined".into(),
-            board_pose: pose,
-            intrinsics: Intrinsics {
-                width: 1280,
-                height: 720,
-                fx: 600.0,
-                fy: 600.0,
-                cx: 639.5,
-                cy: 359.5,
-                distortion: vec![],
-                source: "sim".into(),
-            },
-            board: BoardSpec::droid(),
-            rms_px: 0.4,
-            views: vec![],
-            check: SplitCheck {
-                train_views: 42,
-                test_views: 18,
-                position_mse_m2: [0.0; 3],
-                rotation_mse_rad2: [0.0; 3],
-                mean_position_error_mm: 0.3,
-                mean_rotation_error_deg: 0.1,
-                pass: true,
-            },
-            date: "2026-11-25T12:00:00Z".into(),
-            unix_time_s,
-            sim_scene: None,
-        }
+        CalibrationFile::example(camera, unix_time_s)
     }
 
     #[test]

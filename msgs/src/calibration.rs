@@ -189,6 +189,49 @@ pub struct CalibrationFile {
 }
 
 impl CalibrationFile {
+    /// A plausible calibration of `camera` (eye-to-hand, 1280x720, a passed check) made at
+    /// `unix_time_s`: for tests and examples of the readers.
+    pub fn example(camera: &str, unix_time_s: i64) -> CalibrationFile {
+        let pose = Pose { position: [0.1, 0.2, 0.3], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] };
+        CalibrationFile {
+            version: CALIBRATION_VERSION,
+            rig: "lab".into(),
+            camera: camera.into(),
+            mount: Mount::EyeToHand,
+            parent_frame: "base".into(),
+            child_frame: format!("{camera}_optical"),
+            pose,
+            droid_extrinsics: [0.1, 0.2, 0.3, 0.0, 0.0, 0.0],
+            closed_form: pose,
+            method: "daniilidis+refined".into(),
+            board_pose: pose,
+            intrinsics: Intrinsics {
+                width: 1280,
+                height: 720,
+                fx: 600.0,
+                fy: 600.0,
+                cx: 639.5,
+                cy: 359.5,
+                distortion: vec![],
+                source: "sim".into(),
+            },
+            board: BoardSpec::droid(),
+            rms_px: 0.4,
+            views: vec![],
+            check: SplitCheck {
+                train_views: 42,
+                test_views: 18,
+                position_mse_m2: [0.0; 3],
+                rotation_mse_rad2: [0.0; 3],
+                mean_position_error_mm: 0.3,
+                mean_rotation_error_deg: 0.1,
+                pass: true,
+            },
+            date: "2026-11-25T12:00:00Z".into(),
+            unix_time_s,
+            sim_scene: None,
+        }
+    }
     /// Age at `now_unix_s`, s.
     pub fn age_s(&self, now_unix_s: i64) -> i64 {
         now_unix_s - self.unix_time_s

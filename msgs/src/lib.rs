@@ -28,6 +28,13 @@ pub mod topics;
 
 pub use codec::{CDR_BE, CDR_LE, CodecError, decode, decode_payload, encode};
 pub use invalid::Invalid;
+
+/// `LABRIG_PARSE_ONLY=1`: every labrig program parses its command line, then exits 0 without
+/// running it (the documentation check runs each command the guides show this way, so a
+/// command line is judged by the program's own parser and nothing starts).
+pub fn parse_only() -> bool {
+    std::env::var_os("LABRIG_PARSE_ONLY").is_some_and(|v| !v.is_empty() && v != "0")
+}
 pub use registry::{TypeVisitor, known_types, visit_type};
 pub use time::{Nanos, builtin_interfaces};
 

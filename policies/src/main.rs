@@ -419,6 +419,9 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<ExitCode> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if labrig_msgs::parse_only() {
+        return ExitCode::SUCCESS;
+    }
     let result = match cli.command {
         Command::Train(a) => train(a),
         Command::Infer(a) => infer_cmd(a),

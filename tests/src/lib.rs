@@ -194,11 +194,38 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("lerobot_trained_rollout", 173, 1),
     ("experiment_retrieval_ci", 174, 2),
     ("train_distributed_demo", 111, 1),
+    // (No DDS: the port of its franka-sim, 20000 + the domain, as the franka tests do.)
+    ("doctor_franka_sim", 176, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
 /// (`labrig experiment retrieval`: 50 and, with `--jobs`, up to seven more.)
 pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 50..=57, 70..=79];
+
+/// franka-sim on 127.0.0.1:`port` (see scripts/franka_sim_loopback.py).
+pub fn franka_sim(port: u16, flags: &[&str]) -> Proc {
+    let python = std::env::var_os("LABRIG_FRANKA_SIM_PYTHON")
+        .map(Into::into)
+        .unwrap_or_else(|| cache_dir().join("venv-franka-sim/bin/python"));
+    assert!(python.exists(), "franka-sim venv {} is missing: run `bash scripts/setup.sh`", python.display());
+    // The FR3's controller is a dedicated realtime machine; on a loaded 2-core CI machine
+    // franka-sim gets a realtime priority where the test may set one (root), else it runs as is.
+    let realtime = Command::new("chrt").args(["--rr", "20", "true"]).status().is_ok_and(|s| s.success());
+    let mut cmd = if realtime {
+        let mut c = Command::new("chrt");
+        c.args(["--rr", "20"]).arg(python);
+        c
+    } else {
+        Command::new(python)
+    };
+    cmd.arg("-u")
+        .arg(repo_root().join("scripts/franka_sim_loopback.py"))
+        .args(["--no-gripper", "--port", &port.to_string()])
+        .args(flags)
+        .env("FR3_MJCF", cache_dir().join("franka-sim/fr3.xml"))
+        .stdout(std::process::Stdio::null());
+    Proc::spawn("franka-sim", cmd)
+}
 
 /// The DDS domain registered for `key` in [`TEST_DOMAINS`].
 pub fn domain_for(key: &str) -> u16 {

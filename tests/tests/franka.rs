@@ -10,34 +10,9 @@ use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState};
 use labrig_msgs::std_srvs::{Trigger, TriggerRequest};
 use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
-use labrig_tests::{Proc, cache_dir, domain_for, repo_root, rt, workspace_bin};
+use labrig_tests::{Proc, domain_for, franka_sim, rt, workspace_bin};
 use std::process::Command;
 use std::time::{Duration, Instant};
-
-/// franka-sim on 127.0.0.1:`port` (see scripts/franka_sim_loopback.py).
-fn franka_sim(port: u16, flags: &[&str]) -> Proc {
-    let python = std::env::var_os("LABRIG_FRANKA_SIM_PYTHON")
-        .map(Into::into)
-        .unwrap_or_else(|| cache_dir().join("venv-franka-sim/bin/python"));
-    assert!(python.exists(), "franka-sim venv {} is missing: run `bash scripts/setup.sh`", python.display());
-    // The FR3's controller is a dedicated realtime machine; on a loaded 2-core CI machine
-    // franka-sim gets a realtime priority where the test may set one (root), else it runs as is.
-    let realtime = Command::new("chrt").args(["--rr", "20", "true"]).status().is_ok_and(|s| s.success());
-    let mut cmd = if realtime {
-        let mut c = Command::new("chrt");
-        c.args(["--rr", "20"]).arg(python);
-        c
-    } else {
-        Command::new(python)
-    };
-    cmd.arg("-u")
-        .arg(repo_root().join("scripts/franka_sim_loopback.py"))
-        .args(["--no-gripper", "--port", &port.to_string()])
-        .args(flags)
-        .env("FR3_MJCF", cache_dir().join("franka-sim/fr3.xml"))
-        .stdout(std::process::Stdio::null());
-    Proc::spawn("franka-sim", cmd)
-}
 
 fn franka_node(domain: u16, port: u16, config: Option<&std::path::Path>) -> Proc {
     let mut cmd = Command::new(workspace_bin("labrig-franka", "labrig-franka"));

@@ -89,6 +89,21 @@ fn connect(address: &str, cfg: &FciConfig) -> Result<Arc<Robot>, BackendError> {
         .map_err(|e| BackendError::Start(e.to_string()))
 }
 
+/// Connects to the FCI at `address` (`ip` or `ip:port`) and disconnects, commanding nothing
+/// (`labrig doctor`): the FCI version the robot speaks, or why there is none (refused, no
+/// answer within `within`, a version franka-rs does not speak). Real-time is not asked for.
+pub fn probe(address: &str, within: std::time::Duration) -> Result<u16, String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let address = address.to_owned();
+    // A connect to an address nobody answers waits for TCP's own timeout (minutes): the thread
+    // is left to it, the answer is not waited for.
+    std::thread::spawn(move || {
+        let r = Robot::new(&address, RealtimeConfig::Ignore).map(|r| r.server_version()).map_err(|e| e.to_string());
+        let _ = tx.send(r);
+    });
+    rx.recv_timeout(within).unwrap_or_else(|_| Err(format!("no answer within {:.0} s", within.as_secs_f64())))
+}
+
 /// A franka-rs error in the node's terms: a control exception (a reflex, a limit the
 /// robot's controller refused) is recoverable, a network failure is a lost connection.
 fn classify(e: FrankaError) -> BackendError {

@@ -39,6 +39,11 @@ pub enum Command {
     /// [--config experiments/retrieval/full.toml] [--out DIR]` (the paper's co-training result).
     #[command(subcommand)]
     Experiment(crate::experiment::ExperimentCommand),
+    /// Whether this machine and the rig a launch config names are ready: every part checked
+    /// (FR3 and its FCI version, gripper, cameras by serial, Quest, calibration, disk, clock,
+    /// DDS, real-time settings, policy checkpoint), a table of part / state / fix (exit 0:
+    /// ready, 3: not ready).
+    Doctor(crate::doctor::DoctorArgs),
     /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
     #[command(disable_help_flag = true)]
     Sim {
@@ -184,6 +189,9 @@ pub fn calibrate(args: &[String]) -> anyhow::Result<ExitCode> {
             args: crate::calib_capture::CaptureArgs,
         }
         let parsed = <Capture as clap::Parser>::try_parse_from(args.iter()).unwrap_or_else(|e| e.exit());
+        if labrig_msgs::parse_only() {
+            return Ok(ExitCode::SUCCESS);
+        }
         return crate::calib_capture::run(parsed.args);
     }
     node("labrig-calibrate", args)
@@ -310,8 +318,57 @@ pub enum BenchCommand {
     ShmPublisher(crate::bench::ShmPublisherArgs),
 }
 
+impl Command {
+    /// Whether the command hands its arguments to another labrig program.
+    fn forwards(&self) -> bool {
+        use BenchCommand as B;
+        match self {
+            Command::Bench(b) => {
+                matches!(
+                    b,
+                    B::Record { .. }
+                        | B::Franka { .. }
+                        | B::Ik { .. }
+                        | B::Export { .. }
+                        | B::Teleop { .. }
+                        | B::Policy { .. }
+                )
+            }
+            Command::Sim { .. }
+            | Command::Calibrate { .. }
+            | Command::Dataset { .. }
+            | Command::Replay { .. }
+            | Command::Export { .. }
+            | Command::Import { .. }
+            | Command::Franka { .. }
+            | Command::Teleop { .. }
+            | Command::Gripper { .. }
+            | Command::Control { .. }
+            | Command::Train { .. }
+            | Command::Policy { .. }
+            | Command::Cameras { .. }
+            | Command::Station { .. }
+            | Command::Recorder { .. } => true,
+            Command::Topic(_)
+            | Command::Launch(_)
+            | Command::Inspect(_)
+            | Command::Episode(_)
+            | Command::Recover(_)
+            | Command::Demo(_)
+            | Command::Rollout(_)
+            | Command::Experiment(_)
+            | Command::Doctor(_) => false,
+        }
+    }
+}
+
 /// Runs a command; the exit code tells scripts what happened.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    // LABRIG_PARSE_ONLY: a command of this program is parsed (done); one that forwards to
+    // another program goes there, which parses its part the same way.
+    if labrig_msgs::parse_only() && !cli.command.forwards() {
+        return Ok(ExitCode::SUCCESS);
+    }
     match cli.command {
         Command::Topic(TopicCommand::List(a)) => crate::topic::list(a),
         Command::Topic(TopicCommand::Echo(a)) => crate::topic::echo(a),
@@ -340,6 +397,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
+        Command::Doctor(a) => crate::doctor::run(a),
         Command::Demo(a) => crate::demo::run(a),
         Command::Rollout(a) => crate::rollout::run(a),
         Command::Experiment(a) => crate::experiment::run(a),

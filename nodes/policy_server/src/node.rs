@@ -125,6 +125,28 @@ struct Waiting {
     stop: bool,
 }
 
+/// `labrig-policy check <run's flags>`: the checkpoint loaded as `run` loads it (the same
+/// flags and config), checked against the rig's cameras, one chunk computed; nothing served
+/// (`labrig doctor` asks this). Returns the line it prints.
+pub fn check(args: &[String]) -> anyhow::Result<String> {
+    let mut argv = vec!["run".to_owned()];
+    argv.extend(args.iter().cloned());
+    let cfg = labrig_runtime::node::run_config::<crate::PolicyServerNode>(&argv, None)?;
+    let (server, from) = match (&cfg.checkpoint, &cfg.torchscript, &cfg.spec) {
+        (Some(dir), _, _) => (Server::load(dir)?, dir.clone()),
+        (None, Some(module), Some(spec)) => (Server::load_torchscript(module, spec)?, module.clone()),
+        _ => unreachable!("validated"),
+    };
+    server.check_rig(&cfg.rig_cameras)?;
+    let ms = server.warm_up()?;
+    Ok(format!(
+        "{} ({}): loads, observes {:?}, one chunk in {ms:.0} ms",
+        server.id(),
+        from.display(),
+        server.config().cameras
+    ))
+}
+
 pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<ServeStats> {
     let threads = if cfg.threads > 0 {
         cfg.threads

@@ -130,6 +130,9 @@ where
         Ok(p) => p,
         Err(e) => e.exit(),
     };
+    if labrig_msgs::parse_only() {
+        return ExitCode::SUCCESS;
+    }
     crate::logging::init("info");
     let name = N::NAME;
     let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(N::WORKER_THREADS).enable_all().build() {
@@ -173,6 +176,23 @@ fn parse<N: Node, T: Subcommand>(
     match matches.subcommand() {
         Some(("run", m)) => Ok(Parsed::Run(Box::new(RunArgs::from_arg_matches(m)?))),
         _ => Ok(Parsed::Tool(T::from_arg_matches(&matches)?)),
+    }
+}
+
+/// The config node `N` runs with when started as `<program> <args...>` (a launch config's
+/// `[[node]]`: its `args` and `--config <file>`): the same parse and steps 1-4 as the program
+/// itself. An `args` that does not start with `run` is refused.
+pub fn run_config<N: Node>(args: &[String], config: Option<&Path>) -> anyhow::Result<N::Config> {
+    let mut argv: Vec<std::ffi::OsString> = vec![N::NAME.into()];
+    argv.extend(args.iter().map(Into::into));
+    if let Some(c) = config {
+        argv.push("--config".into());
+        argv.push(c.into());
+    }
+    match parse::<N, NoTools>(argv) {
+        Ok(Parsed::Run(run)) => Ok(load::<N>(&run.common, run.flags)?),
+        Ok(Parsed::Tool(t)) => match t {},
+        Err(e) => anyhow::bail!("{} {}: {}", N::NAME, args.join(" "), e.render().to_string().trim()),
     }
 }
 
