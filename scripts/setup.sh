@@ -3,6 +3,7 @@
 # loopback-only profile. Idempotent; a warm re-run takes ~1 s.
 #
 #   bash scripts/setup.sh          # then: source "${LABRIG_CACHE:-$HOME/.cache/labrig}/env.sh"
+#   bash scripts/setup.sh --demo   # only what `labrig demo` needs (scripts/labrig demo uses it)
 #
 # Everything lives outside the clone, in ${LABRIG_CACHE:-$HOME/.cache/labrig}:
 #   venv-ros/            rclpy (ROS 2 Kilted wheels from PyPI, rmw_fastrtps_cpp)
@@ -17,6 +18,14 @@ LABRIG_CACHE="${LABRIG_CACHE:-$HOME/.cache/labrig}"
 mkdir -p "$LABRIG_CACHE"
 LABRIG_CACHE="$(cd "$LABRIG_CACHE" && pwd)"
 PYTHON="${LABRIG_PYTHON:-python3}"
+# `--demo`: only what `labrig demo` needs (the sim's libraries and models, the linker): a
+# fresh machine's first command. Without it, everything the programs and the tests need.
+MODE=full
+case "${1:-}" in
+    --demo) MODE=demo ;;
+    "") ;;
+    *) echo "usage: scripts/setup.sh [--demo]" >&2; exit 2 ;;
+esac
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -37,7 +46,7 @@ apt_install() {  # apt_install PKG...: install what is missing (apt-get update o
         "${missing[@]}" >/dev/null
 }
 # tcpdump: tests prove that no DDS packet leaves loopback.
-apt_install tcpdump
+[ "$MODE" = full ] && apt_install tcpdump
 # lld links the workspace's ~160 debug executables (~10 GB) in about a quarter of GNU ld's
 # time (.cargo/config.toml; the labrig binary: 2.8 s against 11.5 s). Installed first: no
 # build in this clone links without it.
@@ -48,23 +57,25 @@ apt_install libegl1 libegl-mesa0 libgl1-mesa-dri
 apt_install fonts-dejavu-core
 # DROID raw export/import (issue 6): trajectory.h5 through Debian's libhdf5 (hdf5-metno finds
 # it with pkg-config), MP4 through ffmpeg/ffprobe (libx264).
-apt_install libhdf5-dev pkg-config ffmpeg
+apt_install pkg-config
+[ "$MODE" = full ] && apt_install libhdf5-dev ffmpeg
 # The Quest teleop node reads the headset's logcat through adb (issue 7).
-apt_install adb
+[ "$MODE" = full ] && apt_install adb
 # The camera node's V4L2 backend (crate v4l) generates its kernel bindings with bindgen, which
 # loads libclang (issue 19); the calibration's opencv crate needs it too.
 apt_install libclang-dev
 # Camera calibration (issue 20): Debian's OpenCV 4.6 (aruco is in contrib in 4.6); the opencv
 # crate's binding generator needs clang itself beside libclang. ~1 GB installed.
-apt_install libopencv-dev libopencv-contrib-dev clang
+[ "$MODE" = full ] && apt_install libopencv-dev libopencv-contrib-dev clang
 # The operator station's page is tested in a real browser (issue 22): Debian's chromium,
 # headless, driven by playwright-core (below). ~14 s to install here.
-apt_install chromium
+[ "$MODE" = full ] && apt_install chromium
 # DROID-scale indexing (issue 36): a one-node Slurm on localhost (scripts/scale/slurm_local.sh)
 # runs the index as a job array in the tests; libgloo-dev: the collective backend for
 # multi-process training.
-apt_install slurm-wlm munge libgloo-dev
+[ "$MODE" = full ] && apt_install slurm-wlm munge libgloo-dev
 
+if [ "$MODE" = full ]; then  # the Rust test runner, the rclpy peer
 # ---------------------------------------------------------------- Rust tools
 # The machine image ships cargo-nextest; install it from crates.io only where it is missing.
 if ! cargo nextest --version >/dev/null 2>&1; then
@@ -132,6 +143,20 @@ if ! venv_ok; then
     printf '%s' "$want_stamp" > "$STAMP"
 fi
 
+fi  # (full)
+
+# The Python that downloads and unpacks wheels: the rclpy venv's, or (for the demo alone) a
+# bare venv of its own.
+if [ "$MODE" = full ]; then
+    PIP_PY="$VENV/bin/python"
+else
+    PIP_PY="$LABRIG_CACHE/venv-pip/bin/python"
+    if ! "$PIP_PY" -m pip --version >/dev/null 2>&1; then
+        rm -rf "$LABRIG_CACHE/venv-pip"
+        "$PYTHON" -m venv "$LABRIG_CACHE/venv-pip" >/dev/null 2>&1 || { apt_install python3-venv; "$PYTHON" -m venv "$LABRIG_CACHE/venv-pip"; }
+    fi
+fi
+
 # ---------------------------------------------------------------- MuJoCo + rig models
 # For the sim bridge (sim/ and sim_bridge/, issue 3): libmujoco 3.17.0 from the PyPI wheel (the version
 # mujoco-rs 7.0.0 binds), the FR3 (Menagerie model in franky-sim, Apache-2.0) and the Robotiq
@@ -146,10 +171,10 @@ if [ ! -f "$MJ_STAMP" ] || [ "$(cat "$MJ_STAMP")" != "$MJ_WANT" ]; then
     rm -rf "$MJ_DIR"
     mkdir -p "$MJ_DIR/wheels" "$MJ_DIR/lib" "$MJ_DIR/include" "$MJ_DIR/assets/fr3" "$MJ_DIR/assets/robotiq_2f85"
     # shellcheck disable=SC2086
-    "$VENV/bin/python" -m pip download -q --disable-pip-version-check --no-deps \
+    "$PIP_PY" -m pip download -q --disable-pip-version-check --no-deps \
         --only-binary=:all: --python-version 3.11 --platform manylinux_2_28_x86_64 \
         -d "$MJ_DIR/wheels" ${MJ_WANT% +*}
-    "$VENV/bin/python" - "$MJ_DIR" <<'PY'
+    "$PIP_PY" - "$MJ_DIR" <<'PY'
 import pathlib, re, shutil, sys, zipfile
 root = pathlib.Path(sys.argv[1])
 wheels = {w.name.split("-")[0]: w for w in (root / "wheels").glob("*.whl")}
@@ -187,6 +212,7 @@ fi
 mkdir -p "$REPO_DIR/.labrig"
 ln -sfn "$MJ_DIR" "$REPO_DIR/.labrig/mujoco"
 
+if [ "$MODE" = full ]; then  # libtorch, the test peers' venvs, the Node peers, mdBook
 # For the policies (policies/, issue 17): libtorch for tch 0.26.0 (PyTorch 2.13.0), assembled
 # from PyPI wheels (tch's own download host is unreachable here): the torch wheel's headers and
 # CPU libraries, and the two CUDA runtime libraries libtorch_cpu links against, in the wheels'
@@ -351,6 +377,17 @@ if ! cmp -s "$REPO_DIR/tests/peers/node/package.json" "$PEERS/package.json" 2>/d
     (cd "$PEERS" && PATH="$NODE_DIR:$PATH" "$NODE_BIN" "$(dirname "$NODE_DIR")/lib/node_modules/npm/bin/npm-cli.js" \
         install -q --no-audit --no-fund --cache "$LABRIG_CACHE/npm" >/dev/null)
 fi
+
+# ---------------------------------------------------------------- mdBook
+# The guides (docs/) are an mdBook; tests/tests/docs.rs builds it. Without its server and
+# watcher (not needed to build), ~3 min to compile once.
+MDBOOK_VERSION=0.5.4
+if [ "$("$LABRIG_CACHE/tools/bin/mdbook" --version 2>/dev/null)" != "mdbook v$MDBOOK_VERSION" ]; then
+    log "installing mdbook $MDBOOK_VERSION into $LABRIG_CACHE/tools"
+    cargo install -q --locked "mdbook@$MDBOOK_VERSION" --no-default-features --features search \
+        --root "$LABRIG_CACHE/tools" >/dev/null
+fi
+fi  # (full)
 
 # ---------------------------------------------------------------- Fast DDS profile
 XML_SRC="$REPO_DIR/scripts/fastdds_loopback.xml"
