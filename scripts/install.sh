@@ -17,6 +17,7 @@ programs=(
     "labrig labrig" "labrig-sim-bridge labrig-sim" "labrig-franka labrig-franka" "labrig-gripper labrig-gripper"
     "labrig-cameras labrig-cameras" "labrig-quest-teleop labrig-teleop" "labrig-control labrig-control"
     "labrig-recorder labrig-recorder" "labrig-station labrig-station" "labrig-droid labrig-droid"
+    "labrig-doctor labrig-doctor"
 )
 if [ "${LABRIG_INSTALL_EXTRAS:-1}" != 0 ]; then
     programs+=("labrig-policies labrig-policies" "labrig-policy-server labrig-policy"

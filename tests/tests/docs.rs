@@ -23,10 +23,13 @@ fn pages() -> Vec<PathBuf> {
     out
 }
 
+/// Numbered lines (1-based).
+type Lines = Vec<(usize, String)>;
+
 /// Each fenced block's language and lines, and the text outside the blocks.
-fn split(text: &str) -> (Vec<(String, Vec<(usize, String)>)>, Vec<(usize, String)>) {
+fn split(text: &str) -> (Vec<(String, Lines)>, Lines) {
     let (mut blocks, mut prose) = (Vec::new(), Vec::new());
-    let mut open: Option<(String, Vec<(usize, String)>)> = None;
+    let mut open: Option<(String, Lines)> = None;
     for (i, line) in text.lines().enumerate() {
         let fence = line.trim_start().starts_with("```");
         match (&mut open, fence) {
@@ -47,7 +50,7 @@ fn commands(text: &str) -> Vec<(usize, String, Vec<String>)> {
         if !matches!(lang.as_str(), "sh" | "bash" | "console" | "shell") {
             continue;
         }
-        let mut joined: Vec<(usize, String)> = Vec::new();
+        let mut joined: Lines = Vec::new();
         let mut carry: Option<(usize, String)> = None;
         for (n, line) in lines {
             let (start, mut acc) = carry.take().unwrap_or((n, String::new()));
@@ -115,6 +118,7 @@ fn every_command_the_guides_show_is_one_the_cli_accepts() {
         ("labrig-recorder", "labrig-recorder"),
         ("labrig-teleop", "labrig-quest-teleop"),
         ("labrig-station", "labrig-station"),
+        ("labrig-doctor", "labrig-doctor"),
     ] {
         workspace_bin(bin, package);
     }
@@ -159,6 +163,7 @@ fn the_command_check_refuses_what_the_cli_refuses() {
         out.status.success()
     };
     workspace_bin("labrig-gripper", "labrig-gripper");
+    workspace_bin("labrig-doctor", "labrig-doctor");
     assert!(parses(&["doctor", "--rig", "x.toml", "--json"]));
     assert!(!parses(&["doctor", "--no-such-flag"]));
     assert!(!parses(&["no-such-command"]));

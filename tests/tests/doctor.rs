@@ -81,16 +81,21 @@ health = "/recorder/status"
     dir.join("rig.toml")
 }
 
-/// `labrig doctor --rig <launch> --json`: the exit code and the report.
-fn doctor(launch: &Path) -> (i32, Value) {
+/// `labrig doctor --rig <launch> --json`: the exit code and the report. The disk must hold
+/// `hours` of recording (a minute by default: this machine's free space is not under test).
+fn doctor_for(launch: &Path, hours: &str) -> (i32, Value) {
     let out = Command::new(labrig_bin())
-        .args(["doctor", "--json", "--timeout-s", "5", "--rig"])
+        .args(["doctor", "--json", "--timeout-s", "5", "--record-hours", hours, "--rig"])
         .arg(launch)
         .output()
         .unwrap();
     let report: Value = serde_json::from_slice(&out.stdout)
         .unwrap_or_else(|e| panic!("labrig doctor printed no JSON ({e}): {}", output_text(&out)));
     (out.status.code().unwrap_or(-1), report)
+}
+
+fn doctor(launch: &Path) -> (i32, Value) {
+    doctor_for(launch, "0.02")
 }
 
 /// The rows whose part starts with `part`.
@@ -117,7 +122,11 @@ fn failed(report: &Value) -> Vec<String> {
 /// `part` fails alone (every other row as in the ready rig), its detail and fix saying `detail`
 /// and `fix`.
 fn fails_alone(launch: &Path, part: &str, detail: &str, fix: &str) {
-    let (code, report) = doctor(launch);
+    fails_alone_for(launch, "0.02", part, detail, fix)
+}
+
+fn fails_alone_for(launch: &Path, hours: &str, part: &str, detail: &str, fix: &str) {
+    let (code, report) = doctor_for(launch, hours);
     assert_eq!(code, 3, "a rig with a broken {part} is not ready: {report:#}");
     assert_eq!(report["ready"], false);
     assert_eq!(failed(&report), [part], "{report:#}");
@@ -129,7 +138,11 @@ fn fails_alone(launch: &Path, part: &str, detail: &str, fix: &str) {
 #[test]
 fn the_doctor_passes_a_ready_rig_and_names_each_broken_part_with_its_fix() {
     // Built first: labrig_bin builds only what is missing.
-    let _ = (labrig_bin(), workspace_bin("labrig-policy", "labrig-policy-server"));
+    let _ = (
+        labrig_bin(),
+        workspace_bin("labrig-doctor", "labrig-doctor"),
+        workspace_bin("labrig-policy", "labrig-policy-server"),
+    );
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let port = 20_000 + domain_for("doctor_franka_sim");
@@ -178,8 +191,11 @@ fn the_doctor_passes_a_ready_rig_and_names_each_broken_part_with_its_fix() {
         assert_eq!(the_row(&report, part)["state"], "ok", "{report:#}");
     }
     assert!(rows(&report, "program ").iter().all(|r| r["state"] == "ok"), "{report:#}");
+    // A disk that cannot hold the hours asked for (a million hours of these cameras).
+    fails_alone_for(&launch, "1000000", "disk", "1000000 h at the configured cameras", "--root");
     // The table people read: the same verdict.
-    let table = Command::new(labrig_bin()).args(["doctor", "--rig"]).arg(&launch).output().unwrap();
+    let table =
+        Command::new(labrig_bin()).args(["doctor", "--record-hours", "0.02", "--rig"]).arg(&launch).output().unwrap();
     assert!(table.status.success(), "{}", output_text(&table));
     assert!(String::from_utf8_lossy(&table.stdout).contains("ready: the rig of"), "{}", output_text(&table));
 

@@ -43,7 +43,12 @@ pub enum Command {
     /// (FR3 and its FCI version, gripper, cameras by serial, Quest, calibration, disk, clock,
     /// DDS, real-time settings, policy checkpoint), a table of part / state / fix (exit 0:
     /// ready, 3: not ready).
-    Doctor(crate::doctor::DoctorArgs),
+    #[command(disable_help_flag = true)]
+    Doctor {
+        /// `[--rig <launch config>] [--json]` (see `labrig doctor --help`; `labrig-doctor`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// The simulated rig (MuJoCo): `labrig sim run|snapshot|eval|bench ...` (see `labrig sim --help`).
     #[command(disable_help_flag = true)]
     Sim {
@@ -348,7 +353,8 @@ impl Command {
             | Command::Policy { .. }
             | Command::Cameras { .. }
             | Command::Station { .. }
-            | Command::Recorder { .. } => true,
+            | Command::Recorder { .. }
+            | Command::Doctor { .. } => true,
             Command::Topic(_)
             | Command::Launch(_)
             | Command::Inspect(_)
@@ -356,8 +362,7 @@ impl Command {
             | Command::Recover(_)
             | Command::Demo(_)
             | Command::Rollout(_)
-            | Command::Experiment(_)
-            | Command::Doctor(_) => false,
+            | Command::Experiment(_) => false,
         }
     }
 }
@@ -397,7 +402,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
-        Command::Doctor(a) => crate::doctor::run(a),
+        Command::Doctor { args } => node("labrig-doctor", &args),
         Command::Demo(a) => crate::demo::run(a),
         Command::Rollout(a) => crate::rollout::run(a),
         Command::Experiment(a) => crate::experiment::run(a),

@@ -11,7 +11,6 @@ pub mod bench_station;
 pub mod calib_capture;
 pub mod cli;
 pub mod demo;
-pub mod doctor;
 pub mod episode;
 pub mod experiment;
 pub mod inspect;

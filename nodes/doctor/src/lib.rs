@@ -1,4 +1,4 @@
-//! `labrig doctor [--rig <launch config>] [--json]`: whether this machine, and every part the
+//! labrig-doctor (`labrig doctor [--rig <launch config>] [--json]`): whether this machine, and every part the
 //! rig's launch config names, is ready, with the fix for each part that is not.
 //!
 //! Each node's config is read the way the node itself reads it (its own parser, the launch
@@ -12,10 +12,13 @@
 //!
 //! Exit 0: ready (no check failed; warnings are listed); 3: not ready; 1: the doctor itself
 //! could not run.
+//!
+//! A program of its own: the drivers it asks the hardware with (franka-rs, Modbus, V4L2) stay
+//! out of the `labrig` CLI's build, which `labrig demo` needs on a fresh machine.
 
-use crate::launch::LaunchConfig;
-use crate::programs::sibling_binary;
 use clap::Args;
+use labrig::launch::LaunchConfig;
+use labrig::programs::sibling_binary;
 use labrig_cameras::node::{CameraConfig, CamerasConfig, IntrinsicsSpec};
 use labrig_cameras::source::{DeviceKind, SourceSpec};
 use labrig_runtime::RosConfig;
