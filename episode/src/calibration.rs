@@ -118,7 +118,8 @@ impl Calibrations {
 }
 
 /// `3h 12m`, `45 s`.
-fn human(s: i64) -> String {
+/// An age for people: seconds, minutes, hours and minutes, or days.
+pub fn human(s: i64) -> String {
     match s {
         s if s < 120 => format!("{s} s"),
         s if s < 7200 => format!("{} min", s / 60),

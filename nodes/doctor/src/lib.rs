@@ -187,63 +187,27 @@ fn rig_checks(path: &Path, within: Duration, hours: f64) -> Vec<Check> {
         let file = n.config.as_ref().map(|c| dir.join(c));
         let file = file.as_deref();
         let part = format!("{} config", n.name);
-        let loaded: anyhow::Result<Option<RosConfig>> = (|| {
-            Ok(match n.program.as_str() {
-                "labrig-franka" => {
-                    let c = run_config::<labrig_franka::FrankaNode>(&n.args, file)?;
-                    let ros = c.ros.clone();
-                    nodes.franka = Some(c);
-                    Some(ros)
-                }
-                "labrig-gripper" => {
-                    let c = run_config::<labrig_gripper::GripperNode>(&n.args, file)?;
-                    let ros = c.ros.clone();
-                    nodes.gripper = Some(c);
-                    Some(ros)
-                }
-                "labrig-cameras" => {
-                    let c = run_config::<labrig_cameras::CamerasNode>(&n.args, file)?;
-                    let ros = c.ros.clone();
-                    nodes.cameras = Some(c);
-                    Some(ros)
-                }
-                "labrig-teleop" => {
-                    let c = run_config::<labrig_quest_teleop::TeleopNode>(&n.args, file)?;
-                    let ros = c.ros.clone();
-                    nodes.teleop = Some(c);
-                    Some(ros)
-                }
-                "labrig-control" => {
-                    let c = run_config::<labrig_control::ControlNode>(&n.args, file)?;
-                    let ros = c.ros.clone();
-                    nodes.control = Some(c);
-                    Some(ros)
-                }
-                "labrig-recorder" => {
-                    let c = run_config::<labrig_recorder::RecorderNode>(&n.args, file)?;
-                    let ros = c.ros.clone();
-                    nodes.recorder = Some(c);
-                    Some(ros)
-                }
-                "labrig-policy" => {
-                    nodes.policy = Some((n.args.clone(), file.map(Path::to_owned)));
-                    None
-                }
-                _ => None,
-            })
-        })();
-        match loaded {
-            Ok(ros) => {
-                if let Some(ros) = ros {
-                    nodes.ros.push((n.name.clone(), ros));
-                }
+        let ros = &mut nodes.ros;
+        let loaded: anyhow::Result<()> = match n.program.as_str() {
+            "labrig-franka" => read::<labrig_franka::FrankaNode>(n, file, ros).map(|c| nodes.franka = Some(c)),
+            "labrig-gripper" => read::<labrig_gripper::GripperNode>(n, file, ros).map(|c| nodes.gripper = Some(c)),
+            "labrig-cameras" => read::<labrig_cameras::CamerasNode>(n, file, ros).map(|c| nodes.cameras = Some(c)),
+            "labrig-teleop" => read::<labrig_quest_teleop::TeleopNode>(n, file, ros).map(|c| nodes.teleop = Some(c)),
+            "labrig-control" => read::<labrig_control::ControlNode>(n, file, ros).map(|c| nodes.control = Some(c)),
+            "labrig-recorder" => read::<labrig_recorder::RecorderNode>(n, file, ros).map(|c| nodes.recorder = Some(c)),
+            "labrig-policy" => {
+                nodes.policy = Some((n.args.clone(), file.map(Path::to_owned)));
+                Ok(())
             }
-            Err(e) => out.push(row(
+            _ => Ok(()),
+        };
+        if let Err(e) = loaded {
+            out.push(row(
                 part,
                 State::Fail,
                 format!("{e:#}"),
                 "fix the node's config or its `args` in the launch config",
-            )),
+            ));
         }
     }
     let devices = &cfg.rig.devices;
@@ -280,6 +244,18 @@ fn rig_checks(path: &Path, within: Duration, hours: f64) -> Vec<Check> {
         out.push(dds(&nodes.ros));
     }
     out
+}
+
+/// Node `N`'s config as the node reads it (its `args`, its `--config`); its `[ros]` is noted
+/// for the DDS check.
+fn read<N: labrig_runtime::Node>(
+    n: &labrig::launch::NodeSpec,
+    file: Option<&Path>,
+    ros: &mut Vec<(String, RosConfig)>,
+) -> anyhow::Result<N::Config> {
+    let mut c = run_config::<N>(&n.args, file)?;
+    ros.push((n.name.clone(), N::ros(&mut c).clone()));
+    Ok(c)
 }
 
 // ---------------------------------------------------------------------------------- the FR3
@@ -667,26 +643,17 @@ fn calibration(c: &labrig_control::config::ControlConfig) -> Vec<Check> {
                 State::Fail,
                 format!(
                     "made {} ago ({}), older than the {} allowed (calibration_max_age_s)",
-                    human(age),
+                    labrig_episode::calibration::human(age),
                     f.date,
-                    human(c.calibration_max_age_s as i64)
+                    labrig_episode::calibration::human(c.calibration_max_age_s as i64)
                 ),
                 format!("`labrig calibrate check --camera {camera} ...`, and calibrate again if it moved"),
             ));
         } else {
-            out.push(ok(part, format!("made {} ago ({})", human(age), f.date)));
+            out.push(ok(part, format!("made {} ago ({})", labrig_episode::calibration::human(age), f.date)));
         }
     }
     out
-}
-
-fn human(s: i64) -> String {
-    match s {
-        s if s < 120 => format!("{s} s"),
-        s if s < 7200 => format!("{} min", s / 60),
-        s if s < 172_800 => format!("{} h", s / 3600),
-        s => format!("{} days", s / 86_400),
-    }
 }
 
 // ------------------------------------------------------------------------------------ disk
