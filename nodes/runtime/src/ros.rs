@@ -202,6 +202,11 @@ fn build_participant(
     domain_id: u16,
 ) -> Result<(DomainParticipant, std::collections::BTreeSet<u32>), RosError> {
     use nix::sys::signal::{SigSet, SigmaskHow, Signal, pthread_sigmask};
+    // One participant built at a time in a process: two built at once (a launcher's and a
+    // command's, on two runtime threads) would each count the other's threads as theirs, and
+    // the other's normal end would read as this one's DDS dying.
+    static BUILDING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one_at_a_time = BUILDING.lock().unwrap_or_else(|e| e.into_inner());
     let before = dds_threads();
     let mut block = SigSet::empty();
     block.add(Signal::SIGINT);
