@@ -46,7 +46,8 @@ struct BenchArgs {
     #[arg(long, default_value_t = 3)]
     train_steps: usize,
     /// LeRobot's venv (scripts/lerobot_venv.sh): time its PyTorch DiffusionPolicy in the paper
-    /// configuration in the same run, with the same threads (default: ~/.cache/labrig/venv-lerobot if present).
+    /// configuration in the same run, with the same threads (default: venv-lerobot in
+    /// $LABRIG_CACHE, or ~/.cache/labrig without it, if present).
     #[arg(long)]
     lerobot_venv: Option<PathBuf>,
     /// Skip the PyTorch comparison even where the venv exists.
@@ -331,7 +332,11 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let omp = std::env::var("OMP_NUM_THREADS").unwrap_or_else(|_| "unset".into());
     let presets = if a.preset.is_empty() { vec!["paper_dp".to_owned(), "small".to_owned()] } else { a.preset.clone() };
     let venv = a.lerobot_venv.clone().or_else(|| {
-        let d = PathBuf::from(std::env::var("HOME").ok()?).join(".cache/labrig/venv-lerobot");
+        let cache = match std::env::var_os("LABRIG_CACHE") {
+            Some(c) => PathBuf::from(c),
+            None => PathBuf::from(std::env::var_os("HOME")?).join(".cache/labrig"),
+        };
+        let d = cache.join("venv-lerobot");
         d.join("bin/python").is_file().then_some(d)
     });
     let mut report = serde_json::Map::new();
