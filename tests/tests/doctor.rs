@@ -54,6 +54,7 @@ health = "/control/status"
 name = "recorder"
 program = "labrig-recorder"
 args = ["run", "--root", "{root}"]
+config = "recorder.toml"
 health = "/recorder/status"
 "#,
                 root = dir.join("episodes").display()
@@ -73,6 +74,12 @@ health = "/recorder/status"
                 "source = \"hold\"\nauto_start = false\nclock = \"wall\"\ncameras = [\"ext1\", \"ext2\"]\ncalibration = \"{}\"\n",
                 dir.join("calibration").display()
             ),
+        ),
+        (
+            "recorder.toml",
+            "[rig]\nlab = \"LABRIG\"\nbuilding = \"bench\"\nuser = \"ci\"\nrobot_serial = \"franka-sim\"\n\
+             [rig.camera_serials]\n"
+                .to_owned(),
         ),
     ];
     for (name, text) in files {
@@ -187,7 +194,7 @@ fn the_doctor_passes_a_ready_rig_and_names_each_broken_part_with_its_fix() {
     assert!(the_row(&report, "camera ext1")["detail"].as_str().unwrap().contains("320x240 at 15.0 fps"), "{report:#}");
     assert_eq!(the_row(&report, "camera ext2")["state"], "ok");
     assert_eq!(rows(&report, "calibration ").len(), 2, "{report:#}");
-    for part in ["disk", "DDS", "launch config"] {
+    for part in ["disk", "DDS", "launch config", "episode metadata"] {
         assert_eq!(the_row(&report, part)["state"], "ok", "{report:#}");
     }
     assert!(rows(&report, "program ").iter().all(|r| r["state"] == "ok"), "{report:#}");
@@ -198,6 +205,21 @@ fn the_doctor_passes_a_ready_rig_and_names_each_broken_part_with_its_fix() {
         Command::new(labrig_bin()).args(["doctor", "--record-hours", "0.02", "--rig"]).arg(&launch).output().unwrap();
     assert!(table.status.success(), "{}", output_text(&table));
     assert!(String::from_utf8_lossy(&table.stdout).contains("ready: the rig of"), "{}", output_text(&table));
+
+    // The recorder would label real episodes with the simulator's identity (a warning: the rig
+    // is still ready), or with a camera serial other than the rig's (not ready).
+    let launch = write_rig(dir, &fr3, pty.path(), |name, t| if name == "recorder.toml" { String::new() } else { t });
+    let (code, report) = doctor(&launch);
+    assert_eq!(code, 0, "{report:#}");
+    let row = the_row(&report, "episode metadata");
+    assert_eq!(row["state"], "warn", "{report:#}");
+    assert!(row["detail"].as_str().unwrap().contains("robot sim-fr3"), "{row:#}");
+    let launch = write_rig(dir, &fr3, pty.path(), |name, t| match name {
+        "rig.toml" => t.replace("[rig.devices.camera_serials]\n", "[rig.devices.camera_serials]\nrs9 = \"D435-1\"\n"),
+        "recorder.toml" => format!("{t}rs9 = \"D435-2\"\n"),
+        _ => t,
+    });
+    fails_alone(&launch, "episode metadata", "rs9 D435-2 (the rig: D435-1)", "[rig.devices.camera_serials]");
 
     // An unreachable robot: nothing listens at its address (on loopback: another port).
     let closed = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap();

@@ -605,7 +605,7 @@ enum Reader {
 /// Every file in launch_configs/ (nested folders too, paths relative to it) and what reads
 /// it. `every_real_config_loads` fails on a file missing here, so a new config is loaded by
 /// its reader or named as no config, never skipped without a word.
-const REAL_CONFIGS: [(&str, Reader); 17] = [
+const REAL_CONFIGS: [(&str, Reader); 18] = [
     ("README.md", Reader::NotAConfig("the folder's description, for people")),
     ("bench_rig.toml", Reader::Launch),
     ("real_droid.toml", Reader::Launch),
@@ -621,6 +621,7 @@ const REAL_CONFIGS: [(&str, Reader); 17] = [
     ("nodes/control_real_openpi.toml", Reader::Node("labrig-control")),
     ("nodes/franka_fr3.toml", Reader::Node("labrig-franka")),
     ("nodes/gripper_2f85.toml", Reader::Node("labrig-gripper")),
+    ("nodes/recorder_real.toml", Reader::Node("labrig-recorder")),
     ("nodes/teleop_quest.toml", Reader::Node("labrig-teleop")),
     ("nodes/teleop_sim_trace.toml", Reader::Node("labrig-teleop")),
 ];

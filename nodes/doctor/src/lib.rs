@@ -21,6 +21,7 @@ use labrig::launch::LaunchConfig;
 use labrig::programs::sibling_binary;
 use labrig_cameras::node::{CameraConfig, CamerasConfig, IntrinsicsSpec};
 use labrig_cameras::source::{DeviceKind, SourceSpec};
+use labrig_episode::metadata::RigIdentity;
 use labrig_runtime::RosConfig;
 use labrig_runtime::node::run_config;
 use serde::Serialize;
@@ -236,6 +237,7 @@ fn rig_checks(path: &Path, within: Duration, hours: f64) -> Vec<Check> {
     if let Some(r) = &nodes.recorder {
         let rate = nodes.cameras.as_ref().map(|c| recording_rate(c, r));
         out.push(disk(&r.root, rate, hours));
+        out.push(episode_metadata(&r.rig, devices, nodes.franka.is_some()));
     }
     if let Some((args, file)) = &nodes.policy {
         out.push(policy(args, file.as_deref(), within));
@@ -667,6 +669,55 @@ fn recording_rate(cams: &CamerasConfig, rec: &labrig_recorder::node::RecorderCon
         .filter(|(name, _)| rec.cameras.is_empty() || rec.cameras.contains(name))
         .map(|(_, c)| f64::from(c.width.max(320)) * f64::from(c.height.max(240)) * 0.5 * c.fps)
         .sum::<f64>()
+}
+
+/// What every episode's DROID metadata will say of the rig (the recorder's `[rig]`): its camera
+/// serials must be the rig's (`rig.devices.camera_serials`); the simulator's defaults on a rig
+/// that drives an arm are a warning.
+fn episode_metadata(id: &RigIdentity, devices: &labrig::launch::Devices, drives_an_arm: bool) -> Check {
+    const PART: &str = "episode metadata";
+    let wrong: Vec<String> = devices
+        .camera_serials
+        .iter()
+        .filter_map(|(cam, want)| {
+            id.camera_serials.get(cam).filter(|got| *got != want).map(|got| format!("{cam} {got} (the rig: {want})"))
+        })
+        .collect();
+    if !wrong.is_empty() {
+        return row(
+            PART,
+            State::Fail,
+            format!("the recorder would write wrong camera serials: {}", wrong.join(", ")),
+            "give the recorder's [rig.camera_serials] the same serials as [rig.devices.camera_serials]",
+        );
+    }
+    let missing: Vec<&str> =
+        devices.camera_serials.keys().filter(|c| !id.camera_serials.contains_key(*c)).map(String::as_str).collect();
+    let default = RigIdentity::default();
+    let what = format!(
+        "lab {}, building {}, robot {}, {} camera serials",
+        id.lab,
+        id.building,
+        id.robot_serial,
+        id.camera_serials.len()
+    );
+    if drives_an_arm && (id.robot_serial == default.robot_serial || id.building == default.building) {
+        return row(
+            PART,
+            State::Warn,
+            format!("{what}: the simulator's defaults"),
+            "give the recorder a config with [rig] (launch_configs/nodes/recorder_real.toml)",
+        );
+    }
+    if !missing.is_empty() {
+        return row(
+            PART,
+            State::Warn,
+            format!("{what}; none for {}", missing.join(", ")),
+            "add them to the recorder's [rig.camera_serials]",
+        );
+    }
+    ok(PART, what)
 }
 
 fn disk(root: &Path, rate_bps: Option<f64>, hours: f64) -> Check {
