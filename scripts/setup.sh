@@ -288,11 +288,15 @@ tool_venv() {
     printf '%s' "$want" > "$venv/.labrig-stamp"
 }
 
+FS_VENV="$LABRIG_CACHE/venv-franka-sim"
+# LABRIG_SETUP_PEERS=0 leaves out the test peers' Python venvs below (network and disk bound,
+# ~7 min the first time): scripts/test.sh makes them in a second setup run while the workspace
+# builds, and waits for it before the tests.
+if [ "${LABRIG_SETUP_PEERS:-1}" != 0 ]; then
 # franka-sim (issue 4): the FCI simulator the franka node's fci backend is tested against
 # (it pins numpy 1.26 and mujoco < 3.3, hence its own venv). It would fetch its FR3 model from
 # GitHub: FR3_MJCF points it at franky-sim's fr3.xml (extracted above), meshdir made absolute.
 tool_venv franka-sim franka_sim franka-sim==1.1.7
-FS_VENV="$LABRIG_CACHE/venv-franka-sim"
 # The MCAP readers episodes are checked with (issue 5): the reference `mcap` +
 # `mcap-ros2-support`, and `rosbags`.
 tool_venv readers "mcap_ros2, rosbags" mcap==1.6.0 mcap-ros2-support==0.6.0 rosbags==0.11.9
@@ -349,6 +353,7 @@ lerobot_venv() {
 }
 lerobot_venv lerobot-data "$REPO_DIR/scripts/lerobot/requirements.txt"
 lerobot_venv lerobot-v21 "$REPO_DIR/scripts/lerobot/requirements-v21.txt"
+fi  # (LABRIG_SETUP_PEERS)
 FS_MJCF="$LABRIG_CACHE/franka-sim/fr3.xml"
 mkdir -p "$(dirname "$FS_MJCF")"
 fs_xml="$(sed "s|meshdir=\"[^\"]*\"|meshdir=\"$MJ_DIR/assets/fr3/meshes\"|" "$MJ_DIR/assets/fr3/fr3.xml")"

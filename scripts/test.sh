@@ -9,7 +9,15 @@
 set -euo pipefail
 REPO_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO_DIR"
-bash scripts/setup.sh >/dev/null
+# What the build needs first; the test peers' Python venvs (network and disk bound, ~7 min on a
+# fresh machine: LeRobot's alone ~6 GB of wheels) are made by a second, full setup run while
+# the workspace builds, and waited for before the tests (a warm run finds them made in ~1 s).
+LABRIG_SETUP_PEERS=0 bash scripts/setup.sh >/dev/null
+peers_log="$(mktemp)"
+bash scripts/setup.sh >"$peers_log" 2>&1 &
+peers_pid=$!
+# A failed build or lint ends the run: the setup beside it ends with it.
+trap '[ -z "${peers_pid:-}" ] || kill "$peers_pid" 2>/dev/null || true' EXIT
 # shellcheck disable=SC1091
 source "${LABRIG_CACHE:-$HOME/.cache/labrig}/env.sh"
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$LABRIG_CACHE/target}"
@@ -27,6 +35,16 @@ if [ -n "${LABRIG_CI_MTIMES:-}" ] && command -v python3 >/dev/null; then python3
 echo "== lint"
 cargo fmt --all --check
 cargo clippy --workspace --all-targets --locked -q -- -D warnings
+
+if ! wait "$peers_pid"; then
+    cat "$peers_log" >&2
+    echo "scripts/setup.sh (the test peers' venvs) failed: its output is above" >&2
+    exit 1
+fi
+peers_pid=""
+rm -f "$peers_log"
+# shellcheck disable=SC1091
+source "$LABRIG_CACHE/env.sh"
 
 capture_dir="$(mktemp -d)"
 pcap="$capture_dir/suite.pcap"

@@ -15,10 +15,10 @@
 //!   (franka and gripper nodes in front of the bridge, as on the real rig): the franka node
 //!   holds and reports the fault on /arm/state, the loop stops the episode naming the fault,
 //!   the recorder files what was recorded.
-//! - `camera-stall`: the wrist camera stops sending for 1 s (`--stall-s`) mid-episode (`/sim/fault`): every
-//!   step of that second records the wrist's last frame with its old capture time, so the
-//!   episode says which camera was missing, and when (`labrig inspect`: late and dropped
-//!   frames per camera).
+//! - `camera-stall`: the wrist camera stops sending for 1 s (`--stall-s`) from 1 s into an
+//!   episode (`/sim/fault`): every step of that second records the wrist's last frame with its
+//!   old capture time, so the episode says which camera was missing, and when (`labrig
+//!   inspect`: late and dropped frames per camera).
 //!
 //! Each run prints a table (or JSON); the figures depend on the machine (a shared 2-core
 //! machine is noisy): read times as what one run measured.
@@ -409,7 +409,10 @@ async fn run_one(
             seen.steps.entry(s.msg.episode_id.clone()).or_default().insert(s.msg.step_index);
         }
         let first_steps = seen.episodes.first().and_then(|id| seen.steps.get(id)).map_or(0, |s| s.len());
-        if hit_at.is_none() && first_steps >= 60 {
+        // Mid-episode: 3 s in; a camera stall 1 s in, so that the expert's episode outlasts the
+        // stall (stalled at step 60, an 84-step episode ended 24 steps into a 2 s stall).
+        let hit_step = if fault == Fault::CameraStall { 20 } else { 60 };
+        if hit_at.is_none() && first_steps >= hit_step {
             match (fault, point) {
                 (Fault::RecorderKill, Some(KillPoint::Mid)) => {
                     signal("-KILL", &recorder)?;
