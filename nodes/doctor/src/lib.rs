@@ -691,8 +691,6 @@ fn episode_metadata(id: &RigIdentity, devices: &labrig::launch::Devices, drives_
             "give the recorder's [rig.camera_serials] the same serials as [rig.devices.camera_serials]",
         );
     }
-    let missing: Vec<&str> =
-        devices.camera_serials.keys().filter(|c| !id.camera_serials.contains_key(*c)).map(String::as_str).collect();
     let default = RigIdentity::default();
     let what = format!(
         "lab {}, building {}, robot {}, {} camera serials",
@@ -701,23 +699,22 @@ fn episode_metadata(id: &RigIdentity, devices: &labrig::launch::Devices, drives_
         id.robot_serial,
         id.camera_serials.len()
     );
-    if drives_an_arm && (id.robot_serial == default.robot_serial || id.building == default.building) {
-        return row(
-            PART,
-            State::Warn,
+    let missing: Vec<&str> =
+        devices.camera_serials.keys().filter(|c| !id.camera_serials.contains_key(*c)).map(String::as_str).collect();
+    let warning = if drives_an_arm && (id.robot_serial == default.robot_serial || id.building == default.building) {
+        Some((
             format!("{what}: the simulator's defaults"),
             "give the recorder a config with [rig] (launch_configs/nodes/recorder_real.toml)",
-        );
+        ))
+    } else if !missing.is_empty() {
+        Some((format!("{what}; none for {}", missing.join(", ")), "add them to the recorder's [rig.camera_serials]"))
+    } else {
+        None
+    };
+    match warning {
+        Some((detail, fix)) => row(PART, State::Warn, detail, fix),
+        None => ok(PART, what),
     }
-    if !missing.is_empty() {
-        return row(
-            PART,
-            State::Warn,
-            format!("{what}; none for {}", missing.join(", ")),
-            "add them to the recorder's [rig.camera_serials]",
-        );
-    }
-    ok(PART, what)
 }
 
 fn disk(root: &Path, rate_bps: Option<f64>, hours: f64) -> Check {
