@@ -448,6 +448,16 @@ pub struct PolicyRequest {
     pub observations: Vec<PolicyObservation>,
     pub seed: u64,
     pub period_ns: i64,
+    /// Real-time chunking: the rows of the chunk the loop is executing, from the newest
+    /// observation's tick on (row-major, the policy's action width), in the robot's units.
+    /// Empty: no guidance asked for.
+    pub prefix_actions: Vec<f64>,
+    /// Of those rows, how many the loop executes before the new chunk can start (the inference
+    /// delay in ticks, `d`): the new chunk's first `d` rows are these, exactly.
+    pub prefix_frozen_steps: u32,
+    /// The largest weight of the guidance toward the prefix (the RTC paper's beta; 0: none,
+    /// the rows are frozen only).
+    pub guidance_max_weight: f64,
 }
 impl PolicyRequest {
     fn check_fields(&self) -> Result<(), Invalid> {
@@ -457,14 +467,51 @@ impl PolicyRequest {
         if self.period_ns <= 0 {
             return Err(Invalid::new("period_ns", format!("period_ns = {} must be > 0", self.period_ns)));
         }
+        if let Some(v) = self.prefix_actions.iter().find(|v| !v.is_finite()) {
+            return Err(Invalid::new("prefix_actions", format!("a prefix action of {v}")));
+        }
+        if !(self.guidance_max_weight.is_finite() && self.guidance_max_weight >= 0.0) {
+            return Err(Invalid::new(
+                "guidance_max_weight",
+                format!("guidance_max_weight = {} must be >= 0", self.guidance_max_weight),
+            ));
+        }
         self.observations.iter().try_for_each(|o| o.validate())
     }
 }
+/// A real-time chunking setting a policy's chunks cannot hold (the RTC paper's bounds).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RtcBoundsError {
+    #[error(
+        "real-time chunking: the inference delay d = {d} ticks is not shorter than the policy's chunk ({rows} rows from the observation on); nothing of a new chunk would be left to run"
+    )]
+    DelayBeyondChunk { d: u32, rows: u32 },
+    #[error(
+        "real-time chunking: the execution horizon s = {s} (policy.execute_steps, or the policy's n_action_steps) must lie in [d, rows - d] = [{d}, {}] for d = {d} ticks of delay and a chunk of {rows} rows",
+        rows.saturating_sub(*d)
+    )]
+    Horizon { s: u32, d: u32, rows: u32 },
+}
+
+/// Real-time chunking's bounds, d <= s <= H - d: `d` the delay in ticks (the rows a request's
+/// `prefix_frozen_steps` freezes), `s` the rows executed per chunk, `rows` (H) a chunk's rows
+/// from the observation on. One request at a time is in flight, so a chunk runs at least d
+/// rows (s >= d), and those must be there after the d it arrives late (s <= H - d).
+pub fn rtc_bounds(d: u32, s: u32, rows: u32) -> Result<(), RtcBoundsError> {
+    if d >= rows {
+        return Err(RtcBoundsError::DelayBeyondChunk { d, rows });
+    }
+    if s < d || s > rows - d {
+        return Err(RtcBoundsError::Horizon { s, d, rows });
+    }
+    Ok(())
+}
+
 labrig_message!(
     PolicyRequest,
     "labrig_msgs/msg/PolicyRequest",
     [Header, PolicyObservation],
-    "uint16 version\nstd_msgs/Header header\nuint64 request_id\nstring episode_id\nstring scene\nlabrig_msgs/PolicyObservation[] observations\nuint64 seed\nint64 period_ns\n"
+    "uint16 version\nstd_msgs/Header header\nuint64 request_id\nstring episode_id\nstring scene\nlabrig_msgs/PolicyObservation[] observations\nuint64 seed\nint64 period_ns\nfloat64[] prefix_actions\nuint32 prefix_frozen_steps\nfloat64 guidance_max_weight\n"
 );
 
 /// labrig_msgs/msg/CameraFrameRef: which frame of one camera went into an observation.

@@ -8,7 +8,7 @@ use crate::checkpoint::CheckpointMeta;
 use crate::normalize::NormalizeError;
 use crate::policy::{DiffusionPolicy, PolicyError, Trace};
 use std::collections::BTreeMap;
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
 #[derive(Debug, thiserror::Error)]
 pub enum InferError {
@@ -20,6 +20,8 @@ pub enum InferError {
     Normalize(#[from] NormalizeError),
     #[error(transparent)]
     Policy(#[from] PolicyError),
+    #[error("real-time chunking: {0}")]
+    Prefix(#[from] crate::rtc::RtcError),
 }
 
 /// A chunk in the robot's units beside the model's trace.
@@ -76,12 +78,60 @@ pub fn infer(
 ) -> Result<Inference, InferError> {
     let (images, state) = observation(meta, named)?;
     let trace = tch::no_grad(|| policy.sample_traced(&images, &state, noise))?;
-    let mut action = meta.action_stats.unnormalize(&trace.chunk)?;
+    let action = to_robot(meta, named, &trace.chunk)?;
+    let executed = policy.executed(&action);
+    Ok(Inference { trace, action, executed, images, state })
+}
+
+/// A normalised chunk (B, Tp, action_dim) in the robot's units: with `action_relative`, the
+/// TCP's position at the newest observation added back to the target positions.
+fn to_robot(meta: &CheckpointMeta, named: &BTreeMap<String, Tensor>, chunk: &Tensor) -> Result<Tensor, InferError> {
+    let mut action = meta.action_stats.unnormalize(chunk)?;
     if meta.config.action_relative {
-        // Relative target positions + the TCP's position at the newest observation.
         let raw = take(named, "observation.state")?;
         action += crate::data::tcp_offset(&raw.select(1, -1), action.size()[2], action.kind());
     }
-    let executed = policy.executed(&action);
-    Ok(Inference { trace, action, executed, images, state })
+    Ok(action)
+}
+
+/// The rows of the chunk a loop is executing, from the newest observation's tick on, in the
+/// robot's units (row-major): what real-time chunking guides the next chunk toward.
+#[derive(Debug, Clone, Copy)]
+pub struct Prefix<'a> {
+    pub actions: &'a [f64],
+    /// Rows the loop executes from them before the new chunk starts (d).
+    pub frozen: usize,
+    /// beta, the clip of the guidance weight.
+    pub max_weight: f64,
+}
+
+/// [`infer`] guided toward `prefix` ([`crate::rtc`]); the result's `action` (B = 1). The
+/// frozen rows are not yet overwritten (the caller does, in f64: [`crate::rtc::freeze`]).
+pub fn infer_guided(
+    policy: &DiffusionPolicy,
+    meta: &CheckpointMeta,
+    named: &BTreeMap<String, Tensor>,
+    noise: &Tensor,
+    prefix: Prefix<'_>,
+) -> Result<Tensor, InferError> {
+    let c = &meta.config;
+    let (width, offset) = (c.action_dim as usize, (c.n_obs_steps - 1) as usize);
+    let chunk_rows = (c.horizon - c.n_obs_steps + 1) as usize;
+    let rows = crate::rtc::prefix_rows(prefix.actions.len(), width, chunk_rows, prefix.frozen)?;
+    let (images, state) = observation(meta, named)?;
+    // The prefix in the model's space: the model's row offset + i is the chunk's row i.
+    let mut target = vec![0f32; c.horizon as usize * width];
+    for (i, v) in prefix.actions.iter().enumerate() {
+        target[offset * width + i] = *v as f32;
+    }
+    let mut target = Tensor::from_slice(&target).view([1, c.horizon, c.action_dim]);
+    if c.action_relative {
+        let raw = take(named, "observation.state")?;
+        target -= crate::data::tcp_offset(&raw.select(1, -1), c.action_dim, Kind::Float);
+    }
+    let target = meta.action_stats.normalize(&target)?;
+    let weights = crate::rtc::prefix_weights(c.horizon as usize, offset, prefix.frozen, rows);
+    let guide = crate::rtc::Guide { target, weights, max_weight: prefix.max_weight };
+    let chunk = tch::no_grad(|| policy.sample_guided(&images, &state, noise, &guide))?;
+    to_robot(meta, named, &chunk)
 }

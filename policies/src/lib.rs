@@ -28,6 +28,7 @@ pub mod infer;
 pub mod lerobot;
 pub mod normalize;
 pub mod policy;
+pub mod rtc;
 pub mod sampler;
 pub mod schedule;
 pub mod spatial_softmax;

@@ -550,6 +550,26 @@ impl DiffusionPolicy {
         Ok(Trace { features, waypoint, global_cond, eps_first, eps_last, chunk })
     }
 
+    /// [`DiffusionPolicy::sample`] guided toward the prefix in `guide` (real-time chunking,
+    /// [`crate::rtc`]): the image encoders run once, the U-Net once per DDIM step plus its
+    /// vector-Jacobian product.
+    pub fn sample_guided(
+        &self,
+        images: &[Tensor],
+        state: &Tensor,
+        noise: &Tensor,
+        guide: &crate::rtc::Guide,
+    ) -> Result<Tensor, PolicyError> {
+        let c = &self.cfg;
+        Self::expect("noise", noise, &[-1, c.horizon, c.action_dim])?;
+        Self::expect("observation.state", state, &[noise.size()[0], c.n_obs_steps, c.state_dim])?;
+        Self::expect("the guidance target", &guide.target, &[noise.size()[0], c.horizon, c.action_dim])?;
+        let features = self.encode(images, noise.size()[0], false)?;
+        let (global_cond, _) = self.with_waypoint(Self::cond_of(&self.seen_state(state), &features));
+        let global_cond = global_cond.detach();
+        Ok(crate::rtc::sample_guided(&self.ddim, noise, guide, |x, t| self.denoise(x, t, &global_cond))?)
+    }
+
     /// The U-Net's noise estimate for `x` at timestep `t` (one DDIM step's network call).
     pub fn denoise(&self, x: &Tensor, t: i64, global_cond: &Tensor) -> Tensor {
         self.unet.forward(x, &Tensor::full([x.size()[0]], t, (Kind::Int64, x.device())), global_cond)

@@ -129,21 +129,44 @@ impl Ddim {
     /// clipped (after eps is derived, as diffusers does); then
     /// x_prev = sqrt(abar_prev) x0 + sqrt(1 - abar_prev) eps (abar_prev = 1 past the start).
     pub fn step(&self, out: &Tensor, t: i64, sample: &Tensor) -> Result<Tensor, ScheduleError> {
+        let (x0, eps) = self.estimate(out, t, sample)?;
+        self.advance(x0, &eps, t)
+    }
+
+    /// The clean chunk and the noise the network's output `out` at `sample`, timestep `t`,
+    /// stands for (x0 not yet clipped).
+    pub fn estimate(&self, out: &Tensor, t: i64, sample: &Tensor) -> Result<(Tensor, Tensor), ScheduleError> {
         let a_t = self.schedule.alpha_cumprod(t)?;
-        let prev = t - self.step_ratio;
-        let a_prev = if prev >= 0 { self.schedule.alpha_cumprod(prev)? } else { 1.0 };
-        let (b_t, b_prev) = (1.0 - a_t, 1.0 - a_prev);
-        let (x0, eps) = match self.prediction {
+        let b_t = 1.0 - a_t;
+        Ok(match self.prediction {
             Prediction::Epsilon => {
                 ((sample - out * f64::from(b_t.sqrt())) / f64::from(a_t.sqrt()), out.shallow_clone())
             }
             Prediction::Sample => (out.shallow_clone(), (sample - out * f64::from(a_t.sqrt())) / f64::from(b_t.sqrt())),
-        };
+        })
+    }
+
+    /// The rest of a step from the estimate: x0 clipped, then
+    /// x_prev = sqrt(abar_prev) x0 + sqrt(1 - abar_prev) eps.
+    pub fn advance(&self, x0: Tensor, eps: &Tensor, t: i64) -> Result<Tensor, ScheduleError> {
+        let prev = t - self.step_ratio;
+        let a_prev = if prev >= 0 { self.schedule.alpha_cumprod(prev)? } else { 1.0 };
+        let b_prev = 1.0 - a_prev;
         let x0 = match self.clip {
             Some(c) => x0.clamp(-c, c),
             None => x0,
         };
-        Ok(x0 * f64::from(a_prev.sqrt()) + &eps * f64::from(b_prev.sqrt()))
+        Ok(x0 * f64::from(a_prev.sqrt()) + eps * f64::from(b_prev.sqrt()))
+    }
+
+    /// The clip of the predicted clean sample, if any.
+    pub fn clip(&self) -> Option<f64> {
+        self.clip
+    }
+
+    /// abar_t, the signal kept at timestep `t`.
+    pub fn alpha_cumprod(&self, t: i64) -> Result<f32, ScheduleError> {
+        self.schedule.alpha_cumprod(t)
     }
 
     /// The whole chunk: from `noise` through every timestep, `predict(sample, t)` giving the

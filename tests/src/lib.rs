@@ -196,11 +196,14 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("train_distributed_demo", 111, 1),
     // (No DDS: the port of its franka-sim, 20000 + the domain, as the franka tests do.)
     ("doctor_franka_sim", 176, 1),
+    ("rollout_rtc", 177, 1),
+    ("rollout_rtc_refused", 178, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
-/// (`labrig experiment retrieval`: 50 and, with `--jobs`, up to seven more.)
-pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 50..=57, 70..=79];
+/// (`labrig experiment retrieval`: 50 and, with `--jobs`, up to seven more; `labrig bench
+/// latency`: 47.)
+pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 47..=47, 50..=57, 70..=79];
 
 /// franka-sim on 127.0.0.1:`port` (see scripts/franka_sim_loopback.py).
 pub fn franka_sim(port: u16, flags: &[&str]) -> Proc {

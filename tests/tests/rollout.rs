@@ -344,3 +344,124 @@ fn a_torchscript_module_runs_on_the_sim_rig() {
             .all(|v| v.abs() <= 0.2 + 1e-9))
     );
 }
+
+/// Real-time chunking in lockstep (`--blend rtc`, 2 ticks of played delay, 4 rows a chunk),
+/// watched on the wire: each request but an episode's first carries the executing chunk's
+/// rows from its observation's tick on, with d = 2; the answer's first 2 rows are those rows
+/// exactly; the rows that run are each chunk's 2..6; and the run repeats itself bit for bit.
+#[test]
+fn real_time_chunking_sends_the_rows_run_meanwhile_and_repeats_itself() {
+    use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let key = "rollout_rtc";
+    let domain = domain_for(key);
+    let args = ["--episodes", "1", "--max-steps", "30", "--first-seed", "7", "--blend", "rtc", "--delay-steps", "2"];
+    let args = [&args[..], &["--execute-steps", "4", "--guidance-max-weight", "5"]].concat();
+    let (requests, answers, first) = rt().block_on(async {
+        let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "rtc_watch").unwrap();
+        let request_sub = ros.subscription_on(&topics::POLICY_REQUEST, 1000).unwrap();
+        let chunk_sub = ros.subscription_on(&topics::POLICY_CHUNK, 1000).unwrap();
+        let (stdout, stderr) = (a.path().join("stdout"), a.path().join("stderr"));
+        let mut child = Command::new(labrig_bin())
+            .args(["rollout", "--threads", "1", "--json", "--domain-id", &domain.to_string(), "--policy"])
+            .arg(tiny())
+            .arg("--out")
+            .arg(a.path().join("run"))
+            .args(&args)
+            .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+            .current_dir(repo_root())
+            .stdout(std::fs::File::create(&stdout).unwrap())
+            .stderr(std::fs::File::create(&stderr).unwrap())
+            .spawn()
+            .unwrap();
+        let (mut requests, mut answers): (Vec<PolicyRequest>, Vec<ActionChunk>) = (Vec::new(), Vec::new());
+        let until = Instant::now() + Duration::from_secs(300);
+        let mut exited = None;
+        let mut drain_until = None;
+        while Instant::now() < until {
+            while let Some(m) = request_sub.try_take().unwrap() {
+                requests.push(m.msg);
+            }
+            while let Some(m) = chunk_sub.try_take().unwrap() {
+                answers.push(m.msg);
+            }
+            if exited.is_none() {
+                exited = child.try_wait().unwrap();
+                if exited.is_some() {
+                    drain_until = Some(Instant::now() + Duration::from_millis(500));
+                }
+            }
+            if drain_until.is_some_and(|t| Instant::now() > t) {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        let err = std::fs::read_to_string(&stderr).unwrap_or_default();
+        assert_eq!(exited.and_then(|s| s.code()), Some(0), "{err}");
+        let out = std::fs::read_to_string(&stdout).unwrap();
+        let report: Value = serde_json::from_str(out.lines().last().unwrap_or_default()).unwrap();
+        (requests, answers, report)
+    });
+    assert!(first["errors"].as_array().unwrap().is_empty(), "{first:#}");
+    let (s1, _) = steps(&first["rollouts"][0]["dir"]);
+    // The rows that ran: 2..6 of every chunk but the first (its 2 ticks held) and the last.
+    let runs = chunks(&s1);
+    assert!(runs.len() >= 5, "{runs:?}");
+    for (id, rows) in &runs[..runs.len() - 1] {
+        assert_eq!(rows, &(2..6).collect::<Vec<u32>>(), "chunk {id}");
+    }
+    // What went over the wire.
+    let mut checked = 0;
+    assert!(requests.len() >= runs.len(), "{} requests for {} chunks", requests.len(), runs.len());
+    assert!(requests[0].prefix_actions.is_empty(), "an episode's first request has no chunk to continue");
+    for r in &requests[1..] {
+        let previous = answers.iter().filter(|c| c.request_id < r.request_id).max_by_key(|c| c.request_id).unwrap();
+        let tick = labrig_msgs::Nanos::from(r.observations.last().unwrap().header.stamp).0;
+        let from = previous.times_ns.iter().position(|&t| t == tick).expect("the observation's tick in the old chunk");
+        assert_eq!(
+            r.prefix_actions,
+            previous.actions[from * 7..],
+            "request {}: the old chunk's rows from its tick",
+            r.request_id
+        );
+        assert_eq!(r.prefix_frozen_steps, 2, "request {}", r.request_id);
+        assert_eq!(r.guidance_max_weight, 5.0);
+        let Some(answer) = answers.iter().find(|c| c.request_id == r.request_id) else { continue };
+        assert_eq!(answer.actions[..14], r.prefix_actions[..14], "request {}: the frozen rows, exactly", r.request_id);
+        checked += 1;
+    }
+    assert!(checked >= 4, "{checked} requests checked against their chunks");
+    // The same policy, seeds, latency and guidance: the same episode.
+    let second = rollout_of(&tiny(), key, b.path(), &args);
+    let (s2, _) = steps(&second["rollouts"][0]["dir"]);
+    assert_eq!(s1.len(), s2.len());
+    for (x, y) in s1.iter().zip(&s2) {
+        assert_eq!((x.chunk_id, x.chunk_row), (y.chunk_id, y.chunk_row));
+        assert_eq!(x.action.cartesian_position, y.action.cartesian_position, "step {}", x.step_index);
+        assert_eq!(x.robot_state.joint_positions, y.robot_state.joint_positions, "step {}", x.step_index);
+    }
+}
+
+/// Real-time chunking that the chunk cannot hold is refused at start by name: 8 ticks of
+/// delay leave 7 of the tiny policy's 15 rows, fewer than the 8 a chunk must run.
+#[test]
+fn real_time_chunking_the_chunk_cannot_hold_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = "rollout_rtc_refused";
+    let o = Command::new(labrig_bin())
+        .args(["rollout", "--threads", "1", "--json", "--episodes", "1", "--domain-id", &domain_for(key).to_string()])
+        .args(["--blend", "rtc", "--delay-steps", "8", "--policy"])
+        .arg(tiny())
+        .arg("--out")
+        .arg(dir.path())
+        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+        .current_dir(repo_root())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_ne!(o.status.code(), Some(0), "{err}");
+    assert!(
+        err.contains("real-time chunking: the execution horizon s = 8 (policy.execute_steps, or the policy's n_action_steps) must lie in [d, rows - d] = [8, 7] for d = 8 ticks of delay and a chunk of 15 rows"),
+        "{err}"
+    );
+}

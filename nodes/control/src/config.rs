@@ -220,6 +220,25 @@ pub enum Blend {
     Replace,
     /// Overlapping rows averaged, newer chunks weighted up.
     Exponential,
+    /// Synchronous: the next chunk is asked for once `execute_steps` rows of this one have run,
+    /// and the arm holds until it comes; its rows run from its arrival (nothing skipped).
+    Wait,
+    /// Real-time chunking: as `replace`, and each request carries the rows the loop executes
+    /// meanwhile, which the server's sampler freezes and guides the new chunk's overlap toward
+    /// (`guidance_max_weight`; labrig's Diffusion Policy checkpoints; other servers get the
+    /// schedule without the guidance, as the log says).
+    Rtc,
+}
+
+impl Blend {
+    pub fn name(self) -> &'static str {
+        match self {
+            Blend::Replace => "replace",
+            Blend::Exponential => "exponential",
+            Blend::Wait => "wait",
+            Blend::Rtc => "rtc",
+        }
+    }
 }
 
 /// When a chunk's rows are meant to run.
@@ -252,6 +271,16 @@ pub struct PolicySourceConfig {
     /// Lockstep only: a chunk asked for at step t is used from step t + this (0: the loop
     /// waits for it).
     pub lockstep_delay_steps: u32,
+    /// On the wall clock: a request goes out when the rows left fall to the expected delay
+    /// (the slowest of the last 20 round trips, in ticks, rounded up) plus this many ticks,
+    /// so that in steady state a chunk arrives before the arm runs out of rows.
+    pub request_margin_steps: u32,
+    /// `blend = "rtc"`: the inference delay d in ticks (the rows frozen to the old chunk's).
+    /// 0: measured (the expected delay above), or in lockstep `lockstep_delay_steps`.
+    pub rtc_delay_steps: u32,
+    /// `blend = "rtc"`: the clip (beta) of the guidance weight toward the old chunk's rows;
+    /// 0 freezes the first d rows and guides nothing.
+    pub guidance_max_weight: f64,
     /// How long the node waits at start for the server's `/policy/info` (s).
     pub server_wait_s: f64,
     /// A request unanswered this long (s, wall time) fails the episode.
@@ -302,6 +331,9 @@ impl Default for PolicySourceConfig {
             chunk_timing: ChunkTiming::Observation,
             execute_steps: 0,
             lockstep_delay_steps: 0,
+            request_margin_steps: 1,
+            rtc_delay_steps: 0,
+            guidance_max_weight: 5.0,
             server_wait_s: 120.0,
             server_timeout_s: 1.0,
             action_space: String::new(),
@@ -332,6 +364,18 @@ impl PolicySourceConfig {
             return Err(Invalid::new(
                 "policy.blend_decay",
                 format!("policy.blend_decay = {} must be >= 0", self.blend_decay),
+            ));
+        }
+        if !(self.guidance_max_weight.is_finite() && (0.0..=1000.0).contains(&self.guidance_max_weight)) {
+            return Err(Invalid::new(
+                "policy.guidance_max_weight",
+                format!("policy.guidance_max_weight = {} must be in [0, 1000]", self.guidance_max_weight),
+            ));
+        }
+        if self.blend != Blend::Rtc && self.rtc_delay_steps != 0 {
+            return Err(Invalid::new(
+                "policy.rtc_delay_steps",
+                format!("policy.rtc_delay_steps = {} is for policy.blend = \"rtc\" only", self.rtc_delay_steps),
             ));
         }
         if !self.action_space.is_empty() && !EXECUTABLE.contains(&self.action_space.as_str()) {

@@ -9,7 +9,8 @@
 //!
 //! - A chunk is asked for once `execute_steps` rows of the newest one have run (the
 //!   receding horizon), `lead` ticks early so that it arrives in time: on the wall clock
-//!   `lead` is the measured round trip in ticks (rounded up), in lockstep it is
+//!   `lead` is the slowest of the last 20 round trips in ticks (rounded up) plus
+//!   `request_margin_steps`, so the arm does not run out of rows; in lockstep it is
 //!   `lockstep_delay_steps` (0: the loop waits for the chunk, as synchronous inference does;
 //!   N: the sim plays an inference latency of N ticks, deterministically).
 //! - Rows whose time passed before their chunk arrived are skipped (counted); no row for a
@@ -17,6 +18,15 @@
 //! - A new chunk replaces the rest of the old one (`blend = "replace"`), or overlapping rows
 //!   are averaged with weights `exp(-blend_decay * k)`, `k` how many steps older a chunk's
 //!   observation is than the newest's (`"exponential"`; rotations by slerp).
+//! - `blend = "wait"` is synchronous execution: a chunk is asked for once `execute_steps` rows
+//!   of the last have run, nothing runs meanwhile (the arm holds), and its rows run from its
+//!   arrival.
+//! - `blend = "rtc"` (real-time chunking) replaces as `"replace"` does, and each request
+//!   carries the newest chunk's rows from the observation's tick on and `d`, the rows of them
+//!   the loop runs before the new chunk can (the delay in ticks): the server freezes the new
+//!   chunk's first `d` rows to them and guides the rest of the overlap toward them
+//!   (labrig_policies::rtc). An openpi server is not guided: it gets the schedule alone, and
+//!   the log says so.
 //! - No answer to a request within `server_timeout_s`: the episode fails, saying so.
 //! - In the sim, `/sim/task` (the physics' success predicate) ends an episode as a success;
 //!   on a real rig the operator judges (`/rig/request`).
@@ -66,6 +76,9 @@ pub struct PolicyStats {
     pub round_trip_ms: [f64; 3],
     /// The lead (ticks) the last request was sent with.
     pub lead_steps: u32,
+    /// `rtc`: requests that carried the executing chunk's rows, and the d the last one froze.
+    pub prefix_requests: u64,
+    pub frozen_steps: u32,
 }
 
 /// One tick as the policy sees it.
@@ -157,6 +170,7 @@ pub struct PolicySource {
     round_trips_ms: Vec<f64>,
     stats: PolicyStats,
     warned_images: bool,
+    warned_prefix: bool,
     /// An operator has taken over: observe, ask for nothing.
     suspended: bool,
 }
@@ -184,6 +198,24 @@ pub enum PolicyStartError {
     Stopped,
     #[error("{0}")]
     Remote(String),
+    #[error(transparent)]
+    Rtc(#[from] labrig_msgs::labrig_msgs::RtcBoundsError),
+}
+
+/// Real-time chunking's bounds for this policy, where the delay is known at start (lockstep,
+/// or `rtc_delay_steps` set); a measured delay is clamped to the prefix as it comes.
+fn check_rtc(cfg: &PolicySourceConfig, info: &PolicyInfo, clock: ClockKind) -> Result<(), PolicyStartError> {
+    if cfg.blend != Blend::Rtc {
+        return Ok(());
+    }
+    let rows = (info.horizon + 1).saturating_sub(info.n_obs_steps) as u32;
+    let s = if cfg.execute_steps > 0 { cfg.execute_steps } else { info.n_action_steps as u32 };
+    let d = match (cfg.rtc_delay_steps, clock) {
+        (0, ClockKind::Sim) => cfg.lockstep_delay_steps,
+        (0, ClockKind::Wall) => return Ok(()),
+        (d, _) => d,
+    };
+    Ok(labrig_msgs::labrig_msgs::rtc_bounds(d, s, rows)?)
 }
 
 impl PolicySource {
@@ -220,6 +252,7 @@ impl PolicySource {
             tokio::time::sleep(Duration::from_millis(20)).await;
         };
         info.check(cameras, &cfg.action_space, cfg.sim_rig).map_err(PolicyStartError::Mismatch)?;
+        check_rtc(&cfg, &info, clock)?;
         let (jobs, rx) = mpsc::channel::<Job>();
         let quality = cfg.jpeg_quality;
         let encoder = std::thread::Builder::new()
@@ -256,6 +289,13 @@ impl PolicySource {
             .map_err(|e| PolicyStartError::Remote(e.to_string()))?
             .map_err(PolicyStartError::Remote)?;
         info.check(cameras, &cfg.action_space, cfg.sim_rig).map_err(PolicyStartError::Mismatch)?;
+        check_rtc(&cfg, &info, clock)?;
+        if cfg.blend == Blend::Rtc {
+            tracing::warn!(
+                policy = %info.policy_id,
+                "policy.blend = \"rtc\": an openpi server cannot be guided toward the executing chunk; its chunks come on real-time chunking's schedule without the guidance"
+            );
+        }
         let (jobs, rx) = mpsc::channel::<RemoteJob>();
         let (replies, chunks) = mpsc::channel::<RemoteReply>();
         let (id, timeout) = (info.policy_id.clone(), cfg.server_timeout_s);
@@ -309,6 +349,7 @@ impl PolicySource {
             round_trips_ms: Vec::new(),
             stats,
             warned_images: false,
+            warned_prefix: false,
             suspended: false,
         }
     }
@@ -329,17 +370,48 @@ impl PolicySource {
         if self.cfg.execute_steps > 0 { self.cfg.execute_steps } else { self.info.n_action_steps as u32 }
     }
 
-    /// How many ticks before the newest chunk's `execute_steps` are spent the next is asked for.
-    fn lead_steps(&self) -> u32 {
+    /// The ticks a request takes to answer: in lockstep the played delay; on the wall clock the
+    /// slowest of the last 20 round trips, in ticks, rounded up (1 before any).
+    fn delay_steps(&self) -> u32 {
         match self.clock {
             ClockKind::Sim => self.cfg.lockstep_delay_steps,
             ClockKind::Wall => {
-                // The slowest of the recent round trips, in ticks, rounded up (1 before any).
                 let recent = &self.round_trips_ms[self.round_trips_ms.len().saturating_sub(20)..];
                 let worst = recent.iter().copied().fold(f64::NAN, f64::max);
                 if worst.is_nan() { 1 } else { (worst * 1e6 / self.period_ns as f64).ceil().max(1.0) as u32 }
             }
         }
+    }
+
+    /// How many ticks before the newest chunk's `execute_steps` are spent the next is asked for:
+    /// the delay (on the wall clock plus `request_margin_steps`), or none when the loop waits.
+    fn lead_steps(&self) -> u32 {
+        match (self.cfg.blend, self.clock) {
+            (Blend::Wait, _) => 0,
+            (_, ClockKind::Sim) => self.delay_steps(),
+            (_, ClockKind::Wall) => self.delay_steps() + self.cfg.request_margin_steps,
+        }
+    }
+
+    /// The rows of the newest chunk from `tick` on, and d (how many of them run before a chunk
+    /// asked for now can), for a real-time chunking request.
+    fn prefix(&mut self, tick: i64) -> Option<(Vec<f64>, u32)> {
+        if self.cfg.blend != Blend::Rtc || !matches!(self.jobs, Some(Requests::Dds(_))) {
+            return None;
+        }
+        let c = self.active.last()?;
+        let tol = self.tolerance();
+        let from = c.times_ns.iter().position(|&t| t >= tick - tol)?;
+        let rows: Vec<f64> = c.rows[from..].iter().flatten().copied().collect();
+        let n = (c.rows.len() - from) as u32;
+        let want = if self.cfg.rtc_delay_steps > 0 { self.cfg.rtc_delay_steps } else { self.delay_steps() };
+        if want > n && !self.warned_prefix {
+            tracing::warn!(
+                "real-time chunking: the delay ({want} ticks) outruns the executing chunk's {n} rows left: d clamped to {n}"
+            );
+            self.warned_prefix = true;
+        }
+        Some((rows, want.min(n)))
     }
 
     fn tolerance(&self) -> i64 {
@@ -363,7 +435,7 @@ impl PolicySource {
             if self.clock == ClockKind::Sim {
                 usable_from = f.due_ns;
             }
-            if self.cfg.chunk_timing == ChunkTiming::Arrival {
+            if self.cfg.chunk_timing == ChunkTiming::Arrival || self.cfg.blend == Blend::Wait {
                 // The first tick at or after its arrival: in lockstep the tick it was due at,
                 // on the wall clock the sending tick + the round trip rounded up to ticks.
                 let arrival = match self.clock {
@@ -404,6 +476,11 @@ impl PolicySource {
     }
 
     fn send(&mut self, tick_ns: i64, lead: u32, view: &TickView<'_>) {
+        let (prefix_actions, prefix_frozen_steps) = self.prefix(tick_ns).unwrap_or_default();
+        if !prefix_actions.is_empty() {
+            self.stats.prefix_requests += 1;
+            self.stats.frozen_steps = prefix_frozen_steps;
+        }
         let n = self.info.n_obs_steps;
         let newest: Vec<&Obs> = self.history.iter().rev().take(n).rev().collect();
         let id = self.next_request;
@@ -426,6 +503,9 @@ impl PolicySource {
                 .collect(),
             seed,
             period_ns: self.period_ns,
+            prefix_actions,
+            prefix_frozen_steps,
+            guidance_max_weight: self.cfg.guidance_max_weight,
             ..PolicyRequest::default()
         };
         let images = newest.iter().map(|o| o.images.clone()).collect();
@@ -444,7 +524,7 @@ impl PolicySource {
         self.in_flight = Some(InFlight {
             id,
             sent_ns: tick_ns,
-            due_ns: tick_ns + i64::from(lead) * self.period_ns,
+            due_ns: tick_ns + i64::from(self.delay_steps()) * self.period_ns,
             sent: Instant::now(),
         });
     }
@@ -453,15 +533,17 @@ impl PolicySource {
     /// newest such chunk and its row.
     fn blended(&self, tick: i64) -> Option<(Vec<f64>, usize, usize)> {
         let tol = self.tolerance();
+        // Waiting, a chunk whose `execute_steps` rows have run is spent.
+        let spent = |c: &Chunk| self.cfg.blend == Blend::Wait && c.executed >= self.execute_steps();
         let rows: Vec<(usize, usize)> = self
             .active
             .iter()
             .enumerate()
-            .filter(|(_, c)| c.usable_from <= tick)
+            .filter(|(_, c)| c.usable_from <= tick && !spent(c))
             .filter_map(|(k, c)| c.row_at(tick, tol).map(|r| (k, r)))
             .collect();
         let &(newest, row) = rows.last()?;
-        if self.cfg.blend == Blend::Replace || rows.len() == 1 {
+        if self.cfg.blend != Blend::Exponential || rows.len() == 1 {
             return Some((self.active[newest].rows[row].clone(), newest, row));
         }
         let newest_step = self.active[newest].obs_step;
@@ -614,7 +696,7 @@ impl ActionSource for PolicySource {
         // Replaced chunks (older than the one executed) and chunks with no row left after
         // this tick are done; the newest is kept (the next request counts its rows).
         let tol = self.tolerance();
-        let (last, replace) = (self.active.len() - 1, self.cfg.blend == Blend::Replace);
+        let (last, replace) = (self.active.len() - 1, self.cfg.blend != Blend::Exponential);
         let mut i = 0;
         self.active.retain(|c| {
             let keep = i == last || (!(replace && i < k) && c.times_ns.last().is_some_and(|&t| t > tick.0 + tol));

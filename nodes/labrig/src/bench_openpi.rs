@@ -244,6 +244,8 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
             blend: None,
             delay_steps: None,
             execute_steps: None,
+            guidance_max_weight: None,
+            rtc_delay_steps: None,
             out: dir.clone(),
             domain_id: a.domain_id,
             json: true,

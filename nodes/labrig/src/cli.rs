@@ -318,6 +318,10 @@ pub enum BenchCommand {
     /// openpi's websocket protocol: the round trip on loopback (labrig's and openpi's own
     /// server), and the 20 Hz loop with a remote policy 0-1000 ms away (held ticks, skipped rows).
     Openpi(crate::bench_openpi::OpenpiBenchArgs),
+    /// Policies under inference latency (lockstep): delay x execution mode (wait, replace,
+    /// exponential, rtc) x rows per chunk on tuning seeds, then the best settings on judging
+    /// seeds; success, held ticks, jerk at chunk switches; resumable.
+    Latency(crate::bench_latency::LatencyArgs),
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -388,6 +392,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Cameras(a)) => crate::bench_cameras::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Openpi(a)) => crate::bench_openpi::run(a),
+        Command::Bench(BenchCommand::Latency(a)) => crate::bench_latency::run(a),
         Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
         Command::Bench(BenchCommand::Policy { args }) => node("labrig-policies", &tool("bench", args)),
         Command::Train { args } => node("labrig-policies", &tool("train", args)),

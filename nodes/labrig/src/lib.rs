@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod bench_cameras;
 pub mod bench_faults;
+pub mod bench_latency;
 pub mod bench_loop;
 pub mod bench_openpi;
 pub mod bench_station;

@@ -39,6 +39,21 @@ const SIM_ROLLOUT: &str = include_str!("../../../launch_configs/sim_rollout.toml
 pub enum BlendArg {
     Replace,
     Exponential,
+    /// Synchronous: the arm holds while each chunk is computed.
+    Wait,
+    /// Real-time chunking: the next chunk frozen to and guided toward the rows run meanwhile.
+    Rtc,
+}
+
+impl BlendArg {
+    pub fn name(self) -> &'static str {
+        match self {
+            BlendArg::Replace => "replace",
+            BlendArg::Exponential => "exponential",
+            BlendArg::Wait => "wait",
+            BlendArg::Rtc => "rtc",
+        }
+    }
 }
 
 #[derive(Debug, Args)]
@@ -112,6 +127,14 @@ pub struct RolloutArgs {
     /// checkpoint's n_action_steps).
     #[arg(long)]
     pub execute_steps: Option<u32>,
+    /// `--blend rtc`: the clip (beta) of the guidance toward the rows run meanwhile
+    /// (`policy.guidance_max_weight`; 0 freezes them and guides nothing).
+    #[arg(long)]
+    pub guidance_max_weight: Option<f64>,
+    /// `--blend rtc`: the delay d in ticks (`policy.rtc_delay_steps`; default: the played delay
+    /// in lockstep, the measured one in real time).
+    #[arg(long)]
+    pub rtc_delay_steps: Option<u32>,
     /// Where the rollouts (DROID layout under `rollouts/`), the report and the pictures go.
     #[arg(long, default_value = "out/rollout")]
     pub out: PathBuf,
@@ -317,7 +340,13 @@ pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
             (None, false) => {}
         }
         if let Some(b) = args.blend {
-            set(format!("policy.blend=\"{}\"", if b == BlendArg::Replace { "replace" } else { "exponential" }));
+            set(format!("policy.blend=\"{}\"", b.name()));
+        }
+        if let Some(w) = args.guidance_max_weight {
+            set(format!("policy.guidance_max_weight={w:?}"));
+        }
+        if let Some(d) = args.rtc_delay_steps {
+            set(format!("policy.rtc_delay_steps={d}"));
         }
         if let Some(d) = args.delay_steps {
             set(format!("policy.lockstep_delay_steps={d}"));

@@ -57,6 +57,8 @@ pub struct Server {
     config: DiffusionConfig,
     step: u64,
     id: String,
+    /// The log has said that this model's chunks come unguided.
+    warned_unguided: std::sync::atomic::AtomicBool,
 }
 
 impl Server {
@@ -72,6 +74,7 @@ impl Server {
             config,
             step,
             id,
+            warned_unguided: Default::default(),
         })
     }
 
@@ -85,8 +88,13 @@ impl Server {
         let config = spec.config();
         let stem = module.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let id = format!("torchscript:{}", spec.id.clone().unwrap_or(stem));
-        let server =
-            Server { model: Model::TorchScript { module: m, spec, path: module.to_owned() }, config, step: 0, id };
+        let server = Server {
+            model: Model::TorchScript { module: m, spec, path: module.to_owned() },
+            config,
+            step: 0,
+            id,
+            warned_unguided: Default::default(),
+        };
         server.warm_up()?;
         Ok(server)
     }
@@ -99,10 +107,34 @@ impl Server {
         noise: &Tensor,
         request: u64,
     ) -> Result<Tensor, ServeError> {
+        self.predict_guided(named, noise, request, None)
+    }
+
+    /// [`Self::predict`], guided toward `prefix` where one is given (real-time chunking): a
+    /// Diffusion Policy checkpoint's DDIM sampler is ([`labrig_policies::rtc`]); a TorchScript
+    /// module is a black box, so its chunk comes unguided, which the log says once.
+    pub fn predict_guided(
+        &self,
+        named: &BTreeMap<String, Tensor>,
+        noise: &Tensor,
+        request: u64,
+        prefix: Option<infer::Prefix<'_>>,
+    ) -> Result<Tensor, ServeError> {
         match &self.model {
-            Model::Diffusion { policy, meta, .. } => infer::infer(policy, meta, named, noise)
-                .map(|r| r.action)
-                .map_err(|source| ServeError::Infer { request, source }),
+            Model::Diffusion { policy, meta, .. } => match prefix {
+                Some(p) => infer::infer_guided(policy, meta, named, noise, p),
+                None => infer::infer(policy, meta, named, noise).map(|r| r.action),
+            }
+            .map_err(|source| ServeError::Infer { request, source }),
+            Model::TorchScript { .. } if prefix.is_some() => {
+                if !self.warned_unguided.swap(true, std::sync::atomic::Ordering::Relaxed) {
+                    tracing::warn!(
+                        policy = %self.id,
+                        "real-time chunking asked for, but a TorchScript module cannot be guided: its chunks come on the loop's schedule without the guidance"
+                    );
+                }
+                self.predict_guided(named, noise, request, None)
+            }
             Model::TorchScript { module, spec, .. } => {
                 let bad = |what: String| ServeError::Request { request, what };
                 let dict = named
@@ -290,14 +322,24 @@ impl Server {
         let c = &self.config;
         tch::manual_seed(noise_seed(req.seed, newest.step_index));
         let noise = Tensor::randn([1, c.horizon, c.action_dim], (Kind::Float, Device::Cpu));
-        let action = self.predict(&named, &noise, req.request_id)?;
+        let frozen = req.prefix_frozen_steps as usize;
+        let prefix = (!req.prefix_actions.is_empty()).then_some(infer::Prefix {
+            actions: &req.prefix_actions,
+            frozen,
+            max_weight: req.guidance_max_weight,
+        });
+        let action = self.predict_guided(&named, &noise, req.request_id, prefix)?;
         let from = c.n_obs_steps - 1;
         let rows = c.horizon - from;
-        let actions: Vec<f64> = Vec::<f32>::try_from(action.get(0).narrow(0, from, rows).flatten(0, -1))
+        let mut actions: Vec<f64> = Vec::<f32>::try_from(action.get(0).narrow(0, from, rows).flatten(0, -1))
             .map_err(|e| ServeError::Request { request: req.request_id, what: e.to_string() })?
             .into_iter()
             .map(f64::from)
             .collect();
+        if prefix.is_some() && matches!(self.model, Model::Diffusion { .. }) {
+            // The rows the loop executes from the old chunk meanwhile, exactly.
+            labrig_policies::rtc::freeze(&mut actions, &req.prefix_actions, frozen, c.action_dim as usize);
+        }
         if let Some(i) = actions.iter().position(|a| !a.is_finite()) {
             return Err(ServeError::Request {
                 request: req.request_id,
@@ -422,6 +464,43 @@ mod tests {
         broken.images[0].data.truncate(50);
         let e = server.chunk(&request(vec![broken])).unwrap_err().to_string();
         assert!(e.starts_with("request 5: step 3, camera ext1: JPEG decoding"), "{e}");
+    }
+
+    /// Real-time chunking through the server: the chunk's first d rows are the prefix's,
+    /// exactly; with no guidance the rest is the unguided chunk bit for bit; with guidance the
+    /// overlap moves toward the prefix; a prefix that does not fit is refused by name.
+    #[test]
+    fn a_prefix_freezes_the_first_rows_exactly_and_guides_the_overlap() {
+        let dir = tempfile::tempdir().unwrap();
+        let server = Server::load(&checkpoint(dir.path())).unwrap();
+        let req = request(vec![observation(3, 0.5, "ext1"), observation(4, 0.52, "ext1")]);
+        let plain = server.chunk(&req).unwrap();
+        // The old chunk's rows from the observation on: 11 rows, far from the plain chunk.
+        let prefix: Vec<f64> =
+            plain.actions[..11 * 7].iter().enumerate().map(|(i, a)| a + 0.3 + 1e-7 * i as f64).collect();
+        let with = |frozen: u32, beta: f64| PolicyRequest {
+            prefix_actions: prefix.clone(),
+            prefix_frozen_steps: frozen,
+            guidance_max_weight: beta,
+            ..req.clone()
+        };
+        let frozen_only = server.chunk(&with(3, 0.0)).unwrap();
+        assert_eq!(&frozen_only.actions[..21], &prefix[..21], "the frozen rows are the prefix's, exactly");
+        assert_eq!(&frozen_only.actions[21..], &plain.actions[21..], "no guidance: the plain chunk past them");
+        let guided = server.chunk(&with(3, 5.0)).unwrap();
+        assert_eq!(&guided.actions[..21], &prefix[..21]);
+        let dist = |a: &[f64], rows: std::ops::Range<usize>| -> f64 {
+            rows.map(|r| (0..7).map(|k| (a[r * 7 + k] - prefix[r * 7 + k]).abs()).sum::<f64>()).sum()
+        };
+        let (before, after) = (dist(&plain.actions, 3..8), dist(&guided.actions, 3..8));
+        assert!(after < 0.8 * before, "the overlap's rows 3..8: {before:.3} -> {after:.3} from the prefix");
+        let e = server.chunk(&PolicyRequest { prefix_actions: prefix[..20].to_vec(), ..with(2, 5.0) }).unwrap_err();
+        assert!(
+            e.to_string().contains("real-time chunking: the prefix has 20 values, not a whole number of 7-wide rows"),
+            "{e}"
+        );
+        let e = server.chunk(&with(12, 5.0)).unwrap_err();
+        assert!(e.to_string().contains("12 frozen rows (the inference delay d) but the prefix has only 11"), "{e}");
     }
 
     /// The committed pixels-and-proprioception checkpoint (tests/fixtures/policies/small_vision)
