@@ -75,6 +75,7 @@ pub fn combinations() -> Vec<Vec<Dim>> {
 pub fn target() -> Target {
     Target {
         cameras: vec![[0.5, 0.8, 0.6]],
+        setups: vec![],
         object_position: Some([0.55, 0.0, 0.1]),
         object: Some("cube".into()),
         skill: Some("place".into()),

@@ -63,9 +63,14 @@ impl Default for Thresholds {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Target {
-    /// The target's external camera positions (base frame, m).
+    /// The target's external camera positions (base frame, m): one setup (a TOML spec's).
     #[serde(default)]
     pub cameras: Vec<[f64; 3]>,
+    /// A target of several episodes: each episode's external camera positions. A demo is
+    /// camera-aligned when its cameras match every camera of any one of them (the paper's
+    /// target is one setup; a folder of target demos may hold several).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub setups: Vec<Vec<[f64; 3]>>,
     /// The centre of the object box (the target episodes' mean object position).
     pub object_position: Option<[f64; 3]>,
     pub object: Option<String>,
@@ -93,20 +98,35 @@ fn mean(points: impl Iterator<Item = [f64; 3]>) -> Option<[f64; 3]> {
 }
 
 impl Target {
-    /// The target of some episodes: per external camera (by name) the mean position, the mean
-    /// object position, the most common object, primitive and colour.
+    /// The target of some episodes: each episode's external cameras as a setup of its own (a
+    /// demo aligned with any one is camera-aligned), the mean object position (the centre of
+    /// the test distribution), the most common object, primitive and colour.
     pub fn of_episodes(rows: &[IndexRow]) -> Target {
-        let cameras = crate::row::EXTERNAL_CAMERAS
-            .iter()
-            .filter_map(|c| mean(rows.iter().filter_map(|r| r.camera(c)?.position)))
-            .collect();
+        let mut setups: Vec<Vec<[f64; 3]>> = Vec::new();
+        for r in rows {
+            let set: Vec<[f64; 3]> =
+                crate::row::EXTERNAL_CAMERAS.iter().filter_map(|c| r.camera(c)?.position).collect();
+            if !set.is_empty() && !setups.contains(&set) {
+                setups.push(set);
+            }
+        }
         Target {
-            cameras,
+            cameras: Vec::new(),
+            setups,
             object_position: mean(rows.iter().filter_map(|r| r.object_position)),
             object: most_common(rows.iter().map(|r| r.object.as_deref())),
             skill: most_common(rows.iter().map(|r| r.primitive.as_deref())),
             colour: most_common(rows.iter().map(|r| r.colour.as_deref())),
         }
+    }
+
+    /// The camera setups a demo may be aligned with: each target episode's, or the spec's one.
+    pub fn camera_sets(&self) -> Vec<&[[f64; 3]]> {
+        let mut sets: Vec<&[[f64; 3]]> = self.setups.iter().map(Vec::as_slice).filter(|s| !s.is_empty()).collect();
+        if !self.cameras.is_empty() {
+            sets.push(&self.cameras);
+        }
+        sets
     }
 
     /// Whether `row` passes `dim`'s rule (through the same columnar path as [`retrieve`]).
@@ -123,7 +143,7 @@ impl Target {
                     Dim::Object => self.object.is_none(),
                     Dim::Skill => self.skill.is_none(),
                     Dim::ObjTex => self.colour.is_none(),
-                    Dim::CamPose => self.cameras.is_empty(),
+                    Dim::CamPose => self.camera_sets().is_empty(),
                     Dim::ObjSpat => self.object_position.is_none(),
                 };
                 lacks.then(|| {
@@ -245,16 +265,21 @@ pub fn select(c: &Columns, target: &Target, align: &[Dim], t: &Thresholds) -> (V
                 };
                 kept.retain(|&i| want != NONE && col[i as usize] == want);
             }
-            Dim::CamPose => kept.retain(|&i| {
-                let demo = &c.cameras[i as usize];
-                target.cameras.iter().all(|tc| {
-                    demo.iter().any(|d| {
-                        (d[0] - tc[0]).abs() <= t.cam_xy_m
-                            && (d[1] - tc[1]).abs() <= t.cam_xy_m
-                            && (d[2] - tc[2]).abs() <= t.cam_z_m
+            Dim::CamPose => {
+                let sets = target.camera_sets();
+                kept.retain(|&i| {
+                    let demo = &c.cameras[i as usize];
+                    sets.iter().any(|set| {
+                        set.iter().all(|tc| {
+                            demo.iter().any(|d| {
+                                (d[0] - tc[0]).abs() <= t.cam_xy_m
+                                    && (d[1] - tc[1]).abs() <= t.cam_xy_m
+                                    && (d[2] - tc[2]).abs() <= t.cam_z_m
+                            })
+                        })
                     })
                 })
-            }),
+            }
             Dim::ObjSpat => {
                 let centre = target.object_position.unwrap_or([f64::NAN; 3]);
                 let half = t.obj_box_m.map(|v| v / 2.0);
@@ -330,6 +355,7 @@ mod tests {
     fn target() -> Target {
         Target {
             cameras: vec![[0.5, 0.8, 0.6]],
+            setups: vec![],
             object_position: Some([0.5, 0.0, 0.05]),
             object: Some("cube".into()),
             skill: Some("place".into()),
@@ -381,6 +407,23 @@ mod tests {
         assert_eq!(m.episodes.len(), 1);
         assert_eq!(m.episodes[0].passed, ["object", "camPose", "objSpat"]);
         assert_eq!(m.align, [Dim::Object, Dim::CamPose, Dim::ObjSpat]);
+    }
+
+    /// A folder of target demos set up in two places (the four merged into a mean no
+    /// demo matched): each is a setup, so the folder's own episodes are retrieved, and a demo
+    /// aligned with either setup is; one with a camera between them is not.
+    #[test]
+    fn a_target_of_several_episodes_retrieves_each_of_them() {
+        let (a, b) = (demo([0.5, 0.8, 0.6], [0.5, 0.0, 0.05]), demo([0.5, -0.8, 0.6], [0.5, 0.1, 0.05]));
+        let t = Target::of_episodes(&[a.clone(), b.clone()]);
+        assert_eq!(t.setups, [vec![[0.5, 0.8, 0.6]], vec![[0.5, -0.8, 0.6]]]);
+        assert!(t.missing(&[Dim::CamPose, Dim::ObjSpat]).is_empty());
+        let between = demo([0.5, 0.0, 0.6], [0.5, 0.05, 0.05]);
+        let near_b = demo([0.55, -0.7, 0.62], [0.5, 0.05, 0.05]);
+        let rows = [a, b, between, near_b];
+        let m = retrieve(&rows, &t, &[Dim::Object, Dim::CamPose, Dim::ObjSpat], &Thresholds::default());
+        let ids: Vec<&str> = m.episodes.iter().map(|e| e.id.as_str()).collect();
+        assert_eq!(ids, [rows[0].episode_id.as_str(), &rows[1].episode_id, &rows[3].episode_id]);
     }
 
     #[test]

@@ -66,12 +66,13 @@ pub struct Episode {
 
 /// Each camera's frame for each step: the one the step used; a step that had none for a
 /// camera (missing at its tick) gets the camera's previous step's frame (or the next one's).
-/// Returns `refs[camera][step]` and how many were filled in.
-pub fn frame_refs(steps: &[Step], cameras: &[Camera]) -> (Vec<Vec<CameraFrameRef>>, usize) {
-    let mut filled = 0;
+/// Returns `refs[camera][step]` and, per camera, how many were filled in.
+pub fn frame_refs(steps: &[Step], cameras: &[Camera]) -> (Vec<Vec<CameraFrameRef>>, Vec<usize>) {
+    let mut filled = vec![0; cameras.len()];
     let refs = cameras
         .iter()
-        .map(|cam| {
+        .enumerate()
+        .map(|(c, cam)| {
             let own: Vec<Option<&CameraFrameRef>> =
                 steps.iter().map(|s| s.cameras.iter().find(|c| c.camera_id == cam.id)).collect();
             let first = own.iter().flatten().next().copied().cloned().unwrap_or_default();
@@ -83,7 +84,7 @@ pub fn frame_refs(steps: &[Step], cameras: &[Camera]) -> (Vec<Vec<CameraFrameRef
                         last.clone()
                     }
                     None => {
-                        filled += 1;
+                        filled[c] += 1;
                         last.clone()
                     }
                 })

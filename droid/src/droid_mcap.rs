@@ -426,7 +426,8 @@ pub fn export_mcap(source: &Path, out_root: &Path, opts: &export::ExportOptions)
     metadata.trajectory_length = steps.len() as u64;
     let ep = Episode { metadata, steps, cameras, hand_offset: seen.hand_offset };
     let doc = droid::to_droid(&ep);
-    let (refs, _) = droid::frame_refs(&ep.steps, &ep.cameras);
+    // Steps with no frame of their own (filled with a neighbour's) count as filled too.
+    let (refs, own_missing) = droid::frame_refs(&ep.steps, &ep.cameras);
 
     let outcome = if ep.metadata.success == Some(true) { Outcome::Success } else { Outcome::Failure };
     let uuid = ep.metadata.uuid.clone();
@@ -450,7 +451,7 @@ pub fn export_mcap(source: &Path, out_root: &Path, opts: &export::ExportOptions)
             .map_err(|source| DroidError::Mcap { path: path.clone(), source })?;
         let mut out = McapOut { writer, channels: BTreeMap::new(), sequence: 0, path: path.clone() };
         let b64 = base64::engine::general_purpose::STANDARD;
-        let (mut images, mut filled, mut vr_messages) = (0usize, 0usize, 0usize);
+        let (mut images, mut filled, mut vr_messages) = (0usize, own_missing.iter().sum::<usize>(), 0usize);
         let mut last_t = i64::MIN;
         let mut next_vr = 0usize;
         for (i, s) in ep.steps.iter().enumerate() {

@@ -277,11 +277,12 @@ pub fn step_videos(
         .into_iter()
         .filter_map(|c| video_path(&c.id).map(|p| (c, p)))
         .unzip();
-    let (refs, _) = droid::frame_refs(&steps, &cameras);
+    let (refs, own_missing) = droid::frame_refs(&steps, &cameras);
     for dir in paths.iter().filter_map(|p| p.parent()) {
         std::fs::create_dir_all(dir).map_err(io(dir))?;
     }
-    let (frames, filled) = camera_videos(&file, &buf, &cameras, &refs, &mut seen, &paths, fps)?;
+    let (frames, mut filled) = camera_videos(&file, &buf, &cameras, &refs, &mut seen, &paths, fps)?;
+    filled.iter_mut().zip(&own_missing).for_each(|(f, m)| *f += m);
     let mut cameras = cameras;
     for cam in cameras.iter_mut() {
         cam.k = seen.intrinsics.get(&cam.id).copied();
@@ -298,7 +299,7 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
     let buf = std::fs::read(&file).map_err(io(&file))?;
     let mut seen = Seen::new(&metadata);
     let mut cameras = droid::cameras_of(&steps, &metadata, &seen.intrinsics);
-    let (refs, _) = droid::frame_refs(&steps, &cameras);
+    let (refs, own_missing) = droid::frame_refs(&steps, &cameras);
 
     let outcome = if metadata.success == Some(true) { Outcome::Success } else { Outcome::Failure };
     let json_name = meta::file_name(&metadata.uuid);
@@ -315,7 +316,8 @@ pub fn export_episode(source: &Path, out_root: &Path, opts: &ExportOptions) -> R
     let result = (|| -> Result<Exported, DroidError> {
         let paths: Vec<PathBuf> = cameras.iter().map(|c| mp4_dir.join(format!("{}.mp4", c.serial))).collect();
         let (mp4_frames, filled) = camera_videos(&file, &buf, &cameras, &refs, &mut seen, &paths, FPS)?;
-        let frames_filled: usize = filled.iter().sum();
+        // Steps whose frame was never recorded, and steps with no frame of their own.
+        let frames_filled: usize = filled.iter().sum::<usize>() + own_missing.iter().sum::<usize>();
         for cam in cameras.iter_mut() {
             cam.k = seen.intrinsics.get(&cam.id).copied();
         }

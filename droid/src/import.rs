@@ -168,7 +168,7 @@ pub trait FrameSource {
     /// The camera's image size (None: no images, so no camera_info either).
     fn size(&self, camera: usize) -> Option<(u32, u32)>;
     /// `camera`'s frame at `step`, asked once per step in order: the JPEG when `wanted` (the
-    /// step's frame is not its predecessor's), None when there is none.
+    /// step names a frame of that camera), None when there is none.
     fn frame(&mut self, camera: usize, step: usize, wanted: bool) -> Result<Option<Vec<u8>>, DroidError>;
     /// After the last step: anything left over, as warnings.
     fn finish(&mut self, warnings: &mut Vec<String>) -> Result<(), DroidError>;
@@ -369,12 +369,10 @@ fn write_episode(
                 w.write(&topics::camera_info(&cam.id), &info, Nanos(t), Nanos(t), Reliability::Reliable)?;
             }
             let fr = s.cameras.iter().find(|f| f.camera_id == cam.id);
-            // A step whose frame is its predecessor's (same capture time) was one frame
-            // recorded once.
-            let repeat = fr.is_some_and(|fr| {
-                i > 0 && steps[i - 1].cameras.iter().any(|p| p.camera_id == cam.id && p.capture_ns == fr.capture_ns)
-            });
-            let Some(jpeg) = frames.frame(c, i, fr.is_some() && !repeat)? else { continue };
+            // DROID's files hold one image per step, also where two steps name the same
+            // capture time (a step that reused a frame, or a recording's leading steps filled
+            // with the first frame): each step keeps its own, so none is lost.
+            let Some(jpeg) = frames.frame(c, i, fr.is_some())? else { continue };
             let Some(fr) = fr else { continue };
             let img = CompressedImage {
                 header: Header { stamp: Nanos(fr.capture_ns).into(), frame_id: format!("{}_optical", cam.id) },

@@ -42,12 +42,16 @@ pub struct TopicStats {
     pub topic: String,
     pub type_name: String,
     pub count: u64,
+    /// Messages per second of the episode's own time ([`Inspection::clock`]; the receive times'
+    /// span for a file without steps).
     pub rate_hz: f64,
     /// Messages that do not decode as their type.
     pub malformed: u64,
     /// Messages whose log time is earlier than the previous one's on the topic.
     pub out_of_order: u64,
-    /// The newest publish time on the topic (ns).
+    /// The newest publish time on the topic (ns) as the file stores it: for camera images
+    /// their capture time on the rig's clock (sim time in the sim); for the other topics their
+    /// DDS source time (the publisher's wall clock).
     pub last_publish_ns: i64,
 }
 
@@ -59,6 +63,13 @@ pub struct CameraStats {
     pub dropped: u64,
     /// Steps whose frame from this camera was captured more than one period before the step.
     pub late: u64,
+    /// Steps that name no frame of this camera (a tick before its first frame came).
+    pub steps_without_frame: u64,
+    /// Steps that name a frame of this camera which the file does not hold.
+    pub frames_missing: u64,
+    /// Frames captured before the sim's scene was set (`sim_scene.since_ns`): another scene's,
+    /// so another episode's.
+    pub frames_before_scene: u64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -68,9 +79,16 @@ pub struct Inspection {
     pub complete: bool,
     /// What stopped the reading early, for a damaged file.
     pub damage: Option<String>,
+    /// The file's first and last receive (log) times, wall clock.
     pub start_ns: i64,
     pub end_ns: i64,
+    /// The episode's span in its own time (first to last step on the rig's clock, [`Self::clock`];
+    /// the receive times' span for a file without steps).
     pub duration_s: f64,
+    /// The receive times' span (wall clock): how long the recording took.
+    pub wall_duration_s: f64,
+    /// The clock of the steps and frames: `sim` (the simulator's time) or `wall`.
+    pub clock: &'static str,
     pub messages: u64,
     pub topics: Vec<TopicStats>,
     pub steps: u64,
@@ -424,12 +442,26 @@ fn summarise(scan: Scan) -> Inspection {
     let gaps = gaps(&parts);
     let start = crate::log_ns(topics.values().map(|t| t.first).min().unwrap_or(0));
     let end = crate::log_ns(topics.values().map(|t| t.last).max().unwrap_or(0));
-    let duration_s = end.saturating_sub(start).max(0) as f64 / 1e9;
+    let wall_duration_s = end.saturating_sub(start).max(0) as f64 / 1e9;
+    let metadata = droid.as_ref().and_then(|m| EpisodeMetadata::from_record(m).ok());
+    let clock = if metadata.as_ref().is_some_and(|m| m.sim_scene.is_some()) { "sim" } else { "wall" };
+    steps.sort_by_key(|s| s.step_index);
+    steps.dedup_by_key(|s| s.step_index);
+    let step_time = |s: &Step| {
+        if s.timing.step_start != 0 { s.timing.step_start } else { labrig_msgs::Nanos::from(s.header.stamp).0 }
+    };
+    // The episode's own time: its steps' span on the rig's clock (lockstep sim time runs at
+    // whatever pace the machine allows, so receive times say nothing of it).
+    let episode_s = match (steps.first(), steps.last()) {
+        (Some(a), Some(b)) if steps.len() > 1 => Some(step_time(b).saturating_sub(step_time(a)) as f64 / 1e9),
+        _ => None,
+    };
+    let duration_s = episode_s.unwrap_or(wall_duration_s);
     let mut flags = Vec::new();
     let topic_stats: Vec<TopicStats> = topics
         .iter()
         .map(|(name, t)| {
-            let span = (t.last - t.first) as f64 / 1e9;
+            let span = episode_s.unwrap_or((t.last - t.first) as f64 / 1e9);
             TopicStats {
                 topic: name.clone(),
                 type_name: t.type_name.clone(),
@@ -449,8 +481,6 @@ fn summarise(scan: Scan) -> Inspection {
             flags.push(format!("{}: {} messages out of order", t.topic, t.out_of_order));
         }
     }
-    steps.sort_by_key(|s| s.step_index);
-    steps.dedup_by_key(|s| s.step_index);
     for g in &gaps {
         flags.push(format!(
             "recorded in parts: {:.2} s between part {} and part {} (a recorder restart), {} steps missing",
@@ -460,9 +490,6 @@ fn summarise(scan: Scan) -> Inspection {
             g.steps_missing
         ));
     }
-    let step_time = |s: &Step| {
-        if s.timing.step_start != 0 { s.timing.step_start } else { labrig_msgs::Nanos::from(s.header.stamp).0 }
-    };
     let skew: Vec<f64> = steps
         .iter()
         .filter(|s| s.cameras.len() > 1)
@@ -478,6 +505,11 @@ fn summarise(scan: Scan) -> Inspection {
     let missed_ticks = periods.iter().filter(|&&p| p > 1.5 * nominal).count() as u64;
     let jitter: Vec<f64> = periods.iter().map(|p| (p - nominal).abs()).collect();
     // Cameras: frames and gaps per image topic; late frames from the steps' references.
+    let scene_since = metadata
+        .as_ref()
+        .and_then(|m| m.sim_scene.as_deref())
+        .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
+        .and_then(|v| v["since_ns"].as_i64());
     let mut cameras: Vec<CameraStats> = Vec::new();
     for (name, t) in &topics {
         if t.type_name != "sensor_msgs/msg/CompressedImage" {
@@ -500,7 +532,20 @@ fn summarise(scan: Scan) -> Inspection {
                     .any(|c| c.camera_id == camera && step_time(s).saturating_sub(c.capture_ns) > CONTROL_PERIOD_NS)
             })
             .count() as u64;
-        cameras.push(CameraStats { camera, frames: t.count, dropped, late });
+        let named = |s: &Step| s.cameras.iter().find(|c| c.camera_id == camera).map(|c| c.capture_ns);
+        let steps_without_frame = steps.iter().filter(|s| named(s).is_none()).count() as u64;
+        let frames_missing =
+            steps.iter().filter(|s| named(s).is_some_and(|t| stamps.binary_search(&t).is_err())).count() as u64;
+        let frames_before_scene = scene_since.map_or(0, |since| stamps.iter().filter(|&&t| t < since).count() as u64);
+        cameras.push(CameraStats {
+            camera,
+            frames: t.count,
+            dropped,
+            late,
+            steps_without_frame,
+            frames_missing,
+            frames_before_scene,
+        });
     }
     if cameras.iter().all(|c| c.frames == 0) {
         flags.push("no camera frames: the episode has no images".into());
@@ -508,6 +553,15 @@ fn summarise(scan: Scan) -> Inspection {
     for c in &cameras {
         if c.dropped > 0 {
             flags.push(format!("camera {}: {} frames dropped", c.camera, c.dropped));
+        }
+        if c.frames_missing > 0 {
+            flags.push(format!("camera {}: {} steps name a frame the file does not hold", c.camera, c.frames_missing));
+        }
+        if c.frames_before_scene > 0 {
+            flags.push(format!(
+                "camera {}: {} frames captured before the episode's scene was set (another episode's)",
+                c.camera, c.frames_before_scene
+            ));
         }
     }
     if steps.is_empty() {
@@ -523,7 +577,6 @@ fn summarise(scan: Scan) -> Inspection {
             p.damage.as_ref().map_or(String::new(), |d| format!(" ({d})"))
         ));
     }
-    let metadata = droid.as_ref().and_then(|m| EpisodeMetadata::from_record(m).ok());
     if metadata.is_none() {
         flags.push("no DROID episode metadata".into());
     }
@@ -544,6 +597,8 @@ fn summarise(scan: Scan) -> Inspection {
         start_ns: start,
         end_ns: end,
         duration_s,
+        wall_duration_s,
+        clock,
         messages: topic_stats.iter().map(|t| t.count).sum(),
         topics: topic_stats,
         steps: steps.len() as u64,
@@ -578,8 +633,10 @@ impl Inspection {
         }
         let _ = writeln!(
             s,
-            "  {:.2} s, {} messages, {} steps, file {}",
+            "  {:.2} s of {} time ({:.2} s to record), {} messages, {} steps, file {}",
             self.duration_s,
+            self.clock,
+            self.wall_duration_s,
             self.messages,
             self.steps,
             if self.complete { "complete" } else { "UNFINISHED" }
@@ -587,7 +644,12 @@ impl Inspection {
         let _ = writeln!(
             s,
             "  {:<40} {:<34} {:>7} {:>8} {:>9} {:>6}",
-            "topic", "type", "count", "rate Hz", "malformed", "order"
+            "topic",
+            "type",
+            "count",
+            format!("Hz ({})", self.clock),
+            "malformed",
+            "order"
         );
         for t in &self.topics {
             let _ = writeln!(
@@ -599,8 +661,8 @@ impl Inspection {
         for c in &self.cameras {
             let _ = writeln!(
                 s,
-                "  camera {:<8} frames {:>6}  dropped {:>4}  late {:>4}",
-                c.camera, c.frames, c.dropped, c.late
+                "  camera {:<8} frames {:>6}  dropped {:>4}  late {:>4}  steps without a frame {:>3}",
+                c.camera, c.frames, c.dropped, c.late, c.steps_without_frame
             );
         }
         let pct = |name: &str, p: &Option<Percentiles>| match p {

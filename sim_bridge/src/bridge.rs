@@ -11,7 +11,7 @@
 //! - `/cameras/<id>/camera_info` (sensor_msgs/CameraInfo) with each frame, and the frames
 //!   themselves (RGB8) on the camera node's iceoryx2 channels `labrig/camera/<id>/frames`;
 //! - `/clock` (rosgraph_msgs/Clock); `/sim/scene` (std_msgs/String, latched): the scene's
-//!   sampled values as JSON, for recordings.
+//!   sampled values as JSON, for recordings, and `since_ns`, the sim time it was set.
 //!
 //! `/sim/reset` (std_msgs/String, JSON `{"seed": N}`) rebuilds the scene with that seed at
 //! the reset pose between episodes; sim time goes on a period later (one monotonic time line
@@ -963,9 +963,12 @@ fn publish_scene(
     board_mount: Option<CalibBoardMount>,
 ) -> anyhow::Result<()> {
     let scene: &SceneValues = sim.scene();
-    // The sampled values, and the spec they came from (so a recording can rebuild the scene).
+    // The sampled values, and the spec they came from (so a recording can rebuild the scene);
+    // `since_ns`: the sim time the scene was set (its first frames' capture time), before which
+    // no frame shows it (the recorder and `labrig inspect` keep another scene's frames out).
     let mut json = serde_json::to_value(scene)?;
     json["spec"] = serde_json::to_value(spec)?;
+    json["since_ns"] = sim.time().0.into();
     scene_pub.publish(StringMsg { data: json.to_string() })?;
     let statics: Vec<TransformStamped> = scene
         .cameras

@@ -198,6 +198,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("doctor_franka_sim", 176, 1),
     ("rollout_rtc", 177, 1),
     ("rollout_rtc_refused", 178, 1),
+    ("recorder_scene_bound", 179, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
@@ -423,6 +424,20 @@ pub fn episode_dirs(root: &std::path::Path) -> Vec<std::path::PathBuf> {
                 out.extend(episode_dirs(&p));
             }
         }
+    }
+    out
+}
+
+/// Each camera's image messages in an episode file, in the file's order: (capture stamp, JPEG).
+pub fn camera_images(file: &std::path::Path) -> std::collections::BTreeMap<String, Vec<(i64, Vec<u8>)>> {
+    let buf = std::fs::read(file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+    let mut out: std::collections::BTreeMap<String, Vec<(i64, Vec<u8>)>> = Default::default();
+    for m in mcap::MessageStream::new(&buf).expect("an MCAP file") {
+        let m = m.expect("a readable message");
+        let Some(rest) = m.channel.topic.strip_prefix(labrig_msgs::topics::CAMERAS_PREFIX) else { continue };
+        let Some(cam) = rest.strip_suffix("/image/compressed") else { continue };
+        let img: labrig_msgs::sensor_msgs::CompressedImage = labrig_msgs::decode(&m.data).expect("an image");
+        out.entry(cam.to_owned()).or_default().push((labrig_msgs::Nanos::from(img.header.stamp).0, img.data));
     }
     out
 }

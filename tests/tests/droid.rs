@@ -107,6 +107,36 @@ fn export_import_export_is_identical_and_the_import_replays_exactly() {
     assert!(good, "{problems}");
     assert_eq!(reports[0]["mp4"]["wrist"]["frames"], 50);
 
+    // Every step keeps its frame: one image per step and camera, stamped with the capture
+    // time the step names (the fixture's first step had none of its own: it was exported with
+    // the camera's first frame, and imported as such, not dropped).
+    let steps = labrig_episode::read_episode(&imported).unwrap().steps;
+    assert_eq!(steps.len(), 50);
+    let images = labrig_tests::camera_images(&imported.join("episode_0.mcap"));
+    assert_eq!(images.len(), 5, "{:?}", images.keys().collect::<Vec<_>>());
+    for (cam, imgs) in &images {
+        assert_eq!(imgs.len(), 50, "camera {cam}: {} images for 50 steps", imgs.len());
+        for (i, (stamp, _)) in imgs.iter().enumerate() {
+            let want = steps[i].cameras.iter().find(|c| &c.camera_id == cam).map(|c| c.capture_ns);
+            assert_eq!(Some(*stamp), want, "camera {cam}, step {i}");
+        }
+    }
+    let report: Value = serde_json::from_str(
+        &ok(&labrig(&[
+            "export",
+            "droid",
+            fixture().to_str().unwrap(),
+            tmp.path().join("c").to_str().unwrap(),
+            "--json",
+        ]))
+        .lines()
+        .last()
+        .unwrap()
+        .to_owned(),
+    )
+    .unwrap();
+    assert_eq!(report["frames_filled"], 5, "the fixture's first step, filled for each camera, is counted: {report}");
+
     // The imported episode is a whole labrig episode: inspect finds nothing to flag...
     let out = Command::new(labrig_bin()).arg("inspect").arg(&imported).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));

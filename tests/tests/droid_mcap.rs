@@ -66,6 +66,11 @@ fn only_file(root: &Path, name: &str) -> PathBuf {
 
 const CAMERAS: [&str; 5] = ["ext1", "ext2", "rs1", "rs2", "wrist"];
 
+fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::Digest;
+    sha2::Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
 /// Each step's image sha256 per image topic, from read_droid_mcap.py's report.
 fn images(r: &Value) -> Vec<Value> {
     r["steps"].as_array().unwrap().iter().map(|s| s["images"].clone()).collect()
@@ -123,6 +128,19 @@ fn the_export_is_droid_s_mcap_layout_and_imports_back_to_the_same_episode() {
     let imported = only_file(&t.join("eps"), "episode_0.mcap");
     let out = Command::new(labrig_bin()).arg("inspect").arg(&imported).output().unwrap();
     assert!(out.status.success(), "{}", labrig_tests::output_text(&out));
+    // One image per step and camera, as the file had them (250 of 250), each the JPEG the file
+    // had at that step, untouched.
+    let imported_images = labrig_tests::camera_images(&imported);
+    let source = images(&r);
+    assert_eq!(source.len(), 50);
+    for cam in CAMERAS {
+        let got = &imported_images[cam];
+        assert_eq!(got.len(), 50, "camera {cam}: {} images for 50 steps", got.len());
+        for (i, (_, jpeg)) in got.iter().enumerate() {
+            let want = source[i][format!("/camera/{cam}_left/compressed")].as_str().unwrap();
+            assert_eq!(sha256_hex(jpeg), want, "camera {cam}, step {i}");
+        }
+    }
     ok(&labrig(&["export", "droid", s(&imported), s(&t.join("raw_b"))]));
     let h5_b = only_file(&t.join("raw_b"), "trajectory.h5");
     assert!(

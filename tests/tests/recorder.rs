@@ -289,6 +289,42 @@ fn inspect_flags_bad_input() {
     let (_, v) = inspect(&dir);
     assert_eq!(v["cameras"][0]["dropped"], 3, "{v}");
     assert!(v["flags"].as_array().unwrap().iter().any(|f| f == "camera ext1: 3 frames dropped"), "{v}");
+
+    // A sim episode (its scene set at T0 + 2 ticks) holding the last scene's frame of T0 + 1
+    // tick, and a step that names a frame the file does not hold; steps span 9 ticks of sim
+    // time, recorded in a fraction of that: rates and the duration are in the episode's time.
+    let dir = root.path().join("foreign");
+    let mut meta = EpisodeMetadata::new(&RigIdentity::default(), "s", "t", Nanos(T0));
+    meta.sim_scene = Some(format!(r#"{{"seed": 2, "since_ns": {}}}"#, T0 + 2 * TICK));
+    let mut w = EpisodeWriter::create(&dir, meta).unwrap();
+    for k in 1..12i64 {
+        let t = T0 + k * TICK;
+        let log = T0 + k * 1_000_000;
+        let img = CompressedImage { header: header(t, "ext1_optical"), format: "jpeg".into(), data: jpeg(k) };
+        if k != 6 {
+            w.write("/cameras/ext1/image/compressed", &img, Nanos(log), Nanos(t), Reliability::BestEffort).unwrap();
+        }
+        if k >= 2 {
+            let cameras = vec![CameraFrameRef { camera_id: "ext1".into(), capture_ns: t, ..Default::default() }];
+            let step = Step { header: header(t, "base"), step_index: k as u64, cameras, ..Default::default() };
+            w.write("/rig/step", &step, Nanos(log), Nanos(t), Reliability::Reliable).unwrap();
+        }
+    }
+    w.finish().unwrap();
+    let (_, v) = inspect(&dir);
+    let flags: Vec<&str> = v["flags"].as_array().unwrap().iter().map(|f| f.as_str().unwrap()).collect();
+    assert!(
+        flags.contains(&"camera ext1: 1 frames captured before the episode's scene was set (another episode's)"),
+        "{flags:?}"
+    );
+    assert!(flags.contains(&"camera ext1: 1 steps name a frame the file does not hold"), "{flags:?}");
+    assert_eq!(v["clock"], "sim");
+    assert!((v["duration_s"].as_f64().unwrap() - 0.45).abs() < 1e-9, "{v}");
+    assert!((v["wall_duration_s"].as_f64().unwrap() - 0.010).abs() < 1e-9, "{v}");
+    let step_rate = v["topics"].as_array().unwrap().iter().find(|t| t["topic"] == "/rig/step").unwrap()["rate_hz"]
+        .as_f64()
+        .unwrap();
+    assert!((step_rate - 20.0).abs() < 1e-9, "10 steps over 0.45 s of sim time: {step_rate} Hz");
 }
 
 /// The recorder node (its own process) records what the sim bridge publishes — DDS topics as
@@ -509,4 +545,104 @@ fn a_dead_recorders_episode_is_recovered_and_filed_unjudged_on_restart() {
     assert_eq!(v["metadata"]["uuid"], meta.uuid.as_str());
     let py = labrig_tests::read_episode_with_python(&dir);
     assert_eq!(py["rosbags_dir"]["/rig/step"], steps, "{py}");
+}
+
+/// An episode holds no frame of the scene before it (issue 54: a demo's second episode opened
+/// on the first one's last image). The sim bridge stamps `/sim/scene` with the sim time it set
+/// the scene (`since_ns`); the idle recorder keeps each camera's newest frame for the next
+/// Start, and when that frame is the last scene's (captured 50 ms before the new scene, well
+/// inside the 200 ms pre-roll) it must stay out. Driven by hand so the timing that showed the
+/// bug is the timing here: the old frame is held, the new scene comes, the Start comes before
+/// the new scene's first frame.
+#[test]
+fn an_episode_holds_no_frame_of_the_scene_before_it() {
+    use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+    use labrig_msgs::std_msgs::StringMsg;
+    use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode};
+    use labrig_runtime::ros::{Ros, qos};
+    use std::time::{Duration, Instant};
+    let domain = labrig_tests::domain_for("recorder_scene_bound");
+    let ns = format!("recorder_scene_{}", std::process::id());
+    let root = tempfile::tempdir().unwrap();
+    let mut rec = Command::new(labrig_tests::workspace_bin("labrig-recorder", "labrig-recorder"));
+    rec.args(["run", "--domain-id", &domain.to_string(), "--root"])
+        .arg(root.path())
+        .env(labrig_runtime::frames::NAMESPACE_ENV, &ns);
+    let _rec = labrig_tests::Proc::spawn("labrig-recorder run", rec);
+    let frames = FrameNode::new_in(&ns).unwrap();
+    let mut ext1 =
+        frames.publisher("ext1", FrameFormat { encoding: FrameEncoding::Rgb8, width: 32, height: 24 }).unwrap();
+    const S: i64 = 1_000_000_000;
+    let (old_scene_frame, new_scene) = (2 * S, 2 * S + TICK);
+    let dir = labrig_tests::rt().block_on(async move {
+        let cfg = labrig_runtime::RosConfig { domain_id: domain, ..Default::default() };
+        let mut ros = Ros::new(&cfg, "recorder_scene_test").unwrap();
+        let events = ros.publisher_on(&labrig_msgs::topics::RIG_EPISODE, 10).unwrap();
+        let steps = ros.publisher_on(&labrig_msgs::topics::RIG_STEP, 100).unwrap();
+        let scene = ros.publisher_on(&labrig_msgs::topics::SIM_SCENE, 1).unwrap();
+        let status = ros.subscription::<StringMsg>("/recorder/status", qos::latched(1)).unwrap();
+        assert!(ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(60)).await, "no recorder");
+        assert!(ros.wait_for_subscribers("/sim/scene", 1, Duration::from_secs(60)).await);
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let wait_status = |want: &'static str| {
+            let status = &status;
+            async move {
+                let deadline = Instant::now() + Duration::from_secs(30);
+                while Instant::now() < deadline {
+                    while let Some(s) = status.try_take().unwrap() {
+                        let v: Value = serde_json::from_str(&s.msg.data).unwrap();
+                        if v["state"] == want {
+                            return v;
+                        }
+                    }
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                panic!("the recorder never said {want}");
+            }
+        };
+        let wall =
+            || Nanos(std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as i64);
+        let pixels = |k: u8| vec![k; 32 * 24 * 3];
+        // The last scene, and its last render, which the idle recorder keeps.
+        // (A few renders: a shared-memory publisher's first sample may reach a subscriber only
+        // once the two have connected.)
+        scene.publish(StringMsg { data: format!(r#"{{"seed": 1, "since_ns": {S}}}"#) }).unwrap();
+        for k in (0..5i64).rev() {
+            ext1.publish(&pixels(10), Nanos(old_scene_frame - k * TICK), wall()).unwrap();
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        // The new scene, then the Start on its first tick before its first frame comes.
+        scene.publish(StringMsg { data: format!(r#"{{"seed": 2, "since_ns": {new_scene}}}"#) }).unwrap();
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let event = |kind: EpisodeEventKind, t: i64| EpisodeEvent {
+            header: header(t, ""),
+            kind: kind as u8,
+            note: "put the cube in the bin".into(),
+            ..Default::default()
+        };
+        events.publish(event(EpisodeEventKind::Start, new_scene)).unwrap();
+        wait_status("recording").await;
+        for k in 0..10i64 {
+            let t = new_scene + k * TICK;
+            ext1.publish(&pixels(100 + k as u8), Nanos(t), wall()).unwrap();
+            let cameras = vec![CameraFrameRef { camera_id: "ext1".into(), capture_ns: t, ..Default::default() }];
+            steps
+                .publish(Step { header: header(t, "base"), step_index: k as u64, cameras, ..Default::default() })
+                .unwrap();
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        events.publish(event(EpisodeEventKind::Success, new_scene + 10 * TICK)).unwrap();
+        let done = wait_status("recorded").await;
+        std::path::PathBuf::from(done["dir"].as_str().unwrap())
+    });
+    let file = labrig_episode::episode::part_files(&dir).unwrap().remove(0);
+    let images = &labrig_tests::camera_images(&file)["ext1"];
+    let stamps: Vec<i64> = images.iter().map(|(t, _)| *t).collect();
+    assert_eq!(stamps, (0..10).map(|k| new_scene + k * TICK).collect::<Vec<_>>(), "the last scene's frame got in");
+    // inspect knows the scene's time and would name such a frame.
+    let (code, report) = inspect(&dir);
+    assert_eq!(code, Some(0), "{report:#}");
+    assert_eq!(report["clock"], "sim", "{report:#}");
+    assert_eq!(report["cameras"][0]["frames_before_scene"], 0, "{report:#}");
 }

@@ -230,7 +230,12 @@ pub fn run(a: LatencyArgs) -> anyhow::Result<ExitCode> {
             let r = run_point(&a, p)?;
             std::fs::write(&file, serde_json::to_string_pretty(&r)?)
                 .with_context(|| format!("writing {}", file.display()))?;
-            bar.println(line(&r));
+            // (A hidden bar, output not a terminal, prints nothing: a log gets the line.)
+            if bar.is_hidden() && !a.json {
+                eprintln!("{}", line(&r));
+            } else {
+                bar.println(line(&r));
+            }
             results.push(r);
             ran += 1;
             bar.inc(1);

@@ -202,9 +202,10 @@ struct Episode {
     prior_parts: usize,
     /// Per topic, the newest publish time in the earlier parts: what is not newer is in them.
     resume_after: BTreeMap<String, i64>,
-    /// The Start's stamp (the loop's first tick, on the rig's clock): frames captured more than
-    /// [`PREROLL_NS`] before it are not the episode's.
-    first_tick_ns: i64,
+    /// Frames captured before this (the rig's clock) are not the episode's: [`PREROLL_NS`]
+    /// before the Start's stamp (the loop's first tick), and in the sim not before its scene was
+    /// set (`/sim/scene`'s `since_ns`: a frame of the last scene is another episode's).
+    frames_from_ns: i64,
     /// Operator corrections in a policy's rollout, from the steps' `action_source`: whether
     /// the last step was an operator's (not the policy's), the runs of such steps (takeovers)
     /// and their steps. This part's only: a continuation after a recorder restart starts
@@ -216,7 +217,7 @@ struct Episode {
 
 impl Episode {
     /// A part written from now on, with no earlier parts (a continuation sets them).
-    fn new(writer: EpisodeWriter, staging: PathBuf, opened_ns: i64, first_tick_ns: i64) -> Episode {
+    fn new(writer: EpisodeWriter, staging: PathBuf, opened_ns: i64, frames_from_ns: i64) -> Episode {
         Episode {
             uuid: writer.metadata().uuid.clone(),
             writer,
@@ -228,7 +229,7 @@ impl Episode {
             prior_steps: 0,
             prior_parts: 0,
             resume_after: BTreeMap::new(),
-            first_tick_ns,
+            frames_from_ns,
             operator_acting: false,
             takeovers: 0,
             operator_steps: 0,
@@ -246,11 +247,12 @@ impl Episode {
 
     /// Whether a camera frame belongs in this part: captured at most [`PREROLL_NS`] before the
     /// Start's stamp (the intake may hold seconds of frames from before a Start that came while
-    /// the loop was busy), not in an earlier part (by capture time, the frames' publish time in
-    /// the file), not sent after the end event. Frames are stamped on the rig's clock (the
-    /// sim's, in a simulation), so the Start's wall time is no bound.
+    /// the loop was busy) and not before the sim's scene was set ([`Episode::frames_from_ns`]),
+    /// not in an earlier part (by capture time, the frames' publish time in the file), not sent
+    /// after the end event. Frames are stamped on the rig's clock (the sim's, in a simulation),
+    /// so the Start's wall time is no bound.
     fn takes_frame(&self, camera: &str, capture_ns: i64, publish_ns: i64) -> bool {
-        let before_start = capture_ns < self.first_tick_ns - PREROLL_NS;
+        let before_start = capture_ns < self.frames_from_ns;
         let in_earlier = self.resume_after.get(&topics::camera_image(camera)).is_some_and(|&t| capture_ns <= t);
         !before_start && !in_earlier && self.closing.is_none_or(|c| publish_ns <= c.sent_before_ns)
     }
@@ -790,6 +792,18 @@ impl Recorder {
         }
     }
 
+    /// The earliest capture time of an episode's frames whose first tick is `first_tick_ns`:
+    /// [`PREROLL_NS`] before it, and not before the sim's scene was set.
+    fn frames_from(&self, first_tick_ns: i64) -> i64 {
+        let since = self
+            .context
+            .scene_json
+            .as_deref()
+            .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
+            .and_then(|v| v["since_ns"].as_i64());
+        (first_tick_ns - PREROLL_NS).max(since.unwrap_or(i64::MIN))
+    }
+
     /// Opens the episode a Start announces: a new one, or the next part of one a dead
     /// recorder left in its staging directory.
     fn open(&mut self, ev: &EpisodeEvent, sent_ns: i64) -> Result<Episode, EpisodeError> {
@@ -831,7 +845,8 @@ impl Recorder {
         let staging = self.cfg.root.join(".recording").join(sanitize(&meta.uuid));
         let parts = labrig_episode::episode::part_files(&staging).unwrap_or_default();
         if !parts.is_empty() {
-            return self.continue_episode(staging, meta, sent_ns, Nanos::from(ev.header.stamp).0);
+            let from = self.frames_from(Nanos::from(ev.header.stamp).0);
+            return self.continue_episode(staging, meta, sent_ns, from);
         }
         let mut writer = EpisodeWriter::create(&staging, meta)?;
         for r in self.topics.iter().filter(|r| r.spec.latched) {
@@ -848,13 +863,13 @@ impl Recorder {
         {
             tracing::warn!("/rig/episode: {e}");
         }
-        let mut ep = Episode::new(writer, staging, sent_ns, Nanos::from(ev.header.stamp).0);
+        let from = self.frames_from(Nanos::from(ev.header.stamp).0);
+        let mut ep = Episode::new(writer, staging, sent_ns, from);
         // The first step's frames were published before the Start (the loop announces an
         // episode on its first tick): the frames kept while idle go in when they belong to
-        // that tick.
-        let first_tick = Nanos::from(ev.header.stamp).0;
+        // that tick (and to its scene).
         for (camera, frame) in std::mem::take(&mut self.held) {
-            if frame.header().capture_ns >= first_tick - PREROLL_NS
+            if frame.header().capture_ns >= from
                 && let Err(e) = write_frame(&mut ep, &camera, &frame, self.cfg.jpeg_quality, start_ns)
             {
                 tracing::warn!("camera {camera}: {e}");
@@ -870,7 +885,7 @@ impl Recorder {
         staging: PathBuf,
         meta: EpisodeMetadata,
         sent_ns: i64,
-        first_tick_ns: i64,
+        frames_from_ns: i64,
     ) -> Result<Episode, EpisodeError> {
         let recovered = labrig_episode::recover::recover_in_place(&staging)?;
         let infos: Vec<BagInfo> = recovered.parts.iter().map(|p| p.info.clone()).collect();
@@ -889,7 +904,7 @@ impl Recorder {
         let prior_parts = infos.len();
         let writer = EpisodeWriter::create_part(&staging, meta, infos)?;
         self.held.clear();
-        Ok(Episode { prior_steps, prior_parts, resume_after, ..Episode::new(writer, staging, sent_ns, first_tick_ns) })
+        Ok(Episode { prior_steps, prior_parts, resume_after, ..Episode::new(writer, staging, sent_ns, frames_from_ns) })
     }
 
     /// Topics and camera frames into the open episode.
