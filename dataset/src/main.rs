@@ -526,8 +526,18 @@ fn retrieve_cmd(a: RetrieveArgs) -> anyhow::Result<ExitCode> {
         rows.retain(|r| !target_ids.contains(&r.episode_id));
     }
     let t_read = t0.elapsed().as_secs_f64();
-    let manifest = retrieve::retrieve(&rows, &target, &align, &thresholds);
+    let mut manifest = retrieve::retrieve(&rows, &target, &align, &thresholds);
     let t_query = t0.elapsed().as_secs_f64() - t_read;
+    // The index holds the paths as it was given them (relative to where it ran); a manifest's
+    // readers resolve a relative path against the manifest's folder: absolute paths mean the
+    // same episodes to both.
+    let cwd = std::env::current_dir()?;
+    for e in &mut manifest.episodes {
+        let p = Path::new(&e.path);
+        if p.is_relative() {
+            e.path = std::fs::canonicalize(p).unwrap_or_else(|_| cwd.join(p)).to_string_lossy().into_owned();
+        }
+    }
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }

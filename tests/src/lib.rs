@@ -199,6 +199,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("rollout_rtc", 177, 1),
     ("rollout_rtc_refused", 178, 1),
     ("recorder_scene_bound", 179, 1),
+    ("docs_guides_run", 180, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
