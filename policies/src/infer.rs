@@ -103,6 +103,7 @@ pub struct Prefix<'a> {
     pub frozen: usize,
     /// beta, the clip of the guidance weight.
     pub max_weight: f64,
+    pub method: crate::rtc::Method,
 }
 
 /// [`infer`] guided toward `prefix` ([`crate::rtc`]); the result's `action` (B = 1). The
@@ -131,7 +132,7 @@ pub fn infer_guided(
     }
     let target = meta.action_stats.normalize(&target)?;
     let weights = crate::rtc::prefix_weights(c.horizon as usize, offset, prefix.frozen, rows);
-    let guide = crate::rtc::Guide { target, weights, max_weight: prefix.max_weight };
+    let guide = crate::rtc::Guide { target, weights, max_weight: prefix.max_weight, method: prefix.method };
     let chunk = tch::no_grad(|| policy.sample_guided(&images, &state, noise, &guide))?;
     to_robot(meta, named, &chunk)
 }

@@ -45,6 +45,30 @@ pub enum RtcError {
     Frozen { frozen: usize, rows: usize },
 }
 
+/// How the clean-chunk estimate is moved toward the prefix at each DDIM step.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// PiGDM's guidance through the U-Net's vector-Jacobian product (the paper's):
+    /// `dx0 = min(beta, 1/sqrt(abar_t)) J^T W (Y - x0_hat)`.
+    Vjp,
+    /// In the clean estimate's own space (the Jacobian taken as the identity):
+    /// `dx0 = min(1, beta abar_t) W (Y - x0_hat)`, a soft inpainting of the overlap that is
+    /// weak while the estimate is mostly noise and whole once the chunk has formed. The
+    /// network then denoises the rest of the chunk around the moved overlap.
+    #[default]
+    X0,
+}
+
+impl Method {
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Vjp => "vjp",
+            Method::X0 => "x0",
+        }
+    }
+}
+
 /// The guidance toward a prefix: where the sampler is pulled, how hard, per model row.
 #[derive(Debug)]
 pub struct Guide {
@@ -52,8 +76,9 @@ pub struct Guide {
     pub target: Tensor,
     /// (Tp) in [0, 1].
     pub weights: Vec<f32>,
-    /// beta: the clip of the guidance weight `1 / sqrt(abar_t)`.
+    /// beta: the clip of the guidance weight (see [`Method`]).
     pub max_weight: f64,
+    pub method: Method,
 }
 
 /// The soft mask over the model's `horizon` rows, whose row `offset` is the chunk's row 0 (the
@@ -107,15 +132,26 @@ pub fn sample_guided(
     let mut x = noise.shallow_clone();
     for &t in ddim.timesteps() {
         let abar = f64::from(ddim.alpha_cumprod(t)?);
-        let weight = guide.max_weight.min(1.0 / abar.sqrt());
-        let x_in = x.detach().set_requires_grad(true);
-        let (x0, eps, dx0) = tch::with_grad(|| -> Result<(Tensor, Tensor, Tensor), ScheduleError> {
-            let out = predict(&x_in, t);
-            let (x0_hat, eps_hat) = ddim.estimate(&out, t, &x_in)?;
-            let err = ((&guide.target - x0_hat.detach()) * &w).detach();
-            let vjp = Tensor::run_backward(&[(&x0_hat * &err).sum(Kind::Float)], &[&x_in], false, false);
-            Ok((x0_hat.detach(), eps_hat.detach(), vjp[0].detach() * weight))
-        })?;
+        let (x0, eps, dx0) = match guide.method {
+            Method::Vjp => {
+                let weight = guide.max_weight.min(1.0 / abar.sqrt());
+                let x_in = x.detach().set_requires_grad(true);
+                tch::with_grad(|| -> Result<(Tensor, Tensor, Tensor), ScheduleError> {
+                    let out = predict(&x_in, t);
+                    let (x0_hat, eps_hat) = ddim.estimate(&out, t, &x_in)?;
+                    let err = ((&guide.target - x0_hat.detach()) * &w).detach();
+                    let vjp = Tensor::run_backward(&[(&x0_hat * &err).sum(Kind::Float)], &[&x_in], false, false);
+                    Ok((x0_hat.detach(), eps_hat.detach(), vjp[0].detach() * weight))
+                })?
+            }
+            Method::X0 => {
+                let out = tch::no_grad(|| predict(&x, t));
+                let (x0_hat, eps_hat) = ddim.estimate(&out, t, &x)?;
+                let weight = (guide.max_weight * abar).min(1.0);
+                let dx0 = (&guide.target - &x0_hat) * &w * weight;
+                (x0_hat, eps_hat, dx0)
+            }
+        };
         // The guided clean chunk stays in the clip range (the actions' normalised range): the
         // correction is the move of the clipped estimate, so a network whose Jacobian is far
         // from the ideal denoiser's cannot push the chunk past it (and 0 stays exactly 0).
@@ -206,11 +242,13 @@ mod tests {
                 ("rough", Box::new(rough)),
             ] {
                 let plain = d.sample(&noise, &net).unwrap();
-                let guide =
-                    Guide { target: target.shallow_clone(), weights: prefix_weights(16, 1, 4, 10), max_weight: 0.0 };
-                let guided = tch::no_grad(|| sample_guided(&d, &noise, &guide, &net)).unwrap();
-                let diff = (&plain - &guided).abs().max().double_value(&[]);
-                assert!(plain.equal(&guided), "{prediction:?}, {name} network: {diff}");
+                for method in [Method::Vjp, Method::X0] {
+                    let weights = prefix_weights(16, 1, 4, 10);
+                    let guide = Guide { target: target.shallow_clone(), weights, max_weight: 0.0, method };
+                    let guided = tch::no_grad(|| sample_guided(&d, &noise, &guide, &net)).unwrap();
+                    let diff = (&plain - &guided).abs().max().double_value(&[]);
+                    assert!(plain.equal(&guided), "{prediction:?}, {name} network, {method:?}: {diff}");
+                }
             }
         }
     }
@@ -231,17 +269,20 @@ mod tests {
                     .mean(Kind::Float)
                     .double_value(&[])
             };
-            let guide =
-                Guide { target: target.shallow_clone(), weights: prefix_weights(16, 1, 4, 10), max_weight: 5.0 };
-            let guided = tch::no_grad(|| sample_guided(&d, &noise, &guide, &net)).unwrap();
-            let (before, after) = (dist(&plain, 1..5), dist(&guided, 1..5));
-            assert!(after < 0.05 * before, "{prediction:?}: frozen rows {before:.3} -> {after:.4} from the prefix");
-            let (before, after) = (dist(&plain, 5..11), dist(&guided, 5..11));
-            assert!(after < 0.7 * before, "{prediction:?}: the decaying rows {before:.3} -> {after:.3}");
-            assert!(plain.narrow(1, 11, 5).equal(&guided.narrow(1, 11, 5)), "{prediction:?}: unguided rows moved");
-            let wild = tch::no_grad(|| sample_guided(&d, &noise, &guide, rough)).unwrap();
-            let top = wild.abs().max().double_value(&[]);
-            assert!(top <= 1.0 + 1e-6, "{prediction:?}: a rough network's guided chunk reached {top}");
+            for method in [Method::Vjp, Method::X0] {
+                let weights = prefix_weights(16, 1, 4, 10);
+                let guide = Guide { target: target.shallow_clone(), weights, max_weight: 5.0, method };
+                let guided = tch::no_grad(|| sample_guided(&d, &noise, &guide, &net)).unwrap();
+                let (before, after) = (dist(&plain, 1..5), dist(&guided, 1..5));
+                assert!(after < 0.05 * before, "{prediction:?} {method:?}: frozen rows {before:.3} -> {after:.4}");
+                let (before, after) = (dist(&plain, 5..11), dist(&guided, 5..11));
+                assert!(after < 0.7 * before, "{prediction:?} {method:?}: decaying rows {before:.3} -> {after:.3}");
+                let free = plain.narrow(1, 11, 5).equal(&guided.narrow(1, 11, 5));
+                assert!(free, "{prediction:?} {method:?}: unguided rows moved");
+                let wild = tch::no_grad(|| sample_guided(&d, &noise, &guide, rough)).unwrap();
+                let top = wild.abs().max().double_value(&[]);
+                assert!(top <= 1.0 + 1e-6, "{prediction:?} {method:?}: a rough network's chunk reached {top}");
+            }
         }
     }
 

@@ -426,7 +426,10 @@ pub fn plot(r: &Report, path: &std::path::Path) -> Result<(), PlotError> {
             .draw_series(DashedLineSeries::new(rep, 6, 4, c.stroke_width(2)))
             .map_err(err)?
             .label(format!("{name} replayed"))
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(1)));
+            // Dashed in the legend too, as the series and the title say.
+            .legend(move |(x, y)| {
+                plotters::element::DashedPathElement::new(vec![(x, y), (x + 20, y)], 6, 4, c.stroke_width(2))
+            });
     }
     chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
     let tcp_mm: Vec<f64> = r.tcp_error_m.iter().map(|e| e * 1e3).collect();

@@ -134,6 +134,10 @@ const EXIT_DEVIATION: u8 = 5;
 struct ReplayArgs {
     /// The episode: its directory or its .mcap file.
     episode: PathBuf,
+    /// Replay against the simulated rig: the only replay target (no real-robot replay), which
+    /// `labrig replay` asks to be named.
+    #[arg(long)]
+    sim: bool,
     /// Rebuild the scene from this spec (file or built-in name) instead of the episode's.
     #[arg(long)]
     scene: Option<PathBuf>,
@@ -277,6 +281,7 @@ fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
         max_gripper_error: a.max_gripper_error,
         perturb_joint1_rad: a.perturb_joint1_rad,
     };
+    let _ = a.sim; // the simulated rig is what this program replays against
     let r = labrig_sim::replay::replay(&opts)?;
     if let Some(path) = &a.plot {
         labrig_sim::replay::plot(&r, path)?;
@@ -285,6 +290,11 @@ fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string(&r)?);
     } else {
         print!("{}", labrig_sim::replay::text(&r));
+    }
+    // Where the picture went (on stderr under --json, which keeps stdout one JSON object).
+    if let Some(path) = &a.plot {
+        let line = format!("plot: {}", std::fs::canonicalize(path).unwrap_or_else(|_| path.clone()).display());
+        if a.json { eprintln!("{line}") } else { println!("{line}") }
     }
     Ok(if r.exceeded.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(EXIT_DEVIATION) })
 }

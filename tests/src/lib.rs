@@ -200,6 +200,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("rollout_rtc_refused", 178, 1),
     ("recorder_scene_bound", 179, 1),
     ("docs_guides_run", 180, 1),
+    ("torchscript_rtc", 181, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

@@ -121,20 +121,9 @@ fn export_import_export_is_identical_and_the_import_replays_exactly() {
             assert_eq!(Some(*stamp), want, "camera {cam}, step {i}");
         }
     }
-    let report: Value = serde_json::from_str(
-        &ok(&labrig(&[
-            "export",
-            "droid",
-            fixture().to_str().unwrap(),
-            tmp.path().join("c").to_str().unwrap(),
-            "--json",
-        ]))
-        .lines()
-        .last()
-        .unwrap()
-        .to_owned(),
-    )
-    .unwrap();
+    let c = tmp.path().join("c");
+    let text = ok(&labrig(&["export", "droid", fixture().to_str().unwrap(), c.to_str().unwrap(), "--json"]));
+    let report: Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
     assert_eq!(report["frames_filled"], 5, "the fixture's first step, filled for each camera, is counted: {report}");
 
     // The imported episode is a whole labrig episode: inspect finds nothing to flag...

@@ -396,6 +396,10 @@ fn real_time_chunking_sends_the_rows_run_meanwhile_and_repeats_itself() {
             }
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
+        if exited.is_none() {
+            let _ = child.kill();
+        }
+        let _ = child.wait();
         let err = std::fs::read_to_string(&stderr).unwrap_or_default();
         assert_eq!(exited.and_then(|s| s.code()), Some(0), "{err}");
         let out = std::fs::read_to_string(&stdout).unwrap();
@@ -464,4 +468,41 @@ fn real_time_chunking_the_chunk_cannot_hold_is_refused_by_name() {
         err.contains("real-time chunking: the execution horizon s = 8 (policy.execute_steps, or the policy's n_action_steps) must lie in [d, rows - d] = [8, 7] for d = 8 ticks of delay and a chunk of 15 rows"),
         "{err}"
     );
+}
+
+/// A TorchScript module cannot be guided: with `--blend rtc` it gets real-time chunking's
+/// schedule (requests carry the rows run meanwhile, d = 2) and its chunks come unguided, which
+/// the server's log says.
+#[test]
+fn a_torchscript_module_gets_real_time_chunkings_schedule_unguided_and_the_log_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let fx = repo_root().join("tests/fixtures/policies/torchscript_tiny");
+    let key = "torchscript_rtc";
+    let o = Command::new(labrig_bin())
+        .args(["rollout", "--threads", "1", "--json", "--episodes", "1", "--max-steps", "20"])
+        .args(["--blend", "rtc", "--delay-steps", "2", "--execute-steps", "4"])
+        .args(["--domain-id", &domain_for(key).to_string(), "--torchscript"])
+        .arg(fx.join("policy_scripted.pt"))
+        .arg("--spec")
+        .arg(fx.join("spec.toml"))
+        .arg("--out")
+        .arg(dir.path())
+        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+        .current_dir(repo_root())
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{stderr}"));
+    assert_eq!(o.status.code(), Some(0), "{report:#}\n{stderr}");
+    assert!(
+        stderr.contains(
+            "real-time chunking asked for, but a TorchScript module cannot be guided: its chunks come on the loop's schedule without the guidance"
+        ),
+        "{stderr}"
+    );
+    let source = &report["control"]["source"];
+    assert!(source["prefix_requests"].as_u64().unwrap() >= 2, "{source:#}");
+    assert_eq!(source["frozen_steps"], 2, "{source:#}");
+    assert!(source["rows_executed"].as_u64().unwrap() >= 10, "{source:#}");
 }

@@ -50,6 +50,9 @@ pub struct LatencyArgs {
     /// `rtc`: the guidance weight clips (beta) to sweep.
     #[arg(long, value_delimiter = ',', default_value = "5")]
     pub guidance: Vec<f64>,
+    /// `rtc`: the server's guidance methods to sweep (`x0`, `vjp`; see labrig_policies::rtc).
+    #[arg(long, value_delimiter = ',', default_value = "x0", value_parser = ["x0", "vjp"])]
+    pub rtc_guidance: Vec<String>,
     /// The tuning seeds: `--episodes` from this one.
     #[arg(long, default_value_t = 1000)]
     pub tuning_seed: u64,
@@ -98,6 +101,9 @@ pub struct Point {
     pub execute: u32,
     /// `rtc`: beta.
     pub guidance: Option<f64>,
+    /// `rtc`: the guidance method (`x0`, `vjp`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
     pub first_seed: u64,
     pub episodes: u64,
     /// Tuning or judging.
@@ -106,14 +112,15 @@ pub struct Point {
 
 impl Point {
     pub fn key(&self) -> String {
-        let g = self.guidance.map_or(String::new(), |g| format!("_g{g}"));
+        let g = self.guidance.map_or(String::new(), |g| format!("_{}g{g}", self.method.as_deref().unwrap_or("")));
         let phase = if self.judging { "judge" } else { "tune" };
         format!("{}_{}_d{}_e{}{g}_{phase}{}", self.task, self.mode, self.delay, self.execute, self.first_seed)
     }
 
     /// The setting without the seeds.
-    fn setting(&self) -> (String, String, u32, u32, Option<u64>) {
-        (self.task.clone(), self.mode.clone(), self.delay, self.execute, self.guidance.map(f64::to_bits))
+    fn setting(&self) -> (String, String, u32, u32, Option<u64>, Option<String>) {
+        let g = self.guidance.map(f64::to_bits);
+        (self.task.clone(), self.mode.clone(), self.delay, self.execute, g, self.method.clone())
     }
 }
 
@@ -139,14 +146,24 @@ pub struct PointResult {
     pub chunks: u64,
     pub skipped_rows: u64,
     /// Joint jerk (rad/s^3), p95, at chunk switches and within chunks, and their ratio.
+    #[serde(deserialize_with = "nan_if_null")]
     pub jerk_switch_p95: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub jerk_within_p95: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub jerk_ratio: f64,
     /// Metres of TCP path per successful rollout (mean).
+    #[serde(deserialize_with = "nan_if_null")]
     pub path_per_success_m: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub inference_ms_p50: f64,
     pub wall_s: f64,
     pub trace: Vec<TraceStep>,
+}
+
+/// JSON has no NaN: serde_json writes it as null, read back here as NaN.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 impl PointResult {
@@ -181,15 +198,22 @@ pub fn grid(a: &LatencyArgs) -> Vec<Point> {
                     if mode == BlendArg::Wait && delay == 0 {
                         continue;
                     }
-                    let gs: Vec<Option<f64>> =
-                        if mode == BlendArg::Rtc { a.guidance.iter().map(|&g| Some(g)).collect() } else { vec![None] };
-                    for guidance in gs {
+                    let gs: Vec<(Option<f64>, Option<String>)> = if mode == BlendArg::Rtc {
+                        a.rtc_guidance
+                            .iter()
+                            .flat_map(|m| a.guidance.iter().map(move |&g| (Some(g), Some(m.clone()))))
+                            .collect()
+                    } else {
+                        vec![(None, None)]
+                    };
+                    for (guidance, method) in gs {
                         points.push(Point {
                             task: task.clone(),
                             mode: mode.name().to_owned(),
                             delay,
                             execute,
                             guidance,
+                            method,
                             first_seed: a.tuning_seed,
                             episodes: a.episodes,
                             judging: false,
@@ -277,6 +301,7 @@ fn judging_points(a: &LatencyArgs, tuned: &[PointResult]) -> Vec<Point> {
             delay: 0,
             execute: 8,
             guidance: None,
+            method: None,
             first_seed: 0,
             episodes: a.episodes,
             judging: true,
@@ -365,6 +390,7 @@ fn run_point(a: &LatencyArgs, p: &Point) -> anyhow::Result<PointResult> {
         execute_steps: Some(p.execute),
         guidance_max_weight: p.guidance,
         rtc_delay_steps: None,
+        rtc_guidance: p.method.clone(),
         out: out.clone(),
         domain_id: a.domain_id,
         json: true,
@@ -434,18 +460,21 @@ pub struct Smoothness {
 }
 
 /// The joint jerk of the recorded steps: j_k = (q[k+2] - 3 q[k+1] + 3 q[k] - q[k-1]) / dt^3
-/// (its norm over the joints) changes with the actions of steps k-1, k and k+1; it is a
-/// switch's when those came from two chunks, within a chunk when from one. Steps without a
-/// chunk (the arm held) count in neither.
+/// (its norm over the joints) changes with the actions of steps k-1, k and k+1; it is within a
+/// chunk when those all came from one chunk, a switch's when from two, or from a chunk and a
+/// tick the arm held for lack of one (waiting for the next chunk is a switch too); a stencil
+/// of held ticks only, or one before the episode's first chunk, counts in neither.
 pub fn smoothness(steps: &[Step], dt: f64) -> Smoothness {
     let mut s = Smoothness::default();
     for w in steps.windows(2) {
         let (a, b) = (&w[0].robot_state.cartesian_position, &w[1].robot_state.cartesian_position);
         s.path_m += ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2) + (b[2] - a[2]).powi(2)).sqrt();
     }
-    for k in 1..steps.len().saturating_sub(2) {
+    // Before the first chunk the arm has not moved yet: the start is no switch.
+    let first = steps.iter().position(|s| s.chunk_id != 0).unwrap_or(steps.len());
+    for k in (first + 1).max(1)..steps.len().saturating_sub(2) {
         let chunks = [steps[k - 1].chunk_id, steps[k].chunk_id, steps[k + 1].chunk_id];
-        if chunks.contains(&0) {
+        if chunks == [0, 0, 0] {
             continue;
         }
         let q = |i: usize| &steps[i].robot_state.joint_positions;
@@ -478,7 +507,7 @@ fn trace(steps: &[Step], n: usize) -> Vec<TraceStep> {
 
 fn line(r: &PointResult) -> String {
     let p = &r.point;
-    let g = p.guidance.map_or(String::new(), |g| format!(" beta {g}"));
+    let g = p.guidance.map_or(String::new(), |g| format!(" {} beta {g}", p.method.as_deref().unwrap_or("")));
     let seeds = format!("seeds {}..{}", p.first_seed, p.first_seed + p.episodes - 1);
     if let Some(why) = &r.infeasible {
         return format!("{:<11} {:<11} d {} e {}{g}: not run: {why}", p.task, p.mode, p.delay, p.execute);
@@ -526,7 +555,9 @@ pub fn table(results: &[PointResult]) -> String {
             let (k, n): (u64, u64) = rs.iter().fold((0, 0), |(k, n), r| (k + r.successes, n + r.rollouts));
             let held: u64 = rs.iter().map(|r| r.held_steps).sum();
             let ci = wilson95(k, n);
-            let g = st.4.map_or(String::new(), |b| format!(" beta {}", f64::from_bits(b)));
+            let g = st
+                .4
+                .map_or(String::new(), |b| format!(" {} beta {}", st.5.as_deref().unwrap_or(""), f64::from_bits(b)));
             let _ = writeln!(
                 s,
                 "  {:<11} {:<11} d {} e {}{g}: {k}/{n} ({:.0}%, {:.0}-{:.0}%) over {} sets, held {held}",
@@ -643,11 +674,9 @@ fn draw(out: &Path, results: &[PointResult]) -> anyhow::Result<Vec<PathBuf>> {
                 .build_cartesian_2d(0.0..xs.last().copied().unwrap_or(1.0).max(0.05), (lo - pad)..(hi + pad))
                 .map_err(e)?;
             chart.configure_mesh().x_desc("s").y_desc("z (m)").draw().map_err(e)?;
-            for i in 1..r.trace.len() {
-                if r.trace[i].chunk_id != r.trace[i - 1].chunk_id {
-                    chart
-                        .draw_series(LineSeries::new([(xs[i], lo - pad), (xs[i], hi + pad)], BLACK.mix(0.25)))
-                        .map_err(e)?;
+            for (w, &x) in r.trace.windows(2).zip(&xs[1..]) {
+                if w[1].chunk_id != w[0].chunk_id {
+                    chart.draw_series(LineSeries::new([(x, lo - pad), (x, hi + pad)], BLACK.mix(0.25))).map_err(e)?;
                 }
             }
             chart.draw_series(LineSeries::new(xs.iter().copied().zip(z), colour.stroke_width(2))).map_err(e)?;
@@ -680,12 +709,12 @@ mod tests {
             keys,
             [
                 "pick_place_replace_d0_e4_tune1000",
-                "pick_place_rtc_d0_e4_g1_tune1000",
-                "pick_place_rtc_d0_e4_g5_tune1000",
+                "pick_place_rtc_d0_e4_x0g1_tune1000",
+                "pick_place_rtc_d0_e4_x0g5_tune1000",
                 "pick_place_exponential_d0_e4_tune1000",
                 "pick_place_replace_d4_e4_tune1000",
-                "pick_place_rtc_d4_e4_g1_tune1000",
-                "pick_place_rtc_d4_e4_g5_tune1000",
+                "pick_place_rtc_d4_e4_x0g1_tune1000",
+                "pick_place_rtc_d4_e4_x0g5_tune1000",
                 "pick_place_exponential_d4_e4_tune1000",
                 "pick_place_wait_d4_e4_tune1000",
             ]
@@ -716,10 +745,15 @@ mod tests {
         }
         let s = smoothness(&kinked, dt);
         assert!(s.at_switch.iter().any(|&j| j > 1.0), "{s:?}");
-        // Held steps (chunk 0) count in neither.
+        // A held step (chunk 0) between two of one chunk: the stencils through it are switches;
+        // a stencil of held steps only counts in neither.
         let held: Vec<Step> = (0..10).map(|k| step(k, if k == 4 { 0 } else { 1 }, 0.0)).collect();
         let s = smoothness(&held, dt);
-        assert_eq!(s.at_switch.len() + s.within.len(), 4, "{s:?}");
+        assert_eq!((s.at_switch.len(), s.within.len()), (3, 4), "{s:?}");
+        // Before the first chunk: nothing counts.
+        let idle: Vec<Step> = (0..10).map(|k| step(k, if k < 4 { 0 } else { 1 }, 0.0)).collect();
+        let s = smoothness(&idle, dt);
+        assert_eq!((s.at_switch.len(), s.within.len()), (0, 3), "{s:?}");
         // The path: 0.5e-3 * 81 along x.
         let s = smoothness(&smooth, dt);
         assert!((s.path_m - 0.5e-3 * 81.0).abs() < 1e-12, "{}", s.path_m);

@@ -246,6 +246,7 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
             execute_steps: None,
             guidance_max_weight: None,
             rtc_delay_steps: None,
+            rtc_guidance: None,
             out: dir.clone(),
             domain_id: a.domain_id,
             json: true,

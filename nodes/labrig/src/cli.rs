@@ -1,6 +1,6 @@
 //! Argument parsing and dispatch.
 
-use crate::programs::node;
+use crate::programs::{node, node_renamed};
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -26,7 +26,8 @@ pub enum Command {
     Launch(crate::launch::LaunchArgs),
     /// What an episode holds and how well it was recorded (exit 3 when something is flagged).
     Inspect(crate::inspect::InspectArgs),
-    /// Tell the rig loop to start or end an episode (start | success | failure | discard | stop).
+    /// Tell the rig loop to start or end an episode, or send the idle arm home (start | success |
+    /// failure | discard | stop | reset).
     Episode(crate::episode::EpisodeArgs),
     /// Make an episode whose recorder died whole again (up to its last closed chunk).
     Recover(crate::recover::RecoverArgs),
@@ -34,7 +35,7 @@ pub enum Command {
     Demo(crate::demo::DemoArgs),
     /// A policy's closed-loop success rate in the simulated rig: seeded rollouts, each a
     /// recorded episode judged by the sim (`labrig rollout --policy <checkpoint>`).
-    Rollout(crate::rollout::RolloutArgs),
+    Rollout(Box<crate::rollout::RolloutArgs>),
     /// Experiments that run end to end on the simulated rig: `labrig experiment retrieval
     /// [--config experiments/retrieval/full.toml] [--out DIR]` (the paper's co-training result).
     #[command(subcommand)]
@@ -84,19 +85,21 @@ pub enum Command {
     },
     /// Export episodes to another format: `labrig export droid <episode|dir> <out_dir>
     /// [--overwrite] [--json]` writes DROID's raw layout (trajectory.h5, one MP4 per camera,
-    /// metadata_<uuid>.json); `labrig export droid-mcap ...` DROID's MCAP layout (trajectory.mcap).
+    /// metadata_<uuid>.json); `labrig export droid-mcap ...` DROID's MCAP layout (trajectory.mcap);
+    /// `labrig export lerobot <episode|dir>... <out>` a LeRobot dataset (format v3.0).
     #[command(disable_help_flag = true)]
     Export {
-        /// The format (`droid` or `droid-mcap`), then the options of `labrig-droid export`.
+        /// The format (`droid`, `droid-mcap` or `lerobot`), then its options.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
     /// Import episodes from another format: `labrig import droid <droid_episode|dir>
-    /// [--out episodes]` (DROID's raw layout) or `labrig import droid-mcap <trajectory.mcap|dir>`
-    /// (DROID's MCAP layout) writes MCAP episodes in the recorder's layout.
+    /// [--out episodes]` (DROID's raw layout), `labrig import droid-mcap <trajectory.mcap|dir>`
+    /// (DROID's MCAP layout) or `labrig import lerobot <root> <out>` (a LeRobot dataset, v3.0 or
+    /// v2.1) writes MCAP episodes in the recorder's layout.
     #[command(disable_help_flag = true)]
     Import {
-        /// The format (`droid` or `droid-mcap`), then the options of `labrig-droid import`.
+        /// The format (`droid`, `droid-mcap` or `lerobot`), then its options.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
@@ -141,10 +144,10 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
-    /// Policies: `labrig policy run --checkpoint <ckpt>` (the policy server node,
-    /// `labrig-policy`), `labrig policy infer <ckpt> --obs <obs.safetensors> --noise
+    /// Policies: `labrig policy run --checkpoint <run|ckpt>` (the policy server: serves action
+    /// chunks to the rig loop), `labrig policy infer <ckpt> --obs <obs.safetensors> --noise
     /// <noise.safetensors> --out <actions.safetensors>`, `labrig policy import-lerobot <dir>
-    /// --out <ckpt>` (`labrig-policies`).
+    /// --out <ckpt>` (see `labrig policy --help`).
     #[command(disable_help_flag = true)]
     Policy {
         /// `run`, `infer` or `import-lerobot`, then its options.
@@ -179,7 +182,7 @@ pub enum Command {
 
 /// Runs `labrig-sim` (built beside this binary; the only program that links MuJoCo) with `args`.
 pub fn sim(args: &[String]) -> anyhow::Result<ExitCode> {
-    node("labrig-sim", args)
+    node("labrig-sim", "labrig sim", args)
 }
 
 /// `labrig calibrate capture ...` takes a live rig's views here (this crate talks to the rig);
@@ -199,22 +202,43 @@ pub fn calibrate(args: &[String]) -> anyhow::Result<ExitCode> {
         }
         return crate::calib_capture::run(parsed.args);
     }
-    node("labrig-calibrate", args)
+    node("labrig-calibrate", "labrig calibrate", args)
 }
 
-/// `labrig replay <episode> --sim ...` -> `labrig-sim replay <episode> ...` (the simulated rig
-/// is the only replay target so far; `--sim` says so explicitly).
+/// `labrig replay <episode> --sim ...` -> `labrig-sim replay <episode> --sim ...` (the
+/// simulated rig is the only replay target so far; `--sim` says so explicitly, and
+/// `labrig-sim replay` documents it among its flags, so `labrig replay --help` lists it).
 pub fn replay(args: &[String]) -> anyhow::Result<ExitCode> {
-    if args.iter().any(|a| a == "--help" || a == "-h") {
-        return node("labrig-sim", &["replay".to_owned(), "--help".to_owned()]);
-    }
+    let help = args.iter().any(|a| a == "--help" || a == "-h");
     anyhow::ensure!(
-        args.iter().any(|a| a == "--sim"),
+        help || args.iter().any(|a| a == "--sim"),
         "labrig replay needs --sim: episodes replay against the simulated rig (no real-robot replay)"
     );
-    let mut forwarded = vec!["replay".to_owned()];
-    forwarded.extend(args.iter().filter(|a| *a != "--sim").cloned());
-    node("labrig-sim", &forwarded)
+    node("labrig-sim", "labrig", &tool("replay", args.to_vec()))
+}
+
+/// `labrig policy --help` (and `labrig policy` alone): its commands, which two programs serve
+/// (`run` is labrig-policy, the others labrig-policies), so neither program's own help lists them.
+fn policy_help() -> clap::Command {
+    clap::Command::new("policy")
+        .bin_name("labrig policy")
+        .subcommand_required(true)
+        .disable_help_subcommand(true)
+        .about("Policies: the policy server, and one checkpoint's chunk or import")
+        .subcommand_value_name("COMMAND")
+        .subcommand(clap::Command::new("run").about(
+            "The policy server: serves a checkpoint's or a TorchScript module's action chunks to the rig loop \
+             (`labrig policy run --checkpoint <run|checkpoint>`; see `labrig policy run --help`)",
+        ))
+        .subcommand(clap::Command::new("infer").about(
+            "One action chunk from a checkpoint for an observation and initial noise (safetensors; see \
+             `labrig policy infer --help`)",
+        ))
+        .subcommand(clap::Command::new("import-lerobot").about(
+            "Convert a LeRobot Diffusion Policy directory (save_pretrained's) into a labrig checkpoint (see \
+             `labrig policy import-lerobot --help`)",
+        ))
+        .after_help("Training is `labrig train`, the latency benchmark `labrig bench policy`.")
 }
 
 /// `labrig export|import <format> ...` -> `labrig-droid export|import ...` (DROID's raw format
@@ -224,20 +248,16 @@ pub fn convert(verb: &str, args: &[String]) -> anyhow::Result<ExitCode> {
         Some(format @ ("droid" | "droid-mcap")) => {
             // labrig-droid's `export` / `import` (raw) and `export-mcap` / `import-mcap`.
             let sub = if format == "droid" { verb.to_owned() } else { format!("{verb}-mcap") };
-            let mut forwarded = vec![sub];
-            forwarded.extend(args[1..].iter().cloned());
-            node("labrig-droid", &forwarded)
+            node_renamed("labrig-droid", &sub, &format!("labrig {verb} {format}"), &args[1..])
         }
         Some("lerobot") => {
-            let mut forwarded = vec![format!("{verb}-lerobot")];
-            forwarded.extend(args[1..].iter().cloned());
-            node("labrig-dataset", &forwarded)
+            node_renamed("labrig-dataset", &format!("{verb}-lerobot"), &format!("labrig {verb} lerobot"), &args[1..])
         }
         Some("--help" | "-h") | None => {
             println!(
                 "usage: labrig {verb} droid|droid-mcap|lerobot ... (formats: droid = DROID's raw layout, droid-mcap = DROID's MCAP layout, lerobot = LeRobot's dataset format v3.0 or v2.1)\n"
             );
-            node("labrig-droid", &[verb.to_owned(), "--help".to_owned()])
+            node_renamed("labrig-droid", verb, &format!("labrig {verb} droid"), &["--help".to_owned()])
         }
         Some(other) => {
             anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid, droid-mcap, lerobot)")
@@ -321,7 +341,7 @@ pub enum BenchCommand {
     /// Policies under inference latency (lockstep): delay x execution mode (wait, replace,
     /// exponential, rtc) x rows per chunk on tuning seeds, then the best settings on judging
     /// seeds; success, held ticks, jerk at chunk switches; resumable.
-    Latency(crate::bench_latency::LatencyArgs),
+    Latency(Box<crate::bench_latency::LatencyArgs>),
     /// (internal) one publisher process of `bench shm`.
     #[command(hide = true)]
     ShmPublisher(crate::bench::ShmPublisherArgs),
@@ -384,22 +404,39 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Topic(TopicCommand::Hz(a)) => crate::topic::hz(a),
         Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
-        Command::Bench(BenchCommand::Ik { args }) => node("labrig-franka", &tool("bench-ik", args)),
-        Command::Bench(BenchCommand::Franka { args }) => node("labrig-franka", &tool("bench", args)),
-        Command::Bench(BenchCommand::Record { args }) => node("labrig-recorder", &tool("bench", args)),
+        Command::Bench(BenchCommand::Ik { args }) => {
+            node_renamed("labrig-franka", "bench-ik", "labrig bench ik", &args)
+        }
+        Command::Bench(BenchCommand::Franka { args }) => {
+            node_renamed("labrig-franka", "bench", "labrig bench franka", &args)
+        }
+        Command::Bench(BenchCommand::Record { args }) => {
+            node_renamed("labrig-recorder", "bench", "labrig bench record", &args)
+        }
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
         Command::Bench(BenchCommand::Station(a)) => crate::bench_station::run(a),
         Command::Bench(BenchCommand::Cameras(a)) => crate::bench_cameras::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Openpi(a)) => crate::bench_openpi::run(a),
-        Command::Bench(BenchCommand::Latency(a)) => crate::bench_latency::run(a),
-        Command::Bench(BenchCommand::Teleop { args }) => node("labrig-teleop", &tool("bench", args)),
-        Command::Bench(BenchCommand::Policy { args }) => node("labrig-policies", &tool("bench", args)),
-        Command::Train { args } => node("labrig-policies", &tool("train", args)),
+        Command::Bench(BenchCommand::Latency(a)) => crate::bench_latency::run(*a),
+        Command::Bench(BenchCommand::Teleop { args }) => {
+            node_renamed("labrig-teleop", "bench", "labrig bench teleop", &args)
+        }
+        Command::Bench(BenchCommand::Policy { args }) => {
+            node_renamed("labrig-policies", "bench", "labrig bench policy", &args)
+        }
+        Command::Train { args } => node("labrig-policies", "labrig", &tool("train", args)),
         Command::Policy { args } => match args.first().map(String::as_str) {
-            Some("infer" | "import-lerobot") => node("labrig-policies", &args),
-            Some("run") => node("labrig-policy", &args),
-            Some("--help" | "-h") | None => node("labrig-policies", &["--help".to_owned()]),
+            Some("infer" | "import-lerobot") => node("labrig-policies", "labrig policy", &args),
+            Some("run") => node("labrig-policy", "labrig policy", &args),
+            Some("--help" | "-h") => {
+                policy_help().print_help()?;
+                Ok(ExitCode::SUCCESS)
+            }
+            None => {
+                eprint!("{}", policy_help().render_help());
+                Ok(ExitCode::from(2))
+            }
             Some(other) => {
                 anyhow::bail!("labrig policy: unknown command `{other}` (commands: run, infer, import-lerobot)")
             }
@@ -407,31 +444,31 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Recover(a) => crate::recover::run(a),
         Command::Inspect(a) => crate::inspect::run(a),
         Command::Launch(a) => crate::launch::run(a),
-        Command::Doctor { args } => node("labrig-doctor", &args),
+        Command::Doctor { args } => node("labrig-doctor", "labrig doctor", &args),
         Command::Demo(a) => crate::demo::run(a),
-        Command::Rollout(a) => crate::rollout::run(a),
+        Command::Rollout(a) => crate::rollout::run(*a),
         Command::Experiment(a) => crate::experiment::run(a),
         Command::Episode(a) => crate::episode::run(a),
         Command::Replay { args } => replay(&args),
         Command::Export { args } => convert("export", &args),
         Command::Import { args } => convert("import", &args),
         Command::Bench(BenchCommand::Export { args }) => {
-            let mut forwarded = vec!["bench".to_owned()];
-            forwarded.extend(args);
-            node("labrig-droid", &forwarded)
+            node_renamed("labrig-droid", "bench", "labrig bench export", &args)
         }
         Command::Sim { args } => sim(&args),
         Command::Calibrate { args } => calibrate(&args),
-        Command::Dataset { args } => node("labrig-dataset", &args),
-        Command::Gripper { args } => node("labrig-gripper", &args),
-        Command::Franka { args } => node("labrig-franka", &args),
-        Command::Teleop { args } => node("labrig-teleop", &args),
-        Command::Cameras { args } => node("labrig-cameras", &args),
-        Command::Control { args } => node("labrig-control", &args),
-        Command::Recorder { args } => node("labrig-recorder", &args),
+        Command::Dataset { args } => node("labrig-dataset", "labrig dataset", &args),
+        Command::Gripper { args } => node("labrig-gripper", "labrig gripper", &args),
+        Command::Franka { args } => node("labrig-franka", "labrig franka", &args),
+        Command::Teleop { args } => node("labrig-teleop", "labrig teleop", &args),
+        Command::Cameras { args } => node("labrig-cameras", "labrig cameras", &args),
+        Command::Control { args } => node("labrig-control", "labrig control", &args),
+        Command::Recorder { args } => node("labrig-recorder", "labrig recorder", &args),
         Command::Station { args } => match args.first().map(String::as_str) {
-            Some("run" | "help" | "--help" | "-h" | "--version" | "-V") => node("labrig-station", &args),
-            _ => node("labrig-station", &tool("run", args)),
+            Some("run" | "help" | "--help" | "-h" | "--version" | "-V") => {
+                node("labrig-station", "labrig station", &args)
+            }
+            _ => node("labrig-station", "labrig station", &tool("run", args)),
         },
     }
 }

@@ -38,13 +38,80 @@ impl RosArgs {
     }
 }
 
-/// Runs the node program `name` (built beside this binary) with `args` in this process's
+/// Runs the labrig program `name` (built beside this binary) with `args` in this process's
 /// place (exec): the node keeps this pid, so a signal sent to `labrig <node> ...` (SIGTERM from
 /// a supervisor, SIGKILL from a test) reaches the node, and none is left running behind a
 /// killed `labrig`. Returns only when the program cannot be started.
-pub fn node(name: &str, args: &[String]) -> anyhow::Result<ExitCode> {
+///
+/// `shown` is the labrig command the user typed in front of the words `name` parses first
+/// (`labrig sim` for `labrig sim run ...` -> `labrig-sim run ...`; `labrig` for `labrig replay
+/// ...` -> `labrig-sim replay ...`): the program gets it as its argv[0], from which clap takes
+/// the name its usage lines (in help and in errors) show, so they name the command the user
+/// typed rather than the program. Where the program's subcommand is not the word typed, see
+/// [`node_renamed`].
+pub fn node(name: &str, shown: &str, args: &[String]) -> anyhow::Result<ExitCode> {
     use std::os::unix::process::CommandExt;
     let exe = sibling_binary(name)?;
-    let e = std::process::Command::new(&exe).args(args).exec();
+    let e = std::process::Command::new(&exe).arg0(shown).args(args).exec();
     Err(anyhow::anyhow!("cannot run {}: {e}", exe.display()))
+}
+
+/// `typed <args...>` run as `name sub <args...>` where the program's subcommand `sub` is not
+/// what the user typed (`labrig export lerobot` is `labrig-dataset export-lerobot`, `labrig
+/// bench ik` is `labrig-franka bench-ik`), so no argv[0] makes clap's usage lines say `typed`.
+/// The program first parses the arguments alone (`LABRIG_PARSE_ONLY`, output captured): its
+/// help, version or refusal is printed with `name sub` replaced by `typed`, and ends the
+/// command with the program's exit status; arguments that parse run as [`node`] runs them.
+pub fn node_renamed(name: &str, sub: &str, typed: &str, args: &[String]) -> anyhow::Result<ExitCode> {
+    let exe = sibling_binary(name)?;
+    let forwarded: Vec<String> = std::iter::once(sub.to_owned()).chain(args.iter().cloned()).collect();
+    let check = std::process::Command::new(&exe)
+        .args(&forwarded)
+        .env("LABRIG_PARSE_ONLY", "1")
+        .stdin(std::process::Stdio::null())
+        .output()
+        .map_err(|e| anyhow::anyhow!("cannot run {}: {e}", exe.display()))?;
+    if labrig_msgs::parse_only() || !check.status.success() || !check.stdout.is_empty() {
+        let internal = format!("{name} {sub}");
+        let show = |bytes: &[u8]| rename_command(&String::from_utf8_lossy(bytes), &internal, typed);
+        print!("{}", show(&check.stdout));
+        eprint!("{}", show(&check.stderr));
+        let code = check.status.code().map_or(1, |c| u8::try_from(c).unwrap_or(1));
+        return Ok(ExitCode::from(code));
+    }
+    node(name, name, &forwarded)
+}
+
+/// `text` with every `from` that is a whole command (not followed by more of a word, as
+/// `labrig-droid export` in `labrig-droid export-mcap`) replaced by `to`.
+fn rename_command(text: &str, from: &str, to: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    while let Some(i) = rest.find(from) {
+        let after = &rest[i + from.len()..];
+        let whole = !after.starts_with(|c: char| c.is_alphanumeric() || c == '-' || c == '_');
+        out.push_str(&rest[..i]);
+        out.push_str(if whole { to } else { from });
+        rest = after;
+    }
+    out.push_str(rest);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::rename_command;
+
+    #[test]
+    fn only_whole_commands_are_renamed() {
+        let help = "Usage: labrig-droid export [OPTIONS] <SOURCE> <OUT>\n(see labrig-droid export-mcap)\n";
+        assert_eq!(
+            rename_command(help, "labrig-droid export", "labrig export droid"),
+            "Usage: labrig export droid [OPTIONS] <SOURCE> <OUT>\n(see labrig-droid export-mcap)\n"
+        );
+        assert_eq!(
+            rename_command("x labrig-franka bench-ik", "labrig-franka bench-ik", "labrig bench ik"),
+            "x labrig bench ik"
+        );
+    }
 }

@@ -135,6 +135,10 @@ pub struct RolloutArgs {
     /// in lockstep, the measured one in real time).
     #[arg(long)]
     pub rtc_delay_steps: Option<u32>,
+    /// `--blend rtc`: the server's guidance (`rtc_guidance` of labrig-policy): `x0` (in the
+    /// clean estimate's space, the default) or `vjp` (PiGDM's, through the U-Net's Jacobian).
+    #[arg(long, value_parser = ["x0", "vjp"])]
+    pub rtc_guidance: Option<String>,
     /// Where the rollouts (DROID layout under `rollouts/`), the report and the pictures go.
     #[arg(long, default_value = "out/rollout")]
     pub out: PathBuf,
@@ -295,6 +299,9 @@ pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
             let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;
             set_arg(&mut pol.args, "--checkpoint", &ckpt.display().to_string());
             set_arg(&mut pol.args, "--threads", &args.threads.to_string());
+            if let Some(g) = &args.rtc_guidance {
+                pol.args.extend(["--set".into(), format!("rtc_guidance=\"{g}\"")]);
+            }
         }
         if let Some((module, spec)) = &torchscript {
             let pol = cfg.node_mut("policy").context("sim_rollout.toml has no `policy` node")?;

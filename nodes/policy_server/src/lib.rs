@@ -24,7 +24,9 @@ pub struct PolicyServerNode;
 /// `labrig-policy run`'s own flags.
 #[derive(Debug, clap::Args, serde::Serialize)]
 pub struct PolicyFlags {
-    /// The checkpoint directory (`checkpoint`).
+    /// The checkpoint (`checkpoint`): a run directory (`labrig train --out`'s; its last
+    /// checkpoint), a run's `checkpoints/last` or `checkpoints/step_<n>`, or an imported
+    /// checkpoint directory.
     #[arg(long, conflicts_with = "torchscript")]
     #[serde(skip_serializing_if = "Option::is_none")]
     checkpoint: Option<PathBuf>,
@@ -51,7 +53,7 @@ pub struct PolicyFlags {
 
 impl labrig_runtime::Node for PolicyServerNode {
     const NAME: &'static str = "labrig-policy";
-    const ABOUT: &'static str = "Serves a Diffusion Policy checkpoint's action chunks to the rig loop";
+    const ABOUT: &'static str = "The policy server: serves a Diffusion Policy checkpoint's or a TorchScript module's action chunks to the rig loop";
     type Config = PolicyServerConfig;
     type Flags = PolicyFlags;
     type Stats = ServeStats;

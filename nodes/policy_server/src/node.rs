@@ -16,7 +16,8 @@ use std::time::Duration;
 #[serde(deny_unknown_fields, default)]
 pub struct PolicyServerConfig {
     pub ros: RosConfig,
-    /// The checkpoint directory (`labrig train`'s `checkpoints/step_<n>`, or an imported one).
+    /// The checkpoint: a run directory (`labrig train --out`'s; its last checkpoint), a run's
+    /// `checkpoints/last` or `checkpoints/step_<n>`, or an imported checkpoint directory.
     pub checkpoint: Option<PathBuf>,
     /// Or a TorchScript module saved by PyTorch, with its `spec` ([`crate::torchscript`]).
     pub torchscript: Option<PathBuf>,
@@ -32,6 +33,10 @@ pub struct PolicyServerConfig {
     pub period_s: f64,
     /// openpi: the FR3 URDF whose kinematics give the pose from the joints (default: setup's).
     pub urdf: Option<PathBuf>,
+    /// Real-time chunking's guidance toward the rows a request carries: `"x0"` (in the clean
+    /// estimate's space) or `"vjp"` (PiGDM's, through the U-Net's Jacobian); see
+    /// labrig_policies::rtc.
+    pub rtc_guidance: labrig_policies::rtc::Method,
 }
 
 impl Default for PolicyServerConfig {
@@ -46,6 +51,7 @@ impl Default for PolicyServerConfig {
             openpi: None,
             period_s: 0.05,
             urdf: None,
+            rtc_guidance: labrig_policies::rtc::Method::default(),
         }
     }
 }
@@ -159,6 +165,7 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
         _ => unreachable!("validated"),
     };
     server.check_rig(&cfg.rig_cameras)?;
+    let server = server.with_rtc_method(cfg.rtc_guidance);
     let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
     let (id, cameras, info_json) = (server.id().to_owned(), server.config().cameras.clone(), server.info().to_string());
     // One model for both faces; openpi's requests and the loop's take turns.

@@ -165,8 +165,7 @@ fn parse<N: Node, T: Subcommand>(
     args: impl IntoIterator<Item = std::ffi::OsString>,
 ) -> Result<Parsed<N::Flags, T>, clap::Error> {
     // Doc comments of the flag and tool types would become the help's text: set ours after.
-    let run = RunArgs::<N::Flags>::augment_args(clap::Command::new("run"))
-        .about("Run the node (the flags override the config file; --set any config key)");
+    let run = RunArgs::<N::Flags>::augment_args(clap::Command::new("run")).about(run_about(N::ABOUT));
     let cmd = T::augment_subcommands(clap::Command::new(N::NAME))
         .about(N::ABOUT)
         .subcommand(run)
@@ -177,6 +176,14 @@ fn parse<N: Node, T: Subcommand>(
         Some(("run", m)) => Ok(Parsed::Run(Box::new(RunArgs::from_arg_matches(m)?))),
         _ => Ok(Parsed::Tool(T::from_arg_matches(&matches)?)),
     }
+}
+
+/// `run`'s line in the help: what the node is (its [`Node::ABOUT`], so `labrig policy run
+/// --help` says it runs the policy server), then how its config is given.
+fn run_about(about: &str) -> String {
+    let mut chars = about.trim_end_matches('.').chars();
+    let what: String = chars.next().map(|c| c.to_uppercase().chain(chars).collect()).unwrap_or_default();
+    format!("{what}. Run it (the flags override the config file; --set any config key)")
 }
 
 /// The config node `N` runs with when started as `<program> <args...>` (a launch config's
@@ -385,6 +392,15 @@ mod tests {
         let e = config(&["run", "--domain-id", "300"]).unwrap_err();
         assert!(e.contains("`ros.domain_id` is 300"), "{e}");
         assert!(config(&["run", "--tick", "3"]).unwrap_err().contains("--tick"));
+    }
+
+    #[test]
+    fn run_help_says_what_the_node_is() {
+        let argv = ["labrig-counter", "run", "--help"].map(std::ffi::OsString::from);
+        let Err(help) = parse::<Counter, NoTools>(argv) else { panic!("--help parsed as a run") };
+        let help = help.to_string();
+        assert!(help.starts_with("Counts ticks. Run it (the flags override the config file"), "{help}");
+        assert!(help.contains("Usage: labrig-counter run"), "{help}");
     }
 
     #[test]
