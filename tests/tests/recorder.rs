@@ -327,6 +327,24 @@ fn inspect_flags_bad_input() {
     assert!((step_rate - 20.0).abs() < 1e-9, "10 steps over 0.45 s of sim time: {step_rate} Hz");
 }
 
+/// The recorder's next `/recorder/status` whose state is `want` (30 s at most).
+async fn recorder_says(
+    status: &labrig_runtime::ros::RosSubscription<labrig_msgs::std_msgs::StringMsg>,
+    want: &str,
+) -> Value {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    while std::time::Instant::now() < deadline {
+        while let Some(s) = status.try_take().unwrap() {
+            let v: Value = serde_json::from_str(&s.msg.data).unwrap();
+            if v["state"] == want {
+                return v;
+            }
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    panic!("the recorder never said {want}");
+}
+
 /// The recorder node (its own process) records what the sim bridge publishes — DDS topics as
 /// they came and the five cameras from shared memory as JPEG — between /rig/episode events,
 /// files the episode in DROID's layout, and deletes a discarded one.
@@ -366,22 +384,7 @@ fn the_recorder_node_records_the_sim_rig() {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
         tokio::time::sleep(Duration::from_secs(2)).await;
-        let wait_status = |want: &'static str| {
-            let status = &status;
-            async move {
-                let deadline = Instant::now() + Duration::from_secs(30);
-                while Instant::now() < deadline {
-                    while let Some(s) = status.try_take().unwrap() {
-                        let v: Value = serde_json::from_str(&s.msg.data).unwrap();
-                        if v["state"] == want {
-                            return v;
-                        }
-                    }
-                    tokio::time::sleep(Duration::from_millis(20)).await;
-                }
-                panic!("the recorder never said {want}");
-            }
-        };
+        let wait_status = |want: &'static str| recorder_says(&status, want);
         let event = |kind: EpisodeEventKind, note: &str| EpisodeEvent {
             kind: kind as u8,
             note: note.into(),
@@ -560,7 +563,7 @@ fn an_episode_holds_no_frame_of_the_scene_before_it() {
     use labrig_msgs::std_msgs::StringMsg;
     use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode};
     use labrig_runtime::ros::{Ros, qos};
-    use std::time::{Duration, Instant};
+    use std::time::Duration;
     let domain = labrig_tests::domain_for("recorder_scene_bound");
     let ns = format!("recorder_scene_{}", std::process::id());
     let root = tempfile::tempdir().unwrap();
@@ -584,22 +587,7 @@ fn an_episode_holds_no_frame_of_the_scene_before_it() {
         assert!(ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(60)).await, "no recorder");
         assert!(ros.wait_for_subscribers("/sim/scene", 1, Duration::from_secs(60)).await);
         tokio::time::sleep(Duration::from_millis(500)).await;
-        let wait_status = |want: &'static str| {
-            let status = &status;
-            async move {
-                let deadline = Instant::now() + Duration::from_secs(30);
-                while Instant::now() < deadline {
-                    while let Some(s) = status.try_take().unwrap() {
-                        let v: Value = serde_json::from_str(&s.msg.data).unwrap();
-                        if v["state"] == want {
-                            return v;
-                        }
-                    }
-                    tokio::time::sleep(Duration::from_millis(20)).await;
-                }
-                panic!("the recorder never said {want}");
-            }
-        };
+        let wait_status = |want: &'static str| recorder_says(&status, want);
         let wall =
             || Nanos(std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as i64);
         let pixels = |k: u8| vec![k; 32 * 24 * 3];

@@ -303,30 +303,37 @@ fn a_killed_server_holds_the_arm_and_fails_the_episode_and_a_mismatch_is_refused
     assert_eq!((meta.success, meta.policy.as_deref()), (Some(false), Some(POLICY_ID)));
 }
 
+/// `labrig rollout --json` of the committed TorchScript module (one episode), its report and
+/// its stderr (the rig's logs).
+fn torchscript_rollout(key: &str, out: &Path, extra: &[&str]) -> (Value, String) {
+    let fx = repo_root().join("tests/fixtures/policies/torchscript_tiny");
+    let o = Command::new(labrig_bin())
+        .args(["rollout", "--threads", "1", "--json", "--episodes", "1"])
+        .args(extra)
+        .args(["--domain-id", &domain_for(key).to_string(), "--torchscript"])
+        .arg(fx.join("policy_scripted.pt"))
+        .arg("--spec")
+        .arg(fx.join("spec.toml"))
+        .arg("--out")
+        .arg(out)
+        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
+        .current_dir(repo_root())
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr).into_owned());
+    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{stderr}"));
+    assert_eq!(o.status.code(), Some(0), "{report:#}\n{stderr}");
+    (report, stderr)
+}
+
 /// A TorchScript module exported by PyTorch (tests/fixtures/policies/torchscript_tiny, untrained:
 /// slow DROID velocities) runs on the sim rig through `labrig rollout --torchscript`: the
 /// episode is recorded, every step after the first few is the module's, named by its id.
 #[test]
 fn a_torchscript_module_runs_on_the_sim_rig() {
     let dir = tempfile::tempdir().unwrap();
-    let fx = repo_root().join("tests/fixtures/policies/torchscript_tiny");
-    let key = "torchscript_rollout";
-    let o = Command::new(labrig_bin())
-        .args(["rollout", "--threads", "1", "--json", "--episodes", "1", "--max-steps", "30"])
-        .args(["--domain-id", &domain_for(key).to_string(), "--torchscript"])
-        .arg(fx.join("policy_scripted.pt"))
-        .arg("--spec")
-        .arg(fx.join("spec.toml"))
-        .arg("--out")
-        .arg(dir.path())
-        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
-        .current_dir(repo_root())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
-        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{}", String::from_utf8_lossy(&o.stderr)));
-    assert_eq!(o.status.code(), Some(0), "{report:#}");
+    let (report, _) = torchscript_rollout("torchscript_rollout", dir.path(), &["--max-steps", "30"]);
     let r = &report["rollouts"][0];
     assert_eq!(r["reason"], "the step budget (30 steps) was spent", "{report:#}");
     assert!(r["chunks"].as_u64().unwrap() >= 3, "{report:#}");
@@ -476,25 +483,8 @@ fn real_time_chunking_the_chunk_cannot_hold_is_refused_by_name() {
 #[test]
 fn a_torchscript_module_gets_real_time_chunkings_schedule_unguided_and_the_log_says_so() {
     let dir = tempfile::tempdir().unwrap();
-    let fx = repo_root().join("tests/fixtures/policies/torchscript_tiny");
-    let key = "torchscript_rtc";
-    let o = Command::new(labrig_bin())
-        .args(["rollout", "--threads", "1", "--json", "--episodes", "1", "--max-steps", "20"])
-        .args(["--blend", "rtc", "--delay-steps", "2", "--execute-steps", "4"])
-        .args(["--domain-id", &domain_for(key).to_string(), "--torchscript"])
-        .arg(fx.join("policy_scripted.pt"))
-        .arg("--spec")
-        .arg(fx.join("spec.toml"))
-        .arg("--out")
-        .arg(dir.path())
-        .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
-        .current_dir(repo_root())
-        .output()
-        .unwrap();
-    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-    let report: Value = serde_json::from_str(stdout.lines().last().unwrap_or_default())
-        .unwrap_or_else(|e| panic!("{e}: {stdout}\n{stderr}"));
-    assert_eq!(o.status.code(), Some(0), "{report:#}\n{stderr}");
+    let rtc = ["--max-steps", "20", "--blend", "rtc", "--delay-steps", "2", "--execute-steps", "4"];
+    let (report, stderr) = torchscript_rollout("torchscript_rtc", dir.path(), &rtc);
     assert!(
         stderr.contains(
             "real-time chunking asked for, but a TorchScript module cannot be guided: its chunks come on the loop's schedule without the guidance"

@@ -371,33 +371,19 @@ fn run_point(a: &LatencyArgs, p: &Point) -> anyhow::Result<PointResult> {
         .context("unknown mode")?;
     let args = RolloutArgs {
         policy: Some(ckpt.to_owned()),
-        torchscript: None,
-        spec: None,
-        remote: None,
-        remote_actions: None,
-        prompt: None,
-        chunk_timing: None,
         server_timeout_s: Some(30.0),
         scene: p.task.clone(),
         episodes: p.episodes,
         first_seed: p.first_seed,
-        lockstep: true,
-        realtime: false,
         max_steps: a.max_steps,
         threads: a.threads,
         blend: Some(mode),
         delay_steps: Some(p.delay),
         execute_steps: Some(p.execute),
         guidance_max_weight: p.guidance,
-        rtc_delay_steps: None,
         rtc_guidance: p.method.clone(),
-        out: out.clone(),
         domain_id: a.domain_id,
-        json: true,
-        intervene: None,
-        takeover_stall_ticks: None,
-        takeover_distance_m: None,
-        takeover_ticks: None,
+        ..RolloutArgs::defaults(out.clone())
     };
     let report = crate::rollout::run_quiet(args)?;
     anyhow::ensure!(report.errors.is_empty(), "point {}: {}", p.key(), report.errors.join("; "));

@@ -226,34 +226,17 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
         )?;
         let dir = out.join(format!("latency_{latency}ms_{timing_name}"));
         let args = crate::rollout::RolloutArgs {
-            policy: None,
-            torchscript: None,
-            spec: None,
             remote: Some(server.local_addr().to_string()),
-            remote_actions: None,
             chunk_timing: Some(timing),
-            prompt: None,
             server_timeout_s: Some((3.0 * latency as f64 / 1e3).max(5.0)),
-            scene: "pick_place".into(),
             episodes: 1,
             first_seed: 1000 + (k / 2) as u64,
             lockstep: false,
             realtime: true,
             max_steps: a.steps,
             threads: 1,
-            blend: None,
-            delay_steps: None,
-            execute_steps: None,
-            guidance_max_weight: None,
-            rtc_delay_steps: None,
-            rtc_guidance: None,
-            out: dir.clone(),
             domain_id: a.domain_id,
-            json: true,
-            intervene: None,
-            takeover_stall_ticks: None,
-            takeover_distance_m: None,
-            takeover_ticks: None,
+            ..crate::rollout::RolloutArgs::defaults(dir.clone())
         };
         let r = crate::rollout::run_quiet(args)?;
         anyhow::ensure!(

@@ -164,6 +164,44 @@ pub struct RolloutArgs {
     pub takeover_ticks: Option<u32>,
 }
 
+impl RolloutArgs {
+    /// The command line's defaults (lockstep, seeds 1000.., 20 rollouts of 300 steps) writing
+    /// to `out`, printing nothing: for a command that runs rollouts itself and sets the policy
+    /// and what else it varies.
+    pub fn defaults(out: PathBuf) -> RolloutArgs {
+        RolloutArgs {
+            policy: None,
+            torchscript: None,
+            spec: None,
+            remote: None,
+            remote_actions: None,
+            prompt: None,
+            chunk_timing: None,
+            server_timeout_s: None,
+            scene: "pick_place".into(),
+            episodes: 20,
+            first_seed: 1000,
+            lockstep: true,
+            realtime: false,
+            max_steps: 300,
+            threads: 0,
+            blend: None,
+            delay_steps: None,
+            execute_steps: None,
+            guidance_max_weight: None,
+            rtc_delay_steps: None,
+            rtc_guidance: None,
+            out,
+            domain_id: 43,
+            json: true,
+            intervene: None,
+            takeover_stall_ticks: None,
+            takeover_distance_m: None,
+            takeover_ticks: None,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ChunkTimingArg {
     Observation,

@@ -513,25 +513,18 @@ mod tests {
         assert!(e.to_string().contains("12 frozen rows (the inference delay d) but the prefix has only 11"), "{e}");
     }
 
-    /// The committed pixels-and-proprioception checkpoint (tests/fixtures/policies/small_vision)
-    /// fed the committed sim episode's recorded observations: it observes cameras and
-    /// proprioception only (nothing sim-only), its chunks stay near where the recorded actions
-    /// went, and grey images in place of its cameras' frames change its chunks (the frames
-    /// reach the model). How much the pixels steer it is measured in rollouts, not here.
-    #[test]
-    fn the_committed_vision_policy_is_steered_by_its_cameras() {
+    /// The committed sim episode's steps, and its observations as a request carries them for
+    /// a checkpoint with `cfg`'s cameras and image size: `obs(t, grey)` (grey: every pixel 128).
+    pub(super) fn episode_observations(
+        cfg: &DiffusionConfig,
+    ) -> (Vec<labrig_msgs::labrig_msgs::Step>, impl Fn(usize, bool) -> PolicyObservation + use<>) {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-        let server = Server::load(&root.join("tests/fixtures/policies/small_vision")).unwrap();
-        let cfg = server.config().clone();
-        assert!(cfg.sim_only_inputs().is_empty() && !cfg.cameras.is_empty(), "{cfg:?}");
-        assert_eq!(server.info()["sim_only"], serde_json::json!([]));
         let episode = root.join("tests/fixtures/episodes/pick_place_seed7");
-        let data = labrig_episode::read_episode(&episode).unwrap();
-        let frames = labrig_policies::data::load_episode(&episode, &cfg, None).unwrap().frames;
-        let size = cfg.image_size as u16;
-        let obs = |t: usize, grey: bool| -> PolicyObservation {
-            let images = cfg
-                .cameras
+        let steps = labrig_episode::read_episode(&episode).unwrap().steps;
+        let frames = labrig_policies::data::load_episode(&episode, cfg, None).unwrap().frames;
+        let (cameras, size, states) = (cfg.cameras.clone(), cfg.image_size as u16, steps.clone());
+        let obs = move |t: usize, grey: bool| -> PolicyObservation {
+            let images = cameras
                 .iter()
                 .enumerate()
                 .map(|(k, camera)| {
@@ -547,19 +540,31 @@ mod tests {
                     }
                 })
                 .collect();
-            PolicyObservation {
-                step_index: t as u64,
-                robot_state: data.steps[t].robot_state.clone(),
-                images,
-                ..PolicyObservation::default()
-            }
+            let robot_state = states[t].robot_state.clone();
+            PolicyObservation { step_index: t as u64, robot_state, images, ..PolicyObservation::default() }
         };
+        (steps, obs)
+    }
+
+    /// The committed pixels-and-proprioception checkpoint (tests/fixtures/policies/small_vision)
+    /// fed the committed sim episode's recorded observations: it observes cameras and
+    /// proprioception only (nothing sim-only), its chunks stay near where the recorded actions
+    /// went, and grey images in place of its cameras' frames change its chunks (the frames
+    /// reach the model). How much the pixels steer it is measured in rollouts, not here.
+    #[test]
+    fn the_committed_vision_policy_is_steered_by_its_cameras() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let server = Server::load(&root.join("tests/fixtures/policies/small_vision")).unwrap();
+        let cfg = server.config().clone();
+        assert!(cfg.sim_only_inputs().is_empty() && !cfg.cameras.is_empty(), "{cfg:?}");
+        assert_eq!(server.info()["sim_only"], serde_json::json!([]));
+        let (steps, obs) = episode_observations(&cfg);
         // The executed rows' target positions against the recorded ones (mm, mean over rows).
         let ta = cfg.n_action_steps as usize;
         let error_mm = |t: usize, chunk: &ActionChunk| -> f64 {
             (0..ta)
                 .map(|i| {
-                    let want = &data.steps[t + i].action.cartesian_position;
+                    let want = &steps[t + i].action.cartesian_position;
                     let got = &chunk.actions[i * 7..i * 7 + 3];
                     (0..3).map(|d| (got[d] - want[d]).powi(2)).sum::<f64>().sqrt() * 1e3
                 })
@@ -596,8 +601,6 @@ mod tests {
 #[cfg(test)]
 mod rtc_shipped {
     use super::*;
-    use labrig_msgs::labrig_msgs::PolicyObservation;
-    use labrig_msgs::sensor_msgs::CompressedImage;
     use labrig_policies::rtc::Method;
 
     /// Real-time chunking on the shipped pick-and-place checkpoint, fed the committed sim
@@ -613,28 +616,8 @@ mod rtc_shipped {
         let ckpt = root.join("tests/fixtures/policies/small_vision_recover");
         let server = Server::load(&ckpt).unwrap();
         let cfg = server.config().clone();
-        let episode = root.join("tests/fixtures/episodes/pick_place_seed7");
-        let data = labrig_episode::read_episode(&episode).unwrap();
-        let frames = labrig_policies::data::load_episode(&episode, &cfg, None).unwrap().frames;
-        let size = cfg.image_size as u16;
-        let obs = |t: usize| -> PolicyObservation {
-            let images = cfg
-                .cameras
-                .iter()
-                .enumerate()
-                .map(|(k, camera)| {
-                    let hwc = frames.get(t as i64).get(k as i64).permute([1, 2, 0]).contiguous().flatten(0, -1);
-                    let px = Vec::<u8>::try_from(hwc).unwrap();
-                    CompressedImage {
-                        header: Header { frame_id: camera.clone(), ..Header::default() },
-                        format: "jpeg".into(),
-                        data: labrig_episode::jpeg::encode_rgb(&px, size, size, 90).unwrap(),
-                    }
-                })
-                .collect();
-            let robot_state = data.steps[t].robot_state.clone();
-            PolicyObservation { step_index: t as u64, robot_state, images, ..PolicyObservation::default() }
-        };
+        let (_, observation) = super::tests::episode_observations(&cfg);
+        let obs = |t: usize| observation(t, false);
         let req = |t: usize, seed: u64| PolicyRequest {
             request_id: 1,
             episode_id: "ep".into(),
