@@ -337,6 +337,17 @@ fn the_guides_marked_blocks_run_as_written_on_the_demos_episodes() {
     };
     let demo = run("labrig demo", &format!("labrig demo --domain-id {domain}"));
     assert!(demo.contains("3 of 3 episodes recorded"), "{demo}");
+    // Every step of every episode, the first one's first steps too, has every camera's frame.
+    let inspected = run("inspect", "for e in out/demo/episodes/*/*/*; do labrig inspect --json \"$e\"; done");
+    let reports: Vec<serde_json::Value> =
+        inspected.lines().filter_map(|l| serde_json::from_str(l.trim_start_matches("stdout: ")).ok()).collect();
+    assert_eq!(reports.len(), 3, "{inspected}");
+    for r in &reports {
+        assert_eq!(r["cameras"].as_array().map(Vec::len), Some(5), "{r:#}");
+        for c in r["cameras"].as_array().unwrap() {
+            assert_eq!(c["steps_without_frame"], 0, "{}: {c}", r["path"]);
+        }
+    }
     let mut ran = 0;
     for (page, least) in [("getting-started.md", 2), ("curator.md", 4)] {
         let blocks = runnable_blocks(page);

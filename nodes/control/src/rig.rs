@@ -164,6 +164,10 @@ pub struct RigLoop {
     episode_operator_steps: u64,
 }
 
+/// For this many ticks after the loop starts (1 s at 20 Hz) an episode does not start while a
+/// camera has sent no frame yet.
+const FIRST_FRAMES_TICKS: u64 = 20;
+
 /// An arm fault reported this many ticks in a row (a quarter second) stops the episode; a
 /// single refused command does not.
 pub const ARM_FAULT_TICKS: u32 = 5;
@@ -480,8 +484,14 @@ impl RigLoop {
             let age_ns = self.max_action_age.0;
             let source_ready = self.cfg.clock == ClockKind::Sim
                 || source.as_mut().is_none_or(|s| s.ready(Nanos(tick_ns), Nanos(age_ns)));
-            // Nor while a camera that has been sending lags (after a scene rebuild, say).
-            let lagging = self.book.at(Nanos(tick_ns), self.stale_frame).stale;
+            // Nor while a camera that has been sending lags (after a scene rebuild, say), nor,
+            // for the loop's first second, while a camera has sent nothing yet (its first frames
+            // may still be on their way as the rig comes up): an episode's first steps have
+            // every camera's frame. A camera that never sends does not hold the rig up longer.
+            let at = self.book.at(Nanos(tick_ns), self.stale_frame);
+            let starting = self.summary.ticks < FIRST_FRAMES_TICKS;
+            let lagging: Vec<String> =
+                at.stale.into_iter().chain(at.missing.into_iter().filter(|_| starting)).collect();
             if !lagging.is_empty() && self.summary.ticks.is_multiple_of(40) {
                 let seen = self.book.at(Nanos(i64::MAX), Nanos(i64::MAX)).refs;
                 let ages: Vec<f64> = seen.iter().map(|r| (tick_ns - r.capture_ns) as f64 / 1e6).collect();
