@@ -270,8 +270,7 @@ fn files_written_as_droid_s_tools_write_them_import_in_both_variants() {
         let back_images = images(&back);
         assert_eq!(back_images.len(), 50);
         for cam in CAMERAS {
-            let capture =
-                |i: usize| steps[i].cameras.iter().find(|c| c.camera_id == cam).map(|c| c.capture_ns);
+            let capture = |i: usize| steps[i].cameras.iter().find(|c| c.camera_id == cam).map(|c| c.capture_ns);
             let mut reused = 0;
             for (i, st) in back_images.iter().enumerate() {
                 let got = st[format!("/camera/{cam}_left/compressed")].as_str().unwrap();

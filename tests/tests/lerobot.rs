@@ -353,12 +353,17 @@ fn datasets_lerobot_wrote_import_and_replay() {
             // No sim scene in a dataset LeRobot wrote: replayed against a named one, every step.
             let second = PathBuf::from(imported[1][1].as_str().unwrap());
             let r = Command::new(labrig_bin())
-                .args(["replay", "--sim", "--scene", "pick_place", "--seed", "1"])
+                .args(["replay", "--sim", "--json", "--scene", "pick_place", "--seed", "1"])
                 .arg(&second)
                 .output()
                 .unwrap();
             let text = labrig_tests::output_text(&r);
-            assert!(text.contains("speed:") && text.contains("steps/s"), "replay: {text}");
+            // The dataset's motions are synthetic (a TCP sliding along x), not the scene's: the
+            // replay runs every step and says it deviated (exit 5), as it must; a crash is 101.
+            assert_eq!(r.status.code(), Some(5), "replay: {text}");
+            let replayed: Value = serde_json::from_slice(&r.stdout).unwrap_or_else(|e| panic!("{e}: {text}"));
+            assert_eq!(replayed["steps"], 30, "every step replayed: {text}");
+            assert_eq!(replayed["tcp_replayed"].as_array().map(Vec::len), Some(30), "{text}");
             // Only episode 1 asked for: named when it is missing.
             let bad = Command::new(labrig_bin())
                 .args(["import", "lerobot", "--episodes", "1,7"])
@@ -383,7 +388,10 @@ fn datasets_lerobot_wrote_import_and_replay() {
             assert_eq!(r["episodes"][0][0], 1);
             // Importing the same episodes again is refused, naming the episode already there.
             let again = Command::new(labrig_bin()).args(["import", "lerobot"]).arg(&ds).arg(&out).output().unwrap();
-            assert_ne!(again.status.code(), Some(0));
+            let said = labrig_tests::output_text(&again);
+            assert_eq!(again.status.code(), Some(1), "{said}");
+            let first = Path::new(imported[0][1].as_str().unwrap()).file_name().unwrap().to_string_lossy().into_owned();
+            assert!(said.contains("holds this episode already") && said.contains(&first), "{said}");
         }
     }
     // Not a dataset: said.

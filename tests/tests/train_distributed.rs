@@ -216,7 +216,15 @@ fn two_gloo_ranks_train_as_one_process_with_the_doubled_batch() {
     drop(slurm);
     let r5 = report(&o);
     assert_eq!((r5["world_size"].as_u64(), r5["ranks_weight_diff"].as_f64()), (Some(2), Some(0.0)), "{r5}");
-    for (x, y) in l1.iter().zip(&losses(&srun_out)) {
+    let ls = losses(&srun_out);
+    let steps = |l: &[(u64, f64, Option<f64>)]| l.iter().map(|x| x.0).collect::<Vec<_>>();
+    assert!(
+        !ls.is_empty() && steps(&ls) == steps(&l1),
+        "srun logged steps {:?}, one process {:?}",
+        steps(&ls),
+        steps(&l1)
+    );
+    for (x, y) in l1.iter().zip(&ls) {
         assert!(close(x.1, y.1), "srun: train loss at step {}: {} vs {}", x.0, x.1, y.1);
     }
 
