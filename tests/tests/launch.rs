@@ -85,7 +85,9 @@ fn the_sim_rig_starts_reports_health_restarts_and_stops() {
     assert_eq!(order[3], "recorder", "the recorder starts after franka and gripper: {order:?}");
     assert_eq!(order[4], "control", "the rig loop starts last: {order:?}");
     let h = rig.wait_json(Duration::from_secs(30), "a health report", |v| v["event"] == "health");
-    for n in h["nodes"].as_array().unwrap() {
+    let nodes = h["nodes"].as_array().unwrap();
+    assert_eq!(nodes.len(), order.len(), "{h}");
+    for n in nodes {
         assert_eq!(n["up"], true, "{h}");
     }
     // Kill the recorder: the launcher restarts it (on_failure = "restart").

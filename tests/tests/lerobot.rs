@@ -584,7 +584,9 @@ fn openpi_droid_schema(episodes: &Path, data: &[(Vec<Step>, String, PathBuf)], t
     assert_eq!(ids, ["ext1", "ext2", "wrist"], "{report}");
     assert_eq!(report["absent"]["action.cartesian_position"], 2, "{report}");
     let f = |x: f64| x as f32;
-    for (k, row) in report["episodes"].as_array().unwrap().iter().enumerate() {
+    let imported_rows = report["episodes"].as_array().unwrap();
+    assert_eq!(imported_rows.len(), data.len(), "{report}");
+    for (k, row) in imported_rows.iter().enumerate() {
         let back = labrig_episode::read_episode(Path::new(row[1].as_str().unwrap())).unwrap();
         let steps = &data[k].0;
         assert_eq!(back.steps.len(), steps.len());
@@ -716,6 +718,7 @@ fn trains_in_lerobot_and_comes_back(episodes: &Path, data: &[(Vec<Step>, String,
     let rows = report["control"]["source"]["rows_executed"].as_u64().unwrap();
     assert!(rows >= 20, "{rows} of 30 steps ran the imported policy's rows: {report:#}");
     let rec = labrig_episode::read_episode(Path::new(run["dir"].as_str().unwrap())).unwrap();
+    assert!(rec.steps.iter().filter(|s| s.chunk_id > 0).count() as u64 >= rows, "the rows ran are recorded");
     assert!(
         rec.steps.iter().filter(|s| s.chunk_id > 0).all(|s| s.policy_id.starts_with("imported@")),
         "{:?}",

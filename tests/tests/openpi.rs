@@ -432,7 +432,9 @@ fn openpis_client_queries_a_labrig_checkpoint() {
     assert_eq!(meta["action_rate_hz"], 20.0);
     assert_eq!(meta["image_keys"][droid::WRIST_IMAGE], "wrist");
     // Tp - To + 1 = 16 - 2 + 1 rows of xyz + axis-angle + gripper, finite, in the workspace.
-    for rep in r["replies"].as_array().unwrap() {
+    let replies = r["replies"].as_array().unwrap();
+    assert!(replies.len() >= 2, "{} replies", replies.len());
+    for rep in replies {
         assert_eq!(rep["shape"], serde_json::json!([15, 7]), "{rep}");
         assert_eq!(rep["finite"], true);
         let row: Vec<f64> = serde_json::from_value(rep["first_row"].clone()).unwrap();

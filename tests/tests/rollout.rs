@@ -137,6 +137,7 @@ fn the_committed_vision_policy_runs_on_the_rig_from_its_cameras() {
     assert!(steps[held as usize..].iter().all(|s| s.movement_enabled), "every step after the first chunk moves");
     // The frames the policy saw are recorded: each step it acted on names a wrist and an ext1
     // frame.
+    assert!(steps.len() > held as usize + 10, "{} steps, {held} held", steps.len());
     for s in &steps[held as usize..] {
         for cam in ["wrist", "ext1"] {
             assert!(s.cameras.iter().any(|c| c.camera_id == cam), "step {} lacks {cam}", s.step_index);

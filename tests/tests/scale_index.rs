@@ -349,6 +349,7 @@ fn ray_tasks_index_the_shards_survive_a_killed_worker_and_merge_to_the_one_proce
         .iter()
         .map(|r| (r["shard"].as_str().unwrap().to_owned(), r["indexed"].as_u64().unwrap()))
         .collect();
+    assert_eq!(indexed.len(), 4, "every shard reported: {indexed:?}");
     for (shard, n) in &indexed {
         assert_eq!(*n == 0, shard != "part-00003-of-00004", "only the missing shard is indexed again: {indexed:?}");
     }
