@@ -233,27 +233,6 @@ proptest! {
         let _ = parse(&text, &format!("{name}.toml"));
     }
 
-    /// The same edits, the spec then read as a recording carries it (JSON, no TOML checks):
-    /// `sample` refuses what `validate` refuses, and never panics.
-    #[test]
-    fn an_edited_spec_from_a_recording_never_panics(
-        file in any::<prop::sample::Index>(),
-        edits in prop::collection::vec(edit(), 1..4),
-        seed in any::<u64>(),
-    ) {
-        let files = spec_files();
-        let (_, text) = &files[file.index(files.len())];
-        let v = edited(text, &edits);
-        let Ok(json) = serde_json::to_value(&v) else { return Ok(()) };
-        let Ok(spec) = serde_json::from_value::<SceneSpec>(json) else { return Ok(()) };
-        let valid = spec.validate("recording").is_ok();
-        let sampled = spec.sample(seed);
-        if !valid {
-            prop_assert!(matches!(sampled, Err(SceneError::Invalid { .. })), "{:?}", sampled);
-        }
-        use_spec(&spec, &[seed]);
-    }
-
     /// A spec file's text cut, spliced or with characters replaced.
     #[test]
     fn a_mangled_spec_text_never_panics(file in any::<prop::sample::Index>(), edits in prop::collection::vec(text_edit(), 1..6)) {
@@ -306,4 +285,35 @@ fn a_recorded_spec_with_an_inverted_range_is_an_error_not_a_panic() {
     spec.receptacle.boxes.clear();
     let e = spec.sample(0).unwrap_err().to_string();
     assert!(e.contains("`receptacle.boxes` is an empty union of boxes"), "{e}");
+}
+
+/// The same edits as `an_edited_spec_never_panics`, the spec then read as a recording carries
+/// it (JSON, no TOML checks): `sample` refuses what `validate` refuses, and never panics.
+/// Counted over the cases: enough of them must deserialise and reach `sample` (and enough of
+/// those be invalid), else the check tests nothing.
+#[test]
+fn an_edited_spec_from_a_recording_never_panics() {
+    use proptest::test_runner::TestRunner;
+    let (reached, invalid) = (std::cell::Cell::new(0u32), std::cell::Cell::new(0u32));
+    let strategy = (any::<prop::sample::Index>(), prop::collection::vec(edit(), 1..4), any::<u64>());
+    TestRunner::new(cases(256))
+        .run(&strategy, |(file, edits, seed)| {
+            let files = spec_files();
+            let (_, text) = &files[file.index(files.len())];
+            let v = edited(text, &edits);
+            let Ok(json) = serde_json::to_value(&v) else { return Ok(()) };
+            let Ok(spec) = serde_json::from_value::<SceneSpec>(json) else { return Ok(()) };
+            reached.set(reached.get() + 1);
+            let valid = spec.validate("recording").is_ok();
+            let sampled = spec.sample(seed);
+            if !valid {
+                invalid.set(invalid.get() + 1);
+                prop_assert!(matches!(sampled, Err(SceneError::Invalid { .. })), "{:?}", sampled);
+            }
+            use_spec(&spec, &[seed]);
+            Ok(())
+        })
+        .unwrap();
+    eprintln!("{} of 256 cases reached sample, {} of them invalid", reached.get(), invalid.get());
+    assert!(reached.get() >= 40 && invalid.get() >= 10, "{} reached, {} invalid", reached.get(), invalid.get());
 }

@@ -511,20 +511,6 @@ fn subjects() -> &'static [Subject; 8] {
 proptest! {
     #![proptest_config(cases(96))]
 
-    /// Every node's config, edited, mangled and overridden: loaded or named.
-    #[test]
-    fn every_node_config_loads_or_names_the_problem(c in case()) {
-        let s = subjects();
-        let _ = run_case::<labrig_franka::FrankaNode>(&s[0], &c, franka_after);
-        let _ = run_case::<labrig_gripper::GripperNode>(&s[1], &c, gripper_after);
-        let _ = run_case::<labrig_recorder::RecorderNode>(&s[2], &c, |_| {});
-        let _ = run_case::<labrig_control::ControlNode>(&s[3], &c, |_| {});
-        let _ = run_case::<labrig_quest_teleop::TeleopNode>(&s[4], &c, teleop_after);
-        let _ = run_case::<labrig_sim_bridge::bridge::BridgeNode>(&s[5], &c, bridge_after);
-        let _ = run_case::<labrig_station::StationNode>(&s[6], &c, station_after);
-        let _ = run_case::<labrig_cameras::CamerasNode>(&s[7], &c, |_| {});
-    }
-
     /// Any text as any node's config.
     #[test]
     fn arbitrary_text_as_a_node_config_never_panics(text in any::<String>()) {
@@ -826,4 +812,44 @@ fn the_bridge_s_hardware_prefix_rule_names_the_config_key() {
     let e = load_node::<labrig_sim_bridge::bridge::BridgeNode>(Some("hardware_prefix = \":\"\n"), Vec::new(), |_| {})
         .unwrap_err();
     assert!(e.contains("`hardware_prefix`") || e.contains("hardware_prefix:"), "{e}");
+}
+
+/// Every node's config, edited, mangled and overridden: loaded (and then checked by the node's
+/// own assertions) or refused naming the file and the key. Counted per node over the cases, so
+/// that a generator whose cases never load, or never break a config, fails.
+#[test]
+fn every_node_config_loads_or_names_the_problem() {
+    use proptest::test_runner::TestRunner;
+    const NODES: [&str; 8] = ["franka", "gripper", "recorder", "control", "teleop", "sim", "station", "cameras"];
+    let tallies = std::cell::RefCell::new([(0u32, 0u32); 8]);
+    let mut runner = TestRunner::new(cases(96));
+    runner
+        .run(&case(), |c| {
+            let s = subjects();
+            let results = [
+                run_case::<labrig_franka::FrankaNode>(&s[0], &c, franka_after),
+                run_case::<labrig_gripper::GripperNode>(&s[1], &c, gripper_after),
+                run_case::<labrig_recorder::RecorderNode>(&s[2], &c, |_| {}),
+                run_case::<labrig_control::ControlNode>(&s[3], &c, |_| {}),
+                run_case::<labrig_quest_teleop::TeleopNode>(&s[4], &c, teleop_after),
+                run_case::<labrig_sim_bridge::bridge::BridgeNode>(&s[5], &c, bridge_after),
+                run_case::<labrig_station::StationNode>(&s[6], &c, station_after),
+                run_case::<labrig_cameras::CamerasNode>(&s[7], &c, |_| {}),
+            ];
+            let mut t = tallies.borrow_mut();
+            for (k, r) in results.iter().enumerate() {
+                if r.is_ok() {
+                    t[k].0 += 1;
+                } else {
+                    t[k].1 += 1;
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    let t = tallies.into_inner();
+    eprintln!("(loaded, refused) of 96 per node: {:?}", NODES.iter().zip(t).collect::<Vec<_>>());
+    for (name, (loaded, refused)) in NODES.iter().zip(t) {
+        assert!(loaded >= 10 && refused >= 10, "{name}: {loaded} loaded and {refused} refused of 96 cases");
+    }
 }
