@@ -201,6 +201,8 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("recorder_scene_bound", 179, 1),
     ("docs_guides_run", 180, 1),
     ("torchscript_rtc", 181, 1),
+    ("pinned_pick_place", 182, 1),
+    ("pinned_drawer", 183, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

@@ -497,3 +497,28 @@ fn a_torchscript_module_gets_real_time_chunkings_schedule_unguided_and_the_log_s
     assert_eq!(source["frozen_steps"], 2, "{source:#}");
     assert!(source["rows_executed"].as_u64().unwrap() >= 10, "{source:#}");
 }
+
+/// The shipped checkpoints' claims, pinned: lockstep rollouts repeat themselves bit for bit,
+/// so two named seeds per checkpoint must keep their outcome and their step count exactly. A
+/// change to inference, the observation pipeline, the loop or the sim that moves the shipped
+/// policies fails here (measured with libtorch 2.13 on this machine's CPU kind, one thread).
+#[test]
+fn the_shipped_checkpoints_repeat_their_rollouts_exactly() {
+    let fixtures = repo_root().join("tests/fixtures/policies");
+    for (key, checkpoint, scene, first, want) in [
+        ("pinned_pick_place", "small_vision_recover", "pick_place", "1001", [(1001, 83), (1002, 80)]),
+        ("pinned_drawer", "drawer_recover", "drawer_open", "1000", [(1000, 170), (1001, 103)]),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let args = ["--scene", scene, "--first-seed", first, "--episodes", "2"];
+        let r = rollout_of(&fixtures.join(checkpoint), key, dir.path(), &args);
+        let got: Vec<(u64, bool, u64)> = r["rollouts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|o| (o["seed"].as_u64().unwrap(), o["success"] == true, o["steps"].as_u64().unwrap()))
+            .collect();
+        let want: Vec<(u64, bool, u64)> = want.iter().map(|&(seed, steps)| (seed, true, steps)).collect();
+        assert_eq!(got, want, "{checkpoint} on {scene}: (seed, success, steps)");
+    }
+}
