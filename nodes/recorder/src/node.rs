@@ -44,7 +44,7 @@ use labrig_runtime::ros::{RawSubscription, Ros, RosPublisher, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use serde_json::json;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -275,6 +275,22 @@ const CLOSE_GRACE: Duration = Duration::from_millis(300);
 /// before the Start's stamp (the loop's stale-frame limit is 100 ms).
 const PREROLL_NS: i64 = 200_000_000;
 
+/// Keeps `frame` among `camera`'s frames of the last [`PREROLL_NS`] (at most
+/// [`HELD_FRAMES_PER_CAMERA`]), for the next episode's first step.
+fn hold(held: &mut BTreeMap<String, VecDeque<OwnedFrame>>, camera: &str, frame: OwnedFrame) {
+    let kept = held.entry(camera.to_owned()).or_default();
+    let newest = frame.header().capture_ns;
+    kept.push_back(frame);
+    while kept.front().is_some_and(|f| f.header().capture_ns < newest - PREROLL_NS)
+        || kept.len() > HELD_FRAMES_PER_CAMERA
+    {
+        kept.pop_front();
+    }
+}
+
+/// At most this many frames a camera kept while idle (12 at 60 fps in the pre-roll).
+const HELD_FRAMES_PER_CAMERA: usize = 16;
+
 #[derive(Debug, Clone, Copy)]
 struct Closing {
     outcome: Outcome,
@@ -323,8 +339,10 @@ struct Recorder {
     status: RosPublisher<StringMsg>,
     context: Context,
     episode: Option<Episode>,
-    /// Each camera's newest frame while no episode is open.
-    held: BTreeMap<String, OwnedFrame>,
+    /// Each camera's frames of the last [`PREROLL_NS`] while no episode is open (the first
+    /// step uses the newest one captured at or before its tick, which a frame captured after
+    /// the tick must not displace).
+    held: BTreeMap<String, VecDeque<OwnedFrame>>,
     last: serde_json::Value,
     errors: u64,
     /// Sizes of the episodes recorded by this process (bytes), for the free-space margin.
@@ -868,11 +886,15 @@ impl Recorder {
         // The first step's frames were published before the Start (the loop announces an
         // episode on its first tick): the frames kept while idle go in when they belong to
         // that tick (and to its scene).
-        for (camera, frame) in std::mem::take(&mut self.held) {
-            if frame.header().capture_ns >= from
-                && let Err(e) = write_frame(&mut ep, &camera, &frame, self.cfg.jpeg_quality, start_ns)
-            {
-                tracing::warn!("camera {camera}: {e}");
+        let first_tick = Nanos::from(ev.header.stamp).0;
+        for (camera, frames) in std::mem::take(&mut self.held) {
+            // From the frame the first step uses (the newest at or before its tick) on.
+            let used = frames.iter().rev().map(|f| f.header().capture_ns).find(|&t| t <= first_tick);
+            let keep_from = used.unwrap_or(from).max(from);
+            for frame in frames.iter().filter(|f| f.header().capture_ns >= keep_from) {
+                if let Err(e) = write_frame(&mut ep, &camera, frame, self.cfg.jpeg_quality, start_ns) {
+                    tracing::warn!("camera {camera}: {e}");
+                }
             }
         }
         Ok(ep)
@@ -915,12 +937,18 @@ impl Recorder {
         'cameras: for (camera, frames) in self.intake.cameras().iter().zip(taken) {
             for frame in frames {
                 let Some(ep) = &mut self.episode else {
-                    // Idle: the newest frame is kept, for a Start whose first step uses it.
-                    self.held.insert(camera.clone(), frame);
+                    // Idle: the last pre-roll's frames are kept, for a Start whose first step
+                    // uses one of them.
+                    hold(&mut self.held, camera, frame);
                     continue;
                 };
                 let h = frame.header();
                 if !ep.takes_frame(camera, h.capture_ns, h.publish_ns) {
+                    // Sent after a closing episode's end: the next episode's first step may
+                    // use it (back to back, the Start comes while the last one closes).
+                    if ep.closing.is_some() {
+                        hold(&mut self.held, camera, frame);
+                    }
                     continue;
                 }
                 if let Err(e) = write_frame(ep, camera, &frame, self.cfg.jpeg_quality, Clock::Wall.now().0) {
