@@ -641,7 +641,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
         .collect::<Result<_, _>>()?;
 
     let in_force = calibration_in_force(&sim, &spec, calibrations.as_ref(), &mut pubs)?;
-    publish_scene(&sim, &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount)?;
+    publish_scene(&sim, &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount, a.cameras)?;
     tracing::info!(
         mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.ros.domain_id,
         "sim bridge up"
@@ -688,7 +688,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                     rig.replace_scene(next);
                     out.set_scene(rig.sim());
                     let in_force = calibration_in_force(rig.sim(), &spec, calibrations.as_ref(), &mut pubs)?;
-                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount)?;
+                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount, a.cameras)?;
                     if let Some(e) = &mut expert {
                         e.new_scene(rig.sim());
                     }
@@ -961,6 +961,7 @@ fn publish_scene(
     spec: &labrig_sim::scene::SceneSpec,
     calibrations: Option<&labrig_episode::calibration::Calibrations>,
     board_mount: Option<CalibBoardMount>,
+    renders_cameras: bool,
 ) -> anyhow::Result<()> {
     let scene: &SceneValues = sim.scene();
     // The sampled values, and the spec they came from (so a recording can rebuild the scene);
@@ -968,7 +969,10 @@ fn publish_scene(
     // no frame shows it (the recorder and `labrig inspect` keep another scene's frames out).
     let mut json = serde_json::to_value(scene)?;
     json["spec"] = serde_json::to_value(spec)?;
-    json["since_ns"] = sim.time().0.into();
+    // (Only for the cameras it renders: a rig's other cameras do not show the scene.)
+    if renders_cameras {
+        json["since_ns"] = sim.time().0.into();
+    }
     scene_pub.publish(StringMsg { data: json.to_string() })?;
     let statics: Vec<TransformStamped> = scene
         .cameras

@@ -362,13 +362,13 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
     }
     assert!(reds.len() >= 20, "{} frames from the recording", reds.len());
     let read_until = labrig_runtime::Clock::Wall.now().0;
-    // Played in real time a busy machine skips frames (any number of them), and at the end of
-    // the recording the node opens it again (an outage in its status): the sequence always goes
-    // up; the red channel (the recording's frame index, 0..39) rises within a pass, and starts a
-    // new pass (falls) only as often as the node reopened the recording. Frames out of order
-    // would fall without a reopen.
+    // Played in real time a busy machine skips frames (any number of them) or plays one twice,
+    // and at the end of the recording the node opens it again (an outage in its status): the
+    // sequence always goes up; the red channel (the recording's frame index, 0..39) does not
+    // fall within a pass, and starts a new pass (falls) only as often as the node reopened the
+    // recording. Frames out of order would fall without a reopen.
     assert!(reds.windows(2).all(|w| w[1].0 > w[0].0), "the frame sequence went backwards: {reds:?}");
-    let new_passes = reds.windows(2).filter(|w| w[1].1 <= w[0].1).count() as u64;
+    let new_passes = reds.windows(2).filter(|w| w[1].1 < w[0].1).count() as u64;
     let until = Instant::now() + Duration::from_secs(10);
     let outages = 'status: loop {
         while let Some(m) = status.try_take().unwrap() {
