@@ -4,7 +4,8 @@ recorder restart split it into parts, + metadata.yaml) with the reference reader
 one JSON object for the Rust test to check:
 
 - mcap + mcap-ros2-support: every message decoded through the schema embedded in the file
-  (counts per topic, decode failures, metadata records, attachments, a few decoded values);
+  (counts per topic, decode failures, metadata records, attachments, every /rig/step's
+  step_index in log-time order, a few decoded values);
 - rosbags 0.11.9: AnyReader on the directory (uses metadata.yaml) and on the bare .mcap
   files, every message deserialized (counts per topic).
 
@@ -23,7 +24,8 @@ from rosbags.highlevel import AnyReader
 
 
 def with_mcap(path: Path) -> dict:
-    out = {"counts": Counter(), "failures": [], "metadata": {}, "attachments": [], "profile": None}
+    out = {"counts": Counter(), "failures": [], "metadata": {}, "attachments": [], "profile": None,
+           "step_indices": []}
     samples = {}
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
@@ -31,6 +33,7 @@ def with_mcap(path: Path) -> dict:
         for schema, channel, message, msg in reader.iter_decoded_messages(log_time_order=True):
             out["counts"][channel.topic] += 1
             if schema.name == "labrig_msgs/msg/Step":
+                out["step_indices"].append(msg.step_index)
                 samples["last_step_index"] = msg.step_index
                 samples["last_step_joint_positions"] = list(msg.robot_state.joint_positions)
                 samples["step_cameras"] = [c.camera_id for c in msg.cameras]
@@ -46,13 +49,15 @@ def with_mcap(path: Path) -> dict:
 
 
 def with_mcap_parts(paths: list) -> dict:
-    out = {"counts": Counter(), "failures": [], "metadata": {}, "attachments": [], "profile": None, "samples": {}}
+    out = {"counts": Counter(), "failures": [], "metadata": {}, "attachments": [], "profile": None, "samples": {},
+           "step_indices": []}
     for path in paths:
         part = with_mcap(path)
         out["counts"].update(part["counts"])
         out["failures"] += part["failures"]
         out["metadata"].update(part["metadata"])
         out["attachments"] += part["attachments"]
+        out["step_indices"] += part["step_indices"]
         out["profile"] = part["profile"]
         out["samples"].update(part["samples"])
     return out

@@ -349,7 +349,8 @@ def wait_for_subscribers(pub, timeout_s):
 
 
 def _listen(topic, cls, to_json, count, timeout):
-    """Subscribe, emit {"ready"}, then one JSON line per message until count or timeout."""
+    """Subscribe, emit {"ready"}, {"matched": n} once a writer is matched, then one JSON line
+    per message until count or timeout."""
     rclpy, node = make_node("listen")
     received = 0
 
@@ -362,11 +363,16 @@ def _listen(topic, cls, to_json, count, timeout):
         received += 1
         emit({**to_json(m), "recv_ns": recv_ns, "recv_mono_ns": recv_mono_ns})
 
-    node.create_subscription(cls, topic, on_msg, qos(1000))
+    sub = node.create_subscription(cls, topic, on_msg, qos(1000))
     emit({"ready": True})
     deadline = time.monotonic() + timeout
+    matched = False
     try:
         while received < count and time.monotonic() < deadline:
+            # Said once this reader has matched a writer (both sides of discovery done).
+            if not matched and sub.get_publisher_count() > 0:
+                matched = True
+                emit({"matched": sub.get_publisher_count()})
             rclpy.spin_once(node, timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
     finally:
         emit({"done": True, "received": received})

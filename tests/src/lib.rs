@@ -154,7 +154,6 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("topic_echo_rclpy", 130, 1),
     ("missing_topic", 131, 1),
     ("loopback_capture", 132, 1),
-    ("policy_server_demo", 133, 1),
     ("policy_server_node_serves", 134, 1),
     ("recorder_node_vs_sim_bridge", 135, 1),
     ("recorder_orphan_unjudged", 136, 1),

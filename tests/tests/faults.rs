@@ -107,11 +107,42 @@ fn a_domain_takes_twelve_participants_and_refuses_more_by_name() {
     });
 }
 
-fn bench_faults(args: &[&str]) -> Value {
-    let out = Command::new(labrig_bin()).args(["bench", "faults", "--json"]).args(args).output().unwrap();
+/// `labrig bench faults --json` keeping its episodes in `keep` (for [`read_independently`]).
+fn bench_faults(args: &[&str], keep: &std::path::Path) -> Value {
+    let out = Command::new(labrig_bin())
+        .args(["bench", "faults", "--json"])
+        .args(args)
+        .arg("--out")
+        .arg(keep)
+        .output()
+        .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "labrig bench faults {args:?}: {stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_str(stdout.lines().last().unwrap_or_default()).unwrap_or_else(|e| panic!("{e}: {stdout}"))
+}
+
+/// The hit episode as filed, read with the PyPI mcap reader (mcap-ros2-support decoding every
+/// message) and rosbags instead of labrig's: every step the loop published (seen on DDS by
+/// the bench) is in it, each once, and no other (0 to the last published).
+fn read_independently(r: &Value) {
+    let name = r["fault"].as_str().unwrap();
+    let dir = r["hit_dir"].as_str().unwrap_or_else(|| panic!("{name}: no episode filed: {r}"));
+    let v = labrig_tests::read_episode_with_python(std::path::Path::new(dir));
+    let read: Vec<u64> = v["mcap"]["step_indices"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap()).collect();
+    let published: Vec<u64> = r["published_steps"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap()).collect();
+    assert!(published.len() > 40, "{name}: {} steps published", published.len());
+    let mut sorted = read.clone();
+    sorted.sort_unstable();
+    sorted.dedup();
+    assert_eq!(sorted.len(), read.len(), "{name}: a step filed twice: {read:?}");
+    let missing: Vec<&u64> = published.iter().filter(|k| sorted.binary_search(k).is_err()).collect();
+    assert!(missing.is_empty(), "{name}: published, not in the file as the PyPI mcap reader reads it: {missing:?}");
+    // The loop numbers an episode's steps from 0: the file holds them all, up to the last
+    // published (the bench may have missed one on DDS that the recorder got, never more).
+    let last = *published.iter().max().unwrap();
+    assert_eq!(sorted, (0..=last).collect::<Vec<u64>>(), "{name}: the file's steps are 0..={last}, each once");
+    assert_eq!(v["rosbags_dir"]["/rig/step"], read.len(), "{name}: rosbags agrees: {v}");
+    eprintln!("{name}: {} published steps, each read once by mcap and rosbags", published.len());
 }
 
 // The rig runs below count DDS domains up from their key's first (`TEST_DOMAINS` registers
@@ -122,7 +153,11 @@ fn bench_faults(args: &[&str]) -> Value {
 /// episode (the middle and end kills as a second part of the same episode).
 #[test]
 fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
-    let v = bench_faults(&["--faults", "recorder-kill", "--domain-id", &first_domain("fault_bench_recorder_kill")]);
+    let keep = tempfile::tempdir().unwrap();
+    let v = bench_faults(
+        &["--faults", "recorder-kill", "--domain-id", &first_domain("fault_bench_recorder_kill")],
+        keep.path(),
+    );
     let runs = v["faults"].as_array().unwrap();
     // One run per kill point, by name: the check on `parts` below keys on the names.
     let names: Vec<&str> = runs.iter().map(|r| r["fault"].as_str().unwrap()).collect();
@@ -140,6 +175,7 @@ fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
         if name != "recorder-kill-start" {
             assert_eq!(r["parts"], 2, "{name}: continued as a second part: {r}");
         }
+        read_independently(r);
     }
 }
 
@@ -148,14 +184,18 @@ fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
 /// that episode ends early, finished and filed. Either way earlier episodes are whole.
 #[test]
 fn a_full_disk_keeps_earlier_episodes_names_the_refusal_and_holds_the_rig_idle() {
-    let v = bench_faults(&[
-        "--faults",
-        "disk-full,disk-full-nomargin",
-        "--disk-mb",
-        "4",
-        "--domain-id",
-        &first_domain("fault_bench_disk_full"),
-    ]);
+    let keep = tempfile::tempdir().unwrap();
+    let v = bench_faults(
+        &[
+            "--faults",
+            "disk-full,disk-full-nomargin",
+            "--disk-mb",
+            "4",
+            "--domain-id",
+            &first_domain("fault_bench_disk_full"),
+        ],
+        keep.path(),
+    );
     let runs = v["faults"].as_array().unwrap();
     // Both runs asked for, by name: an empty or partial report must not pass the loop below.
     let names: Vec<&str> = runs.iter().map(|r| r["fault"].as_str().unwrap()).collect();
@@ -177,10 +217,12 @@ fn a_full_disk_keeps_earlier_episodes_names_the_refusal_and_holds_the_rig_idle()
 /// launcher restarts it, and the episode continues as a second part with no step lost.
 #[test]
 fn a_recorder_stopped_and_continued_mid_episode_is_restarted_and_loses_no_step() {
-    let v = bench_faults(&["--faults", "dds-stop", "--domain-id", &first_domain("fault_bench_dds_stop")]);
+    let keep = tempfile::tempdir().unwrap();
+    let v = bench_faults(&["--faults", "dds-stop", "--domain-id", &first_domain("fault_bench_dds_stop")], keep.path());
     let r = &v["faults"][0];
     assert_eq!((r["steps_lost"].as_u64(), r["parts"].as_u64()), (Some(0), Some(2)), "{r}");
     assert_eq!(r["all_filed"], true, "{r}");
+    read_independently(r);
 }
 
 /// The sim bridge killed mid-episode on the DROID rig's layout (franka and gripper nodes in
@@ -188,7 +230,11 @@ fn a_recorder_stopped_and_continued_mid_episode_is_restarted_and_loses_no_step()
 /// stops the episode naming why, and the recorder files every step recorded before.
 #[test]
 fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
-    let v = bench_faults(&["--faults", "bridge-kill", "--domain-id", &first_domain("fault_bench_bridge_kill")]);
+    let keep = tempfile::tempdir().unwrap();
+    let v = bench_faults(
+        &["--faults", "bridge-kill", "--domain-id", &first_domain("fault_bench_bridge_kill")],
+        keep.path(),
+    );
     let r = &v["faults"][0];
     let outcome = r["outcome"].as_str().unwrap();
     assert!(
@@ -199,6 +245,7 @@ fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
     assert_eq!(r["steps_lost"], 0, "{r}");
     assert_eq!(r["all_filed"], true, "{r}");
     assert!(r["detect_ms"].is_number() && r["recover_ms"].is_number(), "{r}");
+    read_independently(r);
 }
 
 /// The wrist camera stalls for two seconds mid-episode (`/sim/fault`): the episode is
@@ -206,14 +253,11 @@ fn the_sim_bridge_killed_mid_episode_is_reported_and_the_episode_filed_whole() {
 /// carries the wrist's last frame again (with its old capture time), no other camera's.
 #[test]
 fn a_stalled_camera_is_named_by_the_steps_that_missed_it() {
-    let v = bench_faults(&[
-        "--faults",
-        "camera-stall",
-        "--stall-s",
-        "2",
-        "--domain-id",
-        &first_domain("fault_bench_camera_stall"),
-    ]);
+    let keep = tempfile::tempdir().unwrap();
+    let v = bench_faults(
+        &["--faults", "camera-stall", "--stall-s", "2", "--domain-id", &first_domain("fault_bench_camera_stall")],
+        keep.path(),
+    );
     let r = &v["faults"][0];
     assert_eq!(r["steps_lost"], 0, "{r}");
     let stalled = r["stalled_steps"].as_u64().unwrap();

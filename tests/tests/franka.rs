@@ -235,43 +235,51 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
     rt().block_on(async move {
         let mut rig = Rig::new(domain).await;
         let start = rig.wait(90, "a reading", |_| true).await.joint_positions;
-        // Fold the elbow and wrist onto the upper arm over 4 s.
+        let recover = rig.ros.client::<Trigger>("/arm/recover", qos::reliable(10)).unwrap();
+        recover.wait_for_service(&rig.ros, Duration::from_secs(30)).await.unwrap();
+        // Without a realtime kernel franka-sim may abort a motion with a *_discontinuity
+        // reflex when its 1 kHz Python loop misses a cycle (a loaded machine): a real stop,
+        // recovered from as an operator would, and the motion goes on from where it stopped.
+        // Counted and printed; more than MISSED_CYCLES_ALLOWED in the whole test fails it.
+        let mut missed = 0;
+        let reflex_of =
+            |f: &str| f.split("reflex! [\"").nth(1).and_then(|r| r.split('"').next()).unwrap_or_default().to_owned();
+        // Fold the elbow and wrist onto the upper arm over 4 s, until the FR3's own
+        // self-collision reflex stops it.
         let fold = [0.0, 0.5, 0.0, -3.0, 0.0, 0.6, 0.785];
-        let way =
-            |k: usize| -> [f64; 7] { std::array::from_fn(|i| start[i] + (fold[i] - start[i]) * (k as f64 / 80.0)) };
-        let mut states = Vec::new();
-        rig.play((1..=80).map(|k| joints(way(k))), &mut states).await;
-        let fault = states
-            .iter()
-            .find(|s| s.mode == RobotState::MODE_FAULT)
-            .cloned()
-            .unwrap_or_else(|| panic!("no reflex on the folding path; last: {:?}", states.last()));
-        // The FR3's reflex, named: self_collision_avoidance_violation when the fold gets
-        // there; on a loaded machine (no realtime kernel) franka-sim may stop the motion
-        // earlier with a *_discontinuity reflex from a missed 1 kHz cycle. Either is the
-        // robot stopping itself, and is reported the same way.
-        assert!(fault.fault.contains("motion aborted by reflex! [\""), "{}", fault.fault);
-        let reflex = fault.fault.split("reflex! [\"").nth(1).and_then(|r| r.split('"').next()).unwrap_or_default();
-        assert!(
-            reflex == "self_collision_avoidance_violation" || reflex.ends_with("_discontinuity"),
-            "unexpected reflex {reflex:?}: {}",
-            fault.fault
-        );
+        let mut from = start;
+        let (fault, mut states) = loop {
+            let way =
+                |k: usize| -> [f64; 7] { std::array::from_fn(|i| from[i] + (fold[i] - from[i]) * (k as f64 / 80.0)) };
+            let mut states = Vec::new();
+            rig.play((1..=80).map(|k| joints(way(k))), &mut states).await;
+            let fault = states
+                .iter()
+                .find(|s| s.mode == RobotState::MODE_FAULT)
+                .cloned()
+                .unwrap_or_else(|| panic!("no reflex on the folding path; last: {:?}", states.last()));
+            assert!(fault.fault.contains("motion aborted by reflex! [\""), "{}", fault.fault);
+            let reflex = reflex_of(&fault.fault);
+            if reflex == "self_collision_avoidance_violation" {
+                break (fault, states);
+            }
+            assert!(reflex.ends_with("_discontinuity"), "unexpected reflex {reflex:?}: {}", fault.fault);
+            missed += 1;
+            assert!(missed <= MISSED_CYCLES_ALLOWED, "{missed} missed-cycle stops: {}", fault.fault);
+            eprintln!("folding stopped by a missed cycle, recovering and going on: {}", fault.fault);
+            let r = recover.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
+            assert!(r.success, "{}", r.message);
+            from =
+                rig.wait(5, "a reading after the recovery", |s| s.mode != RobotState::MODE_FAULT).await.joint_positions;
+        };
+        let reflex = reflex_of(&fault.fault);
         assert!(fault.fault.ends_with("call /arm/recover"), "{}", fault.fault);
         // Later commands are refused with the reason, until a recovery.
         let last = states.last().unwrap();
         assert!(last.fault.starts_with("refused arm command"), "{}", last.fault);
-        assert!(last.fault.contains(reflex), "the first reason is kept: {}", last.fault);
-        let recover = rig.ros.client::<Trigger>("/arm/recover", qos::reliable(10)).unwrap();
-        recover.wait_for_service(&rig.ros, Duration::from_secs(30)).await.unwrap();
-        // Back out the way it came. Without a realtime kernel franka-sim may abort a motion
-        // with a *_discontinuity reflex when a 1 kHz cycle is missed (CI saw it while backing
-        // out, up to four in a row): that is a real stop, recovered from as an operator would,
-        // up to seven times more (each attempt starts where the last stopped, so the way back
-        // shortens); any other fault, or an eighth, fails.
-        let mut at = None;
-        const ATTEMPTS: usize = 8;
-        for attempt in 0..ATTEMPTS {
+        assert!(last.fault.contains(&reflex), "the first reason is kept: {}", last.fault);
+        // Back out the way it came (missed cycles as above: recovered, counted).
+        let at = loop {
             let r = recover.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
             assert!(r.success, "{}", r.message);
             let here =
@@ -286,14 +294,14 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
             // (Later commands are refused naming that reflex, so the last state may say either.)
             let missed_cycle = last.mode == RobotState::MODE_FAULT
                 && last.fault.split("reflex! [").nth(1).is_some_and(|r| r.contains("_discontinuity"));
-            if attempt + 1 < ATTEMPTS && missed_cycle {
-                eprintln!("backing out stopped by a missed cycle, recovering again: {}", last.fault);
-                continue;
+            if !missed_cycle {
+                break last;
             }
-            at = Some(last);
-            break;
-        }
-        let at = at.unwrap();
+            missed += 1;
+            assert!(missed <= MISSED_CYCLES_ALLOWED, "{missed} missed-cycle stops: {}", last.fault);
+            eprintln!("backing out stopped by a missed cycle, recovering again: {}", last.fault);
+        };
+        println!("missed-cycle stops recovered from: {missed} (at most {MISSED_CYCLES_ALLOWED})");
         assert_ne!(at.mode, RobotState::MODE_FAULT, "{}", at.fault);
         let err = (0..7).map(|i| (at.joint_positions[i] - start[i]).abs()).fold(0.0, f64::max);
         assert!(err < 0.01, "after the recovery the arm is {err:.4} rad from where it started");
@@ -316,6 +324,10 @@ fn a_reflex_and_a_killed_franka_sim_are_reported_as_faults() {
         assert_eq!(node.wait_exit(Duration::from_secs(20)), Some(0), "the node did not stop cleanly");
     });
 }
+
+/// The missed-cycle stops (franka-sim's 1 kHz loop on a loaded machine without a realtime
+/// kernel) the reflex test recovers from before it fails: CI has seen four in one run.
+const MISSED_CYCLES_ALLOWED: usize = 5;
 
 #[test]
 fn the_franka_bench_reports_command_latencies() {

@@ -90,10 +90,11 @@ fn the_gripper_node_drives_an_emulated_2f85() {
         assert!(s.fault.contains("the command to 0.902 was not written") && s.fault.contains("0x0E"), "{}", s.fault);
         let g = emu.status();
         assert_eq!((g.requested, g.position), (128, 128), "nothing written under a fault: {}", g.describe());
-        // Back to the command written before the fault: nothing left to write. (Given a few
-        // ticks to arrive before the activation request.)
+        // Back to the command written before the fault: nothing left to write, so nothing is
+        // held back (the state says the fault alone once the command has arrived).
         cmd_pub.publish(command(0.5)).unwrap();
-        tokio::time::sleep(Duration::from_millis(200)).await;
+        let s = wait_state(&states, "nothing held back", |s| !s.fault.contains("was not written")).await;
+        assert!(s.fault.contains("0x0E"), "the fault stays until re-activation: {}", s.fault);
         activate.wait_for_service(&ros, Duration::from_secs(30)).await.unwrap();
         let r = activate.call(TriggerRequest::default(), Duration::from_secs(30)).await.unwrap();
         assert!(r.success, "{}", r.message);

@@ -46,9 +46,9 @@ fn rclpy_receives_labrig_joint_states_at_100hz_with_exact_values() {
             ros.wait_for_subscribers("/js_100hz", 1, Duration::from_secs(20)).await,
             "rclpy listener never matched"
         );
-        // Discovery of the reader by our writer is complete once matched; give the reverse
-        // direction (rclpy's reader learning our writer) a moment too.
-        tokio::time::sleep(Duration::from_millis(500)).await;
+        // Discovery of the reader by our writer is complete once matched; the reverse
+        // direction once rclpy's reader says it matched our writer.
+        listener.wait_json(Duration::from_secs(20), "matched", |v| v["matched"].as_u64().is_some_and(|n| n >= 1));
         let mut interval = tokio::time::interval(Duration::from_millis(10));
         let start = Instant::now();
         for i in 0..N {

@@ -16,33 +16,11 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-/// One demo episode and a checkpoint of the small preset trained 3 steps on it.
+/// The committed demo episode (tests/fixtures/episodes/pick_place_seed7, recorded by `labrig
+/// demo`) and a checkpoint of the small preset trained 3 steps on it.
 fn episode_and_checkpoint(dir: &Path) -> (PathBuf, PathBuf) {
-    for p in ["labrig-sim", "labrig-franka", "labrig-gripper", "labrig-recorder", "labrig-control"] {
-        workspace_bin(p, p);
-    }
     workspace_bin("labrig-policies", "labrig-policies");
-    // One attempt more if the rig fails to record (seen once with the machine saturated by a
-    // parallel build); the first failure is printed, a second fails the test.
-    let mut demo = dir.join("demo");
-    for attempt in 0..2 {
-        demo = dir.join(format!("demo{attempt}"));
-        let o = Command::new(labrig_bin())
-            .args(["demo", "--episodes", "1", "--first-seed", "2", "--domain-id"])
-            .arg(domain_for("policy_server_demo").to_string())
-            .arg("--out")
-            .arg(&demo)
-            .env(labrig_runtime::frames::NAMESPACE_ENV, format!("policy_{}_{attempt}", std::process::id()))
-            .output()
-            .unwrap();
-        let said = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
-        if o.status.success() {
-            break;
-        }
-        assert!(attempt == 0, "demo failed twice: {said}");
-        eprintln!("demo attempt 1 failed, trying again: {said}");
-    }
-    let episode = labrig_episode::episode::find_episodes(&demo).pop().expect("one episode");
+    let episode = labrig_tests::repo_root().join("tests/fixtures/episodes/pick_place_seed7");
     let preset = dir.join("p.toml");
     std::fs::write(&preset, "preset = \"small\"\n[train]\nbatch_size = 4\nval_fraction = 0.0\n").unwrap();
     let run = dir.join("run");

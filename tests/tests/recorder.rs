@@ -375,15 +375,24 @@ fn the_recorder_node_records_the_sim_rig() {
         let status = ros.subscription::<StringMsg>("/recorder/status", qos::latched(1)).unwrap();
         assert!(ros.wait_for_subscribers("/rig/episode", 1, Duration::from_secs(60)).await, "no recorder");
         assert!(ros.wait_for_subscribers("/rig/step", 1, Duration::from_secs(60)).await);
-        // The bridge is up once its latched scene arrives (on a loaded machine it comes up
-        // after the recorder); then let the recorder see the scene, /tf_static and frames.
-        let scene = ros.subscription_on(&labrig_msgs::topics::SIM_SCENE, 1).unwrap();
+        // The bridge comes up after the recorder on a loaded machine: start once the recorder
+        // says it holds the scene and /tf_static and has frames from every camera.
         let deadline = Instant::now() + Duration::from_secs(60);
-        while scene.try_take().unwrap().is_none() {
-            assert!(Instant::now() < deadline, "the sim bridge never published its scene");
+        let mut last = Value::Null;
+        loop {
+            while let Some(m) = status.try_take().unwrap() {
+                last = serde_json::from_str(&m.msg.data).unwrap();
+            }
+            let has = |key: &str, want: &str| last["seen"][key].as_array().is_some_and(|a| a.iter().any(|x| x == want));
+            if has("latched", "/sim/scene")
+                && has("latched", "/tf_static")
+                && labrig_msgs::labrig_msgs::RIG_CAMERAS.iter().all(|c| has("cameras", c))
+            {
+                break;
+            }
+            assert!(Instant::now() < deadline, "the recorder never saw the scene, /tf_static and every camera: {last}");
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
-        tokio::time::sleep(Duration::from_secs(2)).await;
         let wait_status = |want: &'static str| recorder_says(&status, want);
         let event = |kind: EpisodeEventKind, note: &str| EpisodeEvent {
             kind: kind as u8,

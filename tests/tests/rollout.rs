@@ -6,13 +6,14 @@
 //! counted, every step is recorded with the policy as its source, lockstep repeats itself,
 //! a dead server holds the arm and fails the episode, a mismatch is refused by name.
 
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, Step};
+use labrig_msgs::labrig_msgs::{ActionChunk, EpisodeEvent, EpisodeEventKind, PolicyRequest, Step};
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;
 use labrig_runtime::frames::NAMESPACE_ENV;
 use labrig_runtime::ros::Ros;
 use labrig_tests::{Proc, domain_for, labrig_bin, repo_root, rt, sim_bin, workspace_bin};
 use serde_json::Value;
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -330,52 +331,79 @@ fn torchscript_rollout(key: &str, out: &Path, extra: &[&str]) -> (Value, String)
 
 /// A TorchScript module exported by PyTorch (tests/fixtures/policies/torchscript_tiny, untrained:
 /// slow DROID velocities) runs on the sim rig through `labrig rollout --torchscript`: the
-/// episode is recorded, every step after the first few is the module's, named by its id.
+/// episode is recorded, every step after the first few is the module's, named by its id, and
+/// each step's recorded action is the row the server sent for it (watched on the wire): the
+/// gripper target exactly, the joint target the pose its velocity asks for.
 #[test]
 fn a_torchscript_module_runs_on_the_sim_rig() {
     let dir = tempfile::tempdir().unwrap();
-    let (report, _) = torchscript_rollout("torchscript_rollout", dir.path(), &["--max-steps", "30"]);
+    let fx = repo_root().join("tests/fixtures/policies/torchscript_tiny");
+    let args: Vec<OsString> = vec![
+        "--threads".into(),
+        "1".into(),
+        "--episodes".into(),
+        "1".into(),
+        "--max-steps".into(),
+        "30".into(),
+        "--torchscript".into(),
+        fx.join("policy_scripted.pt").into(),
+        "--spec".into(),
+        fx.join("spec.toml").into(),
+    ];
+    let (_, answers, report, _) = watched_rollout("torchscript_rollout", dir.path(), &args);
     let r = &report["rollouts"][0];
     assert_eq!(r["reason"], "the step budget (30 steps) was spent", "{report:#}");
     assert!(r["chunks"].as_u64().unwrap() >= 3, "{report:#}");
     let (steps, meta) = steps(&r["dir"]);
     assert_eq!(meta.policy.as_deref(), Some("torchscript:torchscript_tiny"));
-    let by_module = steps.iter().filter(|s| s.chunk_id > 0 && s.policy_id == "torchscript:torchscript_tiny").count();
+    let by_module: Vec<&Step> =
+        steps.iter().filter(|s| s.chunk_id > 0 && s.policy_id == "torchscript:torchscript_tiny").collect();
     // (The first steps hold until every camera's first frame is there.)
-    assert!(by_module >= 25, "{by_module} of {} steps ran the module's rows", steps.len());
-    // DROID velocities: the recorded action is the module's (within its +-0.2).
-    assert!(
-        steps.iter().filter(|s| s.chunk_id > 0).all(|s| s
-            .action
-            .cartesian_velocity
+    assert!(by_module.len() >= 25, "{} of {} steps ran the module's rows", by_module.len(), steps.len());
+    // The arm's joint target at each step is the module's velocity applied to the previous
+    // target's pose (the safety filter's base while the arm keeps up), solved by the IK.
+    use labrig_arm::ik::{apply_velocity, pose_error};
+    use labrig_arm::kinematics::{Fr3Kinematics, TcpOffset};
+    let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(None), TcpOffset::ROBOTIQ_2F85).unwrap();
+    let (mut worst_m, mut worst_rad, mut compared) = (0.0f64, 0.0f64, 0);
+    for s in &by_module {
+        let chunk = answers
             .iter()
-            .all(|v| v.abs() <= 0.2 + 1e-9))
+            .find(|c| c.request_id == s.chunk_id)
+            .unwrap_or_else(|| panic!("step {}: chunk {} was not on the wire", s.step_index, s.chunk_id));
+        assert_eq!(chunk.action_dim, 7);
+        let row = &chunk.actions[s.chunk_row as usize * 7..][..7];
+        assert_eq!(s.action.target_gripper_position, row[6], "step {}: the gripper target", s.step_index);
+        let Some(previous) = steps.iter().find(|p| p.step_index + 1 == s.step_index) else { continue };
+        let v: [f64; 6] = std::array::from_fn(|i| row[i]);
+        let want = apply_velocity(&kin.tcp_pose(&previous.action.joint_position), &v);
+        let (dp, dr) = pose_error(&want, &kin.tcp_pose(&s.action.joint_position));
+        worst_m = worst_m.max(dp.norm());
+        worst_rad = worst_rad.max(dr.norm());
+        compared += 1;
+    }
+    println!(
+        "{compared} steps: each joint target is its served row's velocity from the last target, within {:.1e} m / {:.1e} rad",
+        worst_m, worst_rad
     );
+    assert!(compared >= 25, "{compared} steps compared");
+    assert!(worst_m < 1e-4 && worst_rad < 1e-3, "a joint target off its row by {worst_m} m / {worst_rad} rad");
 }
 
-/// Real-time chunking in lockstep (`--blend rtc`, 2 ticks of played delay, 4 rows a chunk),
-/// watched on the wire: each request but an episode's first carries the executing chunk's
-/// rows from its observation's tick on, with d = 2; the answer's first 2 rows are those rows
-/// exactly; the rows that run are each chunk's 2..6; and the run repeats itself bit for bit.
-#[test]
-fn real_time_chunking_sends_the_rows_run_meanwhile_and_repeats_itself() {
-    use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
-    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-    let key = "rollout_rtc";
+/// `labrig rollout --json` (`args` after the domain, `--out` added) watched on the wire:
+/// every policy request and chunk it sent, its report and its stderr.
+fn watched_rollout(key: &str, dir: &Path, args: &[OsString]) -> (Vec<PolicyRequest>, Vec<ActionChunk>, Value, String) {
     let domain = domain_for(key);
-    let args = ["--episodes", "1", "--max-steps", "30", "--first-seed", "7", "--blend", "rtc", "--delay-steps", "2"];
-    let args = [&args[..], &["--execute-steps", "4", "--guidance-max-weight", "5"]].concat();
-    let (requests, answers, first) = rt().block_on(async {
-        let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "rtc_watch").unwrap();
+    rt().block_on(async {
+        let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "rollout_watch").unwrap();
         let request_sub = ros.subscription_on(&topics::POLICY_REQUEST, 1000).unwrap();
         let chunk_sub = ros.subscription_on(&topics::POLICY_CHUNK, 1000).unwrap();
-        let (stdout, stderr) = (a.path().join("stdout"), a.path().join("stderr"));
+        let (stdout, stderr) = (dir.join("stdout"), dir.join("stderr"));
         let mut child = Command::new(labrig_bin())
-            .args(["rollout", "--threads", "1", "--json", "--domain-id", &domain.to_string(), "--policy"])
-            .arg(tiny())
+            .args(["rollout", "--json", "--domain-id", &domain.to_string()])
+            .args(args)
             .arg("--out")
-            .arg(a.path().join("run"))
-            .args(&args)
+            .arg(dir.join("run"))
             .env(NAMESPACE_ENV, format!("rollout_{key}_{}", std::process::id()))
             .current_dir(repo_root())
             .stdout(std::fs::File::create(&stdout).unwrap())
@@ -412,8 +440,23 @@ fn real_time_chunking_sends_the_rows_run_meanwhile_and_repeats_itself() {
         assert_eq!(exited.and_then(|s| s.code()), Some(0), "{err}");
         let out = std::fs::read_to_string(&stdout).unwrap();
         let report: Value = serde_json::from_str(out.lines().last().unwrap_or_default()).unwrap();
-        (requests, answers, report)
-    });
+        (requests, answers, report, err)
+    })
+}
+
+/// Real-time chunking in lockstep (`--blend rtc`, 2 ticks of played delay, 4 rows a chunk),
+/// watched on the wire: each request but an episode's first carries the executing chunk's
+/// rows from its observation's tick on, with d = 2; the answer's first 2 rows are those rows
+/// exactly; the rows that run are each chunk's 2..6; and the run repeats itself bit for bit.
+#[test]
+fn real_time_chunking_sends_the_rows_run_meanwhile_and_repeats_itself() {
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let key = "rollout_rtc";
+    let args = ["--episodes", "1", "--max-steps", "30", "--first-seed", "7", "--blend", "rtc", "--delay-steps", "2"];
+    let args = [&args[..], &["--execute-steps", "4", "--guidance-max-weight", "5"]].concat();
+    let mut cmd = vec!["--threads".into(), "1".into(), "--policy".into(), tiny().into_os_string()];
+    cmd.extend(args.iter().map(OsString::from));
+    let (requests, answers, first, _) = watched_rollout(key, a.path(), &cmd);
     assert!(first["errors"].as_array().unwrap().is_empty(), "{first:#}");
     let (s1, _) = steps(&first["rollouts"][0]["dir"]);
     // The rows that ran: 2..6 of every chunk but the first (its 2 ticks held) and the last.

@@ -292,7 +292,11 @@ fn the_station_runs_a_session_from_the_page_on_the_simulated_rig() {
     let session = json!({"operator": "alice", "lab": "AUTOLab", "building": "B1", "scene_id": "table_3",
                          "task": "move the arm along x"});
     http.post("/api/session", session.clone());
-    std::thread::sleep(Duration::from_secs(1));
+    // Started once the recorder says it holds the session (the episode's metadata is its).
+    wait_for("the recorder holding the session", Duration::from_secs(20), || {
+        let s = http.get_json("/api/status");
+        (s["recorder"]["seen"]["session"]["operator"] == "alice").then_some(())
+    });
     http.post("/api/episode/start", json!({}));
     wait_for("the episode recording", Duration::from_secs(20), || {
         let s = http.get_json("/api/status");

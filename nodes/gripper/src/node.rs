@@ -239,6 +239,8 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
     };
     let mut written: Option<Wanted> = None;
     let mut pending: Option<Wanted> = None;
+    // The last failed write's error, without the command it held back.
+    let mut write_error = String::new();
     let mut refusal = String::new();
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -282,6 +284,10 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
                 Ok(w) => {
                     refusal.clear();
                     pending = (written != Some(w)).then_some(w);
+                    // Back to the command in force: none is held back, the error stays.
+                    if pending.is_none() && !write_error.is_empty() && fault.starts_with(write_error.as_str()) {
+                        fault = write_error.clone();
+                    }
                 }
                 Err(why) => {
                     refused += 1;
@@ -300,6 +306,7 @@ pub async fn run(cfg: GripperNodeConfig, shutdown: Shutdown) -> anyhow::Result<(
                 Err(e) => {
                     // Named with the command it held back, so the state shows the command
                     // arrived and was not written (a lost command would not say this).
+                    write_error = e.to_string();
                     let e = format!("{e}; the command to {:.3} was not written", counts_to_droid(w.position));
                     if e != fault {
                         tracing::warn!("{e}");

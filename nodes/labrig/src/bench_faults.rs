@@ -120,6 +120,10 @@ pub struct FaultReport {
     /// repeating any other camera's.
     pub stalled_steps: Option<u64>,
     pub other_late_steps: Option<u64>,
+    /// The hit episode's directory (gone after the run unless `--out` keeps it), and the
+    /// step indices the loop published in it, for a reader of one's own to check.
+    pub hit_dir: Option<PathBuf>,
+    pub published_steps: Vec<u64>,
 }
 
 pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
@@ -208,6 +212,8 @@ fn empty(name: &str) -> FaultReport {
         note: String::new(),
         stalled_steps: None,
         other_late_steps: None,
+        hit_dir: None,
+        published_steps: Vec::new(),
     }
 }
 
@@ -498,7 +504,9 @@ async fn run_one(
     if let Some(id) = &hit {
         let published = seen.steps.get(id).cloned().unwrap_or_default();
         r.steps_published = published.len() as u64;
+        r.published_steps = published.iter().copied().collect();
         if let Some((dir, i)) = filed.iter().find(|(_, i)| i.metadata.as_ref().is_some_and(|m| &m.uuid == id)) {
+            r.hit_dir = Some(dir.clone());
             let data = labrig_episode::read_episode(dir);
             let recorded: BTreeSet<u64> =
                 data.map(|d| d.steps.iter().map(|s| s.step_index).collect()).unwrap_or_default();

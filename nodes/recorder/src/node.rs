@@ -343,6 +343,8 @@ struct Recorder {
     /// step uses the newest one captured at or before its tick, which a frame captured after
     /// the tick must not displace).
     held: BTreeMap<String, VecDeque<OwnedFrame>>,
+    /// The cameras a frame has come from since the recorder started (the status says them).
+    cameras_seen: std::collections::BTreeSet<String>,
     last: serde_json::Value,
     errors: u64,
     /// Sizes of the episodes recorded by this process (bytes), for the free-space margin.
@@ -405,6 +407,7 @@ pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> 
         context: Context::default(),
         episode: None,
         held: BTreeMap::new(),
+        cameras_seen: Default::default(),
         last: json!({ "state": "idle" }),
         errors: 0,
         sizes: Vec::new(),
@@ -518,6 +521,16 @@ impl Recorder {
             obj.insert("free_bytes".into(), json!(free));
             obj.insert("needed_bytes".into(), json!(needed));
             obj.insert("episode_bytes_avg".into(), json!(self.average_size()));
+            // What an episode started now would hold from the start: the cameras heard from
+            // and the latched topics (scene, /tf_static, calibration) received.
+            obj.insert(
+                "seen".into(),
+                json!({
+                    "cameras": self.cameras_seen,
+                    "latched": self.context.latched.keys().collect::<Vec<_>>(),
+                    "session": self.context.session,
+                }),
+            );
         }
         if let Err(e) = self.status.publish(StringMsg { data: v.to_string() }) {
             tracing::warn!("/recorder/status: {e}");
@@ -935,6 +948,9 @@ impl Recorder {
             drain_topics(&self.topics, &mut self.context, self.episode.as_mut(), false);
         let taken = self.intake.take();
         'cameras: for (camera, frames) in self.intake.cameras().iter().zip(taken) {
+            if !frames.is_empty() && !self.cameras_seen.contains(camera) {
+                self.cameras_seen.insert(camera.clone());
+            }
             for frame in frames {
                 let Some(ep) = &mut self.episode else {
                     // Idle: the last pre-roll's frames are kept, for a Start whose first step
