@@ -64,6 +64,75 @@ pub fn inference(cfg: &DiffusionConfig, runs: usize, warmup: usize) -> Result<In
     Ok(Inference { encoder_ms, unet_step_ms, chunk_ms, parameters })
 }
 
+/// One chunk at batch 1 (random weights) sampled with each of `steps` DDIM steps: what
+/// fewer steps save (the encoders run once either way).
+pub fn chunk_by_steps(
+    cfg: &DiffusionConfig,
+    steps: &[usize],
+    runs: usize,
+    warmup: usize,
+) -> Result<Vec<(usize, Percentiles)>, PolicyError> {
+    tch::manual_seed(0);
+    let vs = tch::nn::VarStore::new(Device::Cpu);
+    let mut policy = DiffusionPolicy::new(vs.root(), cfg.clone())?;
+    let (images, state) = observation(cfg, 1);
+    let noise = Tensor::randn([1, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+    let mut out = Vec::new();
+    for &n in steps {
+        policy.set_inference_steps(n)?;
+        let ms = time_ms(runs, warmup, || {
+            let _ = tch::no_grad(|| policy.sample(&images, &state, &noise));
+        });
+        out.push((n, ms));
+    }
+    Ok(out)
+}
+
+/// A checkpoint's open-loop error per DDIM step count on recorded episodes.
+#[derive(Debug, Clone, Serialize)]
+pub struct OpenLoop {
+    pub inference_steps: usize,
+    /// Mean distance (mm) between the executed rows' target positions and the recorded ones,
+    /// over `samples` windows spread across the episodes, each from the same fixed noise.
+    pub open_loop_mm: f64,
+    pub samples: usize,
+}
+
+/// [`OpenLoop`] for each of `steps`: the checkpoint at `dir` on the successful episodes at
+/// `episodes` (ones it was not trained on, for a fair figure), `samples` windows.
+pub fn open_loop_by_steps(
+    dir: &std::path::Path,
+    episodes: &[std::path::PathBuf],
+    steps: &[usize],
+    samples: usize,
+) -> Result<Vec<OpenLoop>, TrainError> {
+    use crate::train::{SampleSet, Validation};
+    let (_vs, mut policy, meta) = crate::checkpoint::load(&crate::checkpoint::resolve(dir)?, Device::Cpu)?;
+    let cfg = meta.config.clone();
+    let mut eps = Vec::new();
+    for p in episodes {
+        let ep = crate::data::load_episode(p, &cfg, None)?;
+        if ep.success == Some(true) && !ep.is_empty() {
+            eps.push(ep);
+        }
+    }
+    let set = SampleSet::new(&eps, &cfg);
+    if set.is_empty() {
+        return Err(TrainError::Setup(format!("no successful episode with samples among {} given", episodes.len())));
+    }
+    let n = samples.min(set.len());
+    let val = Validation::new(&set, (&meta.state_stats, &meta.action_stats), &cfg, n, n, 0)?;
+    let mut out = Vec::new();
+    for &k in steps {
+        policy.set_inference_steps(k)?;
+        let mm = val.open_loop_mm(&policy, &meta.action_stats, &cfg)?.ok_or_else(|| {
+            TrainError::Setup(format!("open-loop error needs eef_axis_angle actions, not {:?}", cfg.action_space))
+        })?;
+        out.push(OpenLoop { inference_steps: k, open_loop_mm: mm, samples: n });
+    }
+    Ok(out)
+}
+
 /// Training steps on synthetic batches of the preset's size: samples/s (the model's share
 /// only; `labrig train` reports the loader's share on real data).
 pub fn training(preset: &Preset, steps: usize) -> Result<f64, TrainError> {

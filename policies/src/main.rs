@@ -53,6 +53,20 @@ struct BenchArgs {
     /// Skip the PyTorch comparison even where the venv exists.
     #[arg(long)]
     no_lerobot: bool,
+    /// Also time the whole chunk with each of these DDIM step counts (default: only the
+    /// preset's own).
+    #[arg(long, value_delimiter = ',')]
+    inference_steps: Vec<usize>,
+    /// With --episodes: this checkpoint's open-loop error (mm) per step count of
+    /// --inference-steps (the preset's 16 where none is given) on those episodes.
+    #[arg(long, requires = "episodes")]
+    checkpoint: Option<PathBuf>,
+    /// Recorded episodes (a directory or episode) the checkpoint was not trained on.
+    #[arg(long, requires = "checkpoint")]
+    episodes: Vec<PathBuf>,
+    /// Windows spread over --episodes for the open-loop error.
+    #[arg(long, default_value_t = 256)]
+    samples: usize,
     #[arg(long)]
     json: bool,
 }
@@ -330,7 +344,11 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<ExitCode> {
     use labrig_policies::bench;
     let threads = set_threads(a.threads);
     let omp = std::env::var("OMP_NUM_THREADS").unwrap_or_else(|_| "unset".into());
-    let presets = if a.preset.is_empty() { vec!["paper_dp".to_owned(), "small".to_owned()] } else { a.preset.clone() };
+    let presets = if a.preset.is_empty() && a.checkpoint.is_none() {
+        vec!["paper_dp".to_owned(), "small".to_owned()]
+    } else {
+        a.preset.clone()
+    };
     let venv = a.lerobot_venv.clone().or_else(|| {
         let cache = match std::env::var_os("LABRIG_CACHE") {
             Some(c) => PathBuf::from(c),
@@ -382,6 +400,23 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<ExitCode> {
                 println!("  training: {t:.1} samples/s (batch {}, synthetic data)", preset.train.batch_size);
             }
         }
+        if !a.inference_steps.is_empty() {
+            let by_steps = bench::chunk_by_steps(cfg, &a.inference_steps, a.runs, a.warmup)?;
+            for (n, p) in &by_steps {
+                if !a.json {
+                    println!(
+                        "  whole chunk, {n:2} DDIM steps     p50 {:8.1} ms   p99 {:8.1} ms   ({:.2}x the {:.0} ms budget at p50)",
+                        p.p50,
+                        p.p99,
+                        p.p50 / budget_ms(cfg),
+                        budget_ms(cfg)
+                    );
+                }
+            }
+            entry["chunk_ms_by_steps"] = serde_json::json!(
+                by_steps.iter().map(|(n, p)| serde_json::json!({"steps": n, "chunk_ms": p})).collect::<Vec<_>>()
+            );
+        }
         if name == "paper_dp"
             && !a.no_lerobot
             && let Some(venv) = &venv
@@ -415,6 +450,26 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<ExitCode> {
             }
         }
         report.insert(name.clone(), entry);
+    }
+    if let Some(dir) = &a.checkpoint {
+        let mut paths = Vec::new();
+        for e in &a.episodes {
+            paths.extend(episodes_of(e)?);
+        }
+        let steps = if a.inference_steps.is_empty() { vec![16, 8, 4, 2, 1] } else { a.inference_steps.clone() };
+        let rows = bench::open_loop_by_steps(dir, &paths, &steps, a.samples)?;
+        if !a.json {
+            println!(
+                "{}: open loop on {} episodes ({} windows, the same noise each), target positions of the executed rows:",
+                dir.display(),
+                paths.len(),
+                rows.first().map_or(0, |r| r.samples)
+            );
+            for r in &rows {
+                println!("  {:2} DDIM steps   {:6.1} mm", r.inference_steps, r.open_loop_mm);
+            }
+        }
+        report.insert("open_loop".into(), serde_json::json!({ "checkpoint": dir, "rows": rows }));
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);

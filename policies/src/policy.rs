@@ -375,6 +375,15 @@ impl DiffusionPolicy {
         &self.cfg
     }
 
+    /// Samples with `n` DDIM steps instead of the checkpoint's (the same network; fewer,
+    /// larger steps through the same noise schedule). Refused when the schedule cannot
+    /// take them (0, or more than its training steps).
+    pub fn set_inference_steps(&mut self, n: usize) -> Result<(), PolicyError> {
+        self.ddim = Ddim::new(self.schedule.clone(), n, self.cfg.clip)?.predicting(self.cfg.prediction);
+        self.cfg.inference_steps = n;
+        Ok(())
+    }
+
     fn expect(what: &str, t: &Tensor, want: &[i64]) -> Result<(), PolicyError> {
         let got = t.size();
         let ok = got.len() == want.len() && got.iter().zip(want).all(|(g, w)| *w < 0 || g == w);
@@ -654,6 +663,33 @@ mod tests {
         let err = policy.sample(&images, &state.narrow(1, 0, 1), &noise).unwrap_err();
         assert!(err.to_string().starts_with("observation.state: expected shape [2, 2, 7], got [2, 1, 7]"), "{err}");
         assert_eq!(policy.sample(&[], &state, &noise).unwrap_err(), PolicyError::Cameras { given: 0, wanted: 1 });
+    }
+
+    /// Fewer DDIM steps: the same policy sampling through fewer, larger steps; back to the
+    /// checkpoint's count it samples exactly as before; 0 and more than the schedule's
+    /// training steps are refused by name.
+    #[test]
+    fn the_ddim_step_count_can_be_changed_and_back() {
+        tch::manual_seed(5);
+        let cfg = DiffusionConfig::tiny();
+        let vs = nn::VarStore::new(Device::Cpu);
+        let mut policy = DiffusionPolicy::new(vs.root(), cfg.clone()).unwrap();
+        let (images, state, _) = batch(&cfg, 1);
+        let noise = Tensor::randn([1, cfg.horizon, cfg.action_dim], (Kind::Float, Device::Cpu));
+        let own = cfg.inference_steps;
+        let a = tch::no_grad(|| policy.sample(&images, &state, &noise)).unwrap();
+        policy.set_inference_steps(4).unwrap();
+        assert_eq!(policy.config().inference_steps, 4);
+        let four = tch::no_grad(|| policy.sample(&images, &state, &noise)).unwrap();
+        assert!((&a - &four).abs().max().double_value(&[]) > 0.0, "4 steps sample another chunk");
+        policy.set_inference_steps(own).unwrap();
+        let again = tch::no_grad(|| policy.sample(&images, &state, &noise)).unwrap();
+        assert_eq!((&a - &again).abs().max().double_value(&[]), 0.0);
+        for bad in [0, cfg.train_steps + 1] {
+            let e = policy.set_inference_steps(bad).unwrap_err().to_string();
+            assert!(e.contains(&bad.to_string()), "{e}");
+        }
+        assert_eq!(policy.config().inference_steps, own, "a refused count changes nothing");
     }
 
     /// With `image_obs_steps = 1` only the newest observation's images are encoded: changing

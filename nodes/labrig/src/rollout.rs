@@ -139,6 +139,10 @@ pub struct RolloutArgs {
     /// clean estimate's space, the default) or `vjp` (PiGDM's, through the U-Net's Jacobian).
     #[arg(long, value_parser = ["x0", "vjp"])]
     pub rtc_guidance: Option<String>,
+    /// DDIM steps per chunk instead of the checkpoint's (`inference_steps` of labrig-policy):
+    /// fewer are faster; experiments/latency/README.md has what they cost.
+    #[arg(long)]
+    pub inference_steps: Option<usize>,
     /// Where the rollouts (DROID layout under `rollouts/`), the report and the pictures go.
     #[arg(long, default_value = "out/rollout")]
     pub out: PathBuf,
@@ -191,6 +195,7 @@ impl RolloutArgs {
             guidance_max_weight: None,
             rtc_delay_steps: None,
             rtc_guidance: None,
+            inference_steps: None,
             out,
             domain_id: 43,
             json: true,
@@ -339,6 +344,9 @@ pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
             set_arg(&mut pol.args, "--threads", &args.threads.to_string());
             if let Some(g) = &args.rtc_guidance {
                 pol.args.extend(["--set".into(), format!("rtc_guidance=\"{g}\"")]);
+            }
+            if let Some(n) = args.inference_steps {
+                pol.args.extend(["--set".into(), format!("inference_steps={n}")]);
             }
         }
         if let Some((module, spec)) = &torchscript {

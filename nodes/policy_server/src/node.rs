@@ -37,6 +37,9 @@ pub struct PolicyServerConfig {
     /// estimate's space) or `"vjp"` (PiGDM's, through the U-Net's Jacobian); see
     /// labrig_policies::rtc.
     pub rtc_guidance: labrig_policies::rtc::Method,
+    /// DDIM steps per chunk instead of the checkpoint's (fewer: faster, see
+    /// experiments/latency/README.md for what it costs); none keeps the checkpoint's.
+    pub inference_steps: Option<usize>,
 }
 
 impl Default for PolicyServerConfig {
@@ -52,6 +55,7 @@ impl Default for PolicyServerConfig {
             period_s: 0.05,
             urdf: None,
             rtc_guidance: labrig_policies::rtc::Method::default(),
+            inference_steps: None,
         }
     }
 }
@@ -90,6 +94,9 @@ impl PolicyServerConfig {
         }
         if let Some(a) = &self.openpi {
             openpi_addr(a).map_err(|e| Invalid::new("openpi", e))?;
+        }
+        if self.inference_steps == Some(0) {
+            return Err(Invalid::new("inference_steps", "policy server config: `inference_steps` must be >= 1, got 0"));
         }
         Ok(())
     }
@@ -144,6 +151,10 @@ pub fn check(args: &[String]) -> anyhow::Result<String> {
         _ => unreachable!("validated"),
     };
     server.check_rig(&cfg.rig_cameras)?;
+    let server = match cfg.inference_steps {
+        Some(n) => server.with_inference_steps(n)?,
+        None => server,
+    };
     let ms = server.warm_up()?;
     Ok(format!(
         "{} ({}): loads, observes {:?}, one chunk in {ms:.0} ms",
@@ -165,7 +176,11 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
         _ => unreachable!("validated"),
     };
     server.check_rig(&cfg.rig_cameras)?;
-    let server = server.with_rtc_method(cfg.rtc_guidance);
+    let mut server = server.with_rtc_method(cfg.rtc_guidance);
+    if let Some(n) = cfg.inference_steps {
+        server = server.with_inference_steps(n)?;
+        tracing::info!("sampling with {n} DDIM steps (inference_steps), not the checkpoint's own");
+    }
     let mut stats = ServeStats { policy_id: server.id().to_owned(), ..ServeStats::default() };
     let (id, cameras, info_json) = (server.id().to_owned(), server.config().cameras.clone(), server.info().to_string());
     // One model for both faces; openpi's requests and the loop's take turns.

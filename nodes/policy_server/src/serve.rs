@@ -213,6 +213,26 @@ impl Server {
         Server { rtc_method: method, ..self }
     }
 
+    /// A Diffusion checkpoint sampled with `n` DDIM steps instead of its own; a TorchScript
+    /// module, which samples inside itself, is refused.
+    pub fn with_inference_steps(mut self, n: usize) -> Result<Server, ServeError> {
+        match &mut self.model {
+            Model::Diffusion { policy, .. } => {
+                policy.set_inference_steps(n).map_err(|e| ServeError::Mismatch {
+                    checkpoint: self.id.clone(),
+                    what: format!("`inference_steps` = {n}: {e}"),
+                })?;
+                self.config.inference_steps = n;
+                Ok(self)
+            }
+            Model::TorchScript { path, .. } => Err(ServeError::Mismatch {
+                checkpoint: path.display().to_string(),
+                what: "`inference_steps` is for a Diffusion checkpoint: a TorchScript module samples inside itself"
+                    .into(),
+            }),
+        }
+    }
+
     /// The checkpoint's id in chunks and episode metadata (`<run>@<step>`).
     pub fn id(&self) -> &str {
         &self.id
