@@ -230,6 +230,10 @@ pub struct Rollout {
     pub steps: u64,
     /// Recorded steps the arm held for lack of a policy action.
     pub held_steps: u64,
+    /// Of those, the ones after the first step that executed a row (the wait for the first
+    /// chunk left out), and the steps from that one on.
+    pub held_after_first_chunk: u64,
+    pub steps_after_first_chunk: u64,
     /// Chunks whose rows it executed.
     pub chunks: u64,
     /// Rows whose time had passed when their chunk arrived.
@@ -257,6 +261,9 @@ pub struct RolloutReport {
     pub inference_ms_p99: f64,
     pub chunks: u64,
     pub held_steps: u64,
+    /// Steps held after each episode's first executed row, over the steps from there on.
+    pub held_after_first_chunk: u64,
+    pub steps_after_first_chunk: u64,
     /// `--intervene`: who played the operator (None: nobody could take over).
     pub intervene: Option<&'static str>,
     /// Takeovers and operator steps over all rollouts, and the successes without any.
@@ -451,6 +458,8 @@ pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
             },
             steps: ep.steps,
             held_steps: ep.held,
+            held_after_first_chunk: ep.held_after_first,
+            steps_after_first_chunk: ep.steps_after_first,
             chunks: ep.chunks.len() as u64,
             skipped_rows: ep.chunks.values().map(|&r| u64::from(r)).sum(),
             dir: dir.clone(),
@@ -503,6 +512,8 @@ pub fn run_quiet(args: RolloutArgs) -> anyhow::Result<RolloutReport> {
         inference_ms_p99: lat.as_ref().map_or(f64::NAN, |p| p.p99),
         chunks: seen.inference_ms.len() as u64,
         held_steps: rollouts.iter().map(|r| r.held_steps).sum(),
+        held_after_first_chunk: rollouts.iter().map(|r| r.held_after_first_chunk).sum(),
+        steps_after_first_chunk: rollouts.iter().map(|r| r.steps_after_first_chunk).sum(),
         intervene: args.intervene.map(|_| "expert"),
         takeovers: rollouts.iter().map(|r| r.takeovers).sum(),
         operator_steps: rollouts.iter().map(|r| r.operator_steps).sum(),
@@ -558,8 +569,14 @@ fn report_text(r: &RolloutReport) -> String {
     let _ = writeln!(s, "policy {}", r.policy);
     let _ = writeln!(
         s,
-        "inference per chunk p50 {:.1} ms / p99 {:.1} ms over {} chunks; {} steps held for lack of an action",
-        r.inference_ms_p50, r.inference_ms_p99, r.chunks, r.held_steps
+        "inference per chunk p50 {:.1} ms / p99 {:.1} ms over {} chunks; {} steps held for lack of an action, {} after the first chunk ({:.1}% of {} steps)",
+        r.inference_ms_p50,
+        r.inference_ms_p99,
+        r.chunks,
+        r.held_steps,
+        r.held_after_first_chunk,
+        100.0 * r.held_after_first_chunk as f64 / r.steps_after_first_chunk.max(1) as f64,
+        r.steps_after_first_chunk
     );
     if let Some(who) = r.intervene {
         let _ = writeln!(
@@ -616,6 +633,10 @@ struct EpisodeSeen {
     end: Option<(EpisodeEventKind, String)>,
     steps: u64,
     held: u64,
+    /// Whether a step has executed a policy row yet; the steps and held steps from then on.
+    acting: bool,
+    steps_after_first: u64,
+    held_after_first: u64,
     /// Chunk id -> the first row executed from it.
     chunks: BTreeMap<u64, u32>,
     /// Runs of steps by an operator (not the policy), their steps, and whether the last
@@ -686,8 +707,11 @@ async fn run_rig(args: &RolloutArgs, cfg: LaunchConfig, order: Vec<usize>, seen:
             }
             let Some(ep) = seen.episodes.get_mut(&s.episode_id) else { continue };
             ep.steps += 1;
+            ep.acting |= s.chunk_id != 0;
+            ep.steps_after_first += u64::from(ep.acting);
             if s.action_source == Step::SOURCE_POLICY && !s.movement_enabled {
                 ep.held += 1;
+                ep.held_after_first += u64::from(ep.acting);
             }
             let operator = s.action_source != Step::SOURCE_POLICY && s.action_source != Step::SOURCE_NONE;
             ep.takeovers += u64::from(operator && !ep.operator_acting);
