@@ -173,13 +173,34 @@ impl Robotiq2F85 {
     }
 
     /// The activation sequence: reset (rACT = 0, which also clears major faults), activate
-    /// (rACT = 1), then poll until gSTA = 3. The fingers open and close once while it runs.
+    /// (rACT = 1), then poll until gSTA = 3 (an exchange that times out is tried again until
+    /// `within` is spent). The fingers open and close once while it runs.
     pub async fn activate(&mut self, within: Duration) -> Result<Status, GripperError> {
         let deadline = Instant::now() + within;
-        self.write(Request::RESET).await?;
-        self.write(Request::ACTIVATE).await?;
+        // An exchange that times out (a lost frame, a starved port) is tried again until the
+        // deadline: the port is reopened, so a late answer cannot be taken for the next one,
+        // and the writes are the same registers again.
+        let again = |e: &GripperError| matches!(e, GripperError::Timeout { .. }) && Instant::now() < deadline;
+        for request in [Request::RESET, Request::ACTIVATE] {
+            loop {
+                match self.write(request).await {
+                    Ok(()) => break,
+                    Err(e) if again(&e) => tracing::warn!("activating the 2F-85: {e}; trying again"),
+                    Err(e) => return Err(e),
+                }
+                tokio::time::sleep(POLL).await;
+            }
+        }
         loop {
-            let s = self.status().await?;
+            let s = match self.status().await {
+                Ok(s) => s,
+                Err(e) if again(&e) => {
+                    tracing::warn!("activating the 2F-85: {e}; asking again");
+                    tokio::time::sleep(POLL).await;
+                    continue;
+                }
+                Err(e) => return Err(e),
+            };
             if s.activation == Activation::Complete {
                 return Ok(s);
             }

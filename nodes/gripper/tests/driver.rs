@@ -86,6 +86,29 @@ async fn activation_runs_the_sequence_and_waits_for_gsta_3() {
     assert!(s.ready());
 }
 
+/// A gripper that misses exchanges while it activates (a lost frame, a starved port): the
+/// driver tries again until its deadline and the activation completes; one that stays silent
+/// past the deadline is named.
+#[tokio::test]
+async fn activation_tries_again_after_missed_exchanges() {
+    let emu = Emulated2F85::new(EmulatorConfig { activation: Duration::from_millis(300), ..Default::default() });
+    let pty = emu.serve_on_pty().unwrap();
+    let mut d = driver(pty.path());
+    // Silent from the first write for 350 ms: the reset write times out at least once.
+    emu.set_mute(true);
+    let silent = emu.clone();
+    let muter = tokio::spawn(async move {
+        tokio::time::sleep(Duration::from_millis(350)).await;
+        silent.set_mute(false);
+    });
+    let s = d.activate(Duration::from_secs(5)).await.unwrap();
+    muter.await.unwrap();
+    assert_eq!(s.activation, Activation::Complete);
+    emu.set_mute(true);
+    let err = d.activate(Duration::from_millis(500)).await.unwrap_err();
+    assert!(matches!(err, GripperError::Timeout { .. }), "{err}");
+}
+
 #[tokio::test]
 async fn the_fingers_move_to_the_request_and_report_it() {
     let emu = Emulated2F85::new(EmulatorConfig::default());
