@@ -628,6 +628,59 @@ fn draw(out: &Path, results: &[PointResult]) -> anyhow::Result<Vec<PathBuf>> {
         root.present().map_err(e)?;
         written.push(path.clone());
 
+        // The judged settings: per mode and delay, the successes pooled over the judging sets,
+        // with their Wilson 95% interval.
+        let judged: Vec<&PointResult> =
+            results.iter().filter(|r| r.point.judging && r.infeasible.is_none() && &r.point.task == task).collect();
+        if !judged.is_empty() {
+            let path = out.join(format!("success_vs_delay_judged_{task}.png"));
+            let root = BitMapBackend::new(&path, (900, 560)).into_drawing_area();
+            root.fill(&WHITE).map_err(e)?;
+            let mut chart = ChartBuilder::on(&root)
+                .caption(
+                    format!("{task}: success against inference delay (lockstep, judging seeds, 95% intervals)"),
+                    ("sans-serif", 18),
+                )
+                .margin(14)
+                .x_label_area_size(40)
+                .y_label_area_size(55)
+                .build_cartesian_2d(-0.5..max_d + 0.5, 0.0..100.0)
+                .map_err(e)?;
+            chart.configure_mesh().x_desc("delay (ticks of 50 ms)").y_desc("success (%)").draw().map_err(e)?;
+            for (k, (mode, colour)) in modes.iter().zip(colours).enumerate() {
+                let mut by_delay: std::collections::BTreeMap<u32, (u64, u64)> = Default::default();
+                for r in judged.iter().filter(|r| r.point.mode == *mode) {
+                    let t = by_delay.entry(r.point.delay).or_default();
+                    t.0 += r.successes;
+                    t.1 += r.rollouts;
+                }
+                if by_delay.is_empty() {
+                    continue;
+                }
+                // Modes side by side at each delay, so their intervals do not hide each other.
+                let dx = (k as f64 - 1.5) * 0.08;
+                let pts: Vec<(f64, f64, f64, f64)> = by_delay
+                    .iter()
+                    .map(|(&d, &(k, n))| {
+                        let ci = wilson95(k, n);
+                        (f64::from(d) + dx, 100.0 * k as f64 / n.max(1) as f64, 100.0 * ci[0], 100.0 * ci[1])
+                    })
+                    .collect();
+                chart
+                    .draw_series(LineSeries::new(pts.iter().map(|p| (p.0, p.1)), colour.stroke_width(2)))
+                    .map_err(e)?
+                    .label(*mode)
+                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
+                chart
+                    .draw_series(pts.iter().map(|p| PathElement::new([(p.0, p.2), (p.0, p.3)], colour.stroke_width(2))))
+                    .map_err(e)?;
+                chart.draw_series(pts.iter().map(|p| Circle::new((p.0, p.1), 4, colour.filled()))).map_err(e)?;
+            }
+            chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
+            root.present().map_err(e)?;
+            written.push(path.clone());
+        }
+
         // TCP traces: per mode, the point at the largest delay with a trace.
         let path = out.join(format!("tcp_trace_{task}.png"));
         let root = BitMapBackend::new(&path, (1000, 220 * modes.len() as u32)).into_drawing_area();
