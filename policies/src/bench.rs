@@ -109,18 +109,14 @@ pub fn open_loop_by_steps(
     use crate::train::{SampleSet, Validation};
     let (_vs, mut policy, meta) = crate::checkpoint::load(&crate::checkpoint::resolve(dir)?, Device::Cpu)?;
     let cfg = meta.config.clone();
-    let mut eps = Vec::new();
-    for p in episodes {
-        let ep = crate::data::load_episode(p, &cfg, None)?;
-        if ep.success == Some(true) && !ep.is_empty() {
-            eps.push(ep);
-        }
-    }
+    let (eps, _) = crate::train::load_set(episodes, &cfg, None, false, false, "episodes")?;
     let set = SampleSet::new(&eps, &cfg);
     if set.is_empty() {
         return Err(TrainError::Setup(format!("no successful episode with samples among {} given", episodes.len())));
     }
     let n = samples.min(set.len());
+    // The windows' noise comes from torch's generator: seeded, so a rerun gives the same figure.
+    tch::manual_seed(0);
     let val = Validation::new(&set, (&meta.state_stats, &meta.action_stats), &cfg, n, n, 0)?;
     let mut out = Vec::new();
     for &k in steps {

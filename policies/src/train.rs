@@ -540,12 +540,13 @@ pub fn ema_decay(step: u64, power: f64, max: f64) -> f64 {
     (1.0 - (1.0 + step as f64).powf(-power)).clamp(0.0, max)
 }
 
-/// Loads the episodes at `paths` (a progress bar when asked), dropping unsuccessful ones
-/// unless `include_failures`; returns them and how many were dropped.
+/// Loads the episodes at `paths` (a progress bar when asked; decoded frames cached under
+/// `cache` when given), dropping unsuccessful ones unless `include_failures`; returns them and
+/// how many were dropped.
 pub fn load_set(
     paths: &[PathBuf],
     cfg: &DiffusionConfig,
-    cache: &Path,
+    cache: Option<&Path>,
     include_failures: bool,
     progress: bool,
     what: &str,
@@ -559,7 +560,7 @@ pub fn load_set(
     let mut kept = Vec::new();
     let mut skipped = 0;
     for p in paths {
-        let ep = load_episode(p, cfg, Some(cache))?;
+        let ep = load_episode(p, cfg, cache)?;
         bar.inc(1);
         if ep.success != Some(true) && !include_failures {
             skipped += 1;
@@ -989,9 +990,10 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         g.sum(0.0).map_err(dist_err)?;
     }
     let progress = opts.progress && lead;
-    let (target, skipped_t) = load_set(&opts.target, model, &opts.cache, opts.include_failures, progress, "target")?;
+    let (target, skipped_t) =
+        load_set(&opts.target, model, Some(&opts.cache), opts.include_failures, progress, "target")?;
     let (cotrain, skipped_c) =
-        load_set(&opts.cotrain, model, &opts.cache, opts.include_failures, progress, "co-training")?;
+        load_set(&opts.cotrain, model, Some(&opts.cache), opts.include_failures, progress, "co-training")?;
     if let (Some(g), true) = (group, lead) {
         g.sum(0.0).map_err(dist_err)?;
     }
