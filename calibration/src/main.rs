@@ -16,6 +16,7 @@ use clap::{Args, Parser, Subcommand};
 use labrig_calibration::run::{self, SolveOptions, SolveReport};
 use labrig_calibration::solve::{self, HandEyeMethod, Pinhole};
 use labrig_calibration::{board, figures};
+use labrig_episode::progress;
 use labrig_msgs::calibration::{BoardSpec, CalibrationFile};
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
@@ -280,18 +281,6 @@ fn board_cmd(a: BoardArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn progress(len: u64, what: &str, quiet: bool) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(len);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(&format!("{{bar:30}} {{pos}}/{{len}} {what} [{{elapsed}}]"))
-            .expect("static template"),
-    );
-    if quiet {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar
-}
-
 fn write_figures(
     dir: &Path,
     capture: &Path,
@@ -353,7 +342,7 @@ fn report_text(r: &SolveReport, file: &CalibrationFile, path: &Path, seconds: f6
 fn solve_cmd(a: SolveArgs) -> anyhow::Result<ExitCode> {
     let t0 = Instant::now();
     let cap = run::read_capture(&a.capture)?;
-    let bar = progress(cap.views.len() as u64, "views detected", a.json);
+    let bar = progress::bar("{bar:30} {pos}/{len} views detected", cap.views.len() as u64, a.json);
     let (file, report, fits) = run::solve_capture(&a.capture, &a.solve.options(), &bar)?;
     bar.finish_and_clear();
     let out =
@@ -607,7 +596,11 @@ fn run_cmd(a: RunArgs) -> anyhow::Result<ExitCode> {
         }
         source.capture(&a.sim_flags, &work, cam, a.sim_flags.views, &dir, (&rig_name, None), a.json)?;
         let t_capture = t0.elapsed().as_secs_f64();
-        let bar = progress(a.sim_flags.views as u64, &format!("{cam} views detected"), a.json);
+        let bar = progress::bar(
+            &format!("{{bar:30}} {{pos}}/{{len}} {cam} views detected"),
+            a.sim_flags.views as u64,
+            a.json,
+        );
         let solved = run::solve_capture(&dir, &a.solve.options(), &bar);
         bar.finish_and_clear();
         match solved {
@@ -658,7 +651,7 @@ fn check_cmd(a: CheckArgs) -> anyhow::Result<ExitCode> {
     source.capture(&a.sim_flags, &work, cam, views, &dir, (&rig_name, a.move_camera.as_deref()), a.json)?;
     let cap = run::read_capture(&dir)?;
     let detector = labrig_calibration::detect::Detector::new(&stored.board)?;
-    let bar = progress(cap.views.len() as u64, "views detected", a.json);
+    let bar = progress::bar("{bar:30} {pos}/{len} views detected", cap.views.len() as u64, a.json);
     let detections = run::detect_all(&dir, &cap, &detector, &bar)?;
     bar.finish_and_clear();
     let x = solve::iso_of(&stored.pose);

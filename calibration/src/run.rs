@@ -4,7 +4,7 @@
 
 use crate::CalibError;
 use crate::detect::{Detection, Detector, MIN_CORNERS};
-use crate::solve::{self, HandEyeMethod, MAX_VIEW_RMS_PX, MIN_VIEWS, Pinhole, ViewFit};
+use crate::solve::{self, HandEyeMethod, MAX_VIEW_RMS_PX, MIN_VIEWS, Pinhole, ViewError, ViewFit};
 use labrig_msgs::calibration::{CALIBRATION_VERSION, CalibrationFile, CaptureFile, Intrinsics, Mount, ViewResidual};
 use opencv::core::{Mat, Point2f, Size, TermCriteria, TermCriteria_Type, Vector};
 use opencv::imgcodecs;
@@ -225,12 +225,10 @@ pub fn solve_capture(
                 fits.push(fit);
             }
             Err(why) => {
-                let kind = if why.starts_with("board fit") {
-                    format!("board fit above {MAX_VIEW_RMS_PX} px")
-                } else if why.starts_with("board not seen") {
-                    "board not seen".to_string()
-                } else {
-                    format!("fewer than {MIN_CORNERS} corners")
+                let kind = match why {
+                    ViewError::PoorFit { .. } => format!("board fit above {MAX_VIEW_RMS_PX} px"),
+                    ViewError::NotSeen => "board not seen".to_string(),
+                    ViewError::TooFewCorners { .. } => format!("fewer than {MIN_CORNERS} corners"),
                 };
                 match dropped.iter_mut().find(|(k, _)| *k == kind) {
                     Some((_, n)) => *n += 1,
@@ -242,7 +240,7 @@ pub fn solve_capture(
                     corners,
                     single_view_rms_px: f64::NAN,
                     calibrated_rms_px: None,
-                    dropped: why,
+                    dropped: why.to_string(),
                 });
             }
         }

@@ -157,7 +157,18 @@ pub fn board_pose(
     Ok((pose, rms(cam, &pose, object, pixels)))
 }
 
-/// Prepares one view: corners, undistorted; the single-view fit. `Err(reason)` when unusable.
+/// Why a view is left out of the calibration (the report's `dropped`).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ViewError {
+    #[error("board not seen (no marker found)")]
+    NotSeen,
+    #[error("only {corners} ChArUco corners ({markers} markers); {} needed", MIN_CORNERS)]
+    TooFewCorners { corners: usize, markers: usize },
+    #[error("board fit {rms_px:.2} px RMS > {} px", MAX_VIEW_RMS_PX)]
+    PoorFit { rms_px: f64 },
+}
+
+/// Prepares one view: corners, undistorted; the single-view fit. `Err(why)` when unusable.
 pub fn fit_view(
     detector: &Detector,
     k: &Intrinsics,
@@ -165,16 +176,12 @@ pub fn fit_view(
     image: String,
     tcp: Isometry3<f64>,
     detection: Detection,
-) -> Result<Result<ViewFit, String>, CalibError> {
+) -> Result<Result<ViewFit, ViewError>, CalibError> {
     if detection.corners.len() < MIN_CORNERS {
         let why = if detection.markers == 0 {
-            "board not seen (no marker found)".to_string()
+            ViewError::NotSeen
         } else {
-            format!(
-                "only {} ChArUco corners ({} markers); {MIN_CORNERS} needed",
-                detection.corners.len(),
-                detection.markers
-            )
+            ViewError::TooFewCorners { corners: detection.corners.len(), markers: detection.markers }
         };
         return Ok(Err(why));
     }
@@ -209,7 +216,7 @@ pub fn fit_view(
         (board, rms_px) = board_pose(&cam, &object, &pixels)?;
     }
     if rms_px > MAX_VIEW_RMS_PX {
-        return Ok(Err(format!("board fit {rms_px:.2} px RMS > {MAX_VIEW_RMS_PX} px")));
+        return Ok(Err(ViewError::PoorFit { rms_px }));
     }
     Ok(Ok(ViewFit { index, image, tcp, detection, pixels, object, board, rms_px }))
 }

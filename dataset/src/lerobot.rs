@@ -41,13 +41,17 @@ pub const QUANTILES: [(f64, &str); 5] = [(0.01, "q01"), (0.10, "q10"), (0.50, "q
 const BINS: usize = 5000;
 const CHUNKS_SIZE: usize = 1000;
 
-/// Why an export failed, naming the file.
+/// Why an export failed, naming the file (or the flag).
 #[derive(Debug, thiserror::Error)]
 pub enum LeRobotError {
     #[error("{}: {source}", path.display())]
     Io { path: PathBuf, source: std::io::Error },
     #[error("{}: {why}", path.display())]
     Bad { path: PathBuf, why: String },
+    #[error("--format {0}: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, openpi)")]
+    UnknownFormat(String),
+    #[error("--schema {0}: droid (default), openpi-droid or labrig")]
+    UnknownSchema(String),
 }
 
 fn io(path: &Path) -> impl Fn(std::io::Error) -> LeRobotError + '_ {
@@ -69,11 +73,11 @@ pub enum Format {
 }
 
 impl Format {
-    pub fn parse(s: &str) -> Result<Format, String> {
+    pub fn parse(s: &str) -> Result<Format, LeRobotError> {
         match s {
             "v3.0" | "3.0" | "v3" => Ok(Format::V30),
             "v2.1" | "2.1" => Ok(Format::V21),
-            other => Err(format!("--format {other}: v3.0 (LeRobot 0.4+) or v2.1 (LeRobot 0.3, openpi)")),
+            other => Err(LeRobotError::UnknownFormat(other.to_owned())),
         }
     }
 
@@ -104,12 +108,12 @@ pub enum Schema {
 }
 
 impl Schema {
-    pub fn parse(s: &str) -> Result<Schema, String> {
+    pub fn parse(s: &str) -> Result<Schema, LeRobotError> {
         match s {
             "droid" => Ok(Schema::Droid),
             "openpi-droid" => Ok(Schema::OpenpiDroid),
             "labrig" => Ok(Schema::Labrig),
-            other => Err(format!("--schema {other}: droid (default), openpi-droid or labrig")),
+            other => Err(LeRobotError::UnknownSchema(other.to_owned())),
         }
     }
 

@@ -698,38 +698,78 @@ enum Frames {
     Images { encoded: Vec<Vec<u8>>, width: u32, height: u32 },
 }
 
+/// Why `--episodes` is malformed, or why an episode could not be imported (it is skipped, named).
+#[derive(Debug, thiserror::Error)]
+pub enum LeRobotImportError {
+    #[error("--episodes {arg}: `{part}` is not an episode index")]
+    NotAnIndex { arg: String, part: String },
+    #[error("--episodes {arg}: the range {range} is empty")]
+    EmptyRange { arg: String, range: String },
+    #[error(transparent)]
+    Dataset(#[from] LeRobotError),
+    #[error("camera {camera}: no images")]
+    NoImages { camera: String },
+    #[error("camera {camera} frame 0: {source}")]
+    FirstImage {
+        camera: String,
+        #[source]
+        source: ImageError,
+    },
+    #[error("camera {camera}: no video {}", path.display())]
+    NoVideo { camera: String, path: PathBuf },
+    #[error(transparent)]
+    Video(#[from] labrig_droid::video::VideoError),
+    #[error(transparent)]
+    Write(#[from] labrig_droid::DroidError),
+}
+
+/// An image stored in the data file that labrig cannot read.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error(transparent)]
+    Jpeg(#[from] labrig_episode::jpeg::JpegError),
+    #[error("not a PNG or JPEG: {0}")]
+    NotPngOrJpeg(#[source] png::DecodingError),
+    #[error("a PNG too large")]
+    TooLarge,
+    #[error(transparent)]
+    Png(png::DecodingError),
+    #[error("a {0:?}-bit PNG (labrig reads 8-bit images)")]
+    BitDepth(png::BitDepth),
+    #[error("a {0:?} PNG (labrig reads RGB, RGBA and grey)")]
+    ColorType(png::ColorType),
+}
+
 /// The size of an encoded PNG or JPEG image.
-fn image_size(bytes: &[u8]) -> Result<(u32, u32), String> {
+fn image_size(bytes: &[u8]) -> Result<(u32, u32), ImageError> {
     if bytes.starts_with(&[0xff, 0xd8]) {
-        let img = labrig_episode::jpeg::decode_rgb(bytes).map_err(|e| e.to_string())?;
+        let img = labrig_episode::jpeg::decode_rgb(bytes)?;
         return Ok((img.width as u32, img.height as u32));
     }
-    let r =
-        png::Decoder::new(std::io::Cursor::new(bytes)).read_info().map_err(|e| format!("not a PNG or JPEG: {e}"))?;
+    let r = png::Decoder::new(std::io::Cursor::new(bytes)).read_info().map_err(ImageError::NotPngOrJpeg)?;
     let info = r.info();
     Ok((info.width, info.height))
 }
 
 /// An encoded image as JPEG: a JPEG as it is, a PNG (8-bit RGB, RGBA or grey) re-encoded.
-fn as_jpeg(bytes: &[u8], quality: u8) -> Result<Vec<u8>, String> {
+fn as_jpeg(bytes: &[u8], quality: u8) -> Result<Vec<u8>, ImageError> {
     if bytes.starts_with(&[0xff, 0xd8]) {
         return Ok(bytes.to_vec());
     }
-    let mut r =
-        png::Decoder::new(std::io::Cursor::new(bytes)).read_info().map_err(|e| format!("not a PNG or JPEG: {e}"))?;
-    let mut buf = vec![0u8; r.output_buffer_size().ok_or("a PNG too large")?];
-    let info = r.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    let mut r = png::Decoder::new(std::io::Cursor::new(bytes)).read_info().map_err(ImageError::NotPngOrJpeg)?;
+    let mut buf = vec![0u8; r.output_buffer_size().ok_or(ImageError::TooLarge)?];
+    let info = r.next_frame(&mut buf).map_err(ImageError::Png)?;
     if info.bit_depth != png::BitDepth::Eight {
-        return Err(format!("a {:?}-bit PNG (labrig reads 8-bit images)", info.bit_depth));
+        return Err(ImageError::BitDepth(info.bit_depth));
     }
     let px = &buf[..info.buffer_size()];
     let rgb: Vec<u8> = match info.color_type {
         png::ColorType::Rgb => px.to_vec(),
         png::ColorType::Rgba => px.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
         png::ColorType::Grayscale => px.iter().flat_map(|&g| [g, g, g]).collect(),
-        other => return Err(format!("a {other:?} PNG (labrig reads RGB, RGBA and grey)")),
+        other => return Err(ImageError::ColorType(other)),
     };
-    labrig_episode::jpeg::encode_rgb(&rgb, info.width as u16, info.height as u16, quality).map_err(|e| e.to_string())
+    Ok(labrig_episode::jpeg::encode_rgb(&rgb, info.width as u16, info.height as u16, quality)?)
 }
 
 /// One camera's frames of an episode, decoded from its span of the MP4 (or its images).
@@ -779,16 +819,19 @@ impl FrameSource for VideoFrames {
 }
 
 /// Parses `--episodes` (`0,3,5-9`).
-pub fn parse_episodes(s: &str) -> Result<Vec<i64>, String> {
+pub fn parse_episodes(s: &str) -> Result<Vec<i64>, LeRobotImportError> {
     let mut out = Vec::new();
     for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
-        let num =
-            |x: &str| x.trim().parse::<i64>().map_err(|_| format!("--episodes {s}: `{x}` is not an episode index"));
+        let num = |x: &str| {
+            x.trim()
+                .parse::<i64>()
+                .map_err(|_| LeRobotImportError::NotAnIndex { arg: s.to_owned(), part: x.to_owned() })
+        };
         match part.split_once('-') {
             Some((a, b)) => {
                 let (a, b) = (num(a)?, num(b)?);
                 if b < a {
-                    return Err(format!("--episodes {s}: the range {part} is empty"));
+                    return Err(LeRobotImportError::EmptyRange { arg: s.to_owned(), range: part.to_owned() });
                 }
                 out.extend(a..=b);
             }
@@ -854,7 +897,7 @@ pub fn import(
                 report.frames += frames;
                 report.episodes.push((e.index, dir, read.steps.len(), frames));
             }
-            Err(why) => report.skipped.push((e.index, why)),
+            Err(why) => report.skipped.push((e.index, why.to_string())),
         }
     }
     progress(entries.len(), entries.len());
@@ -870,23 +913,24 @@ fn import_one(
     kin: &Fr3Kinematics,
     out: &Path,
     opts: &ImportOptions,
-) -> Result<Imported, String> {
-    let read = ds.read(e, kin).map_err(|x| x.to_string())?;
+) -> Result<Imported, LeRobotImportError> {
+    let read = ds.read(e, kin)?;
     let n = read.steps.len();
     let mut readers = Vec::new();
     for c in ds.cameras.clone() {
         if !c.video {
-            let encoded = ds.image_frames(e, &c.key).map_err(|x| x.to_string())?;
-            let first = encoded.first().ok_or_else(|| format!("camera {}: no images", c.key))?;
-            let (width, height) = image_size(first).map_err(|x| format!("camera {} frame 0: {x}", c.key))?;
+            let encoded = ds.image_frames(e, &c.key)?;
+            let first = encoded.first().ok_or_else(|| LeRobotImportError::NoImages { camera: c.key.clone() })?;
+            let (width, height) =
+                image_size(first).map_err(|source| LeRobotImportError::FirstImage { camera: c.key.clone(), source })?;
             readers.push(Some(Frames::Images { encoded, width, height }));
             continue;
         }
         let (path, from) = ds.video(e, &c);
         if !path.is_file() {
-            return Err(format!("camera {}: no video {}", c.key, path.display()));
+            return Err(LeRobotImportError::NoVideo { camera: c.key.clone(), path });
         }
-        readers.push(Some(Frames::Video(Mp4Reader::open_at(&path, from, ds.fps, n).map_err(|x| x.to_string())?)));
+        readers.push(Some(Frames::Video(Mp4Reader::open_at(&path, from, ds.fps, n)?)));
     }
     let cameras: Vec<Camera> = ds
         .cameras
@@ -919,8 +963,7 @@ fn import_one(
         &[],
         &mut warnings,
         &note,
-    )
-    .map_err(|x| x.to_string())?;
+    )?;
     Ok((dir, read, written, warnings))
 }
 
@@ -953,8 +996,8 @@ mod tests {
     #[test]
     fn episode_lists_parse_and_bad_ones_are_named() {
         assert_eq!(parse_episodes("0,3,5-7").unwrap(), vec![0, 3, 5, 6, 7]);
-        assert!(parse_episodes("1,x").unwrap_err().contains("`x`"));
-        assert!(parse_episodes("5-2").unwrap_err().contains("empty"));
+        assert!(parse_episodes("1,x").unwrap_err().to_string().contains("`x`"));
+        assert!(parse_episodes("5-2").unwrap_err().to_string().contains("empty"));
     }
 
     #[test]

@@ -14,6 +14,7 @@ use labrig_dataset::retrieve::{self, Dim, Target, Thresholds};
 use labrig_dataset::row::IndexRow;
 use labrig_dataset::source::{self, Derive};
 use labrig_dataset::table;
+use labrig_episode::progress;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -220,16 +221,6 @@ fn main() -> ExitCode {
     }
 }
 
-/// A progress bar of `len` steps drawn with `template`; hidden when the output is JSON.
-fn progress(len: usize, template: &'static str, json: bool) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(len as u64);
-    bar.set_style(indicatif::ProgressStyle::with_template(template).expect("static template"));
-    if json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar
-}
-
 fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
     let (out, inputs) = a.paths.split_last().expect("two or more");
     let mut episodes = Vec::new();
@@ -247,7 +238,7 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
             bail!("{}: no such episode, folder or manifest", p.display());
         }
     }
-    let bar = progress(episodes.len(), "export lerobot {bar:30} {pos}/{len} episodes {elapsed}", a.json);
+    let bar = progress::bar("export lerobot {bar:30} {pos}/{len} episodes", episodes.len() as u64, a.json);
     use labrig_dataset::lerobot::{Format, Schema, Spec};
     let schema = Schema::parse(&a.schema).map_err(anyhow::Error::msg)?;
     let format = match (&a.format, schema) {
@@ -285,7 +276,7 @@ fn export_lerobot(a: ExportLerobotArgs) -> anyhow::Result<ExitCode> {
 fn import_lerobot(a: ImportLerobotArgs) -> anyhow::Result<ExitCode> {
     use labrig_dataset::lerobot_import;
     let only = a.episodes.as_deref().map(lerobot_import::parse_episodes).transpose().map_err(anyhow::Error::msg)?;
-    let bar = progress(0, "import lerobot {bar:30} {pos}/{len} episodes {elapsed}", a.json);
+    let bar = progress::bar("import lerobot {bar:30} {pos}/{len} episodes", 0, a.json);
     let opts = labrig_droid::import::ImportOptions { overwrite: a.overwrite, jpeg_quality: a.jpeg_quality };
     let r = lerobot_import::import(&a.root, only.as_deref(), &a.out, &opts, |done, total| {
         bar.set_length(total as u64);
@@ -381,7 +372,7 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
     } else {
         BTreeMap::new()
     };
-    let bar = progress(mine.len(), "{bar:30} {pos}/{len} episodes [{elapsed}] {msg}", a.json);
+    let bar = progress::bar("{bar:30} {pos}/{len} episodes", mine.len() as u64, a.json);
     let (mut rows, mut bad, mut skipped) = (Vec::new(), Vec::new(), 0usize);
     let mut bytes = 0u64;
     for f in &mine {
@@ -403,7 +394,9 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
                     bytes += r.first().map(|r| r.file_size).unwrap_or(0);
                     rows.extend(r);
                 }
-                Err(why) => bad.push(serde_json::json!({"path": key, "format": f.format.name(), "reason": why})),
+                Err(why) => {
+                    bad.push(serde_json::json!({"path": key, "format": f.format.name(), "reason": why.to_string()}))
+                }
             }
         }
         bar.inc(1);

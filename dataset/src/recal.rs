@@ -11,7 +11,7 @@
 //! `<camera>_extrinsics_from` says which one a row has (`metadata` or `recalibrated`).
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// The override file, read once.
 #[derive(Debug, Clone, Default)]
@@ -21,18 +21,42 @@ pub struct Recalibration {
     pub stamp: String,
 }
 
+/// Why the override file cannot be used, naming it.
+#[derive(Debug, thiserror::Error)]
+pub enum RecalError {
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: not JSON: {source}", path.display())]
+    NotJson {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("{}: expected an object keyed by episode, as DROID's cam2base_extrinsics.json", path.display())]
+    NotAnObject { path: PathBuf },
+    #[error("{}: episode {episode}: expected an object of camera serial -> 6 numbers", path.display())]
+    EpisodeNotAnObject { path: PathBuf, episode: String },
+    #[error("{}: episode {episode}, camera {camera}: expected 6 finite numbers, got {value}", path.display())]
+    NotAPose { path: PathBuf, episode: String, camera: String, value: serde_json::Value },
+}
+
 impl Recalibration {
-    pub fn load(path: &Path) -> Result<Recalibration, String> {
-        let at = path.display();
-        let bytes = std::fs::read(path).map_err(|e| format!("{at}: {e}"))?;
-        let value: serde_json::Value = serde_json::from_slice(&bytes).map_err(|e| format!("{at}: not JSON: {e}"))?;
+    pub fn load(path: &Path) -> Result<Recalibration, RecalError> {
+        let io = |source| RecalError::Io { path: path.to_owned(), source };
+        let bytes = std::fs::read(path).map_err(io)?;
+        let value: serde_json::Value =
+            serde_json::from_slice(&bytes).map_err(|source| RecalError::NotJson { path: path.to_owned(), source })?;
         let serde_json::Value::Object(top) = value else {
-            return Err(format!("{at}: expected an object keyed by episode, as DROID's cam2base_extrinsics.json"));
+            return Err(RecalError::NotAnObject { path: path.to_owned() });
         };
         let mut by_episode = HashMap::with_capacity(top.len());
         for (episode, cams) in top {
             let serde_json::Value::Object(cams) = cams else {
-                return Err(format!("{at}: episode {episode}: expected an object of camera serial -> 6 numbers"));
+                return Err(RecalError::EpisodeNotAnObject { path: path.to_owned(), episode });
             };
             let mut poses = BTreeMap::new();
             for (key, v) in cams {
@@ -46,15 +70,13 @@ impl Recalibration {
                         poses.insert(serial.to_owned(), [p[0], p[1], p[2], p[3], p[4], p[5]]);
                     }
                     _ => {
-                        return Err(format!(
-                            "{at}: episode {episode}, camera {key}: expected 6 finite numbers, got {v}"
-                        ));
+                        return Err(RecalError::NotAPose { path: path.to_owned(), episode, camera: key, value: v });
                     }
                 }
             }
             by_episode.insert(episode, poses);
         }
-        let meta = std::fs::metadata(path).map_err(|e| format!("{at}: {e}"))?;
+        let meta = std::fs::metadata(path).map_err(io)?;
         let mtime = meta
             .modified()
             .ok()
@@ -99,7 +121,7 @@ mod tests {
         assert_eq!(r.pose("LAB+op+1", "23"), None);
         assert!(r.has("LAB+op+1") && !r.has("LAB+op+2"));
         std::fs::write(&p, r#"{"LAB+op+1": {"21": [0.1, 0.2]}}"#).unwrap();
-        let e = Recalibration::load(&p).unwrap_err();
+        let e = Recalibration::load(&p).unwrap_err().to_string();
         assert!(e.contains("episode LAB+op+1, camera 21: expected 6 finite numbers"), "{e}");
     }
 }

@@ -35,12 +35,19 @@ impl Dim {
         }
     }
 
-    pub fn parse(s: &str) -> Result<Dim, String> {
+    pub fn parse(s: &str) -> Result<Dim, UnknownDim> {
         Dim::ORDER
             .into_iter()
             .find(|d| d.name().eq_ignore_ascii_case(s))
-            .ok_or_else(|| format!("unknown dimension `{s}` (one of {})", Dim::ORDER.map(Dim::name).join(", ")))
+            .ok_or_else(|| UnknownDim { name: s.to_owned() })
     }
+}
+
+/// A dimension name that is none of [`Dim::ORDER`]'s.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown dimension `{name}` (one of {})", Dim::ORDER.map(Dim::name).join(", "))]
+pub struct UnknownDim {
+    pub name: String,
 }
 
 /// The thresholds, with the paper's values by default.

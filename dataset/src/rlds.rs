@@ -15,6 +15,35 @@ pub enum Values {
     Ints(Vec<i64>),
 }
 
+/// Why a TFRecord file or a `tf.train.Example` in it cannot be read.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RldsError {
+    #[error("record {record} at byte {at}: truncated header")]
+    TruncatedHeader { record: usize, at: usize },
+    #[error("record {record} at byte {at}: the length's CRC does not match (not a TFRecord file?)")]
+    LengthCrc { record: usize, at: usize },
+    #[error("record {record} at byte {at}: {len} bytes announced, the file ends first")]
+    TruncatedData { record: usize, at: usize, len: usize },
+    #[error("record {record}: truncated CRC")]
+    TruncatedCrc { record: usize },
+    #[error("record {record} at byte {at}: the data's CRC does not match (damaged)")]
+    DataCrc { record: usize, at: usize },
+    #[error("protobuf: truncated varint")]
+    TruncatedVarint,
+    #[error("protobuf: varint too long")]
+    VarintTooLong,
+    #[error("protobuf: truncated fixed field")]
+    TruncatedFixed,
+    #[error("protobuf: truncated length-delimited field")]
+    TruncatedLen,
+    #[error("protobuf: wire type {0} not expected in tf.train.Example")]
+    WireType(u8),
+    #[error("float_list: bad wire type")]
+    FloatListWire,
+    #[error("int64_list: bad wire type")]
+    Int64ListWire,
+}
+
 /// CRC-32C (Castagnoli), as TFRecord frames use it.
 fn crc32c(data: &[u8]) -> u32 {
     static TABLE: std::sync::OnceLock<[u32; 256]> = std::sync::OnceLock::new();
@@ -37,27 +66,21 @@ fn masked(crc: u32) -> u32 {
 }
 
 /// The records of a TFRecord file, CRC-checked.
-pub fn records(bytes: &[u8]) -> Result<Vec<&[u8]>, String> {
+pub fn records(bytes: &[u8]) -> Result<Vec<&[u8]>, RldsError> {
     let mut out = Vec::new();
     let mut at = 0usize;
     while at < bytes.len() {
-        let head =
-            bytes.get(at..at + 12).ok_or_else(|| format!("record {} at byte {at}: truncated header", out.len()))?;
+        let record = out.len();
+        let head = bytes.get(at..at + 12).ok_or(RldsError::TruncatedHeader { record, at })?;
         let len = u64::from_le_bytes(head[..8].try_into().expect("8 bytes")) as usize;
         let crc = u32::from_le_bytes(head[8..12].try_into().expect("4 bytes"));
         if masked(crc32c(&head[..8])) != crc {
-            return Err(format!(
-                "record {} at byte {at}: the length's CRC does not match (not a TFRecord file?)",
-                out.len()
-            ));
+            return Err(RldsError::LengthCrc { record, at });
         }
-        let data = bytes
-            .get(at + 12..at + 12 + len)
-            .ok_or_else(|| format!("record {} at byte {at}: {len} bytes announced, the file ends first", out.len()))?;
-        let tail =
-            bytes.get(at + 12 + len..at + 16 + len).ok_or_else(|| format!("record {}: truncated CRC", out.len()))?;
+        let data = bytes.get(at + 12..at + 12 + len).ok_or(RldsError::TruncatedData { record, at, len })?;
+        let tail = bytes.get(at + 12 + len..at + 16 + len).ok_or(RldsError::TruncatedCrc { record })?;
         if masked(crc32c(data)) != u32::from_le_bytes(tail.try_into().expect("4 bytes")) {
-            return Err(format!("record {} at byte {at}: the data's CRC does not match (damaged)", out.len()));
+            return Err(RldsError::DataCrc { record, at });
         }
         out.push(data);
         at += 16 + len;
@@ -65,24 +88,24 @@ pub fn records(bytes: &[u8]) -> Result<Vec<&[u8]>, String> {
     Ok(out)
 }
 
-fn varint(b: &[u8], at: &mut usize) -> Result<u64, String> {
+fn varint(b: &[u8], at: &mut usize) -> Result<u64, RldsError> {
     let mut v = 0u64;
     for shift in (0..64).step_by(7) {
-        let byte = *b.get(*at).ok_or("protobuf: truncated varint")?;
+        let byte = *b.get(*at).ok_or(RldsError::TruncatedVarint)?;
         *at += 1;
         v |= ((byte & 0x7f) as u64) << shift;
         if byte & 0x80 == 0 {
             return Ok(v);
         }
     }
-    Err("protobuf: varint too long".into())
+    Err(RldsError::VarintTooLong)
 }
 
 /// A protobuf field: number, wire type, the payload of a LEN or fixed field, a varint's value.
 type Field<'a> = (u64, u8, &'a [u8], u64);
 
 /// The fields of a protobuf message, LEN payloads sliced (never copied).
-fn fields(b: &[u8]) -> Result<Vec<Field<'_>>, String> {
+fn fields(b: &[u8]) -> Result<Vec<Field<'_>>, RldsError> {
     let mut out = Vec::new();
     let mut at = 0;
     while at < b.len() {
@@ -95,24 +118,24 @@ fn fields(b: &[u8]) -> Result<Vec<Field<'_>>, String> {
             }
             1 | 5 => {
                 let n = if wire == 1 { 8 } else { 4 };
-                let s = b.get(at..at + n).ok_or("protobuf: truncated fixed field")?;
+                let s = b.get(at..at + n).ok_or(RldsError::TruncatedFixed)?;
                 at += n;
                 out.push((field, wire, s, 0));
             }
             2 => {
                 let len = varint(b, &mut at)? as usize;
-                let s = b.get(at..at + len).ok_or("protobuf: truncated length-delimited field")?;
+                let s = b.get(at..at + len).ok_or(RldsError::TruncatedLen)?;
                 at += len;
                 out.push((field, wire, s, 0));
             }
-            other => return Err(format!("protobuf: wire type {other} not expected in tf.train.Example")),
+            other => return Err(RldsError::WireType(other)),
         }
     }
     Ok(out)
 }
 
 /// Decodes a `Feature` (bytes_list = 1, float_list = 2, int64_list = 3; packed or not).
-fn feature(b: &[u8]) -> Result<Values, String> {
+fn feature(b: &[u8]) -> Result<Values, RldsError> {
     let mut v = Values::Bytes(Vec::new());
     for (kind, _, list, _) in fields(b)? {
         v = match kind {
@@ -123,7 +146,7 @@ fn feature(b: &[u8]) -> Result<Values, String> {
                     if n != 1 {
                         continue;
                     }
-                    let chunk = if wire == 2 || wire == 5 { s } else { return Err("float_list: bad wire type".into()) };
+                    let chunk = if wire == 2 || wire == 5 { s } else { return Err(RldsError::FloatListWire) };
                     out.extend(chunk.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))));
                 }
                 Values::Floats(out)
@@ -142,7 +165,7 @@ fn feature(b: &[u8]) -> Result<Values, String> {
                                 out.push(varint(s, &mut at)? as i64);
                             }
                         }
-                        _ => return Err("int64_list: bad wire type".into()),
+                        _ => return Err(RldsError::Int64ListWire),
                     }
                 }
                 Values::Ints(out)
@@ -155,7 +178,7 @@ fn feature(b: &[u8]) -> Result<Values, String> {
 
 /// The `wanted` features of a serialized `tf.train.Example` (others, images included, are
 /// skipped by their length, never copied).
-pub fn example(b: &[u8], wanted: &[&str]) -> Result<BTreeMap<String, Values>, String> {
+pub fn example(b: &[u8], wanted: &[&str]) -> Result<BTreeMap<String, Values>, RldsError> {
     let mut out = BTreeMap::new();
     for (n, _, features, _) in fields(b)? {
         if n != 1 {
@@ -204,7 +227,7 @@ mod tests {
         assert_eq!(records(&f).unwrap(), vec![&data[..]]);
         let mut bad = f.clone();
         bad[13] ^= 1;
-        assert!(records(&bad).unwrap_err().contains("data's CRC"));
-        assert!(records(&f[..f.len() - 2]).unwrap_err().contains("truncated CRC"));
+        assert!(records(&bad).unwrap_err().to_string().contains("data's CRC"));
+        assert!(records(&f[..f.len() - 2]).unwrap_err().to_string().contains("truncated CRC"));
     }
 }

@@ -158,10 +158,86 @@ pub fn stamp(found: &Found) -> std::io::Result<(u64, i64)> {
     Ok((size, mtime))
 }
 
+/// Why what was found cannot be indexed; each names the file or directory (the index's
+/// `reason`).
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: no steps", dir.display())]
+    NoSteps { dir: PathBuf },
+    #[error(transparent)]
+    Episode(#[from] labrig_episode::ReadError),
+    #[error("{}: no DROID metadata record", dir.display())]
+    NoMetadata { dir: PathBuf },
+    #[error(transparent)]
+    Droid(#[from] labrig_droid::DroidError),
+    #[error("{}: /robot_state has no cartesian_position of 6 numbers a step", file.display())]
+    NoCartesian { file: PathBuf },
+    #[error("{}: no gripper_position in /action or /robot_state", file.display())]
+    NoGripper { file: PathBuf },
+    #[error("{}: no metadata_<uuid>.json beside trajectory.h5", dir.display())]
+    NoMetadataJson { dir: PathBuf },
+    #[error("{}: not JSON: {source}", path.display())]
+    NotJson {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("{}: {source}", path.display())]
+    Metadata {
+        path: PathBuf,
+        #[source]
+        source: labrig_msgs::Invalid,
+    },
+    #[error(transparent)]
+    H5(#[from] labrig_droid::h5doc::H5Error),
+    #[error("{}: no `{key}`", h5.display())]
+    NoDataset { h5: PathBuf, key: String },
+    #[error("{}: `{key}` is {dtype}, not float64", h5.display())]
+    NotFloat64 { h5: PathBuf, key: String, dtype: &'static str },
+    #[error("{}: cartesian_position has shape {shape:?}, not (T, 6)", h5.display())]
+    CartesianShape { h5: PathBuf, shape: Vec<usize> },
+    #[error("{}: gripper_position has {gripper} steps, cartesian_position {steps}", h5.display())]
+    GripperSteps { h5: PathBuf, gripper: usize, steps: usize },
+    #[error(transparent)]
+    LeRobot(#[from] crate::lerobot::LeRobotError),
+    #[error("the FR3 model: {0}")]
+    Kinematics(#[source] labrig_arm::kinematics::KinematicsError),
+    #[error("{}: {source}", file.display())]
+    Rlds {
+        file: PathBuf,
+        #[source]
+        source: crate::rlds::RldsError,
+    },
+    #[error("{} episode {episode}: {source}", file.display())]
+    RldsExample {
+        file: PathBuf,
+        episode: usize,
+        #[source]
+        source: crate::rlds::RldsError,
+    },
+    #[error("{} episode {episode}: no steps/observation/cartesian_position", file.display())]
+    RldsNoCartesian { file: PathBuf, episode: usize },
+    #[error("{} episode {episode}: cartesian_position holds {len} values, not T x 6", file.display())]
+    RldsCartesianLen { file: PathBuf, episode: usize, len: usize },
+    #[error("{} episode {episode}: no gripper signal of {steps} steps", file.display())]
+    RldsNoGripper { file: PathBuf, episode: usize, steps: usize },
+}
+
+/// `map_err` for an I/O error on `path`.
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SourceError + '_ {
+    move |source| SourceError::Io { path: path.to_owned(), source }
+}
+
 /// The rows of what was found (one episode, or an RLDS shard's many), or why it cannot be
 /// indexed.
-pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, String> {
-    let (file_size, file_mtime_ns) = stamp(found).map_err(|e| format!("{}: {e}", found.dir.display()))?;
+pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, SourceError> {
+    let (file_size, file_mtime_ns) = stamp(found).map_err(io(&found.dir))?;
     let read = match found.format {
         Format::Labrig => vec![read_labrig(&found.dir)?],
         Format::DroidRaw => vec![read_droid_raw(&found.dir)?],
@@ -182,10 +258,15 @@ pub fn rows(found: &Found, d: &Derive) -> Result<Vec<IndexRow>, String> {
         .collect()
 }
 
-fn row_of(found: &Found, read: Read, d: &Derive, (file_size, file_mtime_ns): (u64, i64)) -> Result<IndexRow, String> {
+fn row_of(
+    found: &Found,
+    read: Read,
+    d: &Derive,
+    (file_size, file_mtime_ns): (u64, i64),
+) -> Result<IndexRow, SourceError> {
     let (meta, xyz, gripper, instructions) = read;
     if xyz.is_empty() {
-        return Err(format!("{}: no steps", found.dir.display()));
+        return Err(SourceError::NoSteps { dir: found.dir.clone() });
     }
     let instruction = instructions.first().cloned().filter(|s| !s.is_empty());
     let text = instructions.join(" ");
@@ -239,9 +320,9 @@ fn row_of(found: &Found, read: Read, d: &Derive, (file_size, file_mtime_ns): (u6
 
 type Read = (EpisodeMetadata, Vec<[f64; 3]>, Vec<f64>, Vec<String>);
 
-fn read_labrig(dir: &Path) -> Result<Read, String> {
-    let data = labrig_episode::read_episode(dir).map_err(|e| e.to_string())?;
-    let meta = data.metadata.ok_or_else(|| format!("{}: no DROID metadata record", dir.display()))?;
+fn read_labrig(dir: &Path) -> Result<Read, SourceError> {
+    let data = labrig_episode::read_episode(dir)?;
+    let meta = data.metadata.ok_or_else(|| SourceError::NoMetadata { dir: dir.to_owned() })?;
     let xyz = data.steps.iter().map(|s| {
         let c = s.robot_state.cartesian_position;
         [c[0], c[1], c[2]]
@@ -255,11 +336,11 @@ fn read_labrig(dir: &Path) -> Result<Read, String> {
 
 /// A DROID-layout MCAP: its metadata as `labrig import droid-mcap` reads it, the TCP positions
 /// and the gripper (commanded where the file has it). Its images are read too, undecoded.
-fn read_droid_mcap(file: &Path) -> Result<Read, String> {
+fn read_droid_mcap(file: &Path) -> Result<Read, SourceError> {
     use labrig_droid::droid_mcap;
     use labrig_droid::h5doc::Data;
-    let mut read = droid_mcap::read_mcap(file).map_err(|e| e.to_string())?;
-    let meta = droid_mcap::episode_metadata(&mut read, file).map_err(|e| e.to_string())?.meta;
+    let mut read = droid_mcap::read_mcap(file)?;
+    let meta = droid_mcap::episode_metadata(&mut read, file)?.meta;
     let n = read.times_ns.len();
     let column = |key: &str, width: usize| -> Option<Vec<f64>> {
         match &read.doc.datasets.get(key)?.data {
@@ -268,29 +349,31 @@ fn read_droid_mcap(file: &Path) -> Result<Read, String> {
         }
     };
     let cart = column("observation/robot_state/cartesian_position", 6)
-        .ok_or_else(|| format!("{}: /robot_state has no cartesian_position of 6 numbers a step", file.display()))?;
+        .ok_or_else(|| SourceError::NoCartesian { file: file.to_owned() })?;
     let gripper = column("action/gripper_position", 1)
         .or_else(|| column("observation/robot_state/gripper_position", 1))
-        .ok_or_else(|| format!("{}: no gripper_position in /action or /robot_state", file.display()))?;
+        .ok_or_else(|| SourceError::NoGripper { file: file.to_owned() })?;
     let xyz = cart.chunks_exact(6).map(|c| [c[0], c[1], c[2]]).collect();
     let instructions = vec![meta.task_instruction.clone()];
     Ok((meta, xyz, gripper, instructions))
 }
 
-fn read_droid_raw(dir: &Path) -> Result<Read, String> {
+fn read_droid_raw(dir: &Path) -> Result<Read, SourceError> {
     let json_path = std::fs::read_dir(dir)
-        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .map_err(io(dir))?
         .filter_map(Result::ok)
         .map(|e| e.path())
         .find(|p| {
             let n = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
             n.starts_with("metadata_") && n.ends_with(".json")
         })
-        .ok_or_else(|| format!("{}: no metadata_<uuid>.json beside trajectory.h5", dir.display()))?;
-    let text = std::fs::read_to_string(&json_path).map_err(|e| format!("{}: {e}", json_path.display()))?;
+        .ok_or_else(|| SourceError::NoMetadataJson { dir: dir.to_owned() })?;
+    let text = std::fs::read_to_string(&json_path).map_err(io(&json_path))?;
     let value: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", json_path.display()))?;
-    let mut meta = labrig_droid::meta::parse(&value).map_err(|e| format!("{}: {e}", json_path.display()))?.meta;
+        serde_json::from_str(&text).map_err(|source| SourceError::NotJson { path: json_path.clone(), source })?;
+    let mut meta = labrig_droid::meta::parse(&value)
+        .map_err(|source| SourceError::Metadata { path: json_path.clone(), source })?
+        .meta;
     // DROID's own files say success by their folder.
     if meta.success.is_none() {
         let path = dir.display().to_string();
@@ -303,17 +386,17 @@ fn read_droid_raw(dir: &Path) -> Result<Read, String> {
         };
     }
     let h5 = dir.join("trajectory.h5");
-    let doc = labrig_droid::h5doc::read(&h5).map_err(|e| e.to_string())?;
-    let column = |key: &str| -> Result<(Vec<usize>, Vec<f64>), String> {
-        let c = doc.datasets.get(key).ok_or_else(|| format!("{}: no `{key}`", h5.display()))?;
+    let doc = labrig_droid::h5doc::read(&h5)?;
+    let column = |key: &str| -> Result<(Vec<usize>, Vec<f64>), SourceError> {
+        let c = doc.datasets.get(key).ok_or_else(|| SourceError::NoDataset { h5: h5.clone(), key: key.to_owned() })?;
         match &c.data {
             labrig_droid::h5doc::Data::F64(v) => Ok((c.shape.clone(), v.clone())),
-            other => Err(format!("{}: `{key}` is {}, not float64", h5.display(), other.dtype())),
+            other => Err(SourceError::NotFloat64 { h5: h5.clone(), key: key.to_owned(), dtype: other.dtype() }),
         }
     };
     let (shape, cart) = column("observation/robot_state/cartesian_position")?;
     if shape.len() != 2 || shape[1] != 6 {
-        return Err(format!("{}: cartesian_position has shape {shape:?}, not (T, 6)", h5.display()));
+        return Err(SourceError::CartesianShape { h5, shape });
     }
     // The commanded gripper where the file has it (a gripper closed on an object stalls
     // part-way), else the measured one.
@@ -324,11 +407,7 @@ fn read_droid_raw(dir: &Path) -> Result<Read, String> {
     };
     let steps = shape[0];
     if gshape.first() != Some(&steps) || gripper.len() != steps {
-        return Err(format!(
-            "{}: gripper_position has {} steps, cartesian_position {steps}",
-            h5.display(),
-            gshape.first().copied().unwrap_or(0)
-        ));
+        return Err(SourceError::GripperSteps { h5, gripper: gshape.first().copied().unwrap_or(0), steps });
     }
     let xyz = cart.chunks_exact(6).map(|c| [c[0], c[1], c[2]]).collect();
     let mut instructions = vec![meta.task_instruction.clone()];
@@ -343,14 +422,14 @@ fn read_droid_raw(dir: &Path) -> Result<Read, String> {
 /// A LeRobot dataset's episodes: the metadata `labrig import lerobot` would give them, the TCP
 /// positions (`observation.state.cartesian_position`, else the FR3's kinematics of the joints),
 /// the commanded gripper (the action's) and the episode's tasks.
-fn read_lerobot(root: &Path) -> Result<Vec<Read>, String> {
+fn read_lerobot(root: &Path) -> Result<Vec<Read>, SourceError> {
     use labrig_arm::kinematics::{Fr3Kinematics, TcpOffset};
-    let mut ds = crate::lerobot_import::Dataset::open(root).map_err(|e| e.to_string())?;
+    let mut ds = crate::lerobot_import::Dataset::open(root)?;
     let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(None), TcpOffset::ROBOTIQ_2F85)
-        .map_err(|e| format!("the FR3 model: {e}"))?;
+        .map_err(SourceError::Kinematics)?;
     let mut out = Vec::new();
     for e in ds.episodes.clone() {
-        let r = ds.read(&e, &kin).map_err(|x| x.to_string())?;
+        let r = ds.read(&e, &kin)?;
         let xyz = r.steps.iter().map(|s| {
             let c = s.robot_state.cartesian_position;
             [c[0], c[1], c[2]]
@@ -382,14 +461,17 @@ const RLDS_KEYS: [&str; 13] = [
     "episode_metadata/extrinsics_wrist_cam",
 ];
 
-fn read_rlds(file: &Path) -> Result<Vec<Read>, String> {
+fn read_rlds(file: &Path) -> Result<Vec<Read>, SourceError> {
     use crate::rlds::{self, Values};
-    let bytes = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
-    let records = rlds::records(&bytes).map_err(|e| format!("{}: {e}", file.display()))?;
+    let bytes = std::fs::read(file).map_err(io(file))?;
+    let records = rlds::records(&bytes).map_err(|source| SourceError::Rlds { file: file.to_owned(), source })?;
     let mut out = Vec::new();
     for (k, rec) in records.iter().enumerate() {
-        let at = || format!("{} episode {k}", file.display());
-        let f = rlds::example(rec, &RLDS_KEYS).map_err(|e| format!("{}: {e}", at()))?;
+        let f = rlds::example(rec, &RLDS_KEYS).map_err(|source| SourceError::RldsExample {
+            file: file.to_owned(),
+            episode: k,
+            source,
+        })?;
         let floats = |key: &str| match f.get(key) {
             Some(Values::Floats(v)) => Some(v.iter().map(|x| *x as f64).collect::<Vec<f64>>()),
             _ => None,
@@ -399,9 +481,9 @@ fn read_rlds(file: &Path) -> Result<Vec<Read>, String> {
             _ => None,
         };
         let cart = floats("steps/observation/cartesian_position")
-            .ok_or_else(|| format!("{}: no steps/observation/cartesian_position", at()))?;
+            .ok_or_else(|| SourceError::RldsNoCartesian { file: file.to_owned(), episode: k })?;
         if cart.len() % 6 != 0 {
-            return Err(format!("{}: cartesian_position holds {} values, not T x 6", at(), cart.len()));
+            return Err(SourceError::RldsCartesianLen { file: file.to_owned(), episode: k, len: cart.len() });
         }
         let steps = cart.len() / 6;
         // The commanded gripper (the action's 7th value) where there is an action, as for raw data.
@@ -409,7 +491,7 @@ fn read_rlds(file: &Path) -> Result<Vec<Read>, String> {
             Some(a) if a.len() == steps * 7 => a.chunks_exact(7).map(|c| c[6]).collect(),
             _ => floats("steps/observation/gripper_position")
                 .filter(|g| g.len() == steps)
-                .ok_or_else(|| format!("{}: no gripper signal of {steps} steps", at()))?,
+                .ok_or_else(|| SourceError::RldsNoGripper { file: file.to_owned(), episode: k, steps })?,
         };
         let file_path = text("episode_metadata/file_path");
         let folder = text("episode_metadata/recording_folderpath");

@@ -7,7 +7,7 @@ use crate::retrieve::{Manifest, Target, Thresholds};
 use crate::row::{EXTERNAL_CAMERAS, IndexRow};
 use plotters::prelude::*;
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Counts of a column's values ("-" for none).
 pub fn counts<'a>(rows: &'a [IndexRow], f: impl Fn(&'a IndexRow) -> Vec<Option<&'a str>>) -> BTreeMap<String, usize> {
@@ -41,16 +41,36 @@ fn bin_colour(bin: Option<&str>) -> RGBColor {
     }
 }
 
+/// A drawing error of the PNG backend.
+pub type DrawError = DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>;
+
+/// Why the picture could not be drawn; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum StatsError {
+    #[error("{}: {source}", path.display())]
+    Font {
+        path: PathBuf,
+        #[source]
+        source: labrig_episode::font::FontError,
+    },
+    #[error("{}: {source:?}", path.display())]
+    Draw {
+        path: PathBuf,
+        #[source]
+        source: DrawError,
+    },
+}
+
 /// Draws the two views into `path` (PNG). `retrieved`: the manifest of a retrieval, whose
 /// episodes are drawn on top, with its target.
-pub fn plot(rows: &[IndexRow], retrieved: Option<&Manifest>, path: &Path) -> Result<(), String> {
-    let fail = |e: String| format!("{}: {e}", path.display());
-    let font = labrig_episode::font::dejavu_sans().map_err(fail)?;
+pub fn plot(rows: &[IndexRow], retrieved: Option<&Manifest>, path: &Path) -> Result<(), StatsError> {
+    let font =
+        labrig_episode::font::dejavu_sans().map_err(|source| StatsError::Font { path: path.to_owned(), source })?;
     let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, font);
     let picked: BTreeSet<&str> =
         retrieved.map(|m| m.episodes.iter().map(|e| e.path.as_str()).collect()).unwrap_or_default();
     let root = BitMapBackend::new(path, (1400, 700)).into_drawing_area();
-    let e = |e: DrawingAreaErrorKind<_>| fail(format!("{e:?}"));
+    let e = |source: DrawError| StatsError::Draw { path: path.to_owned(), source };
     root.fill(&WHITE).map_err(e)?;
     let (top, side) = root.split_horizontally(700);
     // (x, y) from above and (x, z) from the side, base frame.

@@ -112,21 +112,84 @@ fn schema_name(topic: &str) -> String {
     format!("droid.{camel}")
 }
 
+/// What in a DROID-layout MCAP (or a trajectory bound for one) does not fit the layout; the
+/// file is named by [`DroidError::Layout`] around it.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DroidMcapError {
+    #[error("`{key}` step {step} is {value} (JSON has no such number)")]
+    NotJsonNumber { key: String, step: usize, value: f64 },
+    #[error("`{key}` is under a dataset, not a group")]
+    UnderDataset { key: String },
+    #[error("step {step}: `{key}` is {leaf}")]
+    NotNumbers { step: usize, key: String, leaf: LeafError },
+    #[error("step {step}: `{key}` has shape {shape:?}, earlier steps {earlier:?}")]
+    Reshaped { step: usize, key: String, shape: Vec<usize>, earlier: Vec<usize> },
+    #[error("step {step}: `{key}` is missing from step {from} on")]
+    MissingFrom { step: usize, key: String, from: usize },
+    #[error("`{key}` is in {steps} of {n} steps (missing from step {steps} on)")]
+    Partial { key: String, steps: usize, n: usize },
+    #[error("`{key}` mixes booleans and numbers")]
+    Mixed { key: String },
+    #[error("step {step}: /vr_controller: {source}")]
+    VrController {
+        step: usize,
+        #[source]
+        source: VrControllerError,
+    },
+    #[error("/robot_state has no `{key}` of {width} numbers per step, which the flat action needs")]
+    NoStateForAction { key: String, width: usize },
+}
+
+/// What a step's leaf is instead of a number or a regular array of numbers.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LeafError {
+    #[error("a ragged array ({len} against {expected} items)")]
+    RaggedLength { len: usize, expected: usize },
+    #[error("a ragged array")]
+    Ragged,
+    #[error("null (NaN or a missing value?)")]
+    Null,
+    #[error("a string, where DROID has numbers")]
+    String,
+    #[error("an object inside an array")]
+    Object,
+}
+
+/// Why a `/vr_controller` message is not the newer DROID writer's controller state.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum VrControllerError {
+    #[error("no `poses` object")]
+    NoPoses,
+    #[error("`poses` has neither `r` nor `l`")]
+    NoHand,
+    #[error("a pose is not 16 finite numbers (a row-major 4x4 matrix)")]
+    BadPose,
+}
+
+/// `map_err` naming `path` around a layout error.
+fn layout(path: &Path) -> impl FnOnce(DroidMcapError) -> DroidError + '_ {
+    move |source| DroidError::Layout { path: path.to_owned(), source }
+}
+
 /// Row `i` of a column as JSON: a scalar for a 1-D column, nested arrays for the rest.
-fn row_value(col: &Column, i: usize, key: &str) -> Result<Value, String> {
+fn row_value(col: &Column, i: usize, key: &str) -> Result<Value, DroidMcapError> {
     let tail = &col.shape[1..];
     let width: usize = tail.iter().product();
-    let scalar = |k: usize| -> Result<Value, String> {
+    let scalar = |k: usize| -> Result<Value, DroidMcapError> {
         Ok(match &col.data {
             Data::F64(v) if !v[k].is_finite() => {
-                return Err(format!("`{key}` step {i} is {} (JSON has no such number)", v[k]));
+                return Err(DroidMcapError::NotJsonNumber { key: key.to_owned(), step: i, value: v[k] });
             }
             Data::F64(v) => json!(v[k]),
             Data::I64(v) => json!(v[k]),
             Data::Bool(v) => json!(v[k]),
         })
     };
-    fn nest(tail: &[usize], at: usize, scalar: &dyn Fn(usize) -> Result<Value, String>) -> Result<Value, String> {
+    fn nest(
+        tail: &[usize],
+        at: usize,
+        scalar: &dyn Fn(usize) -> Result<Value, DroidMcapError>,
+    ) -> Result<Value, DroidMcapError> {
         match tail.split_first() {
             None => scalar(at),
             Some((&d, rest)) => {
@@ -139,7 +202,7 @@ fn row_value(col: &Column, i: usize, key: &str) -> Result<Value, String> {
 }
 
 /// Each topic's `data` object at step `i` of `doc`.
-fn step_data(doc: &H5Doc, i: usize) -> Result<BTreeMap<String, Map<String, Value>>, String> {
+fn step_data(doc: &H5Doc, i: usize) -> Result<BTreeMap<String, Map<String, Value>>, DroidMcapError> {
     let mut out: BTreeMap<String, Map<String, Value>> = BTreeMap::new();
     for (key, col) in &doc.datasets {
         let (topic, path) = topic_of(key);
@@ -149,7 +212,7 @@ fn step_data(doc: &H5Doc, i: usize) -> Result<BTreeMap<String, Map<String, Value
                 obj.insert((*p).to_owned(), row_value(col, i, key)?);
             } else {
                 let next = obj.entry((*p).to_owned()).or_insert_with(|| Value::Object(Map::new()));
-                obj = next.as_object_mut().ok_or_else(|| format!("`{key}` is under a dataset, not a group"))?;
+                obj = next.as_object_mut().ok_or_else(|| DroidMcapError::UnderDataset { key: key.clone() })?;
             }
         }
     }
@@ -169,13 +232,13 @@ struct Stack {
 }
 
 /// The shape of a nested JSON array (and its numbers in row-major order), or why it has none.
-fn flatten_leaf(v: &Value, shape: &mut Vec<usize>, depth: usize, out: &mut Vec<Value>) -> Result<(), String> {
+fn flatten_leaf(v: &Value, shape: &mut Vec<usize>, depth: usize, out: &mut Vec<Value>) -> Result<(), LeafError> {
     match v {
         Value::Array(items) => {
             if shape.len() == depth {
                 shape.push(items.len());
             } else if shape[depth] != items.len() {
-                return Err(format!("a ragged array ({} against {} items)", items.len(), shape[depth]));
+                return Err(LeafError::RaggedLength { len: items.len(), expected: shape[depth] });
             }
             items.iter().try_for_each(|x| flatten_leaf(x, shape, depth + 1, out))
         }
@@ -183,10 +246,10 @@ fn flatten_leaf(v: &Value, shape: &mut Vec<usize>, depth: usize, out: &mut Vec<V
             out.push(v.clone());
             Ok(())
         }
-        Value::Number(_) | Value::Bool(_) => Err("a ragged array".into()),
-        Value::Null => Err("null (NaN or a missing value?)".into()),
-        Value::String(_) => Err("a string, where DROID has numbers".into()),
-        Value::Object(_) => Err("an object inside an array".into()),
+        Value::Number(_) | Value::Bool(_) => Err(LeafError::Ragged),
+        Value::Null => Err(LeafError::Null),
+        Value::String(_) => Err(LeafError::String),
+        Value::Object(_) => Err(LeafError::Object),
     }
 }
 
@@ -198,7 +261,7 @@ struct Stacks {
 
 impl Stacks {
     /// Adds step `step`'s `data` object of `topic` (objects recurse; other values are leaves).
-    fn add(&mut self, topic: &str, path: &mut Vec<String>, v: &Value, step: usize) -> Result<(), String> {
+    fn add(&mut self, topic: &str, path: &mut Vec<String>, v: &Value, step: usize) -> Result<(), DroidMcapError> {
         if let Value::Object(m) = v {
             for (k, x) in m {
                 path.push(k.clone());
@@ -210,15 +273,19 @@ impl Stacks {
         let key = key_of(topic, path);
         let mut shape = Vec::new();
         let mut values = Vec::new();
-        flatten_leaf(v, &mut shape, 0, &mut values).map_err(|e| format!("step {step}: `{key}` is {e}"))?;
+        flatten_leaf(v, &mut shape, 0, &mut values).map_err(|leaf| DroidMcapError::NotNumbers {
+            step,
+            key: key.clone(),
+            leaf,
+        })?;
         let s = self.by_key.entry(key.clone()).or_default();
         if s.steps == 0 {
             s.tail = shape;
         } else if s.tail != shape {
-            return Err(format!("step {step}: `{key}` has shape {shape:?}, earlier steps {:?}", s.tail));
+            return Err(DroidMcapError::Reshaped { step, key, shape, earlier: s.tail.clone() });
         }
         if s.steps != step {
-            return Err(format!("step {step}: `{key}` is missing from step {} on", s.steps));
+            return Err(DroidMcapError::MissingFrom { step, key, from: s.steps });
         }
         s.steps += 1;
         s.values.extend(values);
@@ -226,10 +293,10 @@ impl Stacks {
     }
 
     /// The columns, each checked to have all `n` steps; integers stay int64, bools bool.
-    fn into_doc(self, n: usize, doc: &mut H5Doc) -> Result<(), String> {
+    fn into_doc(self, n: usize, doc: &mut H5Doc) -> Result<(), DroidMcapError> {
         for (key, s) in self.by_key {
             if s.steps != n {
-                return Err(format!("`{key}` is in {} of {n} steps (missing from step {} on)", s.steps, s.steps));
+                return Err(DroidMcapError::Partial { key, steps: s.steps, n });
             }
             let data = if s.values.iter().all(Value::is_boolean) {
                 Data::Bool(s.values.iter().map(|v| v.as_bool().unwrap_or_default()).collect())
@@ -238,7 +305,7 @@ impl Stacks {
             } else if s.values.iter().all(Value::is_number) {
                 Data::F64(s.values.iter().map(|v| v.as_f64().unwrap_or(f64::NAN)).collect())
             } else {
-                return Err(format!("`{key}` mixes booleans and numbers"));
+                return Err(DroidMcapError::Mixed { key });
             };
             let shape = std::iter::once(n).chain(s.tail).collect();
             doc.datasets.insert(key, Column { shape, data });
@@ -338,19 +405,19 @@ fn vr_payload(s: &TeleopState, t: i64) -> Value {
 
 /// The newer DROID writer's `/vr_controller` payload as the Quest's state (the inverse of
 /// [`vr_payload`]; DROID's own files carry its headset-frame pose, kept as it is).
-fn teleop_state(v: &Value) -> Result<TeleopState, String> {
-    let poses = v.get("poses").and_then(Value::as_object).ok_or("no `poses` object")?;
+fn teleop_state(v: &Value) -> Result<TeleopState, VrControllerError> {
+    let poses = v.get("poses").and_then(Value::as_object).ok_or(VrControllerError::NoPoses)?;
     let (hand, m) = match (poses.get("r"), poses.get("l")) {
         (Some(m), _) => ("right", m),
         (None, Some(m)) => ("left", m),
-        (None, None) => return Err("`poses` has neither `r` nor `l`".into()),
+        (None, None) => return Err(VrControllerError::NoHand),
     };
     let m: Vec<f64> = m
         .as_array()
         .filter(|a| a.len() == 16)
         .and_then(|a| a.iter().map(Value::as_f64).collect::<Option<Vec<f64>>>())
         .filter(|m| m.iter().all(|x| x.is_finite()))
-        .ok_or("a pose is not 16 finite numbers (a row-major 4x4 matrix)")?;
+        .ok_or(VrControllerError::BadPose)?;
     let rot = nalgebra::Matrix3::new(m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]);
     let q = nalgebra::UnitQuaternion::from_matrix(&rot);
     let side = if hand == "left" { "left" } else { "right" };
@@ -458,7 +525,7 @@ pub fn export_mcap(source: &Path, out_root: &Path, opts: &export::ExportOptions)
             // The step's time (the robot state's); strictly rising, so each step is one timestep.
             let t = Nanos::from(s.header.stamp).0.max(last_t + 1);
             last_t = t;
-            let data = step_data(&doc, i).map_err(|e| bad(&file, e))?;
+            let data = step_data(&doc, i).map_err(layout(&file))?;
             for (topic, d) in data {
                 out.write(&topic, t, &json!({"timestamp": stamp(t), "data": d}))?;
             }
@@ -753,7 +820,11 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
     for (i, (_, m)) in steps.iter().enumerate() {
         for (topic, v) in m {
             if topic == VR_CONTROLLER {
-                vr[i] = Some(teleop_state(v).map_err(|e| bad(path, format!("step {i}: /vr_controller: {e}")))?);
+                vr[i] = Some(
+                    teleop_state(v)
+                        .map_err(|source| DroidMcapError::VrController { step: i, source })
+                        .map_err(layout(path))?,
+                );
                 continue;
             }
             let data = if variant == Variant::Flat && topic == ROBOT_STATE {
@@ -790,15 +861,15 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
             if !data.is_object() {
                 return Err(bad(path, format!("step {i}: {topic}'s `data` is {data}, not an object of DROID's keys")));
             }
-            stacks.add(topic, &mut Vec::new(), &data, i).map_err(|e| bad(path, e))?;
+            stacks.add(topic, &mut Vec::new(), &data, i).map_err(layout(path))?;
         }
     }
-    stacks.into_doc(n, &mut doc).map_err(|e| bad(path, e))?;
+    stacks.into_doc(n, &mut doc).map_err(layout(path))?;
     if !flat_actions.is_empty() {
         if flat_actions.len() != n {
             return Err(bad(path, format!("/action is in {} of {n} steps", flat_actions.len())));
         }
-        derive_actions(&mut doc, &flat_actions, n).map_err(|e| bad(path, e))?;
+        derive_actions(&mut doc, &flat_actions, n).map_err(layout(path))?;
         warnings.push(
             "the action is DROID's 7-vector (cartesian velocity + gripper velocity); action/joint_position, \
              cartesian_position, gripper_position and joint_velocity are the next step's observed state"
@@ -843,12 +914,12 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
 
 /// The flat variant's 7-vector as DROID's action keys; the position targets DROID's raw files
 /// also carry are the next step's observed state (the last step: its own).
-fn derive_actions(doc: &mut H5Doc, a: &[Vec<f64>], n: usize) -> Result<(), String> {
-    let get = |key: &str, w: usize| -> Result<Vec<f64>, String> {
+fn derive_actions(doc: &mut H5Doc, a: &[Vec<f64>], n: usize) -> Result<(), DroidMcapError> {
+    let get = |key: &str, w: usize| -> Result<Vec<f64>, DroidMcapError> {
         match doc.datasets.get(&format!("observation/robot_state/{key}")) {
             Some(Column { data: Data::F64(v), .. }) if v.len() == n * w => Ok(v.clone()),
             Some(Column { data: Data::I64(v), .. }) if v.len() == n * w => Ok(v.iter().map(|x| *x as f64).collect()),
-            _ => Err(format!("/robot_state has no `{key}` of {w} numbers per step, which the flat action needs")),
+            _ => Err(DroidMcapError::NoStateForAction { key: key.to_owned(), width: w }),
         }
     };
     let (q, cart, g) = (get("joint_positions", 7)?, get("cartesian_position", 6)?, get("gripper_position", 1)?);
@@ -1077,13 +1148,14 @@ mod tests {
     fn a_missing_or_reshaped_leaf_is_named() {
         let mut s = Stacks::default();
         s.add("/robot_state", &mut Vec::new(), &json!({"q": [1.0, 2.0]}), 0).unwrap();
-        let e = s.add("/robot_state", &mut Vec::new(), &json!({"q": [1.0]}), 1).unwrap_err();
+        let e = s.add("/robot_state", &mut Vec::new(), &json!({"q": [1.0]}), 1).unwrap_err().to_string();
         assert!(e.contains("step 1: `observation/robot_state/q` has shape [1], earlier steps [2]"), "{e}");
-        let e = Stacks::default().add("/action", &mut Vec::new(), &json!({"x": [1.0, null]}), 0).unwrap_err();
+        let e =
+            Stacks::default().add("/action", &mut Vec::new(), &json!({"x": [1.0, null]}), 0).unwrap_err().to_string();
         assert!(e.contains("`action/x` is null"), "{e}");
         let mut s = Stacks::default();
         s.add("/action", &mut Vec::new(), &json!({"x": 1.0}), 0).unwrap();
-        let e = s.into_doc(2, &mut H5Doc::default()).unwrap_err();
+        let e = s.into_doc(2, &mut H5Doc::default()).unwrap_err().to_string();
         assert!(e.contains("`action/x` is in 1 of 2 steps"), "{e}");
     }
 

@@ -46,6 +46,13 @@ pub enum DroidError {
     /// The input is not what DROID's or labrig's format says; `reason` names what is wrong.
     #[error("{}: {reason}", path.display())]
     Bad { path: PathBuf, reason: String },
+    /// A DROID-layout MCAP's content does not fit the layout.
+    #[error("{}: {source}", path.display())]
+    Layout {
+        path: PathBuf,
+        #[source]
+        source: droid_mcap::DroidMcapError,
+    },
     #[error("{} holds this episode already: pass --overwrite to replace it", dir.display())]
     Exists { dir: PathBuf },
 }

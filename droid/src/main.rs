@@ -2,7 +2,7 @@
 //! run (a program of its own so only it links libhdf5 and runs ffmpeg).
 
 use clap::{Args, Parser, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use labrig_droid::droid_mcap::{ExportedMcap, ImportedMcap, export_mcap, find_droid_mcaps, import_mcap};
 use labrig_droid::export::{ExportOptions, Exported, export_episode};
 use labrig_droid::import::{ImportOptions, Imported, find_droid_episodes, import_episode};
@@ -89,16 +89,6 @@ struct BenchArgs {
     json: bool,
 }
 
-fn bar(n: usize, what: &str) -> ProgressBar {
-    let pb = ProgressBar::new(n as u64);
-    pb.set_style(
-        ProgressStyle::with_template(&format!("{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} episodes {{msg}}"))
-            .expect("template")
-            .progress_chars("=> "),
-    );
-    pb
-}
-
 /// The episodes `source` names: itself, or the episodes found under it.
 fn sources(
     source: &Path,
@@ -132,7 +122,11 @@ fn run_all<T: serde::Serialize>(
     steps_of: impl Fn(&T) -> usize,
 ) -> ExitCode {
     let started = Instant::now();
-    let pb = if items.len() > 1 && !json { bar(items.len(), what) } else { ProgressBar::hidden() };
+    let pb = if items.len() > 1 && !json {
+        labrig_episode::progress::bar(&format!("{what} {{bar:30}} {{pos}}/{{len}} episodes"), items.len() as u64, false)
+    } else {
+        ProgressBar::hidden()
+    };
     let (mut ok, mut failed, mut steps) = (0usize, 0usize, 0usize);
     for p in items {
         pb.set_message(p.display().to_string());

@@ -47,59 +47,82 @@ pub fn dirs_holding(root: &Path, marker: &str) -> Vec<PathBuf> {
     found
 }
 
+/// Why an argument names no labrig episodes; each says what to do.
+#[derive(Debug, thiserror::Error)]
+pub enum EpisodesOfError {
+    #[error("{}: {count} DROID raw episodes and no labrig ones: {hint}", arg.display())]
+    DroidRaw { arg: PathBuf, count: usize, hint: String },
+    #[error("{}: no episodes (directories holding episode_0.mcap) under it", arg.display())]
+    NoEpisodes { arg: PathBuf },
+    #[error("{}: no such episode directory or manifest", arg.display())]
+    NoSuchPath { arg: PathBuf },
+    #[error("reading the manifest {}: {source}", arg.display())]
+    ReadManifest { arg: PathBuf, source: std::io::Error },
+    #[error("{}: a JSON manifest needs `episodes` (labrig dataset retrieve writes one)", arg.display())]
+    NoEpisodesKey { arg: PathBuf },
+    #[error("{}: an episode without `path`: {entry}", arg.display())]
+    NoPath { arg: PathBuf, entry: serde_json::Value },
+    #[error("{}: {path} is {format} data: {hint}, and index those", arg.display())]
+    NotLabrig { arg: PathBuf, path: String, format: String, hint: String },
+    #[error("{}: lists {}, which does not exist", arg.display(), listed.display())]
+    Missing { arg: PathBuf, listed: PathBuf },
+    #[error("{}: the manifest lists no episodes", arg.display())]
+    Empty { arg: PathBuf },
+}
+
 /// The labrig episodes an argument names: an episode directory or MCAP file, a directory of
 /// episodes, or a manifest (a retrieval manifest JSON from `labrig dataset retrieve`, or a
 /// text file of paths, one a line, `#` comments; paths relative to the manifest). DROID data
 /// (raw or MCAP layout) is refused with the command that converts it.
-pub fn episodes_of(arg: &Path) -> Result<Vec<PathBuf>, String> {
+pub fn episodes_of(arg: &Path) -> Result<Vec<PathBuf>, EpisodesOfError> {
+    use EpisodesOfError as E;
     let convert = |format: &str, path: &str| match format {
         "droid_raw" => format!("convert it first with `labrig import droid {path} --out <episodes>`"),
         "droid_mcap" => format!("convert it first with `labrig import droid-mcap {path} --out <episodes>`"),
         other => format!("labrig cannot convert {other} data to episodes"),
     };
+    let arg_buf = || arg.to_owned();
     if arg.is_dir() {
         let found = find_episodes(arg);
         if found.is_empty() {
             let droid = dirs_holding(arg, "trajectory.h5");
             if !droid.is_empty() {
-                return Err(format!(
-                    "{}: {} DROID raw episodes and no labrig ones: {}",
-                    arg.display(),
-                    droid.len(),
-                    convert("droid_raw", &arg.display().to_string())
-                ));
+                return Err(E::DroidRaw {
+                    arg: arg_buf(),
+                    count: droid.len(),
+                    hint: convert("droid_raw", &arg.display().to_string()),
+                });
             }
-            return Err(format!("{}: no episodes (directories holding episode_0.mcap) under it", arg.display()));
+            return Err(E::NoEpisodes { arg: arg_buf() });
         }
         return Ok(found);
     }
     if !arg.is_file() {
-        return Err(format!("{}: no such episode directory or manifest", arg.display()));
+        return Err(E::NoSuchPath { arg: arg_buf() });
     }
     if arg.extension().is_some_and(|e| e == "mcap") {
         return Ok(vec![arg.to_owned()]);
     }
-    let text = std::fs::read_to_string(arg).map_err(|e| format!("reading the manifest {}: {e}", arg.display()))?;
+    let text = std::fs::read_to_string(arg).map_err(|source| E::ReadManifest { arg: arg_buf(), source })?;
     let base = arg.parent().unwrap_or(Path::new("."));
     let paths: Vec<PathBuf> = if let Ok(serde_json::Value::Object(m)) = serde_json::from_str::<serde_json::Value>(&text)
     {
         // A retrieval manifest: the episodes' paths and formats.
-        let episodes = m.get("episodes").and_then(|e| e.as_array()).ok_or_else(|| {
-            format!("{}: a JSON manifest needs `episodes` (labrig dataset retrieve writes one)", arg.display())
-        })?;
+        let episodes =
+            m.get("episodes").and_then(|e| e.as_array()).ok_or_else(|| E::NoEpisodesKey { arg: arg_buf() })?;
         let mut paths = Vec::new();
         for e in episodes {
-            let path =
-                e["path"].as_str().ok_or_else(|| format!("{}: an episode without `path`: {e}", arg.display()))?;
+            let path = e["path"].as_str().ok_or_else(|| E::NoPath { arg: arg_buf(), entry: e.clone() })?;
             match e["format"].as_str() {
                 Some("labrig") => paths.push(base.join(path)),
                 other => {
                     let format = other.unwrap_or("unknown");
-                    return Err(format!(
-                        "{}: {path} is {format} data: {}, and index those",
-                        arg.display(),
-                        convert(format, path)
-                    ));
+                    return Err(E::NotLabrig {
+                        arg: arg_buf(),
+                        path: path.to_owned(),
+                        format: format.to_owned(),
+                        hint: convert(format, path),
+                    });
                 }
             }
         }
@@ -108,10 +131,10 @@ pub fn episodes_of(arg: &Path) -> Result<Vec<PathBuf>, String> {
         text.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')).map(|l| base.join(l)).collect()
     };
     if let Some(p) = paths.iter().find(|p| !p.exists()) {
-        return Err(format!("{}: lists {}, which does not exist", arg.display(), p.display()));
+        return Err(E::Missing { arg: arg_buf(), listed: p.clone() });
     }
     if paths.is_empty() {
-        return Err(format!("{}: the manifest lists no episodes", arg.display()));
+        return Err(E::Empty { arg: arg_buf() });
     }
     Ok(paths)
 }

@@ -138,7 +138,7 @@ pub fn step_sources(steps: &[Step]) -> Option<StepSources> {
     let mut out = StepSources { policy_steps: 0, operator_steps: 0, takeovers: 0, takeover_segments: vec![] };
     let mut acting = false;
     for s in steps {
-        let operator = s.action_source != Step::SOURCE_POLICY && s.action_source != Step::SOURCE_NONE;
+        let operator = Step::is_operator(s.action_source);
         out.policy_steps += u64::from(s.action_source == Step::SOURCE_POLICY);
         if operator {
             out.operator_steps += 1;

@@ -8,8 +8,9 @@
 //! - [`jpeg`]: camera frames as JPEG.
 //! - [`judge`]: relabel (success <-> failure, `judged.json`) and trash, never rewriting a recording.
 //! - [`sheet`]: an episode's contact sheet (PNG).
+//! - [`progress`]: the progress bar every long-running tool shows.
 //!
-//! Depends on labrig-msgs, mcap, serde, chrono, jpeg-encoder. Must never depend on tokio, DDS,
+//! Depends on labrig-msgs, mcap, serde, chrono, jpeg-encoder, indicatif. Must never depend on tokio, DDS,
 //! iceoryx2 or the heavy native crates (checked by `tests/tests/layering.rs`): the trainer and the
 //! dataset tools read thousands of episodes with it.
 
@@ -23,6 +24,7 @@ pub mod inspect;
 pub mod jpeg;
 pub mod judge;
 pub mod metadata;
+pub mod progress;
 pub mod recover;
 pub mod sheet;
 

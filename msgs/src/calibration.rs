@@ -75,7 +75,9 @@ impl BoardSpec {
     }
 }
 
-/// A pinhole camera with OpenCV's distortion (k1 k2 p1 p2 k3 ...), pixel centres at integers.
+/// A pinhole camera of a `width` x `height` image with OpenCV's distortion (plumb_bob: k1 k2 p1
+/// p2 k3), ROS's pixel-centre convention (the centre of the top-left pixel is (0, 0)). The one
+/// intrinsics type: calibration files, the camera node's sources and configs, the sim.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Intrinsics {
@@ -87,8 +89,69 @@ pub struct Intrinsics {
     pub cy: f64,
     #[serde(default)]
     pub distortion: Vec<f64>,
-    /// Where they came from: `sim`, `zed-factory`, `realsense`, `calibrated`, ...
+    /// Where they came from: `sim`, `zed-factory`, `realsense`, `calibrated`, `config`, `file`
+    /// (empty in a file or config that does not say).
+    #[serde(default)]
     pub source: String,
+}
+
+/// Intrinsics asked for at a size of another aspect ratio than the sensor's.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "intrinsics for {have_w}x{have_h} do not scale to {want_w}x{want_h}: the aspect ratios differ ({:.3} vs {:.3})",
+    *have_w as f64 / *have_h as f64, *want_w as f64 / *want_h as f64
+)]
+pub struct AspectMismatch {
+    pub have_w: u32,
+    pub have_h: u32,
+    pub want_w: u32,
+    pub want_h: u32,
+}
+
+impl Intrinsics {
+    /// The same camera at `width` x `height` (the sensor read out at another resolution):
+    /// focal lengths scale with the size, the principal point keeps its place on the sensor
+    /// (`c' = (c + 0.5) s - 0.5` in pixel-centre coordinates); distortion does not change.
+    pub fn scaled(&self, width: u32, height: u32) -> Result<Intrinsics, AspectMismatch> {
+        if (width, height) == (self.width, self.height) {
+            return Ok(self.clone());
+        }
+        let (sx, sy) = (width as f64 / self.width as f64, height as f64 / self.height as f64);
+        if (sx / sy - 1.0).abs() > 0.01 {
+            return Err(AspectMismatch { have_w: self.width, have_h: self.height, want_w: width, want_h: height });
+        }
+        Ok(Intrinsics {
+            width,
+            height,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: (self.cx + 0.5) * sx - 0.5,
+            cy: (self.cy + 0.5) * sy - 0.5,
+            distortion: self.distortion.clone(),
+            source: self.source.clone(),
+        })
+    }
+
+    /// `sensor_msgs/CameraInfo` for a frame stamped `stamp` in the optical frame `frame_id`.
+    pub fn camera_info(
+        &self,
+        stamp: crate::builtin_interfaces::Time,
+        frame_id: &str,
+    ) -> crate::sensor_msgs::CameraInfo {
+        let mut d = self.distortion.clone();
+        d.resize(5, 0.0);
+        crate::sensor_msgs::CameraInfo {
+            header: crate::std_msgs::Header { stamp, frame_id: frame_id.to_owned() },
+            height: self.height,
+            width: self.width,
+            distortion_model: "plumb_bob".into(),
+            d,
+            k: [self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0],
+            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: [self.fx, 0.0, self.cx, 0.0, 0.0, self.fy, self.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            ..crate::sensor_msgs::CameraInfo::default()
+        }
+    }
 }
 
 /// How the camera is mounted, and so what its calibration is relative to.

@@ -628,6 +628,15 @@ impl Step {
     pub const SOURCE_POLICY: u8 = 2;
     pub const SOURCE_SCRIPTED: u8 = 3;
     pub const SOURCE_REPLAY: u8 = 4;
+
+    /// Whether a step with this action source is an operator's, not the policy's (nor an idle
+    /// tick's): the Quest's teleop, the scripted expert, or a replay. The one rule the loop,
+    /// the recorder, inspect, rollouts and the trainer use to tell an operator's correction
+    /// from the policy's own steps.
+    pub const fn is_operator(source: u8) -> bool {
+        matches!(source, Self::SOURCE_TELEOP | Self::SOURCE_SCRIPTED | Self::SOURCE_REPLAY)
+    }
+
     fn check_fields(&self) -> Result<(), Invalid> {
         if self.action_source > Self::SOURCE_REPLAY {
             return Err(Invalid::new("action_source", format!("unknown action source {}", self.action_source)));

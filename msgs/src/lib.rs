@@ -35,6 +35,17 @@ pub use invalid::Invalid;
 pub fn parse_only() -> bool {
     std::env::var_os("LABRIG_PARSE_ONLY").is_some_and(|v| !v.is_empty() && v != "0")
 }
+
+/// labrig's cache folder: `$LABRIG_CACHE`, else `~/.cache/labrig`, where `scripts/setup.sh`
+/// installs what the programs and tests use beside the clone (libtorch, MuJoCo, franka-sim,
+/// the Python peers' venvs); `None` when neither variable is set.
+pub fn cache_dir() -> Option<std::path::PathBuf> {
+    match std::env::var_os("LABRIG_CACHE") {
+        Some(p) if !p.is_empty() => Some(p.into()),
+        _ => std::env::var_os("HOME").map(|h| std::path::PathBuf::from(h).join(".cache/labrig")),
+    }
+}
+
 pub use registry::{TypeVisitor, known_types, visit_type};
 pub use time::{Nanos, builtin_interfaces};
 

@@ -14,10 +14,33 @@ pub enum CodecError {
     Msgpack(String),
     #[error("{key}: {why}")]
     Field { key: String, why: String },
+    #[error("{key}: {source}")]
+    Dtype {
+        key: String,
+        #[source]
+        source: DtypeError,
+    },
+}
+
+/// A dtype string that is not one numpy writes for the arrays labrig reads.
+#[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
+pub enum DtypeError {
+    #[error("dtype {dtype:?} is not numpy's dtype.str")]
+    NotDtypeStr { dtype: String },
+    #[error("dtype {dtype:?}: no byte order")]
+    NoByteOrder { dtype: String },
+    #[error("dtype {dtype:?}: no size")]
+    NoSize { dtype: String },
+    #[error("dtype {dtype:?}: labrig reads bool, int, uint and float32/64 arrays")]
+    Unsupported { dtype: String },
 }
 
 fn field(key: &str, why: impl Into<String>) -> CodecError {
     CodecError::Field { key: key.to_owned(), why: why.into() }
+}
+
+fn dtype_error(key: &str, source: DtypeError) -> CodecError {
+    CodecError::Dtype { key: key.to_owned(), source }
 }
 
 /// The element types numpy sends that labrig reads (bool, ints, floats).
@@ -42,23 +65,24 @@ impl Dtype {
     pub const F64: Dtype = Dtype { kind: Kind::Float, size: 8, big_endian: false };
     pub const U8: Dtype = Dtype { kind: Kind::Uint, size: 1, big_endian: false };
 
-    pub fn parse(s: &str) -> Result<Dtype, String> {
+    pub fn parse(s: &str) -> Result<Dtype, DtypeError> {
+        let dtype = || s.to_owned();
         let b = s.as_bytes();
         if b.len() < 3 {
-            return Err(format!("dtype {s:?} is not numpy's dtype.str"));
+            return Err(DtypeError::NotDtypeStr { dtype: dtype() });
         }
         let big_endian = match b[0] {
             b'<' | b'|' | b'=' => false,
             b'>' => true,
-            _ => return Err(format!("dtype {s:?}: no byte order")),
+            _ => return Err(DtypeError::NoByteOrder { dtype: dtype() }),
         };
-        let size: usize = s[2..].parse().map_err(|_| format!("dtype {s:?}: no size"))?;
+        let size: usize = s[2..].parse().map_err(|_| DtypeError::NoSize { dtype: dtype() })?;
         let kind = match (b[1], size) {
             (b'b', 1) => Kind::Bool,
             (b'i', 1 | 2 | 4 | 8) => Kind::Int,
             (b'u', 1 | 2 | 4 | 8) => Kind::Uint,
             (b'f', 4 | 8) => Kind::Float,
-            _ => return Err(format!("dtype {s:?}: labrig reads bool, int, uint and float32/64 arrays")),
+            _ => return Err(DtypeError::Unsupported { dtype: dtype() }),
         };
         Ok(Dtype { kind, size, big_endian })
     }
@@ -157,8 +181,8 @@ impl Array {
             return Err(field(key, format!("not a numpy array (no b\"__ndarray__\"): {}", brief(v))));
         }
         let dtype = match bin_get(v, "dtype") {
-            Some(Value::String(s)) => Dtype::parse(s.as_str().unwrap_or("")).map_err(|e| field(key, e))?,
-            Some(Value::Binary(b)) => Dtype::parse(&String::from_utf8_lossy(b)).map_err(|e| field(key, e))?,
+            Some(Value::String(s)) => Dtype::parse(s.as_str().unwrap_or("")).map_err(|e| dtype_error(key, e))?,
+            Some(Value::Binary(b)) => Dtype::parse(&String::from_utf8_lossy(b)).map_err(|e| dtype_error(key, e))?,
             _ => return Err(field(key, "array without a dtype")),
         };
         let shape = match bin_get(v, "shape") {
@@ -350,7 +374,7 @@ mod tests {
             let a = Array { dtype: d, shape: vec![1], data: bytes };
             assert_eq!(a.to_f64(), vec![want], "{s}");
         }
-        assert!(Dtype::parse("<c16").unwrap_err().contains("labrig reads"));
+        assert!(Dtype::parse("<c16").unwrap_err().to_string().contains("labrig reads"));
         assert!(Dtype::parse("O").is_err());
     }
 

@@ -20,6 +20,19 @@ pub const JOINT_POSITION: &str = "observation/joint_position";
 pub const GRIPPER_POSITION: &str = "observation/gripper_position";
 pub const PROMPT: &str = "prompt";
 
+/// A DROID action mode or reply that labrig cannot execute, named.
+#[derive(Debug, PartialEq, thiserror::Error)]
+pub enum DroidActionError {
+    #[error("action mode {mode:?}: expected \"joint_velocity\" (DROID's) or \"joint_position\"")]
+    UnknownMode { mode: String },
+    #[error(transparent)]
+    Codec(#[from] codec::CodecError),
+    #[error("actions of shape {shape:?}: expected (N, {width}) with N >= 1")]
+    Shape { shape: Vec<usize>, width: usize },
+    #[error("actions: row {row} column {column} is {value}")]
+    NotFinite { row: usize, column: usize, value: f64 },
+}
+
 /// What a remote policy's action rows mean.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ActionMode {
@@ -30,11 +43,11 @@ pub enum ActionMode {
 }
 
 impl ActionMode {
-    pub fn parse(s: &str) -> Result<ActionMode, String> {
+    pub fn parse(s: &str) -> Result<ActionMode, DroidActionError> {
         match s {
             "joint_velocity" => Ok(ActionMode::JointVelocity),
             "joint_position" => Ok(ActionMode::JointPosition),
-            other => Err(format!("action mode {other:?}: expected \"joint_velocity\" (DROID's) or \"joint_position\"")),
+            other => Err(DroidActionError::UnknownMode { mode: other.to_owned() }),
         }
     }
 }
@@ -119,13 +132,13 @@ pub fn resample(chunk: &[Row], q0: &[f64; 7], c: &ActionConvention, period_s: f6
 }
 
 /// The `actions` of a reply as N x `width` rows, its shape checked.
-pub fn action_rows(reply: &Value, width: usize) -> Result<Vec<Vec<f64>>, String> {
-    let (shape, values) = codec::numbers(reply, "actions").map_err(|e| e.to_string())?;
+pub fn action_rows(reply: &Value, width: usize) -> Result<Vec<Vec<f64>>, DroidActionError> {
+    let (shape, values) = codec::numbers(reply, "actions")?;
     if shape.len() != 2 || shape[1] != width || shape[0] == 0 {
-        return Err(format!("actions of shape {shape:?}: expected (N, {width}) with N >= 1"));
+        return Err(DroidActionError::Shape { shape, width });
     }
     if let Some(i) = values.iter().position(|x| !x.is_finite()) {
-        return Err(format!("actions: row {} column {} is {}", i / width, i % width, values[i]));
+        return Err(DroidActionError::NotFinite { row: i / width, column: i % width, value: values[i] });
     }
     Ok(values.chunks_exact(width).map(<[f64]>::to_vec).collect())
 }
@@ -218,11 +231,14 @@ mod tests {
         let ok = codec::map([("actions", Array::f32(&[2, 8], &[0.5; 16]).to_value())]);
         assert_eq!(action_rows(&ok, 8).unwrap().len(), 2);
         let wide = codec::map([("actions", Array::f32(&[2, 7], &[0.5; 14]).to_value())]);
-        assert_eq!(action_rows(&wide, 8).unwrap_err(), "actions of shape [2, 7]: expected (N, 8) with N >= 1");
+        assert_eq!(
+            action_rows(&wide, 8).unwrap_err().to_string(),
+            "actions of shape [2, 7]: expected (N, 8) with N >= 1"
+        );
         let nan =
             codec::map([("actions", Array::f32(&[1, 8], &[0.0, f32::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]).to_value())]);
-        assert_eq!(action_rows(&nan, 8).unwrap_err(), "actions: row 0 column 1 is NaN");
-        assert_eq!(action_rows(&codec::map([("x", Value::Nil)]), 8).unwrap_err(), "actions: missing");
+        assert_eq!(action_rows(&nan, 8).unwrap_err().to_string(), "actions: row 0 column 1 is NaN");
+        assert_eq!(action_rows(&codec::map([("x", Value::Nil)]), 8).unwrap_err().to_string(), "actions: missing");
     }
 
     #[test]

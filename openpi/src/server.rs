@@ -20,9 +20,25 @@ use tungstenite::{Message, WebSocket};
 pub trait Handler: Send + Sync + 'static {
     /// Per-connection state (e.g. a policy's observation history).
     type Session: Send + 'static;
+    /// Why a request fails; its text (`Display`) is what the client is sent.
+    type Error: std::error::Error;
     fn session(&self) -> Self::Session;
     /// The result map for one observation, or the error the client is sent.
-    fn infer(&self, session: &mut Self::Session, obs: Value) -> Result<Value, String>;
+    fn infer(&self, session: &mut Self::Session, obs: Value) -> Result<Value, Self::Error>;
+}
+
+/// Why a connection ended early (logged, never sent: the client sees the closed socket).
+#[derive(Debug, thiserror::Error)]
+enum ServerError {
+    #[error(transparent)]
+    Io(#[from] io::Error),
+    #[error("handshake: {0}")]
+    Handshake(#[source] tungstenite::Error),
+    /// The handshake's read timed out (the stream's read timeout) before the request was whole.
+    #[error("handshake: Interrupted handshake (WouldBlock)")]
+    HandshakeInterrupted,
+    #[error(transparent)]
+    WebSocket(#[from] tungstenite::Error),
 }
 
 /// Counters of a running server.
@@ -174,11 +190,10 @@ fn path_of(head: &[u8]) -> Option<String> {
     req.path.map(str::to_owned)
 }
 
-fn refuse_busy(mut stream: TcpStream) -> Result<(), String> {
+fn refuse_busy(mut stream: TcpStream) -> Result<(), ServerError> {
     let _ = read_head(&mut stream);
-    stream
-        .write_all(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 5\r\nConnection: close\r\n\r\nbusy\n")
-        .map_err(|e| e.to_string())
+    stream.write_all(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 5\r\nConnection: close\r\n\r\nbusy\n")?;
+    Ok(())
 }
 
 fn connection<H: Handler>(
@@ -188,25 +203,26 @@ fn connection<H: Handler>(
     handler: &H,
     metadata: &[u8],
     lock: &Mutex<()>,
-) -> Result<(), String> {
+) -> Result<(), ServerError> {
     let _ = stream.set_nodelay(true);
-    let head = read_head(&mut stream).map_err(|e| e.to_string())?;
+    let head = read_head(&mut stream)?;
     if path_of(&head).as_deref() == Some("/healthz") {
         counters.health_checks.fetch_add(1, Ordering::Relaxed);
-        return stream
-            .write_all(
-                b"HTTP/1.1 200 OK\r\nContent-Type: text/plain\r\nContent-Length: 3\r\nConnection: close\r\n\r\nOK\n",
-            )
-            .map_err(|e| e.to_string());
+        stream.write_all(
+            b"HTTP/1.1 200 OK\r\nContent-Type: text/plain\r\nContent-Length: 3\r\nConnection: close\r\n\r\nOK\n",
+        )?;
+        return Ok(());
     }
     let config = WebSocketConfig::default().max_message_size(None).max_frame_size(None);
-    let replay = Replay { head: io::Cursor::new(head), stream: stream.try_clone().map_err(|e| e.to_string())? };
-    let mut ws: WebSocket<Replay> =
-        tungstenite::accept_with_config(replay, Some(config)).map_err(|e| format!("handshake: {e}"))?;
+    let replay = Replay { head: io::Cursor::new(head), stream: stream.try_clone()? };
+    let mut ws: WebSocket<Replay> = tungstenite::accept_with_config(replay, Some(config)).map_err(|e| match e {
+        tungstenite::HandshakeError::Failure(e) => ServerError::Handshake(e),
+        tungstenite::HandshakeError::Interrupted(_) => ServerError::HandshakeInterrupted,
+    })?;
     counters.connections.fetch_add(1, Ordering::Relaxed);
     // Reads wake every 100 ms to notice the server stopping.
-    stream.set_read_timeout(Some(Duration::from_millis(100))).map_err(|e| e.to_string())?;
-    ws.send(Message::Binary(metadata.to_vec().into())).map_err(|e| e.to_string())?;
+    stream.set_read_timeout(Some(Duration::from_millis(100)))?;
+    ws.send(Message::Binary(metadata.to_vec().into()))?;
     let mut session = handler.session();
     let mut prev_total_ms: Option<f64> = None;
     loop {
@@ -223,12 +239,13 @@ fn connection<H: Handler>(
                 continue;
             }
             Err(tungstenite::Error::ConnectionClosed | tungstenite::Error::AlreadyClosed) => return Ok(()),
-            Err(e) => return Err(e.to_string()),
+            Err(e) => return Err(e.into()),
         };
         let bytes = match msg {
             Message::Binary(b) => b,
             Message::Text(_) => {
-                return fail(&mut ws, counters, "a text frame: openpi requests are binary msgpack frames".into());
+                fail(&mut ws, counters, "a text frame: openpi requests are binary msgpack frames");
+                return Ok(());
             }
             Message::Close(_) => {
                 // tungstenite answers the close; drive it out.
@@ -241,7 +258,10 @@ fn connection<H: Handler>(
         counters.requests.fetch_add(1, Ordering::Relaxed);
         let obs = match codec::unpack(&bytes) {
             Ok(v) => v,
-            Err(e) => return fail(&mut ws, counters, format!("the request is not msgpack: {e}")),
+            Err(e) => {
+                fail(&mut ws, counters, format_args!("the request is not msgpack: {e}"));
+                return Ok(());
+            }
         };
         let result = {
             let _one_at_a_time = lock.lock().unwrap_or_else(|p| p.into_inner());
@@ -250,20 +270,24 @@ fn connection<H: Handler>(
         };
         let (mut reply, infer_ms) = match result {
             Ok(r) => r,
-            Err(e) => return fail(&mut ws, counters, e),
+            Err(e) => {
+                // The handler's error crosses to the client as its text.
+                fail(&mut ws, counters, e);
+                return Ok(());
+            }
         };
         let mut timing = vec![(Value::from("infer_ms"), Value::F64(infer_ms))];
         if let Some(p) = prev_total_ms {
             timing.push((Value::from("prev_total_ms"), Value::F64(p)));
         }
         codec::set(&mut reply, "server_timing", Value::Map(timing));
-        ws.send(Message::Binary(codec::pack(&reply).into())).map_err(|e| e.to_string())?;
+        ws.send(Message::Binary(codec::pack(&reply).into()))?;
         prev_total_ms = Some(start.elapsed().as_secs_f64() * 1e3);
     }
 }
 
 /// openpi's error reply: the error as a text frame, then close 1011.
-fn fail<S: Read + Write>(ws: &mut WebSocket<S>, counters: &ServerCounters, error: String) -> Result<(), String> {
+fn fail<S: Read + Write>(ws: &mut WebSocket<S>, counters: &ServerCounters, error: impl std::fmt::Display) {
     counters.errors.fetch_add(1, Ordering::Relaxed);
     tracing::warn!("openpi request failed: {error}");
     let text = format!("Traceback (labrig-openpi server):\n{error}\n");
@@ -281,5 +305,4 @@ fn fail<S: Read + Write>(ws: &mut WebSocket<S>, counters: &ServerCounters, error
             Ok(_) => {}
         }
     }
-    Ok(())
 }

@@ -69,17 +69,12 @@ impl EpisodeTensors {
     /// A rollout with corrections: some steps the policy's, some an operator's (the Quest's
     /// teleop or the sim's expert standing in for one).
     pub fn is_correction(&self) -> bool {
-        self.source.contains(&Step::SOURCE_POLICY) && self.source.iter().any(|&s| is_operator(s))
+        self.source.contains(&Step::SOURCE_POLICY) && self.source.iter().any(|&s| Step::is_operator(s))
     }
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
-}
-
-/// An operator's step in a policy's rollout: the Quest's teleop or the scripted expert.
-pub fn is_operator(source: u8) -> bool {
-    source == Step::SOURCE_TELEOP || source == Step::SOURCE_SCRIPTED
 }
 
 /// xyz + euler xyz (DROID's `cartesian_position`) -> the rotation.

@@ -350,11 +350,7 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<ExitCode> {
         a.preset.clone()
     };
     let venv = a.lerobot_venv.clone().or_else(|| {
-        let cache = match std::env::var_os("LABRIG_CACHE") {
-            Some(c) => PathBuf::from(c),
-            None => PathBuf::from(std::env::var_os("HOME")?).join(".cache/labrig"),
-        };
-        let d = cache.join("venv-lerobot");
+        let d = labrig_msgs::cache_dir()?.join("venv-lerobot");
         d.join("bin/python").is_file().then_some(d)
     });
     let mut report = serde_json::Map::new();

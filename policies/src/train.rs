@@ -296,7 +296,8 @@ impl SampleSet {
         let mut offset = 0i64;
         for (e, ep) in episodes.iter().enumerate() {
             let keep = ep.len().saturating_sub(drop_last).max(1);
-            let operator: Vec<bool> = ep.source.iter().map(|&s| crate::data::is_operator(s)).collect();
+            let operator: Vec<bool> =
+                ep.source.iter().map(|&s| labrig_msgs::labrig_msgs::Step::is_operator(s)).collect();
             let missed = if skip_missed {
                 crate::data::missed_grasps(&ep.state, &ep.action, crate::data::GRIPPER_COLUMN)
             } else {
@@ -929,7 +930,7 @@ fn write_loss_csv(path: &Path, rows: &[LossRow]) -> Result<(), TrainError> {
 pub fn plot_loss(rows: &[LossRow], title: &str, path: &Path) -> Result<(), TrainError> {
     use plotters::prelude::*;
     let fail = |e: String| TrainError::Setup(format!("{}: plotting the loss curve: {e}", path.display()));
-    let font = labrig_episode::font::dejavu_sans().map_err(fail)?;
+    let font = labrig_episode::font::dejavu_sans().map_err(|e| fail(e.to_string()))?;
     let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, font);
     let train: Vec<(f64, f64)> = rows.iter().filter(|r| r.train > 0.0).map(|r| (r.step as f64, r.train)).collect();
     let val: Vec<(f64, f64)> =
@@ -978,37 +979,166 @@ pub fn plot_loss(rows: &[LossRow], title: &str, path: &Path) -> Result<(), Train
 pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
     let Preset { model, train: tc } = &opts.preset;
     let threads = tch::get_num_threads();
-    let group = opts.dist.as_deref();
-    let (rank, world) = group.map(|g| (g.rank, g.world)).unwrap_or((0, 1));
-    // Rank 0 alone writes the run's files; the others train beside it.
-    let lead = rank == 0;
+    let ranks = Ranks::of(opts.dist.as_deref());
     std::fs::create_dir_all(&opts.out).map_err(io(&opts.out, "creating the run directory"))?;
-    let dist_err = |e: crate::dist::DistError| TrainError::Setup(e.to_string());
-    let decode_started = Instant::now();
-    // Rank 0 decodes first and fills the frame cache; the others then read it.
-    if let (Some(g), false) = (group, lead) {
-        g.sum(0.0).map_err(dist_err)?;
+    let episodes = Episodes::load(opts, ranks)?;
+    let (mut trainer, last) = start_trainer(opts)?;
+    let sets = SampleSets::select(&episodes, model, opts.corrections, tc.skip_missed_grasps);
+    let (state_stats, action_stats, resumed_from) = normaliser_stats(&mut trainer, last.as_deref(), &episodes, &sets)?;
+    let counts = episodes.counts;
+    let manifest = episodes.into_manifest();
+    let stats = (&state_stats, &action_stats);
+    let w = if sets.cotrain.is_empty() { 1.0 } else { opts.w };
+    if let Some(g) = ranks.group {
+        trainer.share_weights(g).map_err(dist_err)?;
     }
-    let progress = opts.progress && lead;
-    let (target, skipped_t) =
-        load_set(&opts.target, model, Some(&opts.cache), opts.include_failures, progress, "target")?;
-    let (cotrain, skipped_c) =
-        load_set(&opts.cotrain, model, Some(&opts.cache), opts.include_failures, progress, "co-training")?;
-    if let (Some(g), true) = (group, lead) {
-        g.sum(0.0).map_err(dist_err)?;
+    // Every rank draws the same global batch (world x batch size) and trains on its slice.
+    let mut sampler = CotrainSampler::new(sets.train.len(), sets.cotrain.len(), w, tc.seed ^ trainer.step)?;
+    // Rank 0 validates (every rank holds the same held-out split; the others skip it).
+    let empty = SampleSet::new(&[], model);
+    let validation = Validation::new(
+        if ranks.lead { &sets.val } else { &empty },
+        stats,
+        model,
+        tc.val_samples,
+        tc.batch_size,
+        tc.seed,
+    )?;
+    let csv = opts.out.join("loss.csv");
+    let mut log = if resumed_from.is_some() { read_loss_csv(&csv, trainer.step) } else { Vec::new() };
+    let total = total_steps(opts.length, sets.train.len(), tc.batch_size * ranks.world);
+    let mut ckpt = Checkpointer {
+        dir: opts.out.join("checkpoints"),
+        model,
+        state_stats: &state_stats,
+        action_stats: &action_stats,
+        manifest,
+        lead: ranks.lead,
+        last: last.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "none yet".into()),
+    };
+    let first_val = first_validation(&validation, &trainer, &action_stats, model, &mut log)?;
+    let training = Training {
+        opts,
+        ranks,
+        sets: &sets,
+        stats,
+        validation: &validation,
+        total,
+        warmup: tc.warmup_steps.min(total as usize / 10),
+        csv: &csv,
+        first_val,
+        w,
+        counts,
+        resumed_from,
+        threads,
+    };
+    training.print_banner();
+    let tally = training.train(&mut trainer, &mut sampler, &mut ckpt, &mut log)?;
+    let (ranks_weight_diff, checkpoint) = training.finish(&trainer, &mut ckpt, &log)?;
+    let report = training.report(&trainer, &sampler, &tally, ranks_weight_diff, checkpoint);
+    if !ranks.lead {
+        return Ok(report);
     }
-    let decode_s = decode_started.elapsed().as_secs_f64();
-    if target.is_empty() {
-        return Err(TrainError::Setup(format!(
-            "no successful target episodes among {} found ({} unsuccessful skipped; --include-failures trains on them)",
-            opts.target.len(),
-            skipped_t
-        )));
-    }
-    let (train_eps, val_eps) = split(target, tc.val_fraction, tc.seed);
-    let (n_train, n_val, n_co) = (train_eps.len(), val_eps.len(), cotrain.len());
+    write_run_json(&opts.out, &report)?;
+    Ok(report)
+}
 
-    let mut trainer = Trainer::new(model, tc)?;
+/// A data-parallel failure as the run's error.
+fn dist_err(e: crate::dist::DistError) -> TrainError {
+    TrainError::Setup(e.to_string())
+}
+
+/// This process's place in a data-parallel group (rank 0 of 1 without one).
+#[derive(Clone, Copy)]
+struct Ranks<'a> {
+    group: Option<&'a crate::dist::Group>,
+    rank: usize,
+    world: usize,
+    /// Rank 0 alone writes the run's files; the others train beside it.
+    lead: bool,
+}
+
+impl Ranks<'_> {
+    /// The ranks of `group`, or a single process's.
+    fn of(group: Option<&crate::dist::Group>) -> Ranks<'_> {
+        let (rank, world) = group.map(|g| (g.rank, g.world)).unwrap_or((0, 1));
+        Ranks { group, rank, world, lead: rank == 0 }
+    }
+}
+
+/// How many episodes went where, and how long decoding them took.
+#[derive(Clone, Copy)]
+struct EpisodeCounts {
+    train: usize,
+    val: usize,
+    cotrain: usize,
+    /// Unsuccessful episodes left out (target and co-training).
+    skipped: usize,
+    decode_s: f64,
+}
+
+/// The decoded episodes: the target's split into training and validation, and the
+/// co-training set.
+struct Episodes {
+    train: Vec<EpisodeTensors>,
+    val: Vec<EpisodeTensors>,
+    cotrain: Vec<EpisodeTensors>,
+    counts: EpisodeCounts,
+}
+
+impl Episodes {
+    /// Decodes the target and co-training episodes (rank 0 first, filling the frame cache the
+    /// others then read) and splits the target's for validation.
+    fn load(opts: &RunOptions, ranks: Ranks<'_>) -> Result<Episodes, TrainError> {
+        let Preset { model, train: tc } = &opts.preset;
+        let decode_started = Instant::now();
+        // Rank 0 decodes first and fills the frame cache; the others then read it.
+        if let (Some(g), false) = (ranks.group, ranks.lead) {
+            g.sum(0.0).map_err(dist_err)?;
+        }
+        let progress = opts.progress && ranks.lead;
+        let (target, skipped_t) =
+            load_set(&opts.target, model, Some(&opts.cache), opts.include_failures, progress, "target")?;
+        let (cotrain, skipped_c) =
+            load_set(&opts.cotrain, model, Some(&opts.cache), opts.include_failures, progress, "co-training")?;
+        if let (Some(g), true) = (ranks.group, ranks.lead) {
+            g.sum(0.0).map_err(dist_err)?;
+        }
+        let decode_s = decode_started.elapsed().as_secs_f64();
+        if target.is_empty() {
+            return Err(TrainError::Setup(format!(
+                "no successful target episodes among {} found ({} unsuccessful skipped; --include-failures trains on them)",
+                opts.target.len(),
+                skipped_t
+            )));
+        }
+        let (train, val) = split(target, tc.val_fraction, tc.seed);
+        let counts = EpisodeCounts {
+            train: train.len(),
+            val: val.len(),
+            cotrain: cotrain.len(),
+            skipped: skipped_t + skipped_c,
+            decode_s,
+        };
+        Ok(Episodes { train, val, cotrain, counts })
+    }
+
+    /// The training and co-training episodes (what the normaliser is fitted on).
+    fn trained(&self) -> impl Iterator<Item = &EpisodeTensors> {
+        self.train.iter().chain(&self.cotrain)
+    }
+
+    /// Every episode's uuid (the checkpoints' manifest); the episodes themselves are dropped.
+    fn into_manifest(self) -> Vec<String> {
+        self.train.iter().chain(&self.val).chain(&self.cotrain).map(|e| e.uuid.clone()).collect()
+    }
+}
+
+/// A fresh trainer, and the checkpoint `--resume` continues from: refuses to start over a
+/// run already in `--out`, and a config that cannot skip missed grasps.
+fn start_trainer(opts: &RunOptions) -> Result<(Trainer, Option<PathBuf>), TrainError> {
+    let Preset { model, train: tc } = &opts.preset;
+    let trainer = Trainer::new(model, tc)?;
     let last = if opts.resume { last_checkpoint(&opts.out) } else { None };
     if !opts.resume && last_checkpoint(&opts.out).is_some() {
         return Err(TrainError::Setup(format!(
@@ -1024,99 +1154,140 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
             "skip_missed_grasps reads the gripper's opening from the state: set gripper_state = true".into(),
         ));
     }
-    let skip = tc.skip_missed_grasps;
-    let train_set = SampleSet::selecting(&train_eps, model, opts.corrections, skip);
-    let val_set = SampleSet::selecting(&val_eps, model, Corrections::All, skip);
-    let co_set = SampleSet::selecting(&cotrain, model, opts.corrections, skip);
-    let (missed_grasps, mistake_windows) =
-        (train_set.missed_grasps + co_set.missed_grasps, train_set.mistake_windows + co_set.mistake_windows);
-    if skip {
-        eprintln!(
-            "skip_missed_grasps: {missed_grasps} missed grasps in the training episodes, {mistake_windows} windows holding their mistake left out ({} kept)",
-            train_set.len() + co_set.len()
-        );
-    }
-    let corrections: Vec<&EpisodeTensors> = train_eps.iter().chain(&cotrain).filter(|e| e.is_correction()).collect();
-    let correction_episodes = corrections.len();
-    let correction_samples = corrections
-        .iter()
-        .map(|e| SampleSet::selecting(std::slice::from_ref(*e), model, opts.corrections, skip).len())
-        .sum::<usize>();
-    drop(corrections);
-    let (state_stats, action_stats, resumed_from) = match &last {
-        Some(dir) => {
-            let meta = trainer.restore(dir)?;
-            let now: std::collections::BTreeSet<&String> =
-                train_eps.iter().chain(&val_eps).chain(&cotrain).map(|e| &e.uuid).collect();
-            if now != meta.manifest.iter().collect() {
-                eprintln!(
-                    "warning: resuming on other episodes than the checkpoint's ({} now, {} then); its normaliser statistics are kept",
-                    now.len(),
-                    meta.manifest.len()
-                );
-            }
-            (meta.state_stats, meta.action_stats, Some(meta.step))
-        }
-        None => {
-            let rows = |f: &dyn Fn(&EpisodeTensors) -> &Tensor| -> Vec<Vec<f32>> {
-                train_eps.iter().chain(&cotrain).flat_map(|e| SampleSet::rows_of(f(e))).collect()
-            };
-            let s = rows(&|e| &e.state);
-            let a: Vec<Vec<f32>> =
-                train_set.action_rows_for_stats().into_iter().chain(co_set.action_rows_for_stats()).collect();
-            (MinMax::fit(s.iter().map(Vec::as_slice))?, MinMax::fit(a.iter().map(Vec::as_slice))?, None)
-        }
-    };
-    let manifest: Vec<String> = train_eps.iter().chain(&val_eps).chain(&cotrain).map(|e| e.uuid.clone()).collect();
-    drop((train_eps, val_eps, cotrain));
-    let stats = (&state_stats, &action_stats);
-    let w = if co_set.is_empty() { 1.0 } else { opts.w };
-    if let Some(g) = group {
-        trainer.share_weights(g).map_err(dist_err)?;
-    }
-    // Every rank draws the same global batch (world x batch size) and trains on its slice.
-    let mut sampler = CotrainSampler::new(train_set.len(), co_set.len(), w, tc.seed ^ trainer.step)?;
-    // Rank 0 validates (every rank holds the same held-out split; the others skip it).
-    let empty = SampleSet::new(&[], model);
-    let validation =
-        Validation::new(if lead { &val_set } else { &empty }, stats, model, tc.val_samples, tc.batch_size, tc.seed)?;
+    Ok((trainer, last))
+}
 
-    let ckpt_dir = opts.out.join("checkpoints");
-    let csv = opts.out.join("loss.csv");
-    let mut log = if resumed_from.is_some() { read_loss_csv(&csv, trainer.step) } else { Vec::new() };
-    let total = match opts.length {
+/// The samples the run trains and validates on, and what choosing them found and left out.
+struct SampleSets {
+    train: SampleSet,
+    val: SampleSet,
+    cotrain: SampleSet,
+    missed_grasps: usize,
+    mistake_windows: usize,
+    correction_episodes: usize,
+    correction_samples: usize,
+}
+
+impl SampleSets {
+    /// The episodes' samples (correction episodes' chosen by `corrections`, validation's all),
+    /// with `skip` none holding a missed grasp's mistake, which it reports.
+    fn select(eps: &Episodes, model: &DiffusionConfig, corrections: Corrections, skip: bool) -> SampleSets {
+        let train = SampleSet::selecting(&eps.train, model, corrections, skip);
+        let val = SampleSet::selecting(&eps.val, model, Corrections::All, skip);
+        let cotrain = SampleSet::selecting(&eps.cotrain, model, corrections, skip);
+        let (missed_grasps, mistake_windows) =
+            (train.missed_grasps + cotrain.missed_grasps, train.mistake_windows + cotrain.mistake_windows);
+        if skip {
+            eprintln!(
+                "skip_missed_grasps: {missed_grasps} missed grasps in the training episodes, {mistake_windows} windows holding their mistake left out ({} kept)",
+                train.len() + cotrain.len()
+            );
+        }
+        let correction_eps: Vec<&EpisodeTensors> = eps.trained().filter(|e| e.is_correction()).collect();
+        let correction_episodes = correction_eps.len();
+        let correction_samples = correction_eps
+            .iter()
+            .map(|e| SampleSet::selecting(std::slice::from_ref(*e), model, corrections, skip).len())
+            .sum::<usize>();
+        SampleSets { train, val, cotrain, missed_grasps, mistake_windows, correction_episodes, correction_samples }
+    }
+}
+
+/// The normaliser's statistics (state, action) and the step resumed from: a resumed run's
+/// from its checkpoint (restoring `trainer` from it), a fresh run's fitted to its training
+/// samples.
+fn normaliser_stats(
+    trainer: &mut Trainer,
+    last: Option<&Path>,
+    eps: &Episodes,
+    sets: &SampleSets,
+) -> Result<(MinMax, MinMax, Option<u64>), TrainError> {
+    if let Some(dir) = last {
+        let meta = trainer.restore(dir)?;
+        let now: std::collections::BTreeSet<&String> =
+            eps.train.iter().chain(&eps.val).chain(&eps.cotrain).map(|e| &e.uuid).collect();
+        if now != meta.manifest.iter().collect() {
+            eprintln!(
+                "warning: resuming on other episodes than the checkpoint's ({} now, {} then); its normaliser statistics are kept",
+                now.len(),
+                meta.manifest.len()
+            );
+        }
+        return Ok((meta.state_stats, meta.action_stats, Some(meta.step)));
+    }
+    let s: Vec<Vec<f32>> = eps.trained().flat_map(|e| SampleSet::rows_of(&e.state)).collect();
+    let a: Vec<Vec<f32>> =
+        sets.train.action_rows_for_stats().into_iter().chain(sets.cotrain.action_rows_for_stats()).collect();
+    Ok((MinMax::fit(s.iter().map(Vec::as_slice))?, MinMax::fit(a.iter().map(Vec::as_slice))?, None))
+}
+
+/// The run's length in optimisation steps (`global_batch`: all ranks' samples per step).
+fn total_steps(length: Length, train_samples: usize, global_batch: usize) -> u64 {
+    match length {
         Length::Steps(n) => n as u64,
-        Length::Epochs(e) => (e * train_set.len() as f64 / (tc.batch_size * world) as f64).ceil() as u64,
-    };
-    let warmup = tc.warmup_steps.min(total as usize / 10);
-    let mut last_ckpt = last.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "none yet".into());
-    let save = |trainer: &Trainer, last_ckpt: &mut String| -> Result<PathBuf, TrainError> {
-        if !lead {
-            return Ok(ckpt_dir.join(format!("step_{}", trainer.step)));
+        Length::Epochs(e) => (e * train_samples as f64 / global_batch as f64).ceil() as u64,
+    }
+}
+
+/// Whether step `at` is due for what is done every `every` steps and at the run's end.
+// `%` as before (a zero interval panics; the CLI refuses one), not `is_multiple_of`.
+#[allow(clippy::manual_is_multiple_of)]
+fn due(at: u64, every: usize, total: u64) -> bool {
+    at % every as u64 == 0 || at == total
+}
+
+/// Saves checkpoints (rank 0 alone) and remembers the newest, which a refused step names.
+struct Checkpointer<'a> {
+    dir: PathBuf,
+    model: &'a DiffusionConfig,
+    state_stats: &'a MinMax,
+    action_stats: &'a MinMax,
+    manifest: Vec<String>,
+    lead: bool,
+    /// The newest checkpoint's directory, or "none yet".
+    last: String,
+}
+
+impl Checkpointer<'_> {
+    /// Saves `trainer` as `checkpoints/step_<n>` and points `checkpoints/last` at it (other
+    /// ranks only name the directory).
+    fn save(&mut self, trainer: &Trainer) -> Result<PathBuf, TrainError> {
+        if !self.lead {
+            return Ok(self.dir.join(format!("step_{}", trainer.step)));
         }
         let name = format!("step_{}", trainer.step);
-        let dir = ckpt_dir.join(&name);
+        let dir = self.dir.join(&name);
         let meta = CheckpointMeta {
             format: checkpoint::FORMAT,
-            config: model.clone(),
-            action_stats: action_stats.clone(),
-            state_stats: state_stats.clone(),
+            config: self.model.clone(),
+            action_stats: self.action_stats.clone(),
+            state_stats: self.state_stats.clone(),
             image_stats: Default::default(),
-            manifest: manifest.clone(),
+            manifest: self.manifest.clone(),
             step: trainer.step,
         };
         checkpoint::save(&dir, &meta, &trainer.vs, Some(&trainer.ema_vs))?;
-        let pointer = ckpt_dir.join("last");
-        let tmp = ckpt_dir.join(".last.tmp");
+        let pointer = self.dir.join("last");
+        let tmp = self.dir.join(".last.tmp");
         std::fs::write(&tmp, &name).map_err(io(&tmp, "writing"))?;
         std::fs::rename(&tmp, &pointer).map_err(io(&pointer, "moving into place"))?;
-        *last_ckpt = dir.display().to_string();
+        self.last = dir.display().to_string();
         Ok(dir)
-    };
+    }
+}
 
+/// The validation loss the run starts from: a fresh run's measured now (its step-0 row added
+/// to `log`), a resumed run's the first in its log.
+fn first_validation(
+    validation: &Validation,
+    trainer: &Trainer,
+    action_stats: &MinMax,
+    model: &DiffusionConfig,
+    log: &mut Vec<LossRow>,
+) -> Result<Option<f64>, TrainError> {
     let first_val = if trainer.step == 0 { validation.loss(&trainer.ema)? } else { log.iter().find_map(|r| r.val) };
     if trainer.step == 0 {
-        let open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
+        let open_loop_mm = validation.open_loop_mm(&trainer.ema, action_stats, model)?;
         let (waypoint_mm, first_waypoint_mm) = validation.waypoint_mm(&trainer.ema)?;
         log.push(LossRow {
             step: 0,
@@ -1128,50 +1299,167 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
             first_waypoint_mm,
         });
     }
-    let ranks = if world > 1 {
-        format!(", rank {rank} of {world} (global batch {})", tc.batch_size * world)
-    } else {
-        String::new()
-    };
-    println!(
-        "training {} ({} steps, batch {}{ranks}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {w}, {} threads",
-        if resumed_from.is_some() { "resumed" } else { "from scratch" },
-        total,
-        tc.batch_size,
-        n_train,
-        train_set.len(),
-        n_val,
-        n_co,
-        co_set.len(),
-        threads
-    );
-    let bar = if progress { indicatif::ProgressBar::new(total) } else { indicatif::ProgressBar::hidden() };
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  ETA {eta}")
-            .expect("a valid template"),
-    );
-    bar.set_position(trainer.step);
-    let (mut load_s, mut step_s, mut samples) = (0.0f64, 0.0f64, 0u64);
-    let mut last_train = f64::NAN;
-    let mut last_val = first_val;
-    let mut last_open_loop = log.iter().rev().find_map(|r| r.open_loop_mm);
-    let mut last_waypoint = log.iter().rev().find_map(|r| r.waypoint_mm);
-    let mut last_first_waypoint = log.iter().rev().find_map(|r| r.first_waypoint_mm);
-    use rand::{Rng, SeedableRng};
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(tc.seed.wrapping_add(trainer.step).wrapping_mul(0x9E37_79B9));
-    while trainer.step < total {
-        let t0 = Instant::now();
+    Ok(first_val)
+}
+
+/// What the training loop measured: its timings, and the latest losses and errors.
+struct Tally {
+    load_s: f64,
+    step_s: f64,
+    samples: u64,
+    last_train: f64,
+    last_val: Option<f64>,
+    last_open_loop: Option<f64>,
+    last_waypoint: Option<f64>,
+    last_first_waypoint: Option<f64>,
+}
+
+impl Tally {
+    /// Nothing timed yet; the latest figures are the start's and the log's.
+    fn new(first_val: Option<f64>, log: &[LossRow]) -> Tally {
+        Tally {
+            load_s: 0.0,
+            step_s: 0.0,
+            samples: 0,
+            last_train: f64::NAN,
+            last_val: first_val,
+            last_open_loop: log.iter().rev().find_map(|r| r.open_loop_mm),
+            last_waypoint: log.iter().rev().find_map(|r| r.waypoint_mm),
+            last_first_waypoint: log.iter().rev().find_map(|r| r.first_waypoint_mm),
+        }
+    }
+
+    /// The throughput so far (all ranks' samples).
+    fn samples_per_s(&self) -> f64 {
+        self.samples as f64 / self.step_s.max(1e-9)
+    }
+}
+
+/// What the training loop works with, set up by [`run`].
+struct Training<'a> {
+    opts: &'a RunOptions,
+    ranks: Ranks<'a>,
+    sets: &'a SampleSets,
+    stats: (&'a MinMax, &'a MinMax),
+    validation: &'a Validation,
+    total: u64,
+    warmup: usize,
+    csv: &'a Path,
+    first_val: Option<f64>,
+    w: f64,
+    counts: EpisodeCounts,
+    resumed_from: Option<u64>,
+    threads: i32,
+}
+
+impl Training<'_> {
+    /// The line that says what the run is about to do.
+    fn print_banner(&self) {
+        let (tc, world, c) = (&self.opts.preset.train, self.ranks.world, &self.counts);
+        let ranks = if world > 1 {
+            format!(", rank {} of {world} (global batch {})", self.ranks.rank, tc.batch_size * world)
+        } else {
+            String::new()
+        };
+        println!(
+            "training {} ({} steps, batch {}{ranks}): {} target episodes ({} samples) + {} held out for validation, {} co-training ({} samples), w = {}, {} threads",
+            if self.resumed_from.is_some() { "resumed" } else { "from scratch" },
+            self.total,
+            tc.batch_size,
+            c.train,
+            self.sets.train.len(),
+            c.val,
+            c.cotrain,
+            self.sets.cotrain.len(),
+            self.w,
+            self.threads
+        );
+    }
+
+    /// Steps `trainer` to the run's length: validates, logs and checkpoints as configured.
+    fn train(
+        &self,
+        trainer: &mut Trainer,
+        sampler: &mut CotrainSampler,
+        ckpt: &mut Checkpointer<'_>,
+        log: &mut Vec<LossRow>,
+    ) -> Result<Tally, TrainError> {
+        use rand::SeedableRng;
+        let (tc, model, world, lead) =
+            (&self.opts.preset.train, &self.opts.preset.model, self.ranks.world, self.ranks.lead);
+        let total = self.total;
+        let progress = self.opts.progress && lead;
+        let bar = if progress { indicatif::ProgressBar::new(total) } else { indicatif::ProgressBar::hidden() };
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  ETA {eta}")
+                .expect("a valid template"),
+        );
+        bar.set_position(trainer.step);
+        let mut tally = Tally::new(self.first_val, log);
+        let mut rng =
+            rand_chacha::ChaCha8Rng::seed_from_u64(tc.seed.wrapping_add(trainer.step).wrapping_mul(0x9E37_79B9));
+        while trainer.step < total {
+            let t0 = Instant::now();
+            let (batch, noise, t) = self.draw_batch(trainer.step, sampler, &mut rng)?;
+            let t1 = Instant::now();
+            let lr = tc.lr * lr_factor(trainer.step as usize, self.warmup, total as usize);
+            let loss = trainer.step_in(&batch, lr, &noise, &t, self.ranks.group).map_err(|e| match e {
+                StepError::Refused(what, episodes) => {
+                    TrainError::NotFinite { step: trainer.step, what, episodes, last_checkpoint: ckpt.last.clone() }
+                }
+                StepError::Dist(e) => dist_err(e),
+            })?;
+            let t2 = Instant::now();
+            tally.load_s += (t1 - t0).as_secs_f64();
+            tally.step_s += (t2 - t0).as_secs_f64();
+            tally.samples += (tc.batch_size as i64 * world as i64) as u64;
+            tally.last_train = loss;
+            let at = trainer.step;
+            let mut row = LossRow {
+                step: at,
+                train: loss,
+                val: None,
+                lr,
+                open_loop_mm: None,
+                waypoint_mm: None,
+                first_waypoint_mm: None,
+            };
+            if lead && due(at, tc.val_every, total) {
+                self.validate(trainer, model, &mut row, &mut tally, &bar)?;
+            }
+            log.push(row);
+            if lead && due(at, tc.checkpoint_every, total) {
+                ckpt.save(trainer)?;
+                write_loss_csv(self.csv, log)?;
+            }
+            bar.set_message(format!("loss {loss:.4}  {:.1} samples/s", tally.samples_per_s()));
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        Ok(tally)
+    }
+
+    /// This rank's slice of the step's global batch (the target's samples, then the
+    /// co-training set's), with the noise and timesteps one process with the whole batch
+    /// would give those samples.
+    fn draw_batch(
+        &self,
+        step: u64,
+        sampler: &mut CotrainSampler,
+        rng: &mut rand_chacha::ChaCha8Rng,
+    ) -> Result<(Batch, Tensor, Vec<i64>), TrainError> {
+        use rand::Rng;
+        let (tc, model, rank, world) =
+            (&self.opts.preset.train, &self.opts.preset.model, self.ranks.rank, self.ranks.world);
         let b = tc.batch_size as i64;
         let global = sampler.batch(tc.batch_size * world);
         // Noise and timesteps belong to a draw of the global batch, so a rank's slice gets what
         // one process with the whole batch would give those samples.
-        tch::manual_seed(tc.seed.wrapping_mul(0x9E37_79B9).wrapping_add(trainer.step) as i64);
+        tch::manual_seed(tc.seed.wrapping_mul(0x9E37_79B9).wrapping_add(step) as i64);
         let noise_all = Tensor::randn([b * world as i64, model.horizon, model.action_dim], (Kind::Float, Device::Cpu));
         let t_all: Vec<i64> = (0..global.len()).map(|_| rng.random_range(0..model.train_steps as i64)).collect();
         // The random crops differ by rank.
-        tch::manual_seed(
-            tc.seed.wrapping_mul(0x85EB_CA6B).wrapping_add(trainer.step * world as u64 + rank as u64) as i64
-        );
+        tch::manual_seed(tc.seed.wrapping_mul(0x85EB_CA6B).wrapping_add(step * world as u64 + rank as u64) as i64);
         let mine = (rank * tc.batch_size)..((rank + 1) * tc.batch_size);
         let draws = &global[mine.clone()];
         // The batch holds the target's samples, then the co-training set's.
@@ -1188,131 +1476,137 @@ pub fn run(opts: &RunOptions) -> Result<RunReport, TrainError> {
         });
         let mut parts = Vec::new();
         if !ti.is_empty() {
-            parts.push(train_set.batch(&ti, stats)?);
+            parts.push(self.sets.train.batch(&ti, self.stats)?);
         }
         if !ci.is_empty() {
-            parts.push(co_set.batch(&ci, stats)?);
+            parts.push(self.sets.cotrain.batch(&ci, self.stats)?);
         }
         let batch = concat(parts);
         let rows_at: Vec<i64> = order.iter().map(|&k| (mine.start + k) as i64).collect();
         let noise = noise_all.index_select(0, &Tensor::from_slice(&rows_at));
         let t: Vec<i64> = order.iter().map(|&k| t_all[mine.start + k]).collect();
-        let t1 = Instant::now();
-        let lr = tc.lr * lr_factor(trainer.step as usize, warmup, total as usize);
-        let loss = trainer.step_in(&batch, lr, &noise, &t, group).map_err(|e| match e {
-            StepError::Refused(what, episodes) => {
-                TrainError::NotFinite { step: trainer.step, what, episodes, last_checkpoint: last_ckpt.clone() }
-            }
-            StepError::Dist(e) => dist_err(e),
-        })?;
-        let t2 = Instant::now();
-        load_s += (t1 - t0).as_secs_f64();
-        step_s += (t2 - t0).as_secs_f64();
-        samples += (b * world as i64) as u64;
-        last_train = loss;
-        let at = trainer.step;
-        let mut row = LossRow {
-            step: at,
-            train: loss,
-            val: None,
-            lr,
-            open_loop_mm: None,
-            waypoint_mm: None,
-            first_waypoint_mm: None,
+        Ok((batch, noise, t))
+    }
+
+    /// Rank 0's validation of the EMA weights after a step: fills `row`'s figures, keeps them
+    /// as the latest, and prints them above the progress bar.
+    fn validate(
+        &self,
+        trainer: &Trainer,
+        model: &DiffusionConfig,
+        row: &mut LossRow,
+        tally: &mut Tally,
+        bar: &indicatif::ProgressBar,
+    ) -> Result<(), TrainError> {
+        let (at, total, loss, lr) = (row.step, self.total, row.train, row.lr);
+        row.val = self.validation.loss(&trainer.ema)?;
+        row.open_loop_mm = self.validation.open_loop_mm(&trainer.ema, self.stats.1, model)?;
+        (row.waypoint_mm, row.first_waypoint_mm) = self.validation.waypoint_mm(&trainer.ema)?;
+        tally.last_val = row.val.or(tally.last_val);
+        tally.last_open_loop = row.open_loop_mm.or(tally.last_open_loop);
+        tally.last_waypoint = row.waypoint_mm.or(tally.last_waypoint);
+        tally.last_first_waypoint = row.first_waypoint_mm.or(tally.last_first_waypoint);
+        let fall = match (self.first_val, row.val) {
+            (Some(a), Some(b)) if b > 0.0 => format!(" ({:.1}x below the start)", a / b),
+            _ => String::new(),
         };
-        if lead && (at % tc.val_every as u64 == 0 || at == total) {
-            row.val = validation.loss(&trainer.ema)?;
-            row.open_loop_mm = validation.open_loop_mm(&trainer.ema, &action_stats, model)?;
-            (row.waypoint_mm, row.first_waypoint_mm) = validation.waypoint_mm(&trainer.ema)?;
-            last_val = row.val.or(last_val);
-            last_open_loop = row.open_loop_mm.or(last_open_loop);
-            last_waypoint = row.waypoint_mm.or(last_waypoint);
-            last_first_waypoint = row.first_waypoint_mm.or(last_first_waypoint);
-            let fall = match (first_val, row.val) {
-                (Some(a), Some(b)) if b > 0.0 => format!(" ({:.1}x below the start)", a / b),
-                _ => String::new(),
+        bar.suspend(|| {
+            let mm = |v: Option<f64>| v.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
+            let waypoint = match row.waypoint_mm {
+                Some(_) => format!(
+                    ", waypoint {} mm ({} mm at the first steps)",
+                    mm(row.waypoint_mm),
+                    mm(row.first_waypoint_mm)
+                ),
+                None => String::new(),
             };
-            bar.suspend(|| {
-                let mm = |v: Option<f64>| v.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
-                let waypoint = match row.waypoint_mm {
-                    Some(_) => format!(
-                        ", waypoint {} mm ({} mm at the first steps)",
-                        mm(row.waypoint_mm),
-                        mm(row.first_waypoint_mm)
-                    ),
-                    None => String::new(),
-                };
-                println!(
-                    "step {at}/{total}: train {loss:.4}, validation {}{fall}, open loop {} mm{waypoint}, lr {lr:.2e}, {:.1} samples/s",
-                    row.val.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
-                    mm(row.open_loop_mm),
-                    samples as f64 / step_s.max(1e-9)
-                )
-            });
-        }
-        log.push(row);
-        if lead && (at % tc.checkpoint_every as u64 == 0 || at == total) {
-            save(&trainer, &mut last_ckpt)?;
-            write_loss_csv(&csv, &log)?;
-        }
-        bar.set_message(format!("loss {loss:.4}  {:.1} samples/s", samples as f64 / step_s.max(1e-9)));
-        bar.inc(1);
+            println!(
+                "step {at}/{total}: train {loss:.4}, validation {}{fall}, open loop {} mm{waypoint}, lr {lr:.2e}, {:.1} samples/s",
+                row.val.map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
+                mm(row.open_loop_mm),
+                tally.samples_per_s()
+            )
+        });
+        Ok(())
     }
-    bar.finish_and_clear();
-    let ranks_weight_diff = match group {
-        None => None,
-        Some(g) => Some(trainer.weight_diff(g).map_err(dist_err)?),
-    };
-    let checkpoint = match last_checkpoint(&opts.out) {
-        Some(dir) => dir,
-        None => save(&trainer, &mut last_ckpt)?,
-    };
-    if lead {
-        write_loss_csv(&csv, &log)?;
-        let title = format!(
-            "labrig train: {} target + {} co-training episodes, w = {w}, batch {}",
-            n_train, n_co, tc.batch_size
-        );
-        if let Err(e) = plot_loss(&log, &title, &opts.out.join("loss.png")) {
-            eprintln!("warning: {e}");
+
+    /// The run's end: the ranks' weight check, the final checkpoint (the newest saved, or one
+    /// saved now), and rank 0's loss log and plot.
+    fn finish(
+        &self,
+        trainer: &Trainer,
+        ckpt: &mut Checkpointer<'_>,
+        log: &[LossRow],
+    ) -> Result<(Option<f64>, PathBuf), TrainError> {
+        let ranks_weight_diff = match self.ranks.group {
+            None => None,
+            Some(g) => Some(trainer.weight_diff(g).map_err(dist_err)?),
+        };
+        let checkpoint = match last_checkpoint(&self.opts.out) {
+            Some(dir) => dir,
+            None => ckpt.save(trainer)?,
+        };
+        if self.ranks.lead {
+            write_loss_csv(self.csv, log)?;
+            let title = format!(
+                "labrig train: {} target + {} co-training episodes, w = {}, batch {}",
+                self.counts.train, self.counts.cotrain, self.w, self.opts.preset.train.batch_size
+            );
+            if let Err(e) = plot_loss(log, &title, &self.opts.out.join("loss.png")) {
+                eprintln!("warning: {e}");
+            }
+        }
+        Ok((ranks_weight_diff, checkpoint))
+    }
+
+    /// The run's figures.
+    fn report(
+        &self,
+        trainer: &Trainer,
+        sampler: &CotrainSampler,
+        tally: &Tally,
+        ranks_weight_diff: Option<f64>,
+        checkpoint: PathBuf,
+    ) -> RunReport {
+        let (c, sets) = (&self.counts, self.sets);
+        RunReport {
+            steps: trainer.step,
+            resumed_from: self.resumed_from,
+            target_episodes: c.train,
+            val_episodes: c.val,
+            cotrain_episodes: c.cotrain,
+            skipped_unsuccessful: c.skipped,
+            correction_episodes: sets.correction_episodes,
+            correction_samples: sets.correction_samples,
+            missed_grasps: sets.missed_grasps,
+            mistake_windows: sets.mistake_windows,
+            w: self.w,
+            drawn_target: sampler.drawn_target,
+            drawn_cotrain: sampler.drawn_cotrain,
+            first_val_loss: self.first_val,
+            last_val_loss: tally.last_val,
+            last_open_loop_mm: tally.last_open_loop,
+            last_waypoint_mm: tally.last_waypoint,
+            last_first_waypoint_mm: tally.last_first_waypoint,
+            last_train_loss: tally.last_train,
+            samples_per_s: tally.samples_per_s(),
+            loader_share: tally.load_s / tally.step_s.max(1e-9),
+            decode_s: c.decode_s,
+            threads: self.threads,
+            world_size: self.ranks.world,
+            ranks_weight_diff,
+            allreduce_share: self.ranks.group.map(|_| trainer.comm_s / tally.step_s.max(1e-9)),
+            checkpoint,
         }
     }
-    let report = RunReport {
-        steps: trainer.step,
-        resumed_from,
-        target_episodes: n_train,
-        val_episodes: n_val,
-        cotrain_episodes: n_co,
-        skipped_unsuccessful: skipped_t + skipped_c,
-        correction_episodes,
-        correction_samples,
-        missed_grasps,
-        mistake_windows,
-        w,
-        drawn_target: sampler.drawn_target,
-        drawn_cotrain: sampler.drawn_cotrain,
-        first_val_loss: first_val,
-        last_val_loss: last_val,
-        last_open_loop_mm: last_open_loop,
-        last_waypoint_mm: last_waypoint,
-        last_first_waypoint_mm: last_first_waypoint,
-        last_train_loss: last_train,
-        samples_per_s: samples as f64 / step_s.max(1e-9),
-        loader_share: load_s / step_s.max(1e-9),
-        decode_s,
-        threads,
-        world_size: world,
-        ranks_weight_diff,
-        allreduce_share: group.map(|_| trainer.comm_s / step_s.max(1e-9)),
-        checkpoint,
-    };
-    if !lead {
-        return Ok(report);
-    }
-    let path = opts.out.join("run.json");
+}
+
+/// Writes `run.json` (the run's figures) into `out`.
+fn write_run_json(out: &Path, report: &RunReport) -> Result<(), TrainError> {
+    let path = out.join("run.json");
     let mut f = std::fs::File::create(&path).map_err(io(&path, "writing"))?;
-    f.write_all(serde_json::to_string_pretty(&report).unwrap_or_default().as_bytes()).map_err(io(&path, "writing"))?;
-    Ok(report)
+    f.write_all(serde_json::to_string_pretty(report).unwrap_or_default().as_bytes()).map_err(io(&path, "writing"))?;
+    Ok(())
 }
 
 /// One batch of several sets' samples.

@@ -14,7 +14,7 @@
 //! - [`replay`]: a recorded episode's actions replayed against its rebuilt scene.
 //!
 //! A library: no async runtime, DDS or shared memory (checked by `tests/tests/layering.rs`);
-//! the process that puts it behind the rig's topics is labrig-sim-bridge (`sim_bridge/`).
+//! the process that puts it behind the rig's topics is labrig-sim-bridge (`nodes/sim_bridge/`).
 //! Only this crate and the bridge link MuJoCo.
 
 pub mod expert;

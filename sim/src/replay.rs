@@ -15,7 +15,7 @@ use crate::expert::{euler_xyz, task_success};
 use crate::safety_filter;
 use crate::scene::SceneSpec;
 use crate::{ArmTarget, Meshes, Sim, SimError};
-use labrig_arm::safety::ArmView;
+use labrig_arm::safety::{ArmView, SafetyFilter};
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState, Step};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
@@ -164,167 +164,36 @@ fn recorded_scene(sim_scene: Option<&str>) -> Result<(SceneSpec, u64), ReplayErr
 
 /// Replays `a.episode` against its rebuilt scene and compares the states.
 pub fn replay(a: &ReplayOptions) -> Result<Report, ReplayError> {
-    let ep = labrig_episode::read_episode(&a.episode)?;
-    if ep.steps.is_empty() {
-        let hint = if ep.complete {
-            ""
-        } else {
-            " in its readable part (the file is unfinished or truncated; try `labrig recover`)"
-        };
-        return Err(ReplayError::NoSteps { file: ep.file.clone(), hint });
-    }
+    let ep = read_steps(a)?;
     let meta = ep.metadata.as_ref();
-    let (spec, seed) = match &a.scene {
-        Some(path) => {
-            let (spec, _) = crate::resolve_scene(Some(path), a.assets.as_deref())?;
-            let seed = match a.seed {
-                Some(s) => s,
-                None => recorded_scene(meta.and_then(|m| m.sim_scene.as_deref()))?.1,
-            };
-            (spec, seed)
-        }
-        None => {
-            let (spec, seed) = recorded_scene(meta.and_then(|m| m.sim_scene.as_deref()))?;
-            (spec, a.seed.unwrap_or(seed))
-        }
-    };
+    let (spec, seed) = scene_of(a, meta)?;
     let steps: &[Step] = &ep.steps;
-    for (k, s) in steps.iter().enumerate() {
-        if s.step_index != k as u64 {
-            return Err(ReplayError::MissingStep { file: ep.file.clone(), index: k, found: s.step_index });
-        }
-    }
-    let stamp = |s: &Step| Nanos::from(s.header.stamp).0;
-    let period = if steps.len() > 1 { Nanos(stamp(&steps[1]) - stamp(&steps[0])) } else { Nanos::from_millis(50) };
-    if period.0 <= 0 {
-        return Err(ReplayError::SameStamp { file: ep.file.clone() });
-    }
-    let assets = crate::assets_dir(a.assets.as_deref());
-    let safety = safety_filter(period, None)?;
-    let build = || -> Result<Sim, ReplayError> {
-        let built = |source| ReplayError::Build { scene: spec.name.clone(), seed, source };
-        let mut sim = Sim::new(&assets, &spec, seed, period).map_err(built)?;
-        if a.cameras {
-            sim.enable_cameras(a.width, a.height, Meshes::Collision).map_err(built)?;
-        }
-        Ok(sim)
+    check_every_step(&ep.file, steps)?;
+    let period = recorded_period(&ep.file, steps)?;
+    let rig = ReplayRig {
+        a,
+        spec: &spec,
+        seed,
+        period,
+        assets: crate::assets_dir(a.assets.as_deref()),
+        safety: safety_filter(period, None)?,
     };
-    let sim_err = |what: String| move |source| ReplayError::Sim { what, source };
-    // The arm held after the scene loaded (the loop's hold: its measured joints, gripper open).
-    let hold = |sim: &mut Sim, commanded: &mut Option<[f64; 7]>| -> Result<(), ReplayError> {
-        let cmd = ArmCommand {
-            mode: ArmCommandMode::JointPosition as u8,
-            joint_position: commanded.unwrap_or_else(|| sim.joint_positions()),
-            ..Default::default()
-        };
-        let view =
-            ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
-        let ok = safety.filter(&cmd, &view, sim.time()).map_err(ReplayError::Hold)?;
-        let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
-        sim.check(&t).map_err(sim_err("holding".into()))?;
-        sim.step(&t).map_err(sim_err("holding".into()))?;
-        *commanded = Some(ok.joints);
-        Ok(())
-    };
-    let first = &steps[0].robot_state;
-    let distance = |sim: &Sim, r: &RobotState| {
-        let q = sim.joint_positions();
-        (0..7)
-            .map(|i| (q[i] - r.joint_positions[i]).abs())
-            .fold((sim.gripper_position() - r.gripper_position).abs(), f64::max)
-    };
-    // Align: how many held ticks after the scene loaded match the recorded first state best.
-    const MAX_ALIGN: usize = 20;
-    let mut sim = build()?;
-    let mut commanded = None;
-    let mut best = (distance(&sim, first), 0usize);
-    for k in 1..=MAX_ALIGN {
-        if best.0 == 0.0 {
-            break;
-        }
-        hold(&mut sim, &mut commanded)?;
-        let d = distance(&sim, first);
-        if d < best.0 {
-            best = (d, k);
-        }
-    }
-    let aligned = best.1;
-    if best.0 != 0.0 || commanded.is_some() {
-        sim = build()?;
-        commanded = None;
-        for _ in 0..aligned {
-            hold(&mut sim, &mut commanded)?;
-        }
-    }
+    let (mut sim, mut commanded, aligned) = rig.aligned_start(&steps[0].robot_state)?;
     let started = Instant::now();
-    let mut joint_err: Vec<Vec<f64>> = (0..7).map(|_| Vec::with_capacity(steps.len())).collect();
-    let (mut tcp_err, mut rot_err, mut grip_err) = (Vec::new(), Vec::new(), Vec::new());
-    let (mut tcp_recorded, mut tcp_replayed) = (Vec::new(), Vec::new());
+    let mut dev = Deviations::new(steps.len());
     let mut rgb = Vec::new();
     for (k, s) in steps.iter().enumerate() {
-        let r = &s.robot_state;
-        let q = sim.joint_positions();
-        for j in 0..7 {
-            joint_err[j].push((q[j] - r.joint_positions[j]).abs());
-        }
-        let (p, rot) = sim.tcp_pose();
-        let rot = Matrix3::from_row_slice(&rot);
-        let rec_p = [r.cartesian_position[0], r.cartesian_position[1], r.cartesian_position[2]];
-        tcp_err.push(((p[0] - rec_p[0]).powi(2) + (p[1] - rec_p[1]).powi(2) + (p[2] - rec_p[2]).powi(2)).sqrt());
-        let here = UnitQuaternion::from_rotation_matrix(&rotation(&euler_xyz(&rot)));
-        let rec = UnitQuaternion::from_rotation_matrix(&rotation(&r.cartesian_position[3..6]));
-        // 2 atan2(|v|, |w|) of the relative rotation: exact near zero, where acos is not.
-        let rel = here.inverse() * rec;
-        rot_err.push(2.0 * rel.imag().norm().atan2(rel.scalar().abs()));
-        grip_err.push((sim.gripper_position() - r.gripper_position).abs());
-        tcp_recorded.push(rec_p);
-        tcp_replayed.push(p);
-        // The recorded action through the bridge's path: safety layer, the sim's own check, one period.
-        let mut target = s.action.joint_position;
-        target[0] += a.perturb_joint1_rad;
-        let cmd = ArmCommand {
-            mode: ArmCommandMode::JointPosition as u8,
-            joint_position: target,
-            gripper_position: s.action.gripper_position,
-            ..Default::default()
-        };
-        let view =
-            ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
-        match safety.filter(&cmd, &view, sim.time()) {
-            Ok(ok) => {
-                let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
-                sim.check(&t).map_err(sim_err(format!("step {k}")))?;
-                sim.step(&t).map_err(sim_err(format!("step {k}")))?;
-                commanded = Some(ok.joints);
-            }
-            Err(e) => {
-                // Refused now (as it would be on the rig): the arm holds, the deviation shows.
-                tracing::warn!("step {k}: the recorded action is refused: {e}; holding");
-                hold(&mut sim, &mut commanded)?;
-            }
-        }
+        dev.compare(&sim, &s.robot_state);
+        rig.act(&mut sim, &mut commanded, k, s)?;
         if a.cameras {
-            for cam in crate::rig::CAMERAS {
-                sim.render_into(cam, &mut rgb).map_err(sim_err(format!("step {k}: rendering {cam}")))?;
-            }
+            rig.render(&mut sim, &mut rgb, k)?;
         }
     }
     let wall = started.elapsed().as_secs_f64().max(1e-9);
-    let joint_rad: Vec<Error> = joint_err.iter().map(|v| Error::of(v)).collect();
-    let (tcp_m, rotation_rad, gripper) = (Error::of(&tcp_err), Error::of(&rot_err), Error::of(&grip_err));
-    let mut exceeded = Vec::new();
-    let worst_joint = joint_rad.iter().map(|e| e.max).fold(0.0, f64::max);
-    for (what, value, limit) in [
-        ("joint", worst_joint, a.max_joint_error_rad),
-        ("tcp position", tcp_m.max, a.max_tcp_error_m),
-        ("tcp rotation", rotation_rad.max, a.max_rotation_error_rad),
-        ("gripper", gripper.max, a.max_gripper_error),
-    ] {
-        // NaN (a diverged replay) counts as exceeded.
-        if !matches!(value.partial_cmp(&limit), Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)) {
-            exceeded.push(format!("{what} error {value:.3e} > {limit:.3e}"));
-        }
-    }
+    let joint_rad: Vec<Error> = dev.joint.iter().map(|v| Error::of(v)).collect();
+    let (tcp_m, rotation_rad, gripper) = (Error::of(&dev.tcp), Error::of(&dev.rotation), Error::of(&dev.gripper));
+    let exceeded = exceeded(a, &joint_rad, tcp_m, rotation_rad, gripper);
+    let joint_error_rad = dev.largest_joint_errors();
     Ok(Report {
         episode: ep.file.clone(),
         scene: spec.name.clone(),
@@ -341,12 +210,252 @@ pub fn replay(a: &ReplayOptions) -> Result<Report, ReplayError> {
         steps_per_s: steps.len() as f64 / wall,
         cameras: a.cameras,
         exceeded,
-        tcp_recorded,
-        tcp_replayed,
-        joint_error_rad: (0..steps.len()).map(|k| (0..7).map(|j| joint_err[j][k]).fold(0.0, f64::max)).collect(),
-        tcp_error_m: tcp_err,
+        tcp_recorded: dev.tcp_recorded,
+        tcp_replayed: dev.tcp_replayed,
+        joint_error_rad,
+        tcp_error_m: dev.tcp,
         period_s: period.as_secs_f64(),
     })
+}
+
+/// The episode, which must hold steps to replay.
+fn read_steps(a: &ReplayOptions) -> Result<labrig_episode::EpisodeData, ReplayError> {
+    let ep = labrig_episode::read_episode(&a.episode)?;
+    if ep.steps.is_empty() {
+        let hint = if ep.complete {
+            ""
+        } else {
+            " in its readable part (the file is unfinished or truncated; try `labrig recover`)"
+        };
+        return Err(ReplayError::NoSteps { file: ep.file.clone(), hint });
+    }
+    Ok(ep)
+}
+
+/// The scene to rebuild and its seed: `--scene` / `--seed` where given, else the recorded ones.
+fn scene_of(
+    a: &ReplayOptions,
+    meta: Option<&labrig_episode::EpisodeMetadata>,
+) -> Result<(SceneSpec, u64), ReplayError> {
+    Ok(match &a.scene {
+        Some(path) => {
+            let (spec, _) = crate::resolve_scene(Some(path), a.assets.as_deref())?;
+            let seed = match a.seed {
+                Some(s) => s,
+                None => recorded_scene(meta.and_then(|m| m.sim_scene.as_deref()))?.1,
+            };
+            (spec, seed)
+        }
+        None => {
+            let (spec, seed) = recorded_scene(meta.and_then(|m| m.sim_scene.as_deref()))?;
+            (spec, a.seed.unwrap_or(seed))
+        }
+    })
+}
+
+/// Replay needs every step: each step's index must be its place.
+fn check_every_step(file: &std::path::Path, steps: &[Step]) -> Result<(), ReplayError> {
+    for (k, s) in steps.iter().enumerate() {
+        if s.step_index != k as u64 {
+            return Err(ReplayError::MissingStep { file: file.to_owned(), index: k, found: s.step_index });
+        }
+    }
+    Ok(())
+}
+
+/// The period the steps were recorded at (steps 0 and 1 apart; 50 ms for a single step).
+fn recorded_period(file: &std::path::Path, steps: &[Step]) -> Result<Nanos, ReplayError> {
+    let stamp = |s: &Step| Nanos::from(s.header.stamp).0;
+    let period = if steps.len() > 1 { Nanos(stamp(&steps[1]) - stamp(&steps[0])) } else { Nanos::from_millis(50) };
+    if period.0 <= 0 {
+        return Err(ReplayError::SameStamp { file: file.to_owned() });
+    }
+    Ok(period)
+}
+
+/// A step of the sim that failed, as the replay's error, saying `what` was being done.
+fn sim_err(what: String) -> impl FnOnce(SimError) -> ReplayError {
+    move |source| ReplayError::Sim { what, source }
+}
+
+/// The rebuilt rig: the scene's physics behind the bridge's safety layer.
+struct ReplayRig<'a> {
+    a: &'a ReplayOptions,
+    spec: &'a SceneSpec,
+    seed: u64,
+    period: Nanos,
+    assets: PathBuf,
+    safety: SafetyFilter,
+}
+
+impl ReplayRig<'_> {
+    /// The scene built afresh (its cameras enabled when asked).
+    fn build(&self) -> Result<Sim, ReplayError> {
+        let built = |source| ReplayError::Build { scene: self.spec.name.clone(), seed: self.seed, source };
+        let mut sim = Sim::new(&self.assets, self.spec, self.seed, self.period).map_err(built)?;
+        if self.a.cameras {
+            sim.enable_cameras(self.a.width, self.a.height, Meshes::Collision).map_err(built)?;
+        }
+        Ok(sim)
+    }
+
+    /// One tick of the arm held after the scene loaded (the loop's hold: its measured joints,
+    /// gripper open).
+    fn hold(&self, sim: &mut Sim, commanded: &mut Option<[f64; 7]>) -> Result<(), ReplayError> {
+        let cmd = ArmCommand {
+            mode: ArmCommandMode::JointPosition as u8,
+            joint_position: commanded.unwrap_or_else(|| sim.joint_positions()),
+            ..Default::default()
+        };
+        let view =
+            ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
+        let ok = self.safety.filter(&cmd, &view, sim.time()).map_err(ReplayError::Hold)?;
+        let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+        sim.check(&t).map_err(sim_err("holding".into()))?;
+        sim.step(&t).map_err(sim_err("holding".into()))?;
+        *commanded = Some(ok.joints);
+        Ok(())
+    }
+
+    /// Align: the scene held as many ticks after it loaded as match the recorded `first` state
+    /// best (rebuilt for that when the search moved it); the sim, its commanded joints and the
+    /// ticks held.
+    fn aligned_start(&self, first: &RobotState) -> Result<(Sim, Option<[f64; 7]>, usize), ReplayError> {
+        const MAX_ALIGN: usize = 20;
+        let distance = |sim: &Sim, r: &RobotState| {
+            let q = sim.joint_positions();
+            (0..7)
+                .map(|i| (q[i] - r.joint_positions[i]).abs())
+                .fold((sim.gripper_position() - r.gripper_position).abs(), f64::max)
+        };
+        let mut sim = self.build()?;
+        let mut commanded = None;
+        let mut best = (distance(&sim, first), 0usize);
+        for k in 1..=MAX_ALIGN {
+            if best.0 == 0.0 {
+                break;
+            }
+            self.hold(&mut sim, &mut commanded)?;
+            let d = distance(&sim, first);
+            if d < best.0 {
+                best = (d, k);
+            }
+        }
+        let aligned = best.1;
+        if best.0 != 0.0 || commanded.is_some() {
+            sim = self.build()?;
+            commanded = None;
+            for _ in 0..aligned {
+                self.hold(&mut sim, &mut commanded)?;
+            }
+        }
+        Ok((sim, commanded, aligned))
+    }
+
+    /// Step `k`'s recorded action through the bridge's path: safety layer, the sim's own check,
+    /// one period; refused now (as it would be on the rig), the arm holds and the deviation shows.
+    fn act(&self, sim: &mut Sim, commanded: &mut Option<[f64; 7]>, k: usize, s: &Step) -> Result<(), ReplayError> {
+        let mut target = s.action.joint_position;
+        target[0] += self.a.perturb_joint1_rad;
+        let cmd = ArmCommand {
+            mode: ArmCommandMode::JointPosition as u8,
+            joint_position: target,
+            gripper_position: s.action.gripper_position,
+            ..Default::default()
+        };
+        let view =
+            ArmView { measured: sim.joint_positions(), commanded: commanded.unwrap_or_else(|| sim.joint_targets()) };
+        match self.safety.filter(&cmd, &view, sim.time()) {
+            Ok(ok) => {
+                let t = ArmTarget { joints: ok.joints, gripper: ok.gripper };
+                sim.check(&t).map_err(sim_err(format!("step {k}")))?;
+                sim.step(&t).map_err(sim_err(format!("step {k}")))?;
+                *commanded = Some(ok.joints);
+            }
+            Err(e) => {
+                tracing::warn!("step {k}: the recorded action is refused: {e}; holding");
+                self.hold(sim, commanded)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Step `k`'s five camera images rendered (for the speed figure), into `rgb`.
+    fn render(&self, sim: &mut Sim, rgb: &mut Vec<u8>, k: usize) -> Result<(), ReplayError> {
+        for cam in crate::rig::CAMERAS {
+            sim.render_into(cam, rgb).map_err(sim_err(format!("step {k}: rendering {cam}")))?;
+        }
+        Ok(())
+    }
+}
+
+/// The replayed state against the recorded one, per step.
+struct Deviations {
+    /// Per joint, per step (rad).
+    joint: Vec<Vec<f64>>,
+    /// TCP position (m), TCP rotation (rad), gripper.
+    tcp: Vec<f64>,
+    rotation: Vec<f64>,
+    gripper: Vec<f64>,
+    tcp_recorded: Vec<[f64; 3]>,
+    tcp_replayed: Vec<[f64; 3]>,
+}
+
+impl Deviations {
+    fn new(steps: usize) -> Deviations {
+        Deviations {
+            joint: (0..7).map(|_| Vec::with_capacity(steps)).collect(),
+            tcp: Vec::new(),
+            rotation: Vec::new(),
+            gripper: Vec::new(),
+            tcp_recorded: Vec::new(),
+            tcp_replayed: Vec::new(),
+        }
+    }
+
+    /// `sim`'s state before a step's action compared with the recorded `r`: joints, TCP
+    /// position and orientation, gripper.
+    fn compare(&mut self, sim: &Sim, r: &RobotState) {
+        let q = sim.joint_positions();
+        for (j, errors) in self.joint.iter_mut().enumerate() {
+            errors.push((q[j] - r.joint_positions[j]).abs());
+        }
+        let (p, rot) = sim.tcp_pose();
+        let rot = Matrix3::from_row_slice(&rot);
+        let rec_p = [r.cartesian_position[0], r.cartesian_position[1], r.cartesian_position[2]];
+        self.tcp.push(((p[0] - rec_p[0]).powi(2) + (p[1] - rec_p[1]).powi(2) + (p[2] - rec_p[2]).powi(2)).sqrt());
+        let here = UnitQuaternion::from_rotation_matrix(&rotation(&euler_xyz(&rot)));
+        let rec = UnitQuaternion::from_rotation_matrix(&rotation(&r.cartesian_position[3..6]));
+        // 2 atan2(|v|, |w|) of the relative rotation: exact near zero, where acos is not.
+        let rel = here.inverse() * rec;
+        self.rotation.push(2.0 * rel.imag().norm().atan2(rel.scalar().abs()));
+        self.gripper.push((sim.gripper_position() - r.gripper_position).abs());
+        self.tcp_recorded.push(rec_p);
+        self.tcp_replayed.push(p);
+    }
+
+    /// The largest joint error of each step.
+    fn largest_joint_errors(&self) -> Vec<f64> {
+        (0..self.joint[0].len()).map(|k| (0..7).map(|j| self.joint[j][k]).fold(0.0, f64::max)).collect()
+    }
+}
+
+/// The tolerances the errors exceed, said (a NaN, a diverged replay, counts as exceeded).
+fn exceeded(a: &ReplayOptions, joint_rad: &[Error], tcp_m: Error, rotation_rad: Error, gripper: Error) -> Vec<String> {
+    let mut exceeded = Vec::new();
+    let worst_joint = joint_rad.iter().map(|e| e.max).fold(0.0, f64::max);
+    for (what, value, limit) in [
+        ("joint", worst_joint, a.max_joint_error_rad),
+        ("tcp position", tcp_m.max, a.max_tcp_error_m),
+        ("tcp rotation", rotation_rad.max, a.max_rotation_error_rad),
+        ("gripper", gripper.max, a.max_gripper_error),
+    ] {
+        // NaN (a diverged replay) counts as exceeded.
+        if !matches!(value.partial_cmp(&limit), Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)) {
+            exceeded.push(format!("{what} error {value:.3e} > {limit:.3e}"));
+        }
+    }
+    exceeded
 }
 
 /// The report as the text `labrig replay` prints.
@@ -383,7 +492,7 @@ pub fn text(r: &Report) -> String {
 fn register_font() -> Result<(), FontMissing> {
     static DONE: std::sync::OnceLock<Result<(), FontMissing>> = std::sync::OnceLock::new();
     DONE.get_or_init(|| {
-        let bytes = labrig_episode::font::dejavu_sans().map_err(FontMissing)?;
+        let bytes = labrig_episode::font::dejavu_sans().map_err(|e| FontMissing(e.to_string()))?;
         plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
             .map_err(|_| FontMissing("DejaVuSans.ttf is not a font ab_glyph can read".into()))
     })

@@ -18,10 +18,7 @@ pub fn repo_root() -> PathBuf {
 
 /// The setup cache (`$LABRIG_CACHE`, default `~/.cache/labrig`).
 pub fn cache_dir() -> PathBuf {
-    match std::env::var_os("LABRIG_CACHE") {
-        Some(p) => PathBuf::from(p),
-        None => PathBuf::from(std::env::var_os("HOME").expect("HOME is set")).join(".cache/labrig"),
-    }
+    labrig_msgs::cache_dir().expect("LABRIG_CACHE or HOME is set")
 }
 
 /// The Python of the rclpy venv made by `scripts/setup.sh`.

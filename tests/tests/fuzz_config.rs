@@ -543,7 +543,7 @@ proptest! {
         ]
         .map(|(k, kind)| Key { name: k.to_owned(), kinds: vec![kind] });
         let text = mangled(&edited(text, &keys, &edits), &text_edits);
-        match labrig::launch::LaunchConfig::parse(&text, origin) {
+        match labrig_launch::config::LaunchConfig::parse(&text, origin) {
             Ok((cfg, order)) => {
                 let mut sorted = order.clone();
                 sorted.sort_unstable();
@@ -694,8 +694,8 @@ fn every_real_config_loads() {
         let path = root.join(rel);
         match reader {
             Reader::Launch => {
-                let (cfg, _) =
-                    labrig::launch::LaunchConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                let (cfg, _) = labrig_launch::config::LaunchConfig::load(&path)
+                    .unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
                 // The launch file says which node reads each config: the table must agree, so
                 // each config below is loaded by the node that will really read it.
                 for n in &cfg.nodes {
@@ -801,7 +801,7 @@ fn a_recorder_rejoin_wait_no_duration_can_hold_is_refused() {
 fn a_launch_config_rule_error_names_the_file() {
     let origin = launch_configs().join("sim_droid.toml");
     let text = "[rig]\nname = \"r\"\n[[node]]\nname = \"a\"\nprogram = \"rm\"\nhealth = \"/x\"\n";
-    let e = labrig::launch::LaunchConfig::parse(text, &origin).unwrap_err();
+    let e = labrig_launch::config::LaunchConfig::parse(text, &origin).unwrap_err();
     assert!(format!("{e:#}").contains(&origin.display().to_string()), "{e:#}");
 }
 

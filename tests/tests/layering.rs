@@ -216,3 +216,126 @@ fn the_readme_wrapper_builds_packages_and_programs_that_exist() {
     assert!(pairs >= 9, "{pairs} -p/--bin pairs in: {line}");
     assert!(line.contains("-p labrig-policies --bin labrig-policies"), "{line}");
 }
+
+#[test]
+fn the_launch_library_and_the_doctor_depend_on_no_command() {
+    // What starts and supervises rigs is a library (labrig-launch); the CLI crate (labrig) is
+    // its commands. Neither the library nor the doctor may reach back into the commands.
+    for lib in ["labrig-launch", "labrig-doctor"] {
+        let d = deps(lib);
+        assert!(d.len() > 1, "cargo tree listed nothing for {lib}");
+        assert!(
+            !d.iter().any(|p| p == "labrig"),
+            "{lib} depends on the CLI crate `labrig` (move what it needs into labrig-launch)"
+        );
+    }
+    assert!(deps("labrig").iter().any(|p| p == "labrig-launch"), "the guard sees the CLI's library");
+}
+
+/// The CLI crate's command modules (a file `src/<name>.rs`, or a folder `src/<name>/`), less
+/// `cli` (the dispatcher, which knows them all), `lib` and `main`.
+fn command_modules(src: &std::path::Path) -> BTreeSet<String> {
+    std::fs::read_dir(src)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter_map(|p| {
+            let stem = p.file_stem()?.to_str()?.to_owned();
+            (p.is_dir() || p.extension().is_some_and(|x| x == "rs")).then_some(stem)
+        })
+        .filter(|m| !["cli", "lib", "main"].contains(&m.as_str()))
+        .collect()
+}
+
+/// `(file, line, imported command)` for every reference from one command module's sources to
+/// another's: `crate::<other>`, `super::<other>` at the top, or `use crate::{.., <other>, ..}`.
+fn command_imports(src: &std::path::Path) -> Vec<(String, usize, String)> {
+    let commands = command_modules(src);
+    let mut found = Vec::new();
+    for module in &commands {
+        let mut files = Vec::new();
+        let file = src.join(format!("{module}.rs"));
+        if file.is_file() {
+            files.push(file);
+        }
+        let dir = src.join(module);
+        if dir.is_dir() {
+            for e in walk(&dir) {
+                files.push(e);
+            }
+        }
+        let shown = |f: &std::path::Path| f.strip_prefix(src).unwrap().display().to_string();
+        for f in files {
+            let text = std::fs::read_to_string(&f).unwrap();
+            for (n, line) in text.lines().enumerate() {
+                let code = line.split("//").next().unwrap_or("");
+                for other in commands.iter().filter(|c| *c != module) {
+                    let direct = [format!("crate::{other}::"), format!("crate::{other};"), format!("crate::{other} ")];
+                    let grouped = code.contains("crate::{")
+                        && code.split("crate::{").nth(1).is_some_and(|g| {
+                            g.split(['}', ',']).map(|s| s.trim().split("::").next().unwrap_or("")).any(|s| s == other)
+                        });
+                    if direct.iter().any(|d| code.contains(d.as_str())) || grouped {
+                        found.push((shown(&f), n + 1, other.clone()));
+                    }
+                }
+                // The crate by its own name (`labrig::demo::...`) is the same import.
+                if code
+                    .split(|c: char| !(c.is_alphanumeric() || c == '_' || c == ':'))
+                    .any(|w| w.starts_with("labrig::"))
+                {
+                    found.push((shown(&f), n + 1, "labrig".to_owned()));
+                }
+            }
+        }
+    }
+    found
+}
+
+fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else if p.extension().is_some_and(|x| x == "rs") {
+            out.push(p);
+        }
+    }
+    out
+}
+
+#[test]
+fn no_command_module_imports_another() {
+    let src = labrig_tests::repo_root().join("nodes/labrig/src");
+    let commands = command_modules(&src);
+    for expected in ["demo", "rollout", "launch", "bench_latency", "experiment", "topic"] {
+        assert!(commands.contains(expected), "the check sees the command `{expected}`: {commands:?}");
+    }
+    let found = command_imports(&src);
+    assert!(
+        found.is_empty(),
+        "command modules import other commands (move what they share into labrig-launch): {found:#?}"
+    );
+}
+
+#[test]
+fn the_command_check_sees_an_import() {
+    // Guards the guard: a command that imports another, in a scratch copy of the crate's layout.
+    let dir = tempfile::tempdir().unwrap();
+    let src = dir.path();
+    std::fs::write(src.join("cli.rs"), "use crate::demo;\n").unwrap();
+    std::fs::write(src.join("demo.rs"), "pub fn run() {}\n").unwrap();
+    std::fs::write(src.join("rollout.rs"), "use crate::{demo::run, other};\n// crate::bench::x in a comment\n")
+        .unwrap();
+    std::fs::create_dir(src.join("bench")).unwrap();
+    std::fs::write(src.join("bench/inner.rs"), "fn f() { crate::rollout::go() }\nuse labrig::demo;\n").unwrap();
+    let found = command_imports(src);
+    assert_eq!(
+        found,
+        vec![
+            ("bench/inner.rs".to_owned(), 1, "rollout".to_owned()),
+            ("bench/inner.rs".to_owned(), 2, "labrig".to_owned()),
+            ("rollout.rs".to_owned(), 1, "demo".to_owned())
+        ]
+    );
+}

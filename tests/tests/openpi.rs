@@ -113,14 +113,17 @@ struct Counting;
 
 impl Handler for Counting {
     type Session = u32;
+    /// The text is what the client is sent.
+    type Error = std::io::Error;
     fn session(&self) -> u32 {
         0
     }
-    fn infer(&self, n: &mut u32, obs: Value) -> Result<Value, String> {
+    fn infer(&self, n: &mut u32, obs: Value) -> Result<Value, std::io::Error> {
         for key in [droid::EXTERIOR_IMAGE, droid::WRIST_IMAGE, droid::JOINT_POSITION] {
-            codec::get(&obs, key).ok_or_else(|| format!("KeyError: the observation has no {key:?}"))?;
+            codec::get(&obs, key)
+                .ok_or_else(|| std::io::Error::other(format!("KeyError: the observation has no {key:?}")))?;
         }
-        let (_, q) = codec::numbers(&obs, droid::JOINT_POSITION).map_err(|e| e.to_string())?;
+        let (_, q) = codec::numbers(&obs, droid::JOINT_POSITION).map_err(std::io::Error::other)?;
         *n += 1;
         let rows: Vec<f32> = (0..15).flat_map(|_| [*n as f32, q[1] as f32, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).collect();
         Ok(codec::map([("actions", Array::f32(&[15, 8], &rows).to_value())]))

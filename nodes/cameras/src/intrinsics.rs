@@ -2,37 +2,19 @@
 //! factory file `SN<serial>.conf`, a labrig intrinsics file, the config itself) and how they
 //! scale to the resolution a camera is configured at.
 
-use labrig_msgs::builtin_interfaces::Time;
-use labrig_msgs::sensor_msgs::CameraInfo;
-use labrig_msgs::std_msgs::Header;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-/// Pinhole intrinsics of an image of `width` x `height`, ROS pixel-centre convention (the
-/// centre of the top-left pixel is (0, 0)), distortion `[k1, k2, p1, p2, k3]` (plumb_bob).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Intrinsics {
-    pub width: u32,
-    pub height: u32,
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    #[serde(default)]
-    pub distortion: Vec<f64>,
-}
+/// The intrinsics type is labrig-msgs' (calibration files, configs and sources share it).
+pub use labrig_msgs::calibration::{AspectMismatch, Intrinsics};
 
 /// Why intrinsics could not be had; each names the file or the resolution.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum IntrinsicsError {
     #[error("{path}: {reason}")]
     File { path: String, reason: String },
-    #[error(
-        "intrinsics for {have_w}x{have_h} do not scale to {want_w}x{want_h}: the aspect ratios differ ({:.3} vs {:.3})",
-        *have_w as f64 / *have_h as f64, *want_w as f64 / *want_h as f64
-    )]
-    Aspect { have_w: u32, have_h: u32, want_w: u32, want_h: u32 },
+    #[error(transparent)]
+    Aspect(#[from] AspectMismatch),
     #[error("{path}: no [{section}] section{}", if available.is_empty() { String::new() } else { format!(" (it has {})", available.join(", ")) })]
     MissingSection { path: String, section: String, available: Vec<String> },
     #[error(
@@ -43,61 +25,20 @@ pub enum IntrinsicsError {
     MissingKey { path: String, section: String, key: &'static str },
 }
 
-impl Intrinsics {
-    /// The same camera at `width` x `height` (the sensor read out at another resolution):
-    /// focal lengths scale with the size, the principal point keeps its place on the sensor
-    /// (`c' = (c + 0.5) s - 0.5` in pixel-centre coordinates); distortion does not change.
-    pub fn scaled(&self, width: u32, height: u32) -> Result<Intrinsics, IntrinsicsError> {
-        if (width, height) == (self.width, self.height) {
-            return Ok(self.clone());
-        }
-        let (sx, sy) = (width as f64 / self.width as f64, height as f64 / self.height as f64);
-        if (sx / sy - 1.0).abs() > 0.01 {
-            return Err(IntrinsicsError::Aspect {
-                have_w: self.width,
-                have_h: self.height,
-                want_w: width,
-                want_h: height,
-            });
-        }
-        Ok(Intrinsics {
-            width,
-            height,
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: (self.cx + 0.5) * sx - 0.5,
-            cy: (self.cy + 0.5) * sy - 0.5,
-            distortion: self.distortion.clone(),
-        })
+/// A labrig intrinsics file: JSON or TOML with [`Intrinsics`]' fields (`source` = `file` when
+/// it does not say).
+pub fn load(path: &Path) -> Result<Intrinsics, IntrinsicsError> {
+    let bad = |reason: String| IntrinsicsError::File { path: path.display().to_string(), reason };
+    let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+    let mut i: Intrinsics = if path.extension().is_some_and(|e| e == "json") {
+        serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?
+    } else {
+        toml::from_str(&text).map_err(|e| bad(e.to_string()))?
+    };
+    if i.source.is_empty() {
+        i.source = "file".into();
     }
-
-    /// `sensor_msgs/CameraInfo` for a frame stamped `stamp` in the optical frame `frame_id`.
-    pub fn camera_info(&self, stamp: Time, frame_id: &str) -> CameraInfo {
-        let mut d = self.distortion.clone();
-        d.resize(5, 0.0);
-        CameraInfo {
-            header: Header { stamp, frame_id: frame_id.to_owned() },
-            height: self.height,
-            width: self.width,
-            distortion_model: "plumb_bob".into(),
-            d,
-            k: [self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0],
-            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            p: [self.fx, 0.0, self.cx, 0.0, 0.0, self.fy, self.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-            ..CameraInfo::default()
-        }
-    }
-
-    /// A labrig intrinsics file: JSON or TOML with this struct's fields.
-    pub fn load(path: &Path) -> Result<Intrinsics, IntrinsicsError> {
-        let bad = |reason: String| IntrinsicsError::File { path: path.display().to_string(), reason };
-        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
-        if path.extension().is_some_and(|e| e == "json") {
-            serde_json::from_str(&text).map_err(|e| bad(e.to_string()))
-        } else {
-            toml::from_str(&text).map_err(|e| bad(e.to_string()))
-        }
-    }
+    Ok(i)
 }
 
 /// Which image of a stereo camera.
@@ -217,8 +158,9 @@ impl ZedCalibration {
             cx: get("cx")?,
             cy: get("cy")?,
             distortion: vec![get("k1")?, get("k2")?, get("p1")?, get("p2")?, s.get("k3").copied().unwrap_or(0.0)],
+            source: "zed-factory".into(),
         };
-        native.scaled(width, height)
+        Ok(native.scaled(width, height)?)
     }
 
     /// The stereo baseline in metres (`[STEREO] Baseline`, in mm in the file).
@@ -235,6 +177,7 @@ impl ZedCalibration {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use labrig_msgs::builtin_interfaces::Time;
 
     const FIXTURE: &str = include_str!("../tests/fixtures/SN000012345.conf");
 
@@ -278,7 +221,16 @@ mod tests {
 
     #[test]
     fn camera_info_carries_the_matrix_and_five_coefficients() {
-        let i = Intrinsics { width: 4, height: 2, fx: 2.0, fy: 3.0, cx: 1.5, cy: 0.5, distortion: vec![0.1] };
+        let i = Intrinsics {
+            width: 4,
+            height: 2,
+            fx: 2.0,
+            fy: 3.0,
+            cx: 1.5,
+            cy: 0.5,
+            distortion: vec![0.1],
+            source: String::new(),
+        };
         let info = i.camera_info(Time { sec: 1, nanosec: 2 }, "ext1_optical");
         assert_eq!(info.k, [2.0, 0.0, 1.5, 0.0, 3.0, 0.5, 0.0, 0.0, 1.0]);
         assert_eq!(info.d, vec![0.1, 0.0, 0.0, 0.0, 0.0]);

@@ -318,12 +318,18 @@ impl Camera {
         let intr = |source| CameraError::Intrinsics { camera: id.into(), source };
         let intrinsics = match &c.intrinsics {
             None => None,
-            Some(IntrinsicsSpec::Inline(i)) => Some(i.scaled(c.width, c.height).map_err(intr)?),
+            Some(IntrinsicsSpec::Inline(i)) => {
+                let i = Intrinsics {
+                    source: if i.source.is_empty() { "config".into() } else { i.source.clone() },
+                    ..i.clone()
+                };
+                Some(i.scaled(c.width, c.height).map_err(|e| intr(e.into()))?)
+            }
             Some(IntrinsicsSpec::File(p)) if p.extension().is_some_and(|e| e == "conf") => {
                 Some(ZedCalibration::load(p).and_then(|z| z.eye(c.eye, c.width, c.height)).map_err(intr)?)
             }
             Some(IntrinsicsSpec::File(p)) => {
-                Some(Intrinsics::load(p).and_then(|i| i.scaled(c.width, c.height)).map_err(intr)?)
+                Some(crate::intrinsics::load(p).and_then(|i| Ok(i.scaled(c.width, c.height)?)).map_err(intr)?)
             }
         };
         Ok(Camera { id: id.to_owned(), spec, config: c.clone(), side_by_side: sbs.then_some(c.eye), intrinsics })

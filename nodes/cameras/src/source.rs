@@ -505,6 +505,7 @@ impl RealSenseSource {
                 cx: 0.0,
                 cy: 0.0,
                 distortion: vec![],
+                source: "realsense".into(),
             },
             size,
             depth,

@@ -37,6 +37,7 @@ use labrig_arm::safety::SafetyFilter;
 use labrig_arm::{Fr3Kinematics, TcpOffset};
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ArmCommand, EpisodeEvent, GripperCommand, GripperState, RobotState, Step};
+use labrig_msgs::rosgraph_msgs::Clock;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::Shutdown;
@@ -57,63 +58,209 @@ struct Pubs {
     status: RosPublisher<StringMsg>,
 }
 
+impl Pubs {
+    /// The loop's publishers, in the order the loop has always created them.
+    fn open(ros: &mut Ros) -> anyhow::Result<Pubs> {
+        Ok(Pubs {
+            arm: ros.publisher_on(&topics::ARM_COMMAND, 10)?,
+            gripper: ros.publisher_on(&topics::GRIPPER_COMMAND, 10)?,
+            // Ten seconds of steps and the last 100 events kept for a recorder that restarts.
+            step: ros.publisher_on(&topics::RIG_STEP, 200)?,
+            episode: ros.publisher_on(&topics::RIG_EPISODE, 100)?,
+            reset: ros.publisher_on(&topics::SIM_RESET, 10)?,
+            status: ros.publisher_on(&topics::CONTROL_STATUS, 1)?,
+        })
+    }
+}
+
+/// Runs the rig loop until its episodes are done or it is shut down: the stages of each tick
+/// are numbered below.
 pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summary> {
     cfg.validate()?;
-    if let Some(dir) = &cfg.calibration {
-        let cameras: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
-        let now = labrig_runtime::Clock::Wall.now().0 / 1_000_000_000;
-        let warnings = labrig_episode::calibration::load(dir, &cameras).warnings(now, cfg.calibration_max_age_s);
-        for w in &warnings {
-            tracing::warn!("calibration: {w}");
+    check_calibration(&cfg);
+    let (kin, filter) = safety_layer(&cfg)?;
+    let mut ros = Ros::new(&cfg.ros, "labrig_control")?;
+    let pubs = Pubs::open(&mut ros)?;
+    let subs = Subs::open(&mut ros, cfg.clock)?;
+    let mut source = action_source(&mut ros, &cfg, &shutdown).await?;
+    let mut cams = Cameras::open(&cfg, source.as_deref())?;
+    let robot = first_state(&subs.arm_state, &shutdown).await?;
+    wait_for_readers(&ros, &cfg).await?;
+    raise_priority(&cfg);
+    tracing::info!(source = ?cfg.source, clock = ?cfg.clock, episodes = cfg.episodes, "control loop up");
+    let _ = pubs.status.publish(StringMsg { data: json!({ "state": "Idle", "ticks": 0 }).to_string() });
+
+    let mut rig = RigLoop::new(cfg.clone(), kin, filter, robot);
+    let mut out = RosOutputs(pubs);
+    let mut ticker = Ticker::new(rig.period());
+    while !shutdown.is_triggered() {
+        // 1. Wait for the tick.
+        let tick_ns = match ticker.wait(&cfg, &subs, &mut rig, &shutdown).await? {
+            Tick::At(t) => t,
+            Tick::Shutdown => break,
+            Tick::ClockStopped(why) => return Err(end_on_stopped_clock(rig, &mut out, &why).await),
+        };
+        rig.begin_tick(Nanos(tick_ns), Instant::now());
+        // 2. Everything that arrived (on the sim's clock, the tick's own gripper state and
+        // frames trail its arm state on their own channels: wait for them, bounded).
+        subs.take_gripper(&mut rig, &shutdown).await?;
+        subs.take_scene(&mut rig)?;
+        cams.take_frames(&mut rig, &shutdown).await?;
+        subs.take_requests(&mut rig)?;
+        if let Some(s) = source.as_mut() {
+            s.poll()?;
         }
-        if warnings.is_empty() {
-            tracing::info!(
-                "calibration: all {} cameras calibrated within {} s",
-                cameras.len(),
-                cfg.calibration_max_age_s
-            );
+        // 3. The episodes asked for are done.
+        if rig.done() {
+            break;
         }
+        subs.wait_for_scene(&mut rig, &shutdown).await?;
+        // 4. Episode events.
+        rig.decide(source.as_deref_mut(), &mut out)?;
+        observe_in_lockstep(source.as_deref_mut(), &rig, &mut cams, &cfg, Nanos(tick_ns), &shutdown).await?;
+        // 5. The action, the commands, the record.
+        rig.act(source.as_deref_mut(), &mut out)?;
     }
+    let mut summary = rig.finish(&mut out);
+    summary.source = source.as_ref().and_then(|s| s.stats());
+    summary.clock_ticks = ticker.clock_ticks;
+    summary.tick_lateness_us = percentiles_us(&mut ticker.lateness_ns);
+    // The last events reach their readers (the recorder) before the participant goes.
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    Ok(summary)
+}
+
+/// Warns of each camera whose calibration is missing or older than the config allows.
+fn check_calibration(cfg: &ControlConfig) {
+    let Some(dir) = &cfg.calibration else { return };
+    let cameras: Vec<&str> = cfg.cameras.iter().map(String::as_str).collect();
+    let now = labrig_runtime::Clock::Wall.now().0 / 1_000_000_000;
+    let warnings = labrig_episode::calibration::load(dir, &cameras).warnings(now, cfg.calibration_max_age_s);
+    for w in &warnings {
+        tracing::warn!("calibration: {w}");
+    }
+    if warnings.is_empty() {
+        tracing::info!("calibration: all {} cameras calibrated within {} s", cameras.len(), cfg.calibration_max_age_s);
+    }
+}
+
+/// The arm's kinematics and the safety filter every action passes through.
+fn safety_layer(cfg: &ControlConfig) -> anyhow::Result<(Fr3Kinematics, SafetyFilter)> {
     let urdf = labrig_arm::urdf_path(cfg.urdf.as_deref());
     let kin = Fr3Kinematics::from_urdf_file(&urdf, TcpOffset::ROBOTIQ_2F85)
         .with_context(|| format!("loading the FR3 URDF {}", urdf.display()))?;
     let filter =
         SafetyFilter::new(Ik::new(kin.clone(), IkConfig::default()), cfg.safety.clone()).map_err(anyhow::Error::msg)?;
+    Ok((kin, filter))
+}
 
-    let mut ros = Ros::new(&cfg.ros, "labrig_control")?;
-    let pubs = Pubs {
-        arm: ros.publisher_on(&topics::ARM_COMMAND, 10)?,
-        gripper: ros.publisher_on(&topics::GRIPPER_COMMAND, 10)?,
-        // Ten seconds of steps and the last 100 events kept for a recorder that restarts.
-        step: ros.publisher_on(&topics::RIG_STEP, 200)?,
-        episode: ros.publisher_on(&topics::RIG_EPISODE, 100)?,
-        reset: ros.publisher_on(&topics::SIM_RESET, 10)?,
-        status: ros.publisher_on(&topics::CONTROL_STATUS, 1)?,
-    };
-    let arm_state: RosSubscription<RobotState> = ros.subscription_on(&topics::ARM_STATE, 10)?;
-    // On the sim's clock the tick follows the sim's own time (`/clock`, published on each of
-    // its steps), not the arm node's state rate (50 Hz in front of the bridge: ticks would
-    // land up to 20 ms late).
-    let sim_clock = match cfg.clock {
-        ClockKind::Sim => Some(ros.subscription_on(&topics::CLOCK, 10)?),
-        ClockKind::Wall => None,
-    };
-    let gripper_state: RosSubscription<GripperState> = ros.subscription_on(&topics::GRIPPER_STATE, 10)?;
-    let scene_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_SCENE, 1)?;
-    let requests: RosSubscription<EpisodeEvent> = ros.subscription_on(&topics::RIG_REQUEST, 10)?;
-    let recorder_status: RosSubscription<StringMsg> = ros.subscription_on(&topics::RECORDER_STATUS, 1)?;
-    let session: RosSubscription<StringMsg> = ros.subscription_on(&topics::RIG_SESSION, 1)?;
-    let mut source: Option<Box<dyn ActionSource>> = match cfg.source {
-        SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(&mut ros)?)),
+/// The loop's subscriptions (besides the source's own).
+struct Subs {
+    arm_state: RosSubscription<RobotState>,
+    /// The sim's `/clock`, on the sim's clock.
+    sim_clock: Option<RosSubscription<Clock>>,
+    gripper_state: RosSubscription<GripperState>,
+    scene: RosSubscription<StringMsg>,
+    requests: RosSubscription<EpisodeEvent>,
+    recorder_status: RosSubscription<StringMsg>,
+    session: RosSubscription<StringMsg>,
+}
+
+impl Subs {
+    /// Subscribes, in the order the loop has always subscribed.
+    fn open(ros: &mut Ros, clock: ClockKind) -> anyhow::Result<Subs> {
+        let arm_state: RosSubscription<RobotState> = ros.subscription_on(&topics::ARM_STATE, 10)?;
+        // On the sim's clock the tick follows the sim's own time (`/clock`, published on each of
+        // its steps), not the arm node's state rate (50 Hz in front of the bridge: ticks would
+        // land up to 20 ms late).
+        let sim_clock = match clock {
+            ClockKind::Sim => Some(ros.subscription_on(&topics::CLOCK, 10)?),
+            ClockKind::Wall => None,
+        };
+        Ok(Subs {
+            arm_state,
+            sim_clock,
+            gripper_state: ros.subscription_on(&topics::GRIPPER_STATE, 10)?,
+            scene: ros.subscription_on(&topics::SIM_SCENE, 1)?,
+            requests: ros.subscription_on(&topics::RIG_REQUEST, 10)?,
+            recorder_status: ros.subscription_on(&topics::RECORDER_STATUS, 1)?,
+            session: ros.subscription_on(&topics::RIG_SESSION, 1)?,
+        })
+    }
+
+    /// The gripper states that arrived; on the sim's clock, the tick's own waited for (bounded).
+    async fn take_gripper(&self, rig: &mut RigLoop, shutdown: &Shutdown) -> anyhow::Result<()> {
+        while let Some(g) = self.gripper_state.try_take()? {
+            rig.push_gripper(g.msg);
+        }
+        let deadline = Instant::now() + Duration::from_millis(500);
+        while rig.gripper_behind() && Instant::now() < deadline && !shutdown.is_triggered() {
+            tokio::time::sleep(Duration::from_micros(100)).await;
+            while let Some(g) = self.gripper_state.try_take()? {
+                rig.push_gripper(g.msg);
+            }
+        }
+        Ok(())
+    }
+
+    /// The scene messages that arrived.
+    fn take_scene(&self, rig: &mut RigLoop) -> anyhow::Result<()> {
+        while let Some(s) = self.scene.try_take()? {
+            rig.push_scene(&s.msg.data);
+        }
+        Ok(())
+    }
+
+    /// The session, the episode requests and the recorder's status that arrived.
+    fn take_requests(&self, rig: &mut RigLoop) -> anyhow::Result<()> {
+        // The session before the requests: a Start sent right after a session change has it.
+        while let Some(s) = self.session.try_take()? {
+            rig.push_session(&s.msg.data);
+        }
+        while let Some(r) = self.requests.try_take().unwrap_or_else(|e| {
+            tracing::warn!("/rig/request: {e}");
+            None
+        }) {
+            rig.push_request(&r.msg);
+        }
+        while let Some(r) = self.recorder_status.try_take()? {
+            rig.push_recorder_status(&r.msg.data);
+        }
+        Ok(())
+    }
+
+    /// The new scene's message, which may trail its first state (waited for, bounded).
+    async fn wait_for_scene(&self, rig: &mut RigLoop, shutdown: &Shutdown) -> anyhow::Result<()> {
+        if rig.scene_due().is_some() {
+            let deadline = Instant::now() + Duration::from_secs(30);
+            while rig.scene_due().is_some() && Instant::now() < deadline && !shutdown.is_triggered() {
+                tokio::time::sleep(Duration::from_micros(200)).await;
+                while let Some(m) = self.scene.try_take()? {
+                    rig.push_scene(&m.msg.data);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The configured action source (none: the arm is held), connected.
+async fn action_source(
+    ros: &mut Ros,
+    cfg: &ControlConfig,
+    shutdown: &Shutdown,
+) -> anyhow::Result<Option<Box<dyn ActionSource>>> {
+    Ok(match cfg.source {
+        SourceKind::Scripted => Some(Box::new(ScriptedExpert::new(ros)?)),
         SourceKind::Hold => None,
         SourceKind::Teleop => {
-            Some(Box::new(crate::source::Teleop::new(&mut ros, Duration::from_secs_f64(cfg.teleop_max_age_s))?))
+            Some(Box::new(crate::source::Teleop::new(ros, Duration::from_secs_f64(cfg.teleop_max_age_s))?))
         }
         SourceKind::Policy | SourceKind::Remote => {
             let period = Nanos::from_secs_rounded(cfg.period_s);
             let p = if cfg.source == SourceKind::Remote {
                 PolicySource::connect_remote(
-                    &mut ros,
+                    ros,
                     cfg.policy.clone(),
                     cfg.remote.clone(),
                     cfg.clock,
@@ -122,41 +269,82 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
                 )
                 .await?
             } else {
-                PolicySource::connect(&mut ros, cfg.policy.clone(), cfg.clock, period, &cfg.cameras, &shutdown).await?
+                PolicySource::connect(ros, cfg.policy.clone(), cfg.clock, period, &cfg.cameras, shutdown).await?
             };
             let teleop_age = Duration::from_secs_f64(cfg.teleop_max_age_s);
             match cfg.policy.takeover {
                 TakeoverKind::None => Some(Box::new(p)),
                 TakeoverKind::Teleop => Some(Box::new(Takeover::new(
                     Box::new(p),
-                    Box::new(crate::source::Teleop::new(&mut ros, teleop_age)?),
+                    Box::new(crate::source::Teleop::new(ros, teleop_age)?),
                     None,
                 ))),
                 TakeoverKind::Expert => Some(Box::new(Takeover::new(
                     Box::new(p),
-                    Box::new(ScriptedExpert::new(&mut ros)?),
+                    Box::new(ScriptedExpert::new(ros)?),
                     Some(ExpertRule::new(&cfg.policy)),
                 ))),
             }
         }
-    };
-    // The cameras whose pixels the source observes: their newest frames, copied.
-    let mut pixels: Vec<PixelRing> = source
-        .as_ref()
-        .map(|s| s.cameras().iter().map(|c| PixelRing { camera: c.clone(), frames: VecDeque::new() }).collect())
-        .unwrap_or_default();
-    let frame_node = match &cfg.frames_namespace {
-        Some(ns) => FrameNode::new_in(ns)?,
-        None => FrameNode::new()?,
-    };
-    let cams: Vec<(String, FrameSubscriber)> =
-        cfg.cameras.iter().map(|c| Ok((c.clone(), frame_node.subscriber(c)?))).collect::<anyhow::Result<_>>()?;
+    })
+}
 
-    // The first state (the arm node or the sim bridge may still be starting).
+/// The cameras' frames: every configured camera's timing, and the pixels of those the
+/// source observes.
+struct Cameras {
+    /// Declared before the node, so they are dropped before it.
+    subs: Vec<(String, FrameSubscriber)>,
+    _node: FrameNode,
+    /// The cameras whose pixels the source observes: their newest frames, copied.
+    pixels: Vec<PixelRing>,
+}
+
+impl Cameras {
+    /// Subscribes to each configured camera's frames.
+    fn open(cfg: &ControlConfig, source: Option<&dyn ActionSource>) -> anyhow::Result<Cameras> {
+        let pixels: Vec<PixelRing> = source
+            .map(|s| s.cameras().iter().map(|c| PixelRing { camera: c.clone(), frames: VecDeque::new() }).collect())
+            .unwrap_or_default();
+        let node = match &cfg.frames_namespace {
+            Some(ns) => FrameNode::new_in(ns)?,
+            None => FrameNode::new()?,
+        };
+        let subs: Vec<(String, FrameSubscriber)> =
+            cfg.cameras.iter().map(|c| Ok((c.clone(), node.subscriber(c)?))).collect::<anyhow::Result<_>>()?;
+        Ok(Cameras { subs, _node: node, pixels })
+    }
+
+    /// The frames that arrived; the tick's own waited for while any camera's is pending (bounded).
+    async fn take_frames(&mut self, rig: &mut RigLoop, shutdown: &Shutdown) -> anyhow::Result<()> {
+        let frames_deadline = Instant::now() + Duration::from_millis(200);
+        loop {
+            for (name, sub) in &self.subs {
+                while let Some(f) = sub.receive()? {
+                    let h = f.header();
+                    rig.push_frame(
+                        name,
+                        FrameTimes { sequence: h.sequence, capture_ns: h.capture_ns, arrival_ns: h.arrival_ns },
+                    );
+                    if let Some(ring) = self.pixels.iter_mut().find(|r| &r.camera == name) {
+                        ring.push(&f);
+                    }
+                }
+            }
+            if !rig.frames_pending() || Instant::now() >= frames_deadline || shutdown.is_triggered() {
+                return Ok(());
+            }
+            tokio::time::sleep(Duration::from_micros(100)).await;
+        }
+    }
+}
+
+/// The first state (the arm node or the sim bridge may still be starting), waited for up to
+/// two minutes.
+async fn first_state(arm_state: &RosSubscription<RobotState>, shutdown: &Shutdown) -> anyhow::Result<RobotState> {
     let waited = Instant::now();
-    let robot: RobotState = loop {
+    loop {
         if let Some(s) = arm_state.try_take()? {
-            break s.msg;
+            return Ok(s.msg);
         }
         anyhow::ensure!(!shutdown.is_triggered(), "stopped before the arm came up");
         anyhow::ensure!(
@@ -164,7 +352,12 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             "no /arm/state within 120 s: is the arm node (or the sim bridge) running on this domain?"
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
-    };
+    }
+}
+
+/// Waits for the commands' (and, with `auto_start`, the episodes') readers and lets the
+/// writers match them.
+async fn wait_for_readers(ros: &Ros, cfg: &ControlConfig) -> anyhow::Result<()> {
     // Commands reach their subscriber before the first tick's (lockstep needs each one).
     if !ros.wait_for_subscribers(topics::ARM_COMMAND.name, 1, Duration::from_secs(30)).await {
         anyhow::bail!("nothing subscribes to /arm/command within 30 s");
@@ -177,207 +370,207 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     }
     // The graph shows a reader a little before our writers have matched it: let them settle.
     tokio::time::sleep(Duration::from_millis(300)).await;
+    Ok(())
+}
+
+/// On the wall clock, raises the loop's thread to the configured realtime priority.
+fn raise_priority(cfg: &ControlConfig) {
     if cfg.clock == ClockKind::Wall && cfg.realtime_priority > 0 {
         // This future runs on the thread that called block_on: the loop's own thread.
         if let Err(e) = labrig_runtime::realtime_priority(cfg.realtime_priority) {
             tracing::warn!("{e}; the loop runs at normal priority");
         }
     }
-    tracing::info!(source = ?cfg.source, clock = ?cfg.clock, episodes = cfg.episodes, "control loop up");
-    let _ = pubs.status.publish(StringMsg { data: json!({ "state": "Idle", "ticks": 0 }).to_string() });
+}
 
-    let mut rig = RigLoop::new(cfg.clone(), kin, filter, robot);
-    let mut out = RosOutputs(pubs);
-    let period = rig.period();
-    let mut next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
-    // Sim clock: whether the sim publishes /clock (then it sets the ticks).
-    let (mut clock_seen, mut clock_ticks) = (false, 0u64);
-    // How late each tick began after its boundary (wall clock: the scheduled instant; sim
-    // clock: the sim's /clock message for it), ns.
-    let mut lateness_ns: Vec<i64> = Vec::new();
-    'ticks: while !shutdown.is_triggered() {
-        // 1. Wait for the tick.
-        let waiting_since = Instant::now();
-        let tick_ns = match cfg.clock {
-            ClockKind::Sim => loop {
-                if shutdown.is_triggered() {
-                    break 'ticks;
-                }
-                if waiting_since.elapsed().as_secs_f64() > cfg.tick_timeout_s {
-                    let why = format!(
-                        "no new /arm/state tick for {:.1} s: the sim's clock stopped (the sim bridge or the arm node is gone)",
-                        cfg.tick_timeout_s
-                    );
-                    tracing::error!("{why}");
-                    rig.finish_because(&mut out, &why);
-                    // The Stop reaches the recorder before the participant goes.
-                    tokio::time::sleep(Duration::from_millis(1000)).await;
-                    anyhow::bail!("{why}");
-                }
-                let mut newest = None;
-                while let Some(s) = arm_state.try_take()? {
-                    newest = Some(s.msg);
-                }
-                if let Some(s) = newest {
-                    let t = Nanos::from(s.header.stamp).0;
-                    rig.set_robot(s);
-                    // Without /clock (a sim that does not publish it) the states set the ticks.
-                    if !clock_seen && rig.is_new_tick(Nanos(t)) {
-                        break t;
-                    }
-                }
-                let mut clock_ns = None;
-                let mut clock_sent = 0;
-                while let Some(c) = sim_clock.as_ref().map(|c| c.try_take()).transpose()?.flatten() {
-                    clock_ns = Some(Nanos::from(c.msg.clock).0);
-                    clock_sent = c.source_time.unwrap_or(c.receive_time).0;
-                    clock_seen = true;
-                }
-                if let Some(t) = clock_ns.filter(|&t| rig.is_new_tick(Nanos(t))) {
-                    // The sim reached the boundary. Its state of that instant: from the bridge
-                    // itself it went out just before the clock (lockstep pairs them); an arm
-                    // node in front of it relays at its own rate, up to a period later: waited
-                    // for briefly, else the newest is used (its stamp is in the step).
-                    let deadline = Instant::now() + STATE_AFTER_CLOCK;
-                    let mut stamp = i64::MIN;
-                    loop {
-                        while let Some(s) = arm_state.try_take()? {
-                            stamp = Nanos::from(s.msg.header.stamp).0;
-                            rig.set_robot(s.msg);
-                        }
-                        if stamp >= t || Instant::now() >= deadline {
-                            break;
-                        }
-                        tokio::time::sleep(Duration::from_micros(100)).await;
-                    }
-                    clock_ticks += 1;
-                    // Late by: the wall time from the sim's /clock going out to this tick.
-                    lateness_ns.push((labrig_runtime::Clock::Wall.now().0 - clock_sent).max(0));
-                    break t;
-                }
-                // The loop's own thread polls (tokio's timers wake 1-5 ms late on a busy machine).
-                std::thread::sleep(Duration::from_micros(200));
-            },
-            ClockKind::Wall => {
-                // The loop's own thread sleeps to the tick (a high-resolution timer; at
-                // SCHED_FIFO it runs the moment it wakes). tokio's timers are woken by its
-                // workers at normal priority: 1-5 ms late on a busy machine.
-                std::thread::sleep(next_wall.saturating_duration_since(Instant::now()));
-                if shutdown.is_triggered() {
-                    break 'ticks;
-                }
-                let now = Instant::now();
-                lateness_ns.push(now.saturating_duration_since(next_wall).as_nanos() as i64);
-                // Behind by more than a period: skip the lost ticks, count them.
-                let behind = now.saturating_duration_since(next_wall).as_nanos() as i64 / period.0;
-                rig.count_missed(behind as u64);
-                next_wall += Duration::from_nanos((period.0 * (behind + 1)) as u64);
-                while let Some(s) = arm_state.try_take()? {
-                    rig.set_robot(s.msg);
-                }
-                labrig_runtime::Clock::Wall.now().0
-            }
-        };
-        rig.begin_tick(Nanos(tick_ns), Instant::now());
+/// What waiting for a tick came to.
+enum Tick {
+    /// The tick's time (ns).
+    At(i64),
+    Shutdown,
+    /// The sim's clock stopped: why.
+    ClockStopped(String),
+}
 
-        // 2. Everything that arrived (on the sim's clock, the tick's own gripper state and
-        // frames trail its arm state on their own channels: wait for them, bounded).
-        while let Some(g) = gripper_state.try_take()? {
-            rig.push_gripper(g.msg);
-        }
-        let deadline = Instant::now() + Duration::from_millis(500);
-        while rig.gripper_behind() && Instant::now() < deadline && !shutdown.is_triggered() {
-            tokio::time::sleep(Duration::from_micros(100)).await;
-            while let Some(g) = gripper_state.try_take()? {
-                rig.push_gripper(g.msg);
-            }
-        }
-        while let Some(s) = scene_sub.try_take()? {
-            rig.push_scene(&s.msg.data);
-        }
-        let frames_deadline = Instant::now() + Duration::from_millis(200);
-        loop {
-            for (name, sub) in &cams {
-                while let Some(f) = sub.receive()? {
-                    let h = f.header();
-                    rig.push_frame(
-                        name,
-                        FrameTimes { sequence: h.sequence, capture_ns: h.capture_ns, arrival_ns: h.arrival_ns },
-                    );
-                    if let Some(ring) = pixels.iter_mut().find(|r| &r.camera == name) {
-                        ring.push(&f);
-                    }
-                }
-            }
-            if !rig.frames_pending() || Instant::now() >= frames_deadline || shutdown.is_triggered() {
-                break;
-            }
-            tokio::time::sleep(Duration::from_micros(100)).await;
-        }
-        // The session before the requests: a Start sent right after a session change has it.
-        while let Some(s) = session.try_take()? {
-            rig.push_session(&s.msg.data);
-        }
-        while let Some(r) = requests.try_take().unwrap_or_else(|e| {
-            tracing::warn!("/rig/request: {e}");
-            None
-        }) {
-            rig.push_request(&r.msg);
-        }
-        while let Some(r) = recorder_status.try_take()? {
-            rig.push_recorder_status(&r.msg.data);
-        }
-        if let Some(s) = source.as_mut() {
-            s.poll()?;
-        }
-        // 3. The episodes asked for are done.
-        if rig.done() {
-            break;
-        }
-        // The new scene's message may trail its first state.
-        if rig.scene_due().is_some() {
-            let deadline = Instant::now() + Duration::from_secs(30);
-            while rig.scene_due().is_some() && Instant::now() < deadline && !shutdown.is_triggered() {
-                tokio::time::sleep(Duration::from_micros(200)).await;
-                while let Some(m) = scene_sub.try_take()? {
-                    rig.push_scene(&m.msg.data);
-                }
-            }
-        }
-        // 4. Episode events.
-        rig.decide(source.as_deref_mut(), &mut out)?;
-        // Lockstep: what the source decides from at the tick (a takeover: the operator's status
-        // stamped at it) before it observes, so the decision does not race the sim.
-        if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, rig.recording()) {
-            let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
-            while !s.settled(Nanos(tick_ns)) && Instant::now() < deadline && !shutdown.is_triggered() {
-                tokio::time::sleep(Duration::from_micros(100)).await;
-                s.poll()?;
-            }
-        }
-        // The tick as recorded, to a source that observes (the policy's request goes out here).
-        if let (Some(s), Some(mut view)) = (source.as_mut(), rig.view()) {
-            view.images = pixels.iter_mut().filter_map(|r| r.at(view.tick).map(|f| (r.camera.as_str(), f))).collect();
-            s.observe(view);
-        }
-        // Lockstep: the source's action for this state comes right after the state.
-        if let (Some(s), ClockKind::Sim, true) = (source.as_mut(), cfg.clock, rig.recording()) {
-            let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
-            while !s.has(Nanos(tick_ns)) && Instant::now() < deadline && !shutdown.is_triggered() {
-                tokio::time::sleep(Duration::from_micros(100)).await;
-                s.poll()?;
-            }
-        }
-        // 5. The action, the commands, the record.
-        rig.act(source.as_deref_mut(), &mut out)?;
+/// Waits for each tick on the configured clock, and measures how late each one began.
+struct Ticker {
+    period: Nanos,
+    /// Wall clock: the next tick's scheduled instant.
+    next_wall: Instant,
+    /// Sim clock: whether the sim publishes /clock (then it sets the ticks).
+    clock_seen: bool,
+    clock_ticks: u64,
+    /// How late each tick began after its boundary (wall clock: the scheduled instant; sim
+    /// clock: the sim's /clock message for it), ns.
+    lateness_ns: Vec<i64>,
+}
+
+impl Ticker {
+    /// The first wall-clock tick a period from now.
+    fn new(period: Nanos) -> Ticker {
+        let next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
+        Ticker { period, next_wall, clock_seen: false, clock_ticks: 0, lateness_ns: Vec::new() }
     }
-    let mut summary = rig.finish(&mut out);
-    summary.source = source.as_ref().and_then(|s| s.stats());
-    summary.clock_ticks = clock_ticks;
-    summary.tick_lateness_us = percentiles_us(&mut lateness_ns);
-    // The last events reach their readers (the recorder) before the participant goes.
+
+    /// The next tick, the arm's newest state given to `rig`.
+    async fn wait(
+        &mut self,
+        cfg: &ControlConfig,
+        subs: &Subs,
+        rig: &mut RigLoop,
+        shutdown: &Shutdown,
+    ) -> anyhow::Result<Tick> {
+        match cfg.clock {
+            ClockKind::Sim => self.wait_sim(cfg, subs, rig, shutdown).await,
+            ClockKind::Wall => self.wait_wall(subs, rig, shutdown),
+        }
+    }
+
+    /// On the sim's clock: the first `/clock` (or, without one, `/arm/state`) a period after
+    /// the last tick; or none for `tick_timeout_s`: the sim's clock stopped.
+    async fn wait_sim(
+        &mut self,
+        cfg: &ControlConfig,
+        subs: &Subs,
+        rig: &mut RigLoop,
+        shutdown: &Shutdown,
+    ) -> anyhow::Result<Tick> {
+        let waiting_since = Instant::now();
+        loop {
+            if shutdown.is_triggered() {
+                return Ok(Tick::Shutdown);
+            }
+            if waiting_since.elapsed().as_secs_f64() > cfg.tick_timeout_s {
+                return Ok(Tick::ClockStopped(format!(
+                    "no new /arm/state tick for {:.1} s: the sim's clock stopped (the sim bridge or the arm node is gone)",
+                    cfg.tick_timeout_s
+                )));
+            }
+            let mut newest = None;
+            while let Some(s) = subs.arm_state.try_take()? {
+                newest = Some(s.msg);
+            }
+            if let Some(s) = newest {
+                let t = Nanos::from(s.header.stamp).0;
+                rig.set_robot(s);
+                // Without /clock (a sim that does not publish it) the states set the ticks.
+                if !self.clock_seen && rig.is_new_tick(Nanos(t)) {
+                    return Ok(Tick::At(t));
+                }
+            }
+            let mut clock_ns = None;
+            let mut clock_sent = 0;
+            while let Some(c) = subs.sim_clock.as_ref().map(|c| c.try_take()).transpose()?.flatten() {
+                clock_ns = Some(Nanos::from(c.msg.clock).0);
+                clock_sent = c.source_time.unwrap_or(c.receive_time).0;
+                self.clock_seen = true;
+            }
+            if let Some(t) = clock_ns.filter(|&t| rig.is_new_tick(Nanos(t))) {
+                take_state_after_clock(&subs.arm_state, rig, t).await?;
+                self.clock_ticks += 1;
+                // Late by: the wall time from the sim's /clock going out to this tick.
+                self.lateness_ns.push((labrig_runtime::Clock::Wall.now().0 - clock_sent).max(0));
+                return Ok(Tick::At(t));
+            }
+            // The loop's own thread polls (tokio's timers wake 1-5 ms late on a busy machine).
+            std::thread::sleep(Duration::from_micros(200));
+        }
+    }
+
+    /// On the wall clock: sleeps to the scheduled instant, skipping (and counting) the ticks
+    /// lost when behind by more than a period.
+    fn wait_wall(&mut self, subs: &Subs, rig: &mut RigLoop, shutdown: &Shutdown) -> anyhow::Result<Tick> {
+        // The loop's own thread sleeps to the tick (a high-resolution timer; at
+        // SCHED_FIFO it runs the moment it wakes). tokio's timers are woken by its
+        // workers at normal priority: 1-5 ms late on a busy machine.
+        std::thread::sleep(self.next_wall.saturating_duration_since(Instant::now()));
+        if shutdown.is_triggered() {
+            return Ok(Tick::Shutdown);
+        }
+        let now = Instant::now();
+        self.lateness_ns.push(now.saturating_duration_since(self.next_wall).as_nanos() as i64);
+        // Behind by more than a period: skip the lost ticks, count them.
+        let behind = now.saturating_duration_since(self.next_wall).as_nanos() as i64 / self.period.0;
+        rig.count_missed(behind as u64);
+        self.next_wall += Duration::from_nanos((self.period.0 * (behind + 1)) as u64);
+        while let Some(s) = subs.arm_state.try_take()? {
+            rig.set_robot(s.msg);
+        }
+        Ok(Tick::At(labrig_runtime::Clock::Wall.now().0))
+    }
+}
+
+/// The sim's clock stopped: the episode ends (its Stop given time to reach the recorder) and
+/// the loop fails with `why`.
+async fn end_on_stopped_clock(rig: RigLoop, out: &mut RosOutputs, why: &str) -> anyhow::Error {
+    tracing::error!("{why}");
+    rig.finish_because(out, why);
+    // The Stop reaches the recorder before the participant goes.
     tokio::time::sleep(Duration::from_millis(1000)).await;
-    Ok(summary)
+    anyhow::anyhow!("{why}")
+}
+
+/// The sim reached the boundary `t`. Its state of that instant: from the bridge itself it went
+/// out just before the clock (lockstep pairs them); an arm node in front of it relays at its
+/// own rate, up to a period later: waited for briefly, else the newest is used (its stamp is
+/// in the step).
+async fn take_state_after_clock(
+    arm_state: &RosSubscription<RobotState>,
+    rig: &mut RigLoop,
+    t: i64,
+) -> anyhow::Result<()> {
+    let deadline = Instant::now() + STATE_AFTER_CLOCK;
+    let mut stamp = i64::MIN;
+    loop {
+        while let Some(s) = arm_state.try_take()? {
+            stamp = Nanos::from(s.msg.header.stamp).0;
+            rig.set_robot(s.msg);
+        }
+        if stamp >= t || Instant::now() >= deadline {
+            return Ok(());
+        }
+        tokio::time::sleep(Duration::from_micros(100)).await;
+    }
+}
+
+/// The tick as recorded, to a source that observes (the policy's request goes out here). In
+/// lockstep (sim clock, recording) the source first settles what it decides from at the tick
+/// (a takeover: the operator's status stamped at it), so the decision does not race the sim,
+/// and afterwards its action for this state is waited for, to come right after the state.
+async fn observe_in_lockstep(
+    mut source: Option<&mut (dyn ActionSource + '_)>,
+    rig: &RigLoop,
+    cams: &mut Cameras,
+    cfg: &ControlConfig,
+    tick: Nanos,
+    shutdown: &Shutdown,
+) -> anyhow::Result<()> {
+    if let (Some(s), ClockKind::Sim, true) = (source.as_deref_mut(), cfg.clock, rig.recording()) {
+        poll_until(s, cfg, shutdown, |s| s.settled(tick)).await?;
+    }
+    if let (Some(s), Some(mut view)) = (source.as_deref_mut(), rig.view()) {
+        view.images = cams.pixels.iter_mut().filter_map(|r| r.at(view.tick).map(|f| (r.camera.as_str(), f))).collect();
+        s.observe(view);
+    }
+    if let (Some(s), ClockKind::Sim, true) = (source, cfg.clock, rig.recording()) {
+        poll_until(s, cfg, shutdown, |s| s.has(tick)).await?;
+    }
+    Ok(())
+}
+
+/// Polls `source` until `done` holds, for at most `source_timeout_s`.
+async fn poll_until(
+    source: &mut (dyn ActionSource + '_),
+    cfg: &ControlConfig,
+    shutdown: &Shutdown,
+    done: impl Fn(&dyn ActionSource) -> bool,
+) -> anyhow::Result<()> {
+    let deadline = Instant::now() + Duration::from_secs_f64(cfg.source_timeout_s);
+    while !done(source) && Instant::now() < deadline && !shutdown.is_triggered() {
+        tokio::time::sleep(Duration::from_micros(100)).await;
+        source.poll()?;
+    }
+    Ok(())
 }
 
 /// One camera's newest frames, pixels copied out of shared memory, for a source that

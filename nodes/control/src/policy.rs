@@ -192,12 +192,15 @@ pub enum PolicyStartError {
     NoServer(f64),
     #[error("/policy/info is not what a policy server sends: {0}")]
     BadInfo(String),
-    #[error("{0}")]
-    Mismatch(String),
+    #[error(transparent)]
+    Mismatch(#[from] crate::info::PolicyMismatch),
     #[error("stopped before the policy server came up")]
     Stopped,
-    #[error("{0}")]
-    Remote(String),
+    #[error(transparent)]
+    Remote(#[from] crate::remote::RemoteError),
+    /// The thread connecting to the openpi server panicked or was cancelled.
+    #[error(transparent)]
+    RemoteThread(#[from] tokio::task::JoinError),
     #[error(transparent)]
     Rtc(#[from] labrig_msgs::labrig_msgs::RtcBoundsError),
 }
@@ -284,10 +287,7 @@ impl PolicySource {
         let deadman_sub = if cfg.deadman { Some(ros.subscription_on(&topics::TELEOP_STATE, 100)?) } else { None };
         let period_s = period.0 as f64 * 1e-9;
         let r = remote.clone();
-        let (client, info) = tokio::task::spawn_blocking(move || crate::remote::connect(&r, period_s))
-            .await
-            .map_err(|e| PolicyStartError::Remote(e.to_string()))?
-            .map_err(PolicyStartError::Remote)?;
+        let (client, info) = tokio::task::spawn_blocking(move || crate::remote::connect(&r, period_s)).await??;
         info.check(cameras, &cfg.action_space, cfg.sim_rig).map_err(PolicyStartError::Mismatch)?;
         check_rtc(&cfg, &info, clock)?;
         if cfg.blend == Blend::Rtc {
@@ -842,13 +842,16 @@ mod tests {
         let rig: Vec<String> = ["ext1", "wrist"].map(String::from).to_vec();
         assert_eq!(info().check(&rig, "", false), Ok(()));
         assert_eq!(info().check(&rig, "eef_axis_angle", false), Ok(()));
-        let e = info().check(&["wrist".to_string()], "", false).unwrap_err();
+        let e = info().check(&["wrist".to_string()], "", false).unwrap_err().to_string();
         assert!(e.contains("run@600 observes cameras [\"ext1\"], which this rig does not record"), "{e}");
-        let e = PolicyInfo { action_space: "joint_velocity".into(), ..info() }.check(&rig, "", false).unwrap_err();
+        let e = PolicyInfo { action_space: "joint_velocity".into(), ..info() }
+            .check(&rig, "", false)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("predicts \"joint_velocity\" actions, which the loop cannot execute"), "{e}");
-        let e = info().check(&rig, "cartesian_velocity", false).unwrap_err();
+        let e = info().check(&rig, "cartesian_velocity", false).unwrap_err().to_string();
         assert!(e.contains("this rig is configured for \"cartesian_velocity\""), "{e}");
-        let e = PolicyInfo { action_dim: 10, ..info() }.check(&rig, "", false).unwrap_err();
+        let e = PolicyInfo { action_dim: 10, ..info() }.check(&rig, "", false).unwrap_err().to_string();
         assert!(e.contains("10-wide"), "{e}");
     }
 
@@ -862,7 +865,7 @@ mod tests {
             ..info()
         };
         assert_eq!(sim_only.check(&rig, "", true), Ok(()));
-        let e = sim_only.check(&rig, "", false).unwrap_err();
+        let e = sim_only.check(&rig, "", false).unwrap_err().to_string();
         assert!(e.contains("run@600 observes [\"scene_state (the sim scene's object and receptacle positions)\"], which only the simulator has"), "{e}");
         let old: PolicyInfo = serde_json::from_str(
             r#"{"policy_id": "a@1", "cameras": [], "n_obs_steps": 2, "horizon": 16, "n_action_steps": 8, "action_space": "eef_axis_angle", "action_dim": 7}"#,

@@ -21,13 +21,40 @@ use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_openpi::codec::{self, Value};
-use labrig_openpi::droid::{self, ActionConvention, ActionMode};
+use labrig_openpi::droid::{self, ActionConvention, ActionMode, DroidActionError};
 use labrig_openpi::{Client, ClientError};
 use labrig_runtime::ros::RosPublisher;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
+
+/// Why the remote policy could not be reached or a request of it failed (the text is what the
+/// episode's failure and `/policy/refused` say).
+#[derive(Debug, thiserror::Error)]
+pub enum RemoteError {
+    #[error("{source} (tried for {timeout_s:.0} s: is the openpi server up?)")]
+    Unreachable {
+        #[source]
+        source: ClientError,
+        timeout_s: f64,
+    },
+    #[error("a request without observations")]
+    NoObservation,
+    #[error("no frame of camera {camera:?} at step {step}")]
+    NoFrame { camera: String, step: u64 },
+    #[error("the connection is lost and reconnecting failed: {0}")]
+    Reconnect(#[source] ClientError),
+    /// The policy raised: its traceback's last line.
+    #[error("the server failed: {last_line}")]
+    ServerFailed { last_line: String },
+    #[error(transparent)]
+    Client(#[from] ClientError),
+    #[error("the server's chunk: {0}")]
+    Chunk(#[source] DroidActionError),
+    #[error("the server's chunk of {rows} steps at {rate_hz} Hz spans less than one {tick_ms} ms tick")]
+    ChunkTooShort { rows: usize, rate_hz: f64, tick_ms: i64 },
+}
 
 /// `[remote]` in the control node's config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -132,14 +159,14 @@ pub fn policy_id(url: &str, metadata: &Value) -> String {
 }
 
 /// Connects (retrying until `connect_timeout_s`) and describes the remote policy to the loop.
-pub fn connect(cfg: &RemoteConfig, period_s: f64) -> Result<(Client, PolicyInfo), String> {
+pub fn connect(cfg: &RemoteConfig, period_s: f64) -> Result<(Client, PolicyInfo), RemoteError> {
     let until = Instant::now() + Duration::from_secs_f64(cfg.connect_timeout_s);
     let client = loop {
         let left = until.saturating_duration_since(Instant::now()).max(Duration::from_millis(100));
         match Client::connect(&cfg.url, left.min(Duration::from_secs(5))) {
             Ok(c) => break c,
-            Err(e) if Instant::now() >= until => {
-                return Err(format!("{e} (tried for {:.0} s: is the openpi server up?)", cfg.connect_timeout_s));
+            Err(source) if Instant::now() >= until => {
+                return Err(RemoteError::Unreachable { source, timeout_s: cfg.connect_timeout_s });
             }
             Err(_) => std::thread::sleep(Duration::from_millis(200)),
         }
@@ -197,7 +224,7 @@ pub fn run_worker(
         let obs = match observation(&cfg, &job) {
             Ok(o) => o,
             Err(e) => {
-                let _ = replies.send(Err((id, e)));
+                let _ = replies.send(Err((id, e.to_string())));
                 continue;
             }
         };
@@ -212,7 +239,7 @@ pub fn run_worker(
                     }
                     Err(e) => {
                         if started.elapsed() >= timeout {
-                            break Err(format!("the connection is lost and reconnecting failed: {e}"));
+                            break Err(RemoteError::Reconnect(e));
                         }
                         std::thread::sleep(Duration::from_millis(100));
                         continue;
@@ -223,12 +250,12 @@ pub fn run_worker(
             match c.infer(&obs, timeout.saturating_sub(started.elapsed()).max(Duration::from_millis(50))) {
                 Ok(v) => break Ok(v),
                 // The policy raised: the episode fails with its last line.
-                Err(ClientError::Server { last_line, .. }) => break Err(format!("the server failed: {last_line}")),
-                Err(e @ ClientError::Timeout { .. }) => break Err(e.to_string()),
+                Err(ClientError::Server { last_line, .. }) => break Err(RemoteError::ServerFailed { last_line }),
+                Err(e @ ClientError::Timeout { .. }) => break Err(e.into()),
                 Err(e) if e.connection_lost() && started.elapsed() < timeout => {
                     tracing::warn!("openpi request {id}: {e}; reconnecting");
                 }
-                Err(e) => break Err(e.to_string()),
+                Err(e) => break Err(e.into()),
             }
         };
         let round_trip_ms = started.elapsed().as_secs_f64() * 1e3;
@@ -237,7 +264,7 @@ pub fn run_worker(
             let sent = match &answer {
                 Ok(c) => chunks.publish(c.clone()).err(),
                 Err(e) => {
-                    let data = serde_json::json!({ "request_id": id, "policy_id": policy_id, "error": e });
+                    let data = serde_json::json!({ "request_id": id, "policy_id": policy_id, "error": e.to_string() });
                     refused.publish(StringMsg { data: data.to_string() }).err()
                 }
             };
@@ -245,25 +272,20 @@ pub fn run_worker(
                 tracing::warn!("publishing the remote chunk for observers: {e}");
             }
         }
-        if replies.send(answer.map_err(|e| (id, e))).is_err() {
+        if replies.send(answer.map_err(|e| (id, e.to_string()))).is_err() {
             return;
         }
     }
 }
 
 /// openpi's DROID observation of the request's newest step.
-fn observation(cfg: &RemoteConfig, job: &RemoteJob) -> Result<Value, String> {
-    let (obs, images) = job
-        .request
-        .observations
-        .last()
-        .zip(job.images.last())
-        .ok_or_else(|| "a request without observations".to_owned())?;
-    let frame = |camera: &str| -> Result<Vec<u8>, String> {
+fn observation(cfg: &RemoteConfig, job: &RemoteJob) -> Result<Value, RemoteError> {
+    let (obs, images) = job.request.observations.last().zip(job.images.last()).ok_or(RemoteError::NoObservation)?;
+    let frame = |camera: &str| -> Result<Vec<u8>, RemoteError> {
         let (_, f) = images
             .iter()
             .find(|(c, _)| c == camera)
-            .ok_or_else(|| format!("no frame of camera {camera:?} at step {}", obs.step_index))?;
+            .ok_or_else(|| RemoteError::NoFrame { camera: camera.to_owned(), step: obs.step_index })?;
         Ok(droid::resize_with_pad(&f.pixels, f.width, f.height, cfg.image_size, cfg.image_size))
     };
     let (ext, wrist) = (frame(&cfg.exterior_camera)?, frame(&cfg.wrist_camera)?);
@@ -286,19 +308,18 @@ fn chunk(
     conv: &ActionConvention,
     policy_id: &str,
     round_trip_ms: f64,
-) -> Result<ActionChunk, String> {
-    let rows = droid::action_rows(reply, 8).map_err(|e| format!("the server's chunk: {e}"))?;
+) -> Result<ActionChunk, RemoteError> {
+    let rows = droid::action_rows(reply, 8).map_err(RemoteError::Chunk)?;
     let rows: Vec<droid::Row> = rows.iter().map(|r| std::array::from_fn(|k| r[k])).collect();
     let obs = job.request.observations.last().expect("checked");
     let period_ns = job.request.period_ns;
     let resampled = droid::resample(&rows, &obs.robot_state.joint_positions, conv, period_ns as f64 * 1e-9);
     if resampled.is_empty() {
-        return Err(format!(
-            "the server's chunk of {} steps at {} Hz spans less than one {} ms tick",
-            rows.len(),
-            conv.rate_hz,
-            period_ns / 1_000_000
-        ));
+        return Err(RemoteError::ChunkTooShort {
+            rows: rows.len(),
+            rate_hz: conv.rate_hz,
+            tick_ms: period_ns / 1_000_000,
+        });
     }
     let obs_ns = Nanos::from(obs.header.stamp).0;
     let infer_ms = codec::get(reply, "server_timing")

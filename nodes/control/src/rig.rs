@@ -63,6 +63,26 @@ pub enum LoopError {
     CannotHold(Refusal),
 }
 
+/// Why an operator's request (`/rig/request`) was not applied: the status's `reason`.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RequestRefused {
+    #[error("superseded by a newer request in the same tick")]
+    Superseded,
+    #[error("not a request: {0}")]
+    NotARequest(#[source] labrig_msgs::Invalid),
+    #[error("a Reset request applies while idle only (the loop is {state:?})")]
+    ResetWhileBusy { state: State },
+    /// The recorder cannot record (its refusal, as it says it).
+    #[error("episode start refused: {refusal}")]
+    RecorderRefuses { refusal: String },
+    #[error(transparent)]
+    Episode(#[from] crate::episode::Refused),
+    #[error("the loop applied its own {applied:?} this tick instead")]
+    Overridden { applied: EpisodeEventKind },
+    #[error("the loop did not apply it")]
+    NotApplied,
+}
+
 /// The latest scene the sim published (`/sim/scene`).
 #[derive(Debug, Clone, Default)]
 struct Scene {
@@ -382,18 +402,18 @@ impl RigLoop {
         match event.kind() {
             Ok(k) => {
                 if let Some((old, _, old_stamp)) = self.pending_request.replace((k, event.note.clone(), stamp)) {
-                    self.decided(old_stamp, old, Err("superseded by a newer request in the same tick".into()));
+                    self.decided(old_stamp, old, Err(RequestRefused::Superseded));
                 }
             }
             Err(e) => {
                 tracing::warn!("/rig/request: {e}");
-                self.decided(stamp, EpisodeEventKind::Stop, Err(format!("not a request: {e}")));
+                self.decided(stamp, EpisodeEventKind::Stop, Err(RequestRefused::NotARequest(e)));
             }
         }
     }
 
     /// Records what became of a request, for the status.
-    fn decided(&mut self, stamp: i64, kind: EpisodeEventKind, verdict: Result<(), String>) {
+    fn decided(&mut self, stamp: i64, kind: EpisodeEventKind, verdict: Result<(), RequestRefused>) {
         if let Err(why) = &verdict {
             tracing::warn!(?kind, "operator request refused: {why}");
         }
@@ -401,7 +421,7 @@ impl RigLoop {
             "stamp_ns": stamp,
             "kind": format!("{kind:?}"),
             "accepted": verdict.is_ok(),
-            "reason": verdict.err(),
+            "reason": verdict.err().map(|why| why.to_string()),
         }));
         self.status_due = true;
     }
@@ -439,7 +459,7 @@ impl RigLoop {
             // Only the loop says the arm is home: an operator's Reset means "go home", which
             // applies while idle (while resetting the arm is on its way already).
             Some((EpisodeEventKind::Reset, _, stamp)) if self.episodes.state() != State::Idle => {
-                let why = format!("a Reset request applies while idle only (the loop is {:?})", self.episodes.state());
+                let why = RequestRefused::ResetWhileBusy { state: self.episodes.state() };
                 self.decided(*stamp, EpisodeEventKind::Reset, Err(why));
                 (None, String::new())
             }
@@ -465,7 +485,7 @@ impl RigLoop {
             }
         }
         if event == Some(EpisodeEventKind::Start) && state == State::Idle && self.recorder_refusal.is_some() {
-            let why = format!("episode start refused: {}", self.recorder_refusal.as_deref().unwrap_or_default());
+            let why = RequestRefused::RecorderRefuses { refusal: self.recorder_refusal.clone().unwrap_or_default() };
             self.summary.starts_refused += 1;
             event = None;
             match asked.take() {
@@ -577,8 +597,8 @@ impl RigLoop {
         if let Some((k, stamp)) = asked {
             let verdict = match applied {
                 Some((kind, verdict)) if kind == k => verdict,
-                Some((kind, _)) => Err(format!("the loop applied its own {kind:?} this tick instead")),
-                None => Err("the loop did not apply it".into()),
+                Some((kind, _)) => Err(RequestRefused::Overridden { applied: kind }),
+                None => Err(RequestRefused::NotApplied),
             };
             self.decided(stamp, k, verdict);
         }
@@ -604,7 +624,7 @@ impl RigLoop {
         instruction: &str,
         source: Option<&mut (dyn ActionSource + '_)>,
         out: &mut dyn RigOutputs,
-    ) -> Result<(), String> {
+    ) -> Result<(), RequestRefused> {
         let tick_ns = self.tick().ns;
         match self.episodes.on(kind) {
             Ok(Effect::StartRecording) => {
@@ -653,7 +673,7 @@ impl RigLoop {
             }
             Err(refused) => {
                 tracing::warn!("{refused}");
-                return Err(refused.to_string());
+                return Err(refused.into());
             }
         }
         Ok(())
@@ -767,9 +787,8 @@ impl RigLoop {
             out.step(make_step(&self.episode_id, self.episodes.steps, &obs, &decision, &times))?;
             self.episodes.tick();
             // A policy rollout's step by another source is an operator's (a takeover).
-            let operator = matches!(self.cfg.source, SourceKind::Policy | SourceKind::Remote)
-                && source_kind != Step::SOURCE_POLICY
-                && source_kind != Step::SOURCE_NONE;
+            let operator =
+                matches!(self.cfg.source, SourceKind::Policy | SourceKind::Remote) && Step::is_operator(source_kind);
             if operator && !self.operator_acting {
                 self.episode_takeovers += 1;
                 self.summary.takeovers += 1;

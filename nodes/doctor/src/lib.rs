@@ -17,11 +17,11 @@
 //! out of the `labrig` CLI's build, which `labrig demo` needs on a fresh machine.
 
 use clap::Args;
-use labrig::launch::LaunchConfig;
-use labrig::programs::sibling_binary;
 use labrig_cameras::node::{CameraConfig, CamerasConfig, IntrinsicsSpec};
 use labrig_cameras::source::{DeviceKind, SourceSpec};
 use labrig_episode::metadata::RigIdentity;
+use labrig_launch::config::LaunchConfig;
+use labrig_launch::programs::sibling_binary;
 use labrig_runtime::RosConfig;
 use labrig_runtime::node::run_config;
 use serde::Serialize;
@@ -251,7 +251,7 @@ fn rig_checks(path: &Path, within: Duration, hours: f64) -> Vec<Check> {
 /// Node `N`'s config as the node reads it (its `args`, its `--config`); its `[ros]` is noted
 /// for the DDS check.
 fn read<N: labrig_runtime::Node>(
-    n: &labrig::launch::NodeSpec,
+    n: &labrig_launch::config::NodeSpec,
     file: Option<&Path>,
     ros: &mut Vec<(String, RosConfig)>,
 ) -> anyhow::Result<N::Config> {
@@ -280,6 +280,7 @@ fn fr3(f: &labrig_franka::node::FrankaNodeConfig, rig_ip: Option<&str>, within: 
     out.push(match labrig_franka::fci::probe(ip, within) {
         Ok(version) => ok("FR3", format!("{ip}: FCI version {version}")),
         Err(e) => {
+            let e = e.to_string();
             let fix = if e.contains("refused") {
                 "the address answers but no FCI listens: power the robot, unlock the joints and activate FCI in Desk (https://<robot>/desk)"
             } else if e.contains("version") {
@@ -508,15 +509,27 @@ fn probe_stream(part: &str, input: &str, cam: &CameraConfig, within: Duration) -
     ok(part.to_owned(), format!("{input}: {w}x{h} at {fps_text} fps"))
 }
 
+/// Why a helper program (adb, chronyc, ffprobe, a node's probe) gave no answer.
+#[derive(Debug, thiserror::Error)]
+enum RunError {
+    #[error("cannot run {program}: {source}")]
+    Start { program: String, source: std::io::Error },
+    #[error("{program} gave no answer within {seconds:.0} s")]
+    Timeout { program: String, seconds: f64 },
+    #[error("{0}")]
+    Output(std::io::Error),
+}
+
+/// A helper's run: whether it exited 0, its stdout and stderr.
+type RunOutput = (bool, String, String);
+
 /// Runs `cmd` for at most `within`: (success, stdout, stderr).
-fn run_bounded(cmd: &mut Command, within: Duration) -> Result<(bool, String, String), String> {
-    let name = cmd.get_program().to_string_lossy().into_owned();
-    let mut child = cmd
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .map_err(|e| format!("cannot run {name}: {e}"))?;
+fn run_bounded(cmd: &mut Command, within: Duration) -> Result<RunOutput, RunError> {
+    let program = cmd.get_program().to_string_lossy().into_owned();
+    let mut child = match cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn() {
+        Ok(c) => c,
+        Err(source) => return Err(RunError::Start { program, source }),
+    };
     let deadline = std::time::Instant::now() + within;
     loop {
         match child.try_wait() {
@@ -525,11 +538,11 @@ fn run_bounded(cmd: &mut Command, within: Duration) -> Result<(bool, String, Str
             _ => {
                 let _ = child.kill();
                 let _ = child.wait();
-                return Err(format!("{name} gave no answer within {:.0} s", within.as_secs_f64()));
+                return Err(RunError::Timeout { program, seconds: within.as_secs_f64() });
             }
         }
     }
-    let out = child.wait_with_output().map_err(|e| e.to_string())?;
+    let out = child.wait_with_output().map_err(RunError::Output)?;
     Ok((
         out.status.success(),
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -560,7 +573,7 @@ fn quest(input: &labrig_quest_teleop::input::InputConfig, within: Duration) -> C
     let listed = match run_bounded(Command::new(&input.adb).arg("devices"), within) {
         Ok((true, stdout, _)) => stdout,
         Ok((false, _, stderr)) => return row("Quest", State::Fail, format!("adb devices: {}", stderr.trim()), ""),
-        Err(e) => return row("Quest", State::Fail, e, "install adb (`bash scripts/setup.sh` does)"),
+        Err(e) => return row("Quest", State::Fail, e.to_string(), "install adb (`bash scripts/setup.sh` does)"),
     };
     match adb_state(&listed, device) {
         Some("device") => {}
@@ -602,7 +615,7 @@ fn quest(input: &labrig_quest_teleop::input::InputConfig, within: Duration) -> C
             format!("{device}: connected, but {package} is not installed"),
             "install DROID's oculus_reader app: `adb install <apk>` (docs/bringup.md)",
         ),
-        Err(e) => row("Quest", State::Fail, e, ""),
+        Err(e) => row("Quest", State::Fail, e.to_string(), ""),
     }
 }
 
@@ -674,7 +687,7 @@ fn recording_rate(cams: &CamerasConfig, rec: &labrig_recorder::node::RecorderCon
 /// What every episode's DROID metadata will say of the rig (the recorder's `[rig]`): its camera
 /// serials must be the rig's (`rig.devices.camera_serials`); the simulator's defaults on a rig
 /// that drives an arm are a warning.
-fn episode_metadata(id: &RigIdentity, devices: &labrig::launch::Devices, drives_an_arm: bool) -> Check {
+fn episode_metadata(id: &RigIdentity, devices: &labrig_launch::config::Devices, drives_an_arm: bool) -> Check {
     const PART: &str = "episode metadata";
     let wrong: Vec<String> = devices
         .camera_serials
@@ -911,7 +924,7 @@ fn policy(args: &[String], file: Option<&Path>, within: Duration) -> Check {
             stderr.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("does not load").trim().to_owned(),
             "point `--checkpoint` at a checkpoint `labrig train` wrote (e.g. <run>/checkpoints/last)",
         ),
-        Err(e) => row("policy", State::Fail, e, ""),
+        Err(e) => row("policy", State::Fail, e.to_string(), ""),
     }
 }
 

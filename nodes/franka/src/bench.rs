@@ -43,9 +43,7 @@ impl Drop for Killed {
 }
 
 fn cache() -> PathBuf {
-    std::env::var_os("LABRIG_CACHE")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/labrig"))
+    labrig_msgs::cache_dir().unwrap_or_else(|| PathBuf::from(".cache/labrig"))
 }
 
 fn now() -> Nanos {

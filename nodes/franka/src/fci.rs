@@ -92,16 +92,26 @@ fn connect(address: &str, cfg: &FciConfig) -> Result<Arc<Robot>, BackendError> {
 /// Connects to the FCI at `address` (`ip` or `ip:port`) and disconnects, commanding nothing
 /// (`labrig doctor`): the FCI version the robot speaks, or why there is none (refused, no
 /// answer within `within`, a version franka-rs does not speak). Real-time is not asked for.
-pub fn probe(address: &str, within: std::time::Duration) -> Result<u16, String> {
+pub fn probe(address: &str, within: std::time::Duration) -> Result<u16, ProbeError> {
     let (tx, rx) = std::sync::mpsc::channel();
     let address = address.to_owned();
     // A connect to an address nobody answers waits for TCP's own timeout (minutes): the thread
     // is left to it, the answer is not waited for.
     std::thread::spawn(move || {
-        let r = Robot::new(&address, RealtimeConfig::Ignore).map(|r| r.server_version()).map_err(|e| e.to_string());
+        let r = Robot::new(&address, RealtimeConfig::Ignore).map(|r| r.server_version()).map_err(ProbeError::Fci);
         let _ = tx.send(r);
     });
-    rx.recv_timeout(within).unwrap_or_else(|_| Err(format!("no answer within {:.0} s", within.as_secs_f64())))
+    rx.recv_timeout(within).unwrap_or(Err(ProbeError::NoAnswer { within }))
+}
+
+/// Why [`probe`] found no FCI.
+#[derive(Debug, thiserror::Error)]
+pub enum ProbeError {
+    /// franka-rs's answer: refused, unreachable, a version it does not speak, ...
+    #[error(transparent)]
+    Fci(FrankaError),
+    #[error("no answer within {:.0} s", .within.as_secs_f64())]
+    NoAnswer { within: std::time::Duration },
 }
 
 /// A franka-rs error in the node's terms: a control exception (a reflex, a limit the

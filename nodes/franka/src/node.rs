@@ -16,18 +16,18 @@ use crate::fci::FciArm;
 use crate::sim::SimArm;
 use futures::StreamExt;
 use labrig_arm::ik::{Ik, IkConfig, xyz_euler};
-use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter, Watchdog};
+use labrig_arm::safety::{ArmView, SafeCommand, SafetyConfig, SafetyFilter, Watchdog};
 use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
 use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
-use labrig_msgs::labrig_msgs::RobotState;
+use labrig_msgs::labrig_msgs::{ArmCommand, RobotState};
 use labrig_msgs::sensor_msgs::JointState;
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::std_srvs::TriggerResponse;
 use labrig_msgs::tf2_msgs::TFMessage;
 use labrig_msgs::topics;
-use labrig_runtime::ros::Ros;
+use labrig_runtime::ros::{Received, Ros, RosError};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use serde::Deserialize;
 use std::path::PathBuf;
@@ -163,7 +163,7 @@ pub async fn run(
     let kin = Fr3Kinematics::from_urdf_file(&labrig_arm::urdf_path(cfg.urdf.as_deref()), TcpOffset::ROBOTIQ_2F85)?;
     let filter =
         SafetyFilter::new(Ik::new(kin.clone(), IkConfig::default()), cfg.safety.clone()).map_err(anyhow::Error::msg)?;
-    let mut watchdog = Watchdog::new(cfg.safety.watchdog_timeout());
+    let watchdog = Watchdog::new(cfg.safety.watchdog_timeout());
     // In sim, time is the bridge's: commands are stamped in it and, in lockstep, it stands
     // still between commands, so the watchdog runs on it too (checked each state tick).
     let sim = cfg.backend == BackendKind::Sim;
@@ -182,12 +182,62 @@ pub async fn run(
     let commands = ros.subscription_on(&topics::ARM_COMMAND, 100)?;
     let mut recover_rx = ros.server_on(&topics::ARM_RECOVER)?.forward();
 
-    let mut report = Report { last_ok: true, ..Report::default() };
-    // The first reading (the sim bridge may still be starting).
+    let report = Report { last_ok: true, ..Report::default() };
+    let reading = first_reading(&mut *backend, &shutdown).await?;
+    tracing::info!(backend = backend.name(), q = ?reading.q, "franka node up");
+    let mut node = ArmNode {
+        bounds: filter.ik().bounds(),
+        kin,
+        filter,
+        watchdog,
+        sim,
+        clock,
+        sim_clock,
+        backend,
+        pubs,
+        arm_target,
+        report,
+        reading,
+        started: Instant::now(),
+        period_ns: (cfg.safety.period_s * 1e9) as i64,
+        clock_at: Instant::now(),
+    };
+    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut stream = Box::pin(commands.stream());
+    loop {
+        let deadline = node.hold_deadline();
+        tokio::select! {
+            _ = shutdown.wait() => break,
+            Some(served) = recover_rx.recv() => served.respond(node.recover()),
+            // tokio's timers have 1 ms granularity (they fire up to ~1.5 ms late): wake 1 ms
+            // early and sleep the rest on the thread, so the hold lands at the deadline.
+            _ = async { tokio::time::sleep_until(deadline.expect("guarded") - Duration::from_millis(1)).await },
+                if deadline.is_some() => node.hold_at(deadline.expect("guarded")),
+            msg = stream.next() => {
+                let Some(msg) = msg else { break };
+                node.command(msg, Instant::now());
+            }
+            _ = ticker.tick() => node.state_tick(),
+        }
+    }
+    node.backend.stop();
+    tracing::info!(
+        commands = node.report.commands,
+        refused = node.report.refused,
+        clipped = node.report.clipped,
+        "franka node stopped"
+    );
+    Ok(())
+}
+
+/// The first reading (the sim bridge may still be starting), waited for up to a minute; the
+/// backend stopped if none comes.
+async fn first_reading(backend: &mut dyn ArmBackend, shutdown: &Shutdown) -> anyhow::Result<ArmReading> {
     let waited = Instant::now();
-    let mut reading: ArmReading = loop {
+    loop {
         match backend.read() {
-            Ok(r) => break r,
+            Ok(r) => return Ok(r),
             Err(e) if waited.elapsed() < Duration::from_secs(60) && !shutdown.is_triggered() => {
                 tracing::debug!("waiting for the arm: {e}");
                 tokio::time::sleep(Duration::from_millis(50)).await;
@@ -197,159 +247,183 @@ pub async fn run(
                 return Err(e.into());
             }
         }
-    };
-    tracing::info!(backend = backend.name(), q = ?reading.q, "franka node up");
-    let bounds = filter.ik().bounds();
-    let started = Instant::now();
-    // Sim time from the bridge's /clock. Between two /clock messages (one per bridge tick) the
-    // node adds the wall time since the last one, at most one period, as the bridge itself
-    // does for arrivals: in realtime that tracks sim time, in lockstep (sim time standing
-    // still between commands) it never adds up to a watchdog's silence.
-    let period_ns = (cfg.safety.period_s * 1e9) as i64;
-    let mut clock_at = Instant::now();
-    let sync_clock = |clock: &Clock, clock_at: &mut Instant| {
-        let Some(sub) = &sim_clock else { return };
+    }
+}
+
+/// The running node: the safety layer, the backend, the node's clock and what it last did.
+struct ArmNode {
+    kin: Fr3Kinematics,
+    filter: SafetyFilter,
+    watchdog: Watchdog,
+    /// In front of the sim bridge (its time is the bridge's `/clock`).
+    sim: bool,
+    clock: Clock,
+    sim_clock: Option<labrig_runtime::ros::RosSubscription<labrig_msgs::rosgraph_msgs::Clock>>,
+    backend: Box<dyn ArmBackend>,
+    pubs: StatePubs,
+    arm_target: labrig_runtime::ros::RosPublisher<JointState>,
+    report: Report,
+    reading: ArmReading,
+    /// The safety layer's joint bounds, which a hold stays inside.
+    bounds: [[f64; 2]; 7],
+    started: Instant,
+    period_ns: i64,
+    /// When the last `/clock` arrived.
+    clock_at: Instant,
+}
+
+impl ArmNode {
+    /// Sim time from the bridge's /clock. Between two /clock messages (one per bridge tick) the
+    /// node adds the wall time since the last one, at most one period, as the bridge itself
+    /// does for arrivals: in realtime that tracks sim time, in lockstep (sim time standing
+    /// still between commands) it never adds up to a watchdog's silence.
+    fn sync_clock(&mut self) {
+        let Some(sub) = &self.sim_clock else { return };
         loop {
             match sub.try_take() {
                 Ok(Some(c)) => {
                     let t = Nanos::from(c.msg.clock);
-                    if t.0 + 1_000_000_000 < clock.now().0 {
+                    if t.0 + 1_000_000_000 < self.clock.now().0 {
                         tracing::warn!("/clock went back to {:.3} s: the sim bridge restarted", t.as_secs_f64());
-                        clock.reset(t);
+                        self.clock.reset(t);
                     } else {
-                        clock.set(t);
+                        self.clock.set(t);
                     }
-                    *clock_at = Instant::now();
+                    self.clock_at = Instant::now();
                 }
                 Ok(None) => break,
                 Err(e) => tracing::warn!("/clock: {e}"),
             }
         }
-    };
-    let since_clock = |clock_at: Instant| (clock_at.elapsed().as_nanos() as i64).min(period_ns - 1);
-    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.rate_hz));
-    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut stream = Box::pin(commands.stream());
-    loop {
-        let deadline = watchdog.deadline().filter(|_| !sim).map(|d| started + Duration::from_nanos(d.0.max(0) as u64));
-        tokio::select! {
-            _ = shutdown.wait() => break,
-            Some(served) = recover_rx.recv() => {
-                let response = match backend.recover().and_then(|()| backend.read()) {
-                    Ok(r) => {
-                        reading = r;
-                        report.backend_down = None;
-                        report.fault.clear();
-                        report.commanded = None;
-                        TriggerResponse { success: true, message: format!("{} recovered", backend.name()) }
-                    }
-                    Err(e) => TriggerResponse { success: false, message: e.to_string() },
-                };
-                tracing::info!("/arm/recover: {}", response.message);
-                served.respond(response);
+    }
+
+    /// The wall time since the last /clock, at most a period short of one (ns).
+    fn since_clock(&self) -> i64 {
+        (self.clock_at.elapsed().as_nanos() as i64).min(self.period_ns - 1)
+    }
+
+    /// On the wall clock, when the watchdog holds the arm unless a command comes first.
+    fn hold_deadline(&self) -> Option<Instant> {
+        self.watchdog.deadline().filter(|_| !self.sim).map(|d| self.started + Duration::from_nanos(d.0.max(0) as u64))
+    }
+
+    /// `/arm/recover`: the backend recovered and read again, its fault cleared; the answer.
+    fn recover(&mut self) -> TriggerResponse {
+        let response = match self.backend.recover().and_then(|()| self.backend.read()) {
+            Ok(r) => {
+                self.reading = r;
+                self.report.backend_down = None;
+                self.report.fault.clear();
+                self.report.commanded = None;
+                TriggerResponse { success: true, message: format!("{} recovered", self.backend.name()) }
             }
-            // tokio's timers have 1 ms granularity (they fire up to ~1.5 ms late): wake 1 ms
-            // early and sleep the rest on the thread, so the hold lands at the deadline.
-            _ = async { tokio::time::sleep_until(deadline.expect("guarded") - Duration::from_millis(1)).await },
-                if deadline.is_some() => {
-                let rest = deadline.expect("guarded").saturating_duration_since(Instant::now());
-                std::thread::sleep(rest);
-                if let Some(silence) = watchdog.check(Nanos(started.elapsed().as_nanos() as i64)) {
-                    hold(&mut *backend, &mut report, silence.0, &bounds);
-                    pubs.publish(&clock, &kin, &reading, &report);
-                }
-            }
-            msg = stream.next() => {
-                let Some(msg) = msg else { break };
-                let received = Instant::now();
-                report.commands += 1;
-                let cmd = match msg {
-                    Ok(m) => m.msg,
-                    Err(e) => {
-                        // A malformed command: refused and named; the node goes on.
-                        report.refused += 1;
-                        report.last_ok = false;
-                        report.fault = format!("refused arm command: {e}");
-                        tracing::warn!("{}", report.fault);
-                        continue;
-                    }
-                };
-                sync_clock(&clock, &mut clock_at);
-                // Arrival on the watchdog's time line: monotonic, or sim time.
-                let arrival = if sim { clock.now().0 + since_clock(clock_at) } else { started.elapsed().as_nanos() as i64 };
-                if let Some(e) = &report.backend_down {
-                    report.refused += 1;
-                    report.last_ok = false;
-                    report.fault = format!("refused arm command seq {}: {e}; call /arm/recover", cmd.seq);
-                    continue;
-                }
-                let view = ArmView { measured: reading.q, commanded: report.commanded.unwrap_or(reading.q) };
-                match filter.filter(&cmd, &view, clock.now()) {
-                    Ok(ok) => {
-                        if !ok.clipped.is_empty() {
-                            report.clipped += 1;
-                            tracing::debug!(seq = cmd.seq, clipped = ?ok.clipped, "arm command clipped");
-                        }
-                        match backend.set_target(&ok.joints) {
-                            Ok(()) => {
-                                report.latency_ms = received.elapsed().as_secs_f64() * 1e3;
-                                // Each accepted command's joint targets, stamped with the
-                                // command's own stamp (what the recorder pairs them by).
-                                let echo = arm_target.publish(JointState {
-                                    header: Header { stamp: cmd.header.stamp, frame_id: BASE_FRAME.into() },
-                                    name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
-                                    position: ok.joints.to_vec(),
-                                    velocity: vec![],
-                                    effort: vec![],
-                                });
-                                if let Err(e) = echo {
-                                    tracing::warn!("/arm/target: {e}");
-                                }
-                                report.commanded = Some(ok.joints);
-                                report.gripper = ok.gripper;
-                                report.last_ok = true;
-                                report.holding = false;
-                                report.fault.clear();
-                                watchdog.feed(Nanos(arrival));
-                            }
-                            Err(BackendError::Refused(why)) => {
-                                report.refused += 1;
-                                report.last_ok = false;
-                                report.fault = format!("refused arm command seq {}: {why}", cmd.seq);
-                                tracing::warn!("{}", report.fault);
-                            }
-                            Err(e) => down(&mut report, e),
-                        }
-                    }
-                    Err(refusal) => {
-                        report.refused += 1;
-                        report.last_ok = false;
-                        report.fault = format!("refused arm command seq {}: {refusal}", cmd.seq);
-                        tracing::warn!("{}", report.fault);
-                    }
-                }
-            }
-            _ = ticker.tick() => {
-                sync_clock(&clock, &mut clock_at);
-                match backend.read() {
-                    Ok(r) => reading = r,
-                    Err(e) => down(&mut report, e),
-                }
-                if sim && let Some(silence) = watchdog.check(Nanos(clock.now().0 + since_clock(clock_at))) {
-                    hold(&mut *backend, &mut report, silence.0, &bounds);
-                }
-                pubs.publish(&clock, &kin, &reading, &report);
-            }
+            Err(e) => TriggerResponse { success: false, message: e.to_string() },
+        };
+        tracing::info!("/arm/recover: {}", response.message);
+        response
+    }
+
+    /// Woken just before the watchdog's `deadline`: sleeps the rest on the thread, then holds
+    /// the arm (and says so at once) if no command came.
+    fn hold_at(&mut self, deadline: Instant) {
+        let rest = deadline.saturating_duration_since(Instant::now());
+        std::thread::sleep(rest);
+        if let Some(silence) = self.watchdog.check(Nanos(self.started.elapsed().as_nanos() as i64)) {
+            hold(&mut *self.backend, &mut self.report, silence.0, &self.bounds);
+            self.pubs.publish(&self.clock, &self.kin, &self.reading, &self.report);
         }
     }
-    backend.stop();
-    tracing::info!(
-        commands = report.commands,
-        refused = report.refused,
-        clipped = report.clipped,
-        "franka node stopped"
-    );
-    Ok(())
+
+    /// An arm command (`received` when it was taken): refused and named, or through the safety
+    /// layer to the backend.
+    fn command(&mut self, msg: Result<Received<ArmCommand>, RosError>, received: Instant) {
+        self.report.commands += 1;
+        let cmd = match msg {
+            Ok(m) => m.msg,
+            Err(e) => {
+                // A malformed command: refused and named; the node goes on.
+                self.refuse(format!("refused arm command: {e}"), true);
+                return;
+            }
+        };
+        self.sync_clock();
+        // Arrival on the watchdog's time line: monotonic, or sim time.
+        let arrival =
+            if self.sim { self.clock.now().0 + self.since_clock() } else { self.started.elapsed().as_nanos() as i64 };
+        if let Some(e) = &self.report.backend_down {
+            let fault = format!("refused arm command seq {}: {e}; call /arm/recover", cmd.seq);
+            self.refuse(fault, false);
+            return;
+        }
+        let view = ArmView { measured: self.reading.q, commanded: self.report.commanded.unwrap_or(self.reading.q) };
+        match self.filter.filter(&cmd, &view, self.clock.now()) {
+            Ok(ok) => {
+                if !ok.clipped.is_empty() {
+                    self.report.clipped += 1;
+                    tracing::debug!(seq = cmd.seq, clipped = ?ok.clipped, "arm command clipped");
+                }
+                self.send_target(&cmd, &ok, received, arrival);
+            }
+            Err(refusal) => self.refuse(format!("refused arm command seq {}: {refusal}", cmd.seq), true),
+        }
+    }
+
+    /// A command the safety layer passed: its joint targets to the backend and, accepted,
+    /// echoed on `/arm/target`, the watchdog fed at its `arrival`.
+    fn send_target(&mut self, cmd: &ArmCommand, ok: &SafeCommand, received: Instant, arrival: i64) {
+        match self.backend.set_target(&ok.joints) {
+            Ok(()) => {
+                self.report.latency_ms = received.elapsed().as_secs_f64() * 1e3;
+                // Each accepted command's joint targets, stamped with the
+                // command's own stamp (what the recorder pairs them by).
+                let echo = self.arm_target.publish(JointState {
+                    header: Header { stamp: cmd.header.stamp, frame_id: BASE_FRAME.into() },
+                    name: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+                    position: ok.joints.to_vec(),
+                    velocity: vec![],
+                    effort: vec![],
+                });
+                if let Err(e) = echo {
+                    tracing::warn!("/arm/target: {e}");
+                }
+                self.report.commanded = Some(ok.joints);
+                self.report.gripper = ok.gripper;
+                self.report.last_ok = true;
+                self.report.holding = false;
+                self.report.fault.clear();
+                self.watchdog.feed(Nanos(arrival));
+            }
+            Err(BackendError::Refused(why)) => {
+                self.refuse(format!("refused arm command seq {}: {why}", cmd.seq), true);
+            }
+            Err(e) => down(&mut self.report, e),
+        }
+    }
+
+    /// A refused command counted and its `fault` reported (and warned, when `warn`).
+    fn refuse(&mut self, fault: String, warn: bool) {
+        self.report.refused += 1;
+        self.report.last_ok = false;
+        self.report.fault = fault;
+        if warn {
+            tracing::warn!("{}", self.report.fault);
+        }
+    }
+
+    /// The state tick: the arm read, in sim the watchdog checked on sim time, the state published.
+    fn state_tick(&mut self) {
+        self.sync_clock();
+        match self.backend.read() {
+            Ok(r) => self.reading = r,
+            Err(e) => down(&mut self.report, e),
+        }
+        if self.sim
+            && let Some(silence) = self.watchdog.check(Nanos(self.clock.now().0 + self.since_clock()))
+        {
+            hold(&mut *self.backend, &mut self.report, silence.0, &self.bounds);
+        }
+        self.pubs.publish(&self.clock, &self.kin, &self.reading, &self.report);
+    }
 }
 
 /// The watchdog tripped after `silence` ns: hold the arm where it is (its measured joints,

@@ -4,7 +4,6 @@
 
 use anyhow::{Context, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use labrig_msgs::Nanos;
 use labrig_runtime::Clock;
 use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode};
@@ -174,9 +173,11 @@ pub fn run_shm(args: &ShmArgs) -> anyhow::Result<ShmReport> {
     let mut latencies: Vec<Vec<f64>> = vec![Vec::new(); args.streams];
     let mut gaps = vec![0u64; args.streams];
     let mut last_seq: Vec<Option<u64>> = vec![None; args.streams];
-    let bar = ProgressBar::new((args.seconds * 10.0) as u64)
-        .with_style(ProgressStyle::with_template("{spinner} shm bench {bar:30} {elapsed}/{msg}").expect("template"))
-        .with_message(format!("{:.0}s", args.seconds));
+    let bar = labrig_episode::progress::bar(
+        &format!("shm bench {{bar:30}} of {:.0} s", args.seconds),
+        (args.seconds * 10.0) as u64,
+        false,
+    );
     let started = Instant::now();
     // Run until every publisher has exited, then drain what is left; bounded in any case.
     let hard_stop = started + Duration::from_secs_f64(args.seconds + 30.0);

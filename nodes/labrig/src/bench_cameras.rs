@@ -9,10 +9,10 @@
 //! 2-core machine: the servers' encoding competes with the node, so read the figures as what
 //! this machine sustains, not as the node's cost alone.
 
-use crate::demo::progress;
 use anyhow::{Context, bail};
 use clap::Args;
 use labrig_episode::inspect::Percentiles;
+use labrig_episode::progress;
 use labrig_runtime::Clock;
 use labrig_runtime::frames::FrameNode;
 use serde::Serialize;
@@ -116,7 +116,7 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
     if !(a.fps > 0.0 && a.fps <= 120.0 && a.seconds > 0.0 && a.seconds <= 600.0) {
         bail!("--fps must be in (0, 120] and --seconds in (0, 600]");
     }
-    let exe = crate::programs::sibling_binary("labrig-cameras")?;
+    let exe = labrig_launch::programs::sibling_binary("labrig-cameras")?;
     let ns = format!("bench_cameras_{}", std::process::id());
     let dir = tempfile::tempdir()?;
     let mut config = format!("stall_s = 1.0\nretry_s = 0.2\npreview_hz = 1.0\n[ros]\ndomain_id = {}\n", a.domain_id);
@@ -183,7 +183,7 @@ pub fn run(a: CamerasBenchArgs) -> anyhow::Result<ExitCode> {
     let started = Instant::now();
     let period = Duration::from_secs_f64(1.0 / a.observe_hz);
     let n_obs = (a.seconds * a.observe_hz).round() as u64;
-    let bar = progress("observing {pos}/{len} ticks", n_obs, a.json)?;
+    let bar = progress::bar("observing {pos}/{len} ticks", n_obs, a.json);
     let mut last_seq: Vec<Option<u64>> = vec![None; ids.len()];
     let (mut delivered, mut lost) = (vec![0u64; ids.len()], vec![0u64; ids.len()]);
     let mut first_seq: Vec<Option<u64>> = vec![None; ids.len()];

@@ -23,10 +23,10 @@
 //! Each run prints a table (or JSON); the figures depend on the machine (a shared 2-core
 //! machine is noisy): read times as what one run measured.
 
-use crate::launch::{LaunchConfig, OnFailure, Output};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
+use labrig_launch::config::{LaunchConfig, OnFailure};
+use labrig_launch::supervise::Output;
 use labrig_msgs::labrig_msgs::EpisodeEventKind;
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;
@@ -148,12 +148,7 @@ pub fn run(a: FaultArgs) -> anyhow::Result<ExitCode> {
             }
         }
     }
-    let bar = ProgressBar::new(plan.len() as u64);
-    bar.set_style(ProgressStyle::with_template("{spinner} faults {bar:20} {pos}/{len}  {msg}  [{elapsed}]")?);
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar.enable_steady_tick(Duration::from_millis(200));
+    let bar = labrig_episode::progress::bar("faults {bar:20} {pos}/{len}", plan.len() as u64, a.json);
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let mut reports = Vec::new();
     for (k, (fault, point)) in plan.iter().enumerate() {
@@ -248,8 +243,9 @@ static NEXT_RIG: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::ne
 
 /// The demo's rig in real time, recording into `root`, `episodes` episodes.
 fn rig(root: &Path, episodes: u64, recorder_sets: &[&str]) -> anyhow::Result<(LaunchConfig, Vec<usize>)> {
-    let (mut cfg, order) = LaunchConfig::parse(crate::demo::SIM_DEMO, Path::new("launch_configs/sim_demo.toml"))?;
-    let set = crate::demo::set_arg;
+    let (mut cfg, order) =
+        LaunchConfig::parse(labrig_launch::sim::SIM_DEMO, Path::new("launch_configs/sim_demo.toml"))?;
+    let set = labrig_launch::sim::set_arg;
     let sim = cfg.node_mut("sim").context("no `sim` node")?;
     set(&mut sim.args, "--mode", "realtime");
     sim.args.push("--wall-clock-origin".into());
@@ -364,12 +360,11 @@ async fn run_one(
     let ctl_status = ros.subscription_on(&topics::CONTROL_STATUS, 10)?;
     let arm_state = ros.subscription_on(&topics::ARM_STATE, 100)?;
     let sim_fault = ros.publisher_on(&topics::SIM_FAULT, 10)?;
-    let mut arm_fault: Option<(Instant, String)> = None;
-    let mut stopped: Option<(Instant, String)> = None;
+    let mut times = Times::default();
     let stop = Shutdown::new();
     let rig = {
         let stop = stop.clone();
-        tokio::spawn(crate::launch::supervise_until(
+        tokio::spawn(labrig_launch::supervise::supervise_until(
             cfg,
             order,
             PathBuf::from("launch_configs"),
@@ -384,9 +379,6 @@ async fn run_one(
         "labrig-sim run --mode realtime --hardware-prefix /sim --expert --wall-clock-origin --domain-id {domain}"
     );
     let mut seen = Seen::default();
-    let mut hit_at: Option<Instant> = None;
-    let mut refused_at: Option<Instant> = None;
-    let mut idle_at: Option<Instant> = None;
     let started = Instant::now();
     while !rig.is_finished() {
         while let Some(e) = events.try_take()? {
@@ -395,11 +387,11 @@ async fn run_one(
             if kind == Ok(EpisodeEventKind::Start) && !seen.episodes.contains(&id) {
                 seen.episodes.push(id.clone());
             }
-            if hit_at.is_some() && stopped.is_none() && kind == Ok(EpisodeEventKind::Stop) {
-                stopped = Some((Instant::now(), e.msg.note.clone()));
+            if times.hit_at.is_some() && times.stopped.is_none() && kind == Ok(EpisodeEventKind::Stop) {
+                times.stopped = Some((Instant::now(), e.msg.note.clone()));
             }
             let first = seen.episodes.first() == Some(&id);
-            if hit_at.is_none() && first && fault == Fault::RecorderKill {
+            if times.hit_at.is_none() && first && fault == Fault::RecorderKill {
                 let now = matches!(
                     (point, kind),
                     (Some(KillPoint::Start), Ok(EpisodeEventKind::Start))
@@ -407,7 +399,7 @@ async fn run_one(
                 );
                 if now {
                     signal("-KILL", &recorder)?;
-                    hit_at = Some(Instant::now());
+                    times.hit_at = Some(Instant::now());
                 }
             }
         }
@@ -418,58 +410,60 @@ async fn run_one(
         // Mid-episode: 3 s in; a camera stall 1 s in, so that the expert's episode outlasts the
         // stall (stalled at step 60, an 84-step episode ended 24 steps into a 2 s stall).
         let hit_step = if fault == Fault::CameraStall { 20 } else { 60 };
-        if hit_at.is_none() && first_steps >= hit_step {
+        if times.hit_at.is_none() && first_steps >= hit_step {
             match (fault, point) {
                 (Fault::RecorderKill, Some(KillPoint::Mid)) => {
                     signal("-KILL", &recorder)?;
-                    hit_at = Some(Instant::now());
+                    times.hit_at = Some(Instant::now());
                 }
                 (Fault::CameraStall, _) => {
                     let stall = json!({ "stall_camera": { "camera": STALLED_CAMERA, "seconds": stall_s } });
                     sim_fault.publish(labrig_msgs::std_msgs::StringMsg { data: stall.to_string() })?;
-                    hit_at = Some(Instant::now());
+                    times.hit_at = Some(Instant::now());
                 }
                 (Fault::BridgeKill, _) => {
                     signal("-KILL", &bridge)?;
-                    hit_at = Some(Instant::now());
+                    times.hit_at = Some(Instant::now());
                 }
                 (Fault::DdsStop, _) => {
                     signal("-STOP", &recorder)?;
                     tokio::time::sleep(Duration::from_millis(300)).await;
                     signal("-CONT", &recorder)?;
-                    hit_at = Some(Instant::now());
+                    times.hit_at = Some(Instant::now());
                 }
                 _ => {}
             }
         }
         while let Some(s) = rec_status.try_take()? {
             let v: Value = serde_json::from_str(&s.msg.data).unwrap_or_default();
-            if refused_at.is_none() && v["accepting"] == false && v["state"] != "recording" {
-                refused_at = Some(Instant::now());
+            if times.refused_at.is_none() && v["accepting"] == false && v["state"] != "recording" {
+                times.refused_at = Some(Instant::now());
             }
             seen.status.push((Instant::now(), v));
         }
         while let Some(s) = arm_state.try_take()? {
-            if hit_at.is_some() && arm_fault.is_none() && s.msg.mode == labrig_msgs::labrig_msgs::RobotState::MODE_FAULT
+            if times.hit_at.is_some()
+                && times.arm_fault.is_none()
+                && s.msg.mode == labrig_msgs::labrig_msgs::RobotState::MODE_FAULT
             {
-                arm_fault = Some((Instant::now(), s.msg.fault.clone()));
+                times.arm_fault = Some((Instant::now(), s.msg.fault.clone()));
             }
         }
         // The bridge's episode is filed: the run is over.
         if fault == Fault::BridgeKill
-            && hit_at.is_some()
-            && seen.status.iter().any(|(t, v)| after(t, hit_at) && v["state"] == "recorded")
+            && times.hit_at.is_some()
+            && seen.status.iter().any(|(t, v)| after(t, times.hit_at) && v["state"] == "recorded")
         {
             stop.trigger();
         }
         while let Some(s) = ctl_status.try_take()? {
             seen.control = serde_json::from_str(&s.msg.data).unwrap_or_default();
-            if refused_at.is_some() && idle_at.is_none() && !seen.control["recorder_refusal"].is_null() {
-                idle_at = Some(Instant::now());
+            if times.refused_at.is_some() && times.idle_at.is_none() && !seen.control["recorder_refusal"].is_null() {
+                times.idle_at = Some(Instant::now());
             }
         }
         // A full disk holds the rig Idle: seen for 3 s, the run is over.
-        if idle_at.is_some_and(|t| t.elapsed() > Duration::from_secs(3)) {
+        if times.idle_at.is_some_and(|t| t.elapsed() > Duration::from_secs(3)) {
             stop.trigger();
         }
         if started.elapsed() > Duration::from_secs(300) {
@@ -479,7 +473,29 @@ async fn run_one(
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     let code = rig.await.context("the launcher task")??;
-    let filed = filed_episodes(&root);
+    Ok(judge(fault, name, &root, code, &seen, &times))
+}
+
+/// When the run's events happened (each the first of its kind after the fault was applied).
+#[derive(Debug, Default)]
+struct Times {
+    /// The fault applied.
+    hit_at: Option<Instant>,
+    /// The recorder refused to start an episode (a full disk).
+    refused_at: Option<Instant>,
+    /// The loop reported the refusal and held the rig.
+    idle_at: Option<Instant>,
+    /// The franka node reported a fault, and what it said.
+    arm_fault: Option<(Instant, String)>,
+    /// The loop stopped the episode, and its note.
+    stopped: Option<(Instant, String)>,
+}
+
+/// The run's report from what was seen on the wire and what was filed under `root`.
+fn judge(fault: Fault, name: &str, root: &Path, code: ExitCode, seen: &Seen, times: &Times) -> FaultReport {
+    let Times { hit_at, refused_at, idle_at, arm_fault, stopped } = times;
+    let (hit_at, refused_at, idle_at) = (*hit_at, *refused_at, *idle_at);
+    let filed = filed_episodes(root);
     let staging_left = std::fs::read_dir(root.join(".recording")).map_or(0, |d| d.count());
     let mut r = empty(name);
     r.episodes = filed.len();
@@ -524,37 +540,7 @@ async fn run_one(
         Fault::RecorderKill | Fault::DdsStop => {
             format!("recorder restarted; the episode filed in {} part(s), {} steps lost", r.parts, r.steps_lost)
         }
-        Fault::CameraStall => {
-            let hit_dir = hit
-                .as_ref()
-                .and_then(|id| filed.iter().find(|(_, i)| i.metadata.as_ref().is_some_and(|m| &m.uuid == id)));
-            match hit_dir {
-                Some((dir, i)) => {
-                    // Per step, each camera's frame reference: a step that repeats the last
-                    // step's frame of a camera (same sequence) had nothing newer from it.
-                    let steps = labrig_episode::read_episode(dir).map(|d| d.steps).unwrap_or_default();
-                    let mut repeated: BTreeMap<String, u64> = BTreeMap::new();
-                    for w in steps.windows(2) {
-                        for c in &w[1].cameras {
-                            let before = w[0].cameras.iter().find(|p| p.camera_id == c.camera_id);
-                            if before.is_some_and(|p| p.sequence == c.sequence) {
-                                *repeated.entry(c.camera_id.clone()).or_default() += 1;
-                            }
-                        }
-                    }
-                    let stalled = repeated.get(STALLED_CAMERA).copied().unwrap_or(0);
-                    let others =
-                        repeated.iter().filter(|(c, _)| *c != STALLED_CAMERA).map(|(_, n)| *n).max().unwrap_or(0);
-                    let dropped = i.cameras.iter().find(|c| c.camera == STALLED_CAMERA).map_or(0, |c| c.dropped);
-                    r.stalled_steps = Some(stalled);
-                    r.other_late_steps = Some(others);
-                    format!(
-                        "{stalled} steps carry the {STALLED_CAMERA} camera's last frame again (its capture time, so its age, in the step; inspect: {dropped} {STALLED_CAMERA} frames dropped); the other cameras at most {others}"
-                    )
-                }
-                None => "the episode was not filed".into(),
-            }
-        }
+        Fault::CameraStall => camera_stall(&mut r, hit.as_ref(), &filed),
         Fault::BridgeKill => match (&arm_fault, &stopped) {
             (Some(_), Some((_, note))) => {
                 format!("the franka node held and reported; the loop stopped the episode ({note})")
@@ -584,7 +570,38 @@ async fn run_one(
     if code != ExitCode::SUCCESS && !matches!(fault, Fault::DiskFull | Fault::DiskFullNomargin | Fault::BridgeKill) {
         r.note = format!("the rig stopped with an error; {}", r.note);
     }
-    Ok(r)
+    r
+}
+
+/// The camera-stall run's outcome: how many steps of the hit episode carry the stalled
+/// camera's last frame again, against the other cameras.
+fn camera_stall(r: &mut FaultReport, hit: Option<&String>, filed: &[(PathBuf, labrig_episode::Inspection)]) -> String {
+    let hit_dir = hit.and_then(|id| filed.iter().find(|(_, i)| i.metadata.as_ref().is_some_and(|m| &m.uuid == id)));
+    match hit_dir {
+        Some((dir, i)) => {
+            // Per step, each camera's frame reference: a step that repeats the last
+            // step's frame of a camera (same sequence) had nothing newer from it.
+            let steps = labrig_episode::read_episode(dir).map(|d| d.steps).unwrap_or_default();
+            let mut repeated: BTreeMap<String, u64> = BTreeMap::new();
+            for w in steps.windows(2) {
+                for c in &w[1].cameras {
+                    let before = w[0].cameras.iter().find(|p| p.camera_id == c.camera_id);
+                    if before.is_some_and(|p| p.sequence == c.sequence) {
+                        *repeated.entry(c.camera_id.clone()).or_default() += 1;
+                    }
+                }
+            }
+            let stalled = repeated.get(STALLED_CAMERA).copied().unwrap_or(0);
+            let others = repeated.iter().filter(|(c, _)| *c != STALLED_CAMERA).map(|(_, n)| *n).max().unwrap_or(0);
+            let dropped = i.cameras.iter().find(|c| c.camera == STALLED_CAMERA).map_or(0, |c| c.dropped);
+            r.stalled_steps = Some(stalled);
+            r.other_late_steps = Some(others);
+            format!(
+                "{stalled} steps carry the {STALLED_CAMERA} camera's last frame again (its capture time, so its age, in the step; inspect: {dropped} {STALLED_CAMERA} frames dropped); the other cameras at most {others}"
+            )
+        }
+        None => "the episode was not filed".into(),
+    }
 }
 
 fn after(t: &Instant, hit: Option<Instant>) -> bool {

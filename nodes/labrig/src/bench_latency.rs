@@ -16,10 +16,10 @@
 //! The run is resumable: a finished point is a JSON file under `<out>/points/`, read back
 //! instead of rerun; an interrupted point starts over.
 
-use crate::demo::progress;
-use crate::rollout::{BlendArg, RolloutArgs, wilson95};
 use anyhow::Context;
 use clap::Args;
+use labrig_episode::progress;
+use labrig_launch::rollout::{BlendArg, RolloutArgs, wilson95};
 use labrig_msgs::labrig_msgs::Step;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -236,7 +236,7 @@ pub fn run(a: LatencyArgs) -> anyhow::Result<ExitCode> {
     let mut results: Vec<PointResult> = Vec::new();
     let mut todo = grid(&a);
     let mut ran = 0usize;
-    let bar = progress("bench latency {bar:25} {pos}/{len} points", todo.len() as u64, a.json)?;
+    let bar = progress::bar("bench latency {bar:25} {pos}/{len} points", todo.len() as u64, a.json);
     let mut phase = 0;
     loop {
         for p in &todo {
@@ -385,7 +385,7 @@ fn run_point(a: &LatencyArgs, p: &Point) -> anyhow::Result<PointResult> {
         domain_id: a.domain_id,
         ..RolloutArgs::defaults(out.clone())
     };
-    let report = crate::rollout::run_quiet(args)?;
+    let report = labrig_launch::rollout::run_quiet(args)?;
     anyhow::ensure!(report.errors.is_empty(), "point {}: {}", p.key(), report.errors.join("; "));
     r.rollouts = report.rollouts.len() as u64;
     r.successes = report.successes;

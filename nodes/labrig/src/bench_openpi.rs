@@ -15,7 +15,7 @@
 
 use anyhow::Context;
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use labrig_openpi::codec::{self, Array, Value};
 use labrig_openpi::{Client, Handler, Server, droid};
 use serde::Serialize;
@@ -88,10 +88,12 @@ struct Delayed {
 
 impl Handler for Delayed {
     type Session = u64;
+    /// It always answers.
+    type Error = std::convert::Infallible;
     fn session(&self) -> u64 {
         0
     }
-    fn infer(&self, n: &mut u64, _obs: Value) -> Result<Value, String> {
+    fn infer(&self, n: &mut u64, _obs: Value) -> Result<Value, Self::Error> {
         std::thread::sleep(self.latency);
         let rows: Vec<f32> = (0..15)
             .flat_map(|i| {
@@ -191,11 +193,11 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let out = std::fs::canonicalize(&a.out)?;
     let mut notes = Vec::new();
-    let bar = ProgressBar::new((2 * a.requests) as u64 + 2 * a.latency_ms.len() as u64 * a.steps);
-    bar.set_style(ProgressStyle::with_template("{msg:30} [{bar:30}] {pos}/{len} {elapsed}").expect("template"));
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar = labrig_episode::progress::bar(
+        "bench openpi {bar:30} {pos}/{len}",
+        (2 * a.requests) as u64 + 2 * a.latency_ms.len() as u64 * a.steps,
+        a.json,
+    );
 
     let mut round_trips = Vec::new();
     bar.set_message("round trip: labrig's server");
@@ -209,15 +211,17 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
     }
 
     let mut rig = Vec::new();
-    let runs: Vec<(u64, crate::rollout::ChunkTimingArg)> = a
+    let runs: Vec<(u64, labrig_launch::rollout::ChunkTimingArg)> = a
         .latency_ms
         .iter()
         .flat_map(|&l| {
-            [crate::rollout::ChunkTimingArg::Observation, crate::rollout::ChunkTimingArg::Arrival].map(|t| (l, t))
+            [labrig_launch::rollout::ChunkTimingArg::Observation, labrig_launch::rollout::ChunkTimingArg::Arrival]
+                .map(|t| (l, t))
         })
         .collect();
     for (k, &(latency, timing)) in runs.iter().enumerate() {
-        let timing_name = if timing == crate::rollout::ChunkTimingArg::Arrival { "arrival" } else { "observation" };
+        let timing_name =
+            if timing == labrig_launch::rollout::ChunkTimingArg::Arrival { "arrival" } else { "observation" };
         bar.set_message(format!("the rig, {latency} ms, {timing_name}"));
         let server = Server::bind(
             "127.0.0.1:0",
@@ -225,7 +229,7 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
             Arc::new(Delayed { latency: Duration::from_millis(latency) }),
         )?;
         let dir = out.join(format!("latency_{latency}ms_{timing_name}"));
-        let args = crate::rollout::RolloutArgs {
+        let args = labrig_launch::rollout::RolloutArgs {
             remote: Some(server.local_addr().to_string()),
             chunk_timing: Some(timing),
             server_timeout_s: Some((3.0 * latency as f64 / 1e3).max(5.0)),
@@ -236,9 +240,9 @@ pub fn run(a: OpenpiBenchArgs) -> anyhow::Result<ExitCode> {
             max_steps: a.steps,
             threads: 1,
             domain_id: a.domain_id,
-            ..crate::rollout::RolloutArgs::defaults(dir.clone())
+            ..labrig_launch::rollout::RolloutArgs::defaults(dir.clone())
         };
-        let r = crate::rollout::run_quiet(args)?;
+        let r = labrig_launch::rollout::run_quiet(args)?;
         anyhow::ensure!(
             r.errors.is_empty() && r.rollouts.len() == 1,
             "the rig run at {latency} ms ({timing_name}) failed: {}",

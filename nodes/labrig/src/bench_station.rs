@@ -6,9 +6,9 @@
 //! flagged episodes of each run side by side, the ratio of the p99s, the station's CPU and
 //! what its clients received.
 
-use crate::bench_loop::{Beside, LoopArgs, measure};
-use crate::launch::NodeSpec;
 use clap::Args;
+use labrig_launch::config::NodeSpec;
+use labrig_launch::measure::{Beside, LoopArgs, measure};
 use serde_json::{Value, json};
 use std::process::ExitCode;
 use std::sync::Arc;

@@ -15,13 +15,14 @@
 //! to publish the scene's camera poses (any calibration it was given is left out): those are
 //! then the truth the report compares against.
 
-use crate::launch::{LaunchConfig, Output};
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use labrig_arm::calib_path;
 use labrig_arm::ik::{Ik, IkConfig, pose_from_xyz_euler};
 use labrig_arm::safety::{SafetyConfig, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
+use labrig_launch::config::LaunchConfig;
+use labrig_launch::supervise::Output;
 use labrig_msgs::Nanos;
 use labrig_msgs::calibration::{
     BoardSpec, CAPTURE_VERSION, CaptureFile, CaptureTruth, CapturedView, Intrinsics, Mount, Pose,
@@ -141,7 +142,7 @@ pub fn run(a: CaptureArgs) -> anyhow::Result<ExitCode> {
     let shutdown = Shutdown::new();
     let result = rt.block_on(async {
         shutdown.trigger_on_signals()?;
-        let rig = tokio::spawn(crate::launch::supervise_until(
+        let rig = tokio::spawn(labrig_launch::supervise::supervise_until(
             cfg,
             order,
             dir,
@@ -219,8 +220,8 @@ fn rig_for_capture(
         // The scene's own camera poses on /tf_static: they are the truth the report uses.
         drop_flag(&mut n.args, "--calibration");
         drop_set(&mut n.args, "calibration");
-        crate::demo::set_arg(&mut n.args, "--width", &a.width.to_string());
-        crate::demo::set_arg(&mut n.args, "--height", &a.height.to_string());
+        labrig_launch::sim::set_arg(&mut n.args, "--width", &a.width.to_string());
+        labrig_launch::sim::set_arg(&mut n.args, "--height", &a.height.to_string());
         let mount = if mount == Mount::EyeInHand { "table" } else { "gripper" };
         n.args.extend([
             "--set".into(),
@@ -538,86 +539,11 @@ async fn capture(
         Mount::EyeInHand => calib_path::AMPLITUDE_RAD / calib_path::WRIST_ANGLE_DIVISOR,
     };
     let amp_m = calib_path::AMPLITUDE_M;
-    let aim = match a.aim.as_slice() {
-        [x, y, z] => Vector3::new(*x, *y, *z),
-        other => bail!("--aim takes x,y,z (3 numbers), not {other:?}"),
-    };
-    // The camera and the board as the rig publishes them.
-    let published_camera = match mount {
-        Mount::EyeToHand => link.statics.get(&format!("{camera}_optical")).map(|(_, p)| *p),
-        Mount::EyeInHand => link.wrist_in_tcp,
-    };
-    let published_board = link.statics.get(labrig_msgs::calibration::BOARD_FRAME).cloned();
-    let start_at = match a.start {
-        Start::Auto if published_camera.is_some() && published_board.is_some() => Start::Camera,
-        Start::Auto => {
-            eprintln!(
-                "{camera}: the rig publishes no {} pose: the views are taken around the arm's pose now \
-                 (the board must be in view)",
-                if published_camera.is_none() { "camera" } else { "board" }
-            );
-            Start::Here
-        }
-        s => s,
-    };
-    let (start, pivot) = match start_at {
-        Start::Auto | Start::Here => (tcp_now, tcp_now.translation.vector),
-        Start::Camera => {
-            let cam = published_camera.with_context(|| {
-                format!(
-                    "the rig publishes no pose for `{camera}` ({}): put the board in view and use --start here",
-                    if mount == Mount::EyeToHand {
-                        format!("/tf_static base -> {camera}_optical")
-                    } else {
-                        "/tf tcp, wrist_optical".into()
-                    }
-                )
-            })?;
-            let (parent, board_pose) = published_board.clone().with_context(|| {
-                format!(
-                    "the rig publishes no board pose (/tf_static -> {}): put the board in view and use --start here",
-                    labrig_msgs::calibration::BOARD_FRAME
-                )
-            })?;
-            let size = board.size_m();
-            match mount {
-                Mount::EyeToHand => {
-                    anyhow::ensure!(
-                        parent == "tcp",
-                        "the board is on `{parent}`, not in the gripper (`tcp`), for `{camera}`"
-                    );
-                    calib_path::start_facing_camera(
-                        &safety,
-                        &reset,
-                        &cam.translation.vector,
-                        &aim,
-                        &board_pose,
-                        size,
-                        (amp_m, amp_rad),
-                    )
-                    .with_context(|| format!("`{camera}`"))?
-                }
-                Mount::EyeInHand => {
-                    anyhow::ensure!(
-                        parent == "base",
-                        "the board is on `{parent}`, not on the table (`base`), for the wrist camera"
-                    );
-                    calib_path::start_above_board(&tcp_now, &cam, &board_pose, size)
-                }
-            }
-        }
-    };
+    let (start, pivot, published_camera, published_board) =
+        start_pose(a, camera, mount, board, &link, &safety, (&tcp_now, &reset), (amp_m, amp_rad))?;
     let poses = calib_path::pose_set(&start, &pivot, a.views, amp_m, amp_rad);
-    let bar = indicatif::ProgressBar::new(a.views as u64);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(&format!(
-            "{{bar:30}} {{pos}}/{{len}} {camera} views [{{elapsed}}] {{msg}}"
-        ))
-        .expect("static template"),
-    );
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar =
+        labrig_episode::progress::bar(&format!("{{bar:30}} {{pos}}/{{len}} {camera} views"), a.views as u64, a.json);
     let mut views = Vec::new();
     let mut unreachable = 0usize;
     let mut faults: BTreeMap<String, usize> = BTreeMap::new();
@@ -630,50 +556,7 @@ async fn capture(
             bar.inc(1);
             continue;
         };
-        // Drive until the joints are there, then hold still 0.5 s, then the first frame after.
-        let t_start = link.now().0;
-        let mut reached_at: Option<i64> = None;
-        let view: Option<(Grey, RobotState)> = loop {
-            tick.tick().await;
-            if shutdown.is_triggered() {
-                bail!("interrupted");
-            }
-            if rig.is_finished() {
-                bail!("the rig stopped during the capture (its nodes' errors are above)");
-            }
-            link.poll()?;
-            link.alive()?;
-            link.command(&q)?;
-            let Some(s) = link.state().cloned() else { continue };
-            let t = Nanos::from(s.header.stamp).0;
-            match reached_at {
-                None => {
-                    if s.joint_positions.iter().zip(&q).all(|(a, b)| (a - b).abs() < REACH_RAD) {
-                        reached_at = Some(t);
-                    } else if t - t_start > REACH_NS {
-                        if s.mode == RobotState::MODE_FAULT && !s.fault.is_empty() {
-                            *faults.entry(s.fault.clone()).or_default() += 1;
-                        }
-                        break None;
-                    }
-                }
-                Some(r) if t - r >= SETTLE_NS => {
-                    if let Some(g) = link.frame_after(r + SETTLE_NS)? {
-                        break Some((g, s));
-                    }
-                    if t - r > SETTLE_NS + FRAME_NS {
-                        bail!(
-                            "camera `{camera}` sent no frame within {} s of the arm stopping",
-                            FRAME_NS / 1_000_000_000
-                        );
-                    }
-                }
-                Some(_) => {
-                    // Frames of the motion are dropped as they come.
-                    link.frame_after(i64::MAX)?;
-                }
-            }
-        };
+        let view = drive_to_view(&mut link, &q, camera, &mut tick, &mut faults, shutdown, rig).await?;
         bar.inc(1);
         let Some((g, s)) = view else {
             unreachable += 1;
@@ -711,4 +594,149 @@ async fn capture(
         truth,
         sim_scene,
     })
+}
+
+/// The views' start pose and pivot, and the camera and board poses the rig publishes (the
+/// board's with its parent frame).
+type StartPose = (Isometry3<f64>, Vector3<f64>, Option<Isometry3<f64>>, Option<(String, Isometry3<f64>)>);
+
+/// Where the views start and the point they turn about: facing the published camera with the
+/// board (`--start camera`), or around the arm's pose now (`--start here`, or nothing
+/// published); with the camera and board poses the rig publishes.
+#[allow(clippy::too_many_arguments)]
+fn start_pose(
+    a: &CaptureArgs,
+    camera: &str,
+    mount: Mount,
+    board: &BoardSpec,
+    link: &Link,
+    safety: &SafetyFilter,
+    (tcp_now, reset): (&Isometry3<f64>, &Joints),
+    (amp_m, amp_rad): (f64, f64),
+) -> anyhow::Result<StartPose> {
+    let aim = match a.aim.as_slice() {
+        [x, y, z] => Vector3::new(*x, *y, *z),
+        other => bail!("--aim takes x,y,z (3 numbers), not {other:?}"),
+    };
+    // The camera and the board as the rig publishes them.
+    let published_camera = match mount {
+        Mount::EyeToHand => link.statics.get(&format!("{camera}_optical")).map(|(_, p)| *p),
+        Mount::EyeInHand => link.wrist_in_tcp,
+    };
+    let published_board = link.statics.get(labrig_msgs::calibration::BOARD_FRAME).cloned();
+    let start_at = match a.start {
+        Start::Auto if published_camera.is_some() && published_board.is_some() => Start::Camera,
+        Start::Auto => {
+            eprintln!(
+                "{camera}: the rig publishes no {} pose: the views are taken around the arm's pose now \
+                 (the board must be in view)",
+                if published_camera.is_none() { "camera" } else { "board" }
+            );
+            Start::Here
+        }
+        s => s,
+    };
+    let (start, pivot) = match start_at {
+        Start::Auto | Start::Here => (*tcp_now, tcp_now.translation.vector),
+        Start::Camera => {
+            let cam = published_camera.with_context(|| {
+                format!(
+                    "the rig publishes no pose for `{camera}` ({}): put the board in view and use --start here",
+                    if mount == Mount::EyeToHand {
+                        format!("/tf_static base -> {camera}_optical")
+                    } else {
+                        "/tf tcp, wrist_optical".into()
+                    }
+                )
+            })?;
+            let (parent, board_pose) = published_board.clone().with_context(|| {
+                format!(
+                    "the rig publishes no board pose (/tf_static -> {}): put the board in view and use --start here",
+                    labrig_msgs::calibration::BOARD_FRAME
+                )
+            })?;
+            let size = board.size_m();
+            match mount {
+                Mount::EyeToHand => {
+                    anyhow::ensure!(
+                        parent == "tcp",
+                        "the board is on `{parent}`, not in the gripper (`tcp`), for `{camera}`"
+                    );
+                    calib_path::start_facing_camera(
+                        safety,
+                        reset,
+                        &cam.translation.vector,
+                        &aim,
+                        &board_pose,
+                        size,
+                        (amp_m, amp_rad),
+                    )
+                    .with_context(|| format!("`{camera}`"))?
+                }
+                Mount::EyeInHand => {
+                    anyhow::ensure!(
+                        parent == "base",
+                        "the board is on `{parent}`, not on the table (`base`), for the wrist camera"
+                    );
+                    calib_path::start_above_board(tcp_now, &cam, &board_pose, size)
+                }
+            }
+        }
+    };
+    Ok((start, pivot, published_camera, published_board))
+}
+
+/// Drives the arm to `q`, holds it still for the settle time and takes the first frame after:
+/// `None` when the pose is not reached in time (a fault the arm names is counted in `faults`).
+async fn drive_to_view(
+    link: &mut Link,
+    q: &Joints,
+    camera: &str,
+    tick: &mut tokio::time::Interval,
+    faults: &mut BTreeMap<String, usize>,
+    shutdown: &Shutdown,
+    rig: &tokio::task::JoinHandle<anyhow::Result<ExitCode>>,
+) -> anyhow::Result<Option<(Grey, RobotState)>> {
+    // Drive until the joints are there, then hold still 0.5 s, then the first frame after.
+    let t_start = link.now().0;
+    let mut reached_at: Option<i64> = None;
+    let view: Option<(Grey, RobotState)> = loop {
+        tick.tick().await;
+        if shutdown.is_triggered() {
+            bail!("interrupted");
+        }
+        if rig.is_finished() {
+            bail!("the rig stopped during the capture (its nodes' errors are above)");
+        }
+        link.poll()?;
+        link.alive()?;
+        link.command(q)?;
+        let Some(s) = link.state().cloned() else { continue };
+        let t = Nanos::from(s.header.stamp).0;
+        match reached_at {
+            None => {
+                if s.joint_positions.iter().zip(q).all(|(a, b)| (a - b).abs() < REACH_RAD) {
+                    reached_at = Some(t);
+                } else if t - t_start > REACH_NS {
+                    if s.mode == RobotState::MODE_FAULT && !s.fault.is_empty() {
+                        *faults.entry(s.fault.clone()).or_default() += 1;
+                    }
+                    break None;
+                }
+            }
+            Some(r) if t - r >= SETTLE_NS => {
+                if let Some(g) = link.frame_after(r + SETTLE_NS)? {
+                    break Some((g, s));
+                }
+                if t - r > SETTLE_NS + FRAME_NS {
+                    bail!("camera `{camera}` sent no frame within {} s of the arm stopping", FRAME_NS / 1_000_000_000);
+                }
+            }
+            Some(_) => {
+                // Frames of the motion are dropped as they come.
+                link.frame_after(i64::MAX)?;
+            }
+        }
+    };
+    Ok(view)
 }

@@ -1,7 +1,7 @@
 //! Argument parsing and dispatch.
 
-use crate::programs::{node, node_renamed};
 use clap::{Parser, Subcommand};
+use labrig_launch::programs::{node, node_renamed};
 use std::process::ExitCode;
 
 #[derive(Debug, Parser)]
@@ -35,7 +35,7 @@ pub enum Command {
     Demo(crate::demo::DemoArgs),
     /// A policy's closed-loop success rate in the simulated rig: seeded rollouts, each a
     /// recorded episode judged by the sim (`labrig rollout --policy <checkpoint>`).
-    Rollout(Box<crate::rollout::RolloutArgs>),
+    Rollout(Box<labrig_launch::rollout::RolloutArgs>),
     /// Experiments that run end to end on the simulated rig: `labrig experiment retrieval
     /// [--config experiments/retrieval/full.toml] [--out DIR]` (the paper's co-training result).
     #[command(subcommand)]
@@ -244,24 +244,23 @@ fn policy_help() -> clap::Command {
 /// `labrig export|import <format> ...` -> `labrig-droid export|import ...` (DROID's raw format
 /// is the one format so far; labrig-droid is the program that links libhdf5).
 pub fn convert(verb: &str, args: &[String]) -> anyhow::Result<ExitCode> {
+    use crate::formats::{FORMATS, find, names};
     match args.first().map(String::as_str) {
-        Some(format @ ("droid" | "droid-mcap")) => {
-            // labrig-droid's `export` / `import` (raw) and `export-mcap` / `import-mcap`.
-            let sub = if format == "droid" { verb.to_owned() } else { format!("{verb}-mcap") };
-            node_renamed("labrig-droid", &sub, &format!("labrig {verb} {format}"), &args[1..])
-        }
-        Some("lerobot") => {
-            node_renamed("labrig-dataset", &format!("{verb}-lerobot"), &format!("labrig {verb} lerobot"), &args[1..])
-        }
         Some("--help" | "-h") | None => {
-            println!(
-                "usage: labrig {verb} droid|droid-mcap|lerobot ... (formats: droid = DROID's raw layout, droid-mcap = DROID's MCAP layout, lerobot = LeRobot's dataset format v3.0 or v2.1)\n"
-            );
-            node_renamed("labrig-droid", verb, &format!("labrig {verb} droid"), &["--help".to_owned()])
+            let about: Vec<String> = FORMATS.iter().map(|f| format!("{} = {}", f.name, f.about)).collect();
+            println!("usage: labrig {verb} {} ... (formats: {})\n", names("|"), about.join(", "));
+            let first = &FORMATS[0];
+            node_renamed(
+                first.program,
+                first.subcommand(verb),
+                &format!("labrig {verb} {}", first.name),
+                &["--help".to_owned()],
+            )
         }
-        Some(other) => {
-            anyhow::bail!("labrig {verb}: unknown format `{other}` (formats: droid, droid-mcap, lerobot)")
-        }
+        Some(name) => match find(name) {
+            Some(f) => node_renamed(f.program, f.subcommand(verb), &format!("labrig {verb} {}", f.name), &args[1..]),
+            None => anyhow::bail!("labrig {verb}: unknown format `{name}` (formats: {})", names(", ")),
+        },
     }
 }
 
@@ -280,7 +279,7 @@ pub enum BenchCommand {
     /// Camera frames over iceoryx2 shared memory between processes.
     Shm(crate::bench::ShmArgs),
     /// The rig loop free-running for minutes: tick jitter, missed ticks, dropped frames, recorder CPU, MB/s.
-    Loop(crate::bench_loop::LoopArgs),
+    Loop(labrig_launch::measure::LoopArgs),
     /// Whether the operator station is felt: the rig's loop jitter, skew and dropped frames
     /// alone vs with the station, its page and three Foxglove clients.
     Station(crate::bench_station::StationArgs),

@@ -5,22 +5,20 @@
 //! where each episode is with its `labrig inspect` summary and writes a contact sheet of the
 //! five cameras per episode (first, middle and last recorded frame).
 
-use crate::launch::{LaunchConfig, Output};
 use anyhow::{Context, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
+use labrig_episode::progress;
+use labrig_launch::config::LaunchConfig;
+use labrig_launch::sim::{SIM_DEMO, SimRig, contact_sheet, set_arg};
 use labrig_msgs::labrig_msgs::EpisodeEventKind;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
+use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, qos};
-use labrig_runtime::{RosConfig, Shutdown};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
-
-/// The demo's rig, compiled in (the same file `labrig launch` reads).
-pub(crate) const SIM_DEMO: &str = include_str!("../../../launch_configs/sim_demo.toml");
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
@@ -65,14 +63,6 @@ pub struct DemoArgs {
     /// (`skip_missed_grasps`); the way back is. 0 = never.
     #[arg(long, default_value_t = 0.0)]
     pub expert_miss_fraction: f64,
-}
-
-/// Sets `flag`'s value in `args` (appended when absent).
-pub(crate) fn set_arg(args: &mut Vec<String>, flag: &str, value: &str) {
-    match args.iter().position(|a| a == flag) {
-        Some(i) if i + 1 < args.len() => args[i + 1] = value.to_owned(),
-        _ => args.extend([flag.to_owned(), value.to_owned()]),
-    }
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
@@ -257,7 +247,7 @@ async fn run_rig(
     let events = ros.subscription_on(&topics::RIG_EPISODE, 100)?;
     let steps = ros.subscription_on(&topics::RIG_STEP, 1000)?;
     let status = ros.subscription::<StringMsg>(topics::RECORDER_STATUS.name, qos::reliable(100))?;
-    let bar = progress("demo {bar:25} {pos}/{len} episodes", args.episodes, args.json)?;
+    let bar = progress::bar("demo {bar:25} {pos}/{len} episodes", args.episodes, args.json);
     bar.set_message("starting the simulated rig");
     let SimRig { watch, stop, rig } = SimRig::start(cfg, order, args.domain_id)?;
     let mut refusal: Option<String> = None;
@@ -324,46 +314,4 @@ async fn run_rig(
         bail!("the simulated rig stopped with an error (see above)");
     }
     Ok(())
-}
-
-/// A progress bar `{spinner} <template>  {msg}  [{elapsed}]` over `n` (hidden for --json).
-pub(crate) fn progress(template: &str, n: u64, json: bool) -> anyhow::Result<ProgressBar> {
-    let bar = ProgressBar::new(n);
-    bar.set_style(ProgressStyle::with_template(&format!("{{spinner}} {template}  {{msg}}  [{{elapsed}}]"))?);
-    if json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar.enable_steady_tick(Duration::from_millis(200));
-    Ok(bar)
-}
-
-/// A simulated rig supervised in the background until its `completes` node is done: `watch`
-/// triggers when it has stopped, `stop` (also set by SIGINT/SIGTERM) stops it.
-pub(crate) struct SimRig {
-    pub watch: Shutdown,
-    pub stop: Shutdown,
-    pub rig: tokio::task::JoinHandle<anyhow::Result<ExitCode>>,
-}
-
-impl SimRig {
-    pub(crate) fn start(cfg: LaunchConfig, order: Vec<usize>, domain: u16) -> anyhow::Result<SimRig> {
-        let watch = Shutdown::new();
-        let stop = Shutdown::new();
-        stop.trigger_on_signals()?;
-        let rig = {
-            let (watch, stop) = (watch.clone(), stop.clone());
-            tokio::spawn(async move {
-                let dir = PathBuf::from("launch_configs");
-                let r = crate::launch::supervise_until(cfg, order, dir, domain, None, Output::Quiet, stop).await;
-                watch.trigger();
-                r
-            })
-        };
-        Ok(SimRig { watch, stop, rig })
-    }
-}
-
-/// One PNG: a row per moment (first, middle, last recorded frame), a column per camera.
-pub fn contact_sheet(mcap_file: &Path, png_out: &Path) -> anyhow::Result<()> {
-    Ok(labrig_episode::sheet::contact_sheet(mcap_file, png_out)?)
 }

@@ -5,8 +5,8 @@
 //! that stamp: this command waits for that verdict and exits 0 when the loop took it, 1 when it
 //! refused it (printing why), 2 when no loop (or no verdict) came within `--wait`.
 
-use crate::programs::RosArgs;
 use clap::{Args, ValueEnum};
+use labrig_launch::programs::RosArgs;
 use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;

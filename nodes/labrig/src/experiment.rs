@@ -15,10 +15,10 @@
 //! again, a training resumes from its last checkpoint, a condition's rollouts run again. The
 //! summary is built from whatever conditions are done (`--summary-only` builds it alone).
 
-use crate::demo::progress;
-use crate::rollout::wilson95;
 use anyhow::{Context, bail, ensure};
 use clap::{Args, Subcommand};
+use labrig_episode::progress;
+use labrig_launch::rollout::wilson95;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeSet;
@@ -373,7 +373,7 @@ fn read_json(path: &Path) -> Option<Value> {
 
 /// Runs `labrig <args>` with its stderr in `log`; returns its stdout. A failure names the
 /// stage, the exit status, the log and its last lines.
-fn labrig(stage: &str, args: &[String], env: &[(&str, String)], log: &Path, quiet: bool) -> anyhow::Result<String> {
+fn run_stage(stage: &str, args: &[String], env: &[(&str, String)], log: &Path, quiet: bool) -> anyhow::Result<String> {
     std::fs::create_dir_all(log.parent().unwrap_or(Path::new(".")))?;
     // This very binary, even when a rebuild has replaced the file meanwhile (a long run keeps
     // the labrig it started with; `current_exe` would name the deleted file).
@@ -389,9 +389,9 @@ fn labrig(stage: &str, args: &[String], env: &[(&str, String)], log: &Path, quie
         .stdout(Stdio::piped())
         .stderr(Stdio::from(file));
     // A stage never outlives the experiment (killed, it would keep writing what a rerun redoes).
-    crate::launch::stop_with_launcher(&mut cmd);
+    labrig_launch::supervise::stop_with_launcher(&mut cmd);
     let mut child = cmd.spawn().with_context(|| format!("{stage}: cannot start {}", exe.display()))?;
-    let bar = progress(stage, 0, quiet)?;
+    let bar = progress::bar(stage, 0, quiet);
     let mut out = String::new();
     child.stdout.take().context("stdout")?.read_to_string(&mut out)?;
     let status = child.wait()?;
@@ -461,7 +461,7 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
             let log = layout.log("index");
             let t = Instant::now();
             let idx = layout.out.join("index");
-            let report = labrig(
+            let report = run_stage(
                 "[index] the prior data",
                 &strings(&["dataset", "index", &path_str(&layout.prior_root()), "--out", &path_str(&idx), "--json"]),
                 &[],
@@ -580,7 +580,7 @@ fn record_set(run: &Run, d: &DataSpec, target: bool, scene: &str, domain: u16, n
     ]));
     let stage = format!("[data] {}", d.name);
     // Several rigs at once: the demo's bar would interleave, so this stage shows none.
-    let report = labrig(
+    let report = run_stage(
         &stage,
         &a,
         &[(labrig_runtime::frames::NAMESPACE_ENV, ns.to_owned())],
@@ -640,7 +640,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
             if let Some([x, y, z]) = cfg.retrieval.obj_box_m {
                 a.extend(["--obj-box-m".to_owned(), format!("{x},{y},{z}")]);
             }
-            labrig(&format!("[retrieve] {}", c.name), &a, &[], &layout.log(&format!("{}_retrieve", c.name)), quiet)?;
+            run_stage(&format!("[retrieve] {}", c.name), &a, &[], &layout.log(&format!("{}_retrieve", c.name)), quiet)?;
             std::fs::rename(dir.join("manifest.json.part"), &manifest)?;
         }
         let m = read_json(&manifest).with_context(|| format!("{}", manifest.display()))?;
@@ -697,7 +697,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
             a.extend(["--threads".to_owned(), n.to_string()]);
         }
         let resumed = run_dir.join("checkpoints/last").exists();
-        let result = labrig(&stage, &a, &[], &layout.log(&format!("{}_train", c.name)), quiet);
+        let result = run_stage(&stage, &a, &[], &layout.log(&format!("{}_train", c.name)), quiet);
         let wall = add_wall(&dir.join("train_time.json"), t.elapsed().as_secs_f64())?;
         result?;
         let r = read_json(&run_dir.join("run.json")).context("the training wrote no run.json")?;
@@ -754,7 +754,7 @@ fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
         "--json",
     ]);
     let log = layout.log(&format!("{}_{}", c.name, cfg.rollouts_dir(first).replace("rollouts", "rollout")));
-    let result = labrig(&stage, &a, &[], &log, args.json);
+    let result = run_stage(&stage, &a, &[], &log, args.json);
     if result.is_err() {
         // An incomplete report must not count as done.
         let _ = std::fs::remove_file(&report_path);

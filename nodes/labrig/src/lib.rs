@@ -1,6 +1,11 @@
-//! The `labrig` command-line interface: the one user-facing entry point (`labrig topic ...`,
-//! `labrig bench ...`, `labrig demo`, and later launch/replay/inspect/export).
-//! `main()` only parses arguments and calls [`cli::run`], so every command is testable.
+//! The `labrig` command-line interface: the one user-facing entry point. `main()` only parses
+//! arguments and calls [`cli::run`], which dispatches to one module per command (`demo`,
+//! `rollout`, `launch`, `bench_*`, ...) or execs the program beside it that owns the command
+//! (`labrig replay`, `labrig export`, `labrig train`, ...).
+//!
+//! Each command module builds on the launch library (`labrig_launch`: launch configs, the
+//! supervisor, the simulated rigs, rollouts) and the other libraries, and never imports another
+//! command module (`tests/tests/layering.rs` checks it); `cli` alone knows them all.
 
 pub mod bench;
 pub mod bench_cameras;
@@ -14,10 +19,9 @@ pub mod cli;
 pub mod demo;
 pub mod episode;
 pub mod experiment;
+pub mod formats;
 pub mod inspect;
-pub mod json;
 pub mod launch;
-pub mod programs;
 pub mod recover;
 pub mod rollout;
 pub mod topic;

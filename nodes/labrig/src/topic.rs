@@ -1,11 +1,13 @@
 //! `labrig topic list|echo|hz`: ROS 2 graph tools that work against any ROS 2 node, for labs
 //! without a ROS installation. Every wait is bounded.
 
-use crate::json::{abbreviate, decode_to_json, to_yamlish};
-use crate::programs::RosArgs;
+use json::{abbreviate, decode_to_json, to_yamlish};
+
+mod json;
 use anyhow::{Context, bail};
 use clap::Args;
 use futures::StreamExt;
+use labrig_launch::programs::RosArgs;
 use labrig_runtime::Shutdown;
 use labrig_runtime::ros::{Ros, TopicInfo, TopicKindInfo, qos};
 use serde_json::json;

@@ -93,7 +93,7 @@ impl PolicyServerConfig {
             ));
         }
         if let Some(a) = &self.openpi {
-            openpi_addr(a).map_err(|e| Invalid::new("openpi", e))?;
+            openpi_addr(a).map_err(|e| Invalid::new("openpi", e.to_string()))?;
         }
         if self.inference_steps == Some(0) {
             return Err(Invalid::new("inference_steps", "policy server config: `inference_steps` must be >= 1, got 0"));
@@ -102,14 +102,27 @@ impl PolicyServerConfig {
     }
 }
 
+/// Why `--openpi`'s address is not one to listen on.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenpiAddrError {
+    #[error("policy server config: openpi = {addr:?} is not host:port ({source})")]
+    NotHostPort {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("policy server config: openpi = {addr:?} names no address")]
+    NoAddress { addr: String },
+}
+
 /// `--openpi`'s address: `host:port`, or a bare port on 127.0.0.1.
-pub fn openpi_addr(a: &str) -> Result<String, String> {
+pub fn openpi_addr(a: &str) -> Result<String, OpenpiAddrError> {
     let full = if a.parse::<u16>().is_ok() { format!("127.0.0.1:{a}") } else { a.to_owned() };
     use std::net::ToSocketAddrs;
     full.to_socket_addrs()
-        .map_err(|e| format!("policy server config: openpi = {a:?} is not host:port ({e})"))?
+        .map_err(|source| OpenpiAddrError::NotHostPort { addr: a.to_owned(), source })?
         .next()
-        .ok_or_else(|| format!("policy server config: openpi = {a:?} names no address"))?;
+        .ok_or_else(|| OpenpiAddrError::NoAddress { addr: a.to_owned() })?;
     Ok(full)
 }
 
@@ -187,13 +200,12 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     let server = Arc::new(Mutex::new(server));
     let openpi = match &cfg.openpi {
         Some(addr) => {
-            let addr = openpi_addr(addr).map_err(anyhow::Error::msg)?;
+            let addr = openpi_addr(addr)?;
             let kin = labrig_arm::kinematics::Fr3Kinematics::from_urdf_file(
                 &labrig_arm::urdf_path(cfg.urdf.as_deref()),
                 labrig_arm::kinematics::TcpOffset::ROBOTIQ_2F85,
             )?;
-            let policy =
-                crate::openpi::OpenpiPolicy::new(Arc::clone(&server), kin, cfg.period_s).map_err(anyhow::Error::msg)?;
+            let policy = crate::openpi::OpenpiPolicy::new(Arc::clone(&server), kin, cfg.period_s)?;
             let metadata = policy.metadata();
             let s = labrig_openpi::Server::bind(&addr, metadata, Arc::new(policy))
                 .map_err(|e| anyhow::anyhow!("openpi: cannot listen on {addr}: {e}"))?;
@@ -210,7 +222,7 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
     // The inference thread warms up (one chunk on a blank observation) before /policy/info
     // goes out: libtorch's first call on a thread sets up its pool and buffers, which took over
     // a second on a busy machine, past the loop's default 1 s server timeout.
-    let (warm_tx, warm_rx) = std::sync::mpsc::channel::<Result<f64, String>>();
+    let (warm_tx, warm_rx) = std::sync::mpsc::channel::<Result<f64, crate::serve::ServeError>>();
 
     let waiting = Arc::new((Mutex::new(Waiting::default()), Condvar::new()));
     let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel::<Result<ActionChunk, (u64, String)>>();
@@ -219,7 +231,7 @@ pub async fn run(cfg: PolicyServerConfig, shutdown: Shutdown) -> anyhow::Result<
         std::thread::Builder::new().name("inference".into()).spawn(move || {
             tch::set_num_threads(threads);
             let lock = || server.lock().unwrap_or_else(|p| p.into_inner());
-            let _ = warm_tx.send(lock().warm_up().map_err(|e| e.to_string()));
+            let _ = warm_tx.send(lock().warm_up());
             loop {
                 let req = {
                     let (lock, cv) = &*waiting;

@@ -13,13 +13,14 @@
 //! checkpoint's rate), with `policy_timing` and openpi's `server_timing`. A request missing a
 //! key the checkpoint needs gets openpi's error frame naming the key.
 
-use crate::serve::Server;
+use crate::serve::{ServeError, Server};
 use labrig_arm::kinematics::Fr3Kinematics;
+use labrig_episode::jpeg::JpegError;
 use labrig_msgs::Nanos;
 use labrig_msgs::labrig_msgs::{PolicyObservation, PolicyRequest, RobotState};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
-use labrig_openpi::codec::{self, Array, Value};
+use labrig_openpi::codec::{self, Array, CodecError, Value};
 use labrig_openpi::droid;
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Arc, Mutex};
@@ -32,6 +33,38 @@ pub fn droid_key(camera: &str) -> Option<&'static str> {
         "ext2" => Some("observation/exterior_image_2_left"),
         _ => None,
     }
+}
+
+/// Why a checkpoint cannot be served over openpi, or a request cannot be answered (its text is
+/// what the client is sent in openpi's error frame).
+#[derive(Debug, thiserror::Error)]
+pub enum OpenpiError {
+    #[error(
+        "{id} observes {inputs:?}, which openpi's DROID observation does not carry: it cannot be served over openpi"
+    )]
+    SimOnlyInputs { id: String, inputs: Vec<&'static str> },
+    #[error("{id} observes camera {camera:?}, which has no DROID observation key (ext1, ext2, wrist do)")]
+    NoDroidKey { id: String, camera: String },
+    #[error("KeyError: the observation has no {key:?}, which this policy needs")]
+    MissingKey { key: String },
+    #[error(transparent)]
+    Codec(#[from] CodecError),
+    #[error("{key}: an image of shape {shape:?} and dtype {}: expected H x W x 3 uint8 RGB", .dtype.str())]
+    NotRgb { key: String, shape: Vec<usize>, dtype: codec::Dtype },
+    #[error("{key}: an image of {width} x {height}: expected 1..=4096 a side")]
+    ImageSize { key: String, width: usize, height: usize },
+    #[error("{key}: {source}")]
+    Jpeg {
+        key: String,
+        #[source]
+        source: JpegError,
+    },
+    #[error("{}: {joints:?} (shape {shape:?}): expected 7 finite joint positions", droid::JOINT_POSITION)]
+    JointPositions { joints: Vec<f64>, shape: Vec<usize> },
+    #[error("{}: {values:?}: expected one finite value", droid::GRIPPER_POSITION)]
+    GripperPosition { values: Vec<f64> },
+    #[error(transparent)]
+    Serve(#[from] ServeError),
 }
 
 /// The openpi face of a loaded checkpoint.
@@ -62,23 +95,21 @@ pub struct Session {
 impl OpenpiPolicy {
     /// Refuses a checkpoint openpi's DROID observation cannot feed (a camera without a DROID
     /// key, inputs only the simulator has), naming it.
-    pub fn new(server: Arc<Mutex<Server>>, kin: Fr3Kinematics, period_s: f64) -> Result<OpenpiPolicy, String> {
+    pub fn new(server: Arc<Mutex<Server>>, kin: Fr3Kinematics, period_s: f64) -> Result<OpenpiPolicy, OpenpiError> {
         let s = server.lock().unwrap_or_else(|p| p.into_inner());
         let c = s.config();
         let id = s.id().to_owned();
         let sim_only = c.sim_only_inputs();
         if !sim_only.is_empty() {
-            return Err(format!(
-                "{id} observes {sim_only:?}, which openpi's DROID observation does not carry: it cannot be served over openpi"
-            ));
+            return Err(OpenpiError::SimOnlyInputs { id, inputs: sim_only });
         }
         let cameras = c
             .cameras
             .iter()
             .map(|cam| {
-                droid_key(cam).map(|k| (cam.clone(), k.to_owned())).ok_or_else(|| {
-                    format!("{id} observes camera {cam:?}, which has no DROID observation key (ext1, ext2, wrist do)")
-                })
+                droid_key(cam)
+                    .map(|k| (cam.clone(), k.to_owned()))
+                    .ok_or_else(|| OpenpiError::NoDroidKey { id: id.clone(), camera: cam.clone() })
             })
             .collect::<Result<Vec<_>, _>>()?;
         let (n_obs_steps, action_dim) = (c.n_obs_steps as usize, c.action_dim as usize);
@@ -105,27 +136,22 @@ impl OpenpiPolicy {
     }
 
     /// One openpi observation as the loop's observation of a step.
-    fn observation(&self, obs: &Value, step: u64) -> Result<PolicyObservation, String> {
-        let need = |key: &str| -> Result<&Value, String> {
-            codec::get(obs, key)
-                .ok_or_else(|| format!("KeyError: the observation has no {key:?}, which this policy needs"))
+    fn observation(&self, obs: &Value, step: u64) -> Result<PolicyObservation, OpenpiError> {
+        let need = |key: &str| -> Result<&Value, OpenpiError> {
+            codec::get(obs, key).ok_or_else(|| OpenpiError::MissingKey { key: key.to_owned() })
         };
         let mut images = Vec::new();
         for (camera, key) in &self.cameras {
-            let a = Array::from_value(key, need(key)?).map_err(|e| e.to_string())?;
+            let a = Array::from_value(key, need(key)?)?;
             if a.shape.len() != 3 || a.shape[2] != 3 || a.dtype != codec::Dtype::U8 {
-                return Err(format!(
-                    "{key}: an image of shape {:?} and dtype {}: expected H x W x 3 uint8 RGB",
-                    a.shape,
-                    a.dtype.str()
-                ));
+                return Err(OpenpiError::NotRgb { key: key.clone(), shape: a.shape, dtype: a.dtype });
             }
             let (h, w) = (a.shape[0], a.shape[1]);
             if !(1..=4096).contains(&h) || !(1..=4096).contains(&w) {
-                return Err(format!("{key}: an image of {w} x {h}: expected 1..=4096 a side"));
+                return Err(OpenpiError::ImageSize { key: key.clone(), width: w, height: h });
             }
             let data = labrig_episode::jpeg::encode_rgb(&a.data, w as u16, h as u16, self.jpeg_quality)
-                .map_err(|e| format!("{key}: {e}"))?;
+                .map_err(|source| OpenpiError::Jpeg { key: key.clone(), source })?;
             images.push(CompressedImage {
                 header: Header { stamp: Nanos(step as i64 * self.period_ns).into(), frame_id: camera.clone() },
                 format: "jpeg".into(),
@@ -133,18 +159,15 @@ impl OpenpiPolicy {
             });
         }
         need(droid::JOINT_POSITION)?;
-        let (shape, q) = codec::numbers(obs, droid::JOINT_POSITION).map_err(|e| e.to_string())?;
+        let (shape, q) = codec::numbers(obs, droid::JOINT_POSITION)?;
         if q.len() != 7 || q.iter().any(|x| !x.is_finite()) {
-            return Err(format!(
-                "{}: {q:?} (shape {shape:?}): expected 7 finite joint positions",
-                droid::JOINT_POSITION
-            ));
+            return Err(OpenpiError::JointPositions { joints: q, shape });
         }
         need(droid::GRIPPER_POSITION)?;
-        let (_, g) = codec::numbers(obs, droid::GRIPPER_POSITION).map_err(|e| e.to_string())?;
+        let (_, g) = codec::numbers(obs, droid::GRIPPER_POSITION)?;
         let gripper = match g.as_slice() {
             [x] if x.is_finite() => *x,
-            other => return Err(format!("{}: {other:?}: expected one finite value", droid::GRIPPER_POSITION)),
+            _ => return Err(OpenpiError::GripperPosition { values: g }),
         };
         let joints: [f64; 7] = std::array::from_fn(|j| q[j]);
         let tcp = self.kin.tcp_pose(&joints);
@@ -165,12 +188,13 @@ impl OpenpiPolicy {
 
 impl labrig_openpi::Handler for OpenpiPolicy {
     type Session = Session;
+    type Error = OpenpiError;
 
     fn session(&self) -> Session {
         Session::default()
     }
 
-    fn infer(&self, session: &mut Session, obs: Value) -> Result<Value, String> {
+    fn infer(&self, session: &mut Session, obs: Value) -> Result<Value, OpenpiError> {
         let o = self.observation(&obs, session.steps)?;
         session.steps += 1;
         session.history.push_back(o);
@@ -184,7 +208,7 @@ impl labrig_openpi::Handler for OpenpiPolicy {
             period_ns: self.period_ns,
             ..PolicyRequest::default()
         };
-        let chunk = self.server.lock().unwrap_or_else(|p| p.into_inner()).chunk(&request).map_err(|e| e.to_string())?;
+        let chunk = self.server.lock().unwrap_or_else(|p| p.into_inner()).chunk(&request)?;
         let rows = chunk.horizon as usize;
         let values: Vec<f32> = chunk.actions.iter().map(|&a| a as f32).collect();
         Ok(codec::map([

@@ -22,6 +22,12 @@ pub enum ServeError {
     Checkpoint(#[from] CheckpointError),
     #[error("{checkpoint}: {what}")]
     Mismatch { checkpoint: String, what: String },
+    #[error("{checkpoint}: {source}")]
+    Spec {
+        checkpoint: String,
+        #[source]
+        source: crate::torchscript::TorchScriptError,
+    },
     #[error("request {request}: {what}")]
     Request { request: u64, what: String },
     #[error("request {request}: {source}")]
@@ -85,7 +91,8 @@ impl Server {
     /// spec saying what it takes and gives; one forward on zeros checks the output's shape.
     pub fn load_torchscript(module: &Path, spec_path: &Path) -> Result<Server, ServeError> {
         let mismatch = |what: String| ServeError::Mismatch { checkpoint: module.display().to_string(), what };
-        let spec = TorchScriptSpec::load(spec_path).map_err(mismatch)?;
+        let spec = TorchScriptSpec::load(spec_path)
+            .map_err(|source| ServeError::Spec { checkpoint: module.display().to_string(), source })?;
         let mut m = tch::CModule::load(module).map_err(|e| mismatch(format!("not a TorchScript module: {e}")))?;
         m.set_eval();
         let config = spec.config();

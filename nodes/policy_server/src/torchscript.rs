@@ -22,7 +22,7 @@
 
 use labrig_policies::policy::{ActionSpace, DiffusionConfig};
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// `spec.toml`: what a TorchScript module takes and gives.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -60,55 +60,95 @@ fn twenty() -> f64 {
     20.0
 }
 
+/// Why a spec file cannot be used; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum TorchScriptError {
+    #[error("the spec {}: {source}", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the spec {}: {source}", path.display())]
+    Parse {
+        path: PathBuf,
+        #[source]
+        source: Box<toml::de::Error>,
+    },
+    #[error("the spec {}: {source}", path.display())]
+    Invalid {
+        path: PathBuf,
+        #[source]
+        source: SpecError,
+    },
+}
+
+/// A spec field labrig cannot serve, named with its value.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SpecError {
+    #[error("image_size = {0} must be in 8..=1024")]
+    ImageSize(i64),
+    #[error("image_range = {0:?}: \"unit\" ([0, 1]) or \"byte\" ([0, 255])")]
+    ImageRange(String),
+    #[error(
+        "state = {0:?}: labrig gives [\"eef_pose\"] or [\"eef_pose\", \"gripper_position\"] (xyz + quaternion xyzw, then the gripper)"
+    )]
+    State(Vec<String>),
+    #[error("n_obs_steps {n_obs_steps} and horizon {horizon}: need 1 <= To <= Tp")]
+    Steps { n_obs_steps: i64, horizon: i64 },
+    #[error("n_action_steps = {n_action_steps} must be in 1..={rows} (Tp - To + 1)")]
+    ActionSteps { n_action_steps: i64, rows: i64 },
+    #[error(
+        "action_space = {0:?}: labrig executes \"eef_axis_angle\" or \"cartesian_velocity\" from a TorchScript module"
+    )]
+    ActionSpace(String),
+    #[error("action_dim = {action_dim}: {action_space:?} is 7 wide (6 + the gripper)")]
+    ActionDim { action_dim: i64, action_space: String },
+    #[error("rate_hz = {0}: the loop runs at 20 Hz; a chunk's rows are one tick apart")]
+    RateHz(f64),
+    #[error("cameras = {0:?}: names without dots")]
+    Cameras(Vec<String>),
+}
+
 impl TorchScriptSpec {
-    pub fn load(path: &Path) -> Result<TorchScriptSpec, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("the spec {}: {e}", path.display()))?;
-        let spec: TorchScriptSpec = toml::from_str(&text).map_err(|e| format!("the spec {}: {e}", path.display()))?;
-        spec.validate().map_err(|e| format!("the spec {}: {e}", path.display()))?;
+    pub fn load(path: &Path) -> Result<TorchScriptSpec, TorchScriptError> {
+        let text =
+            std::fs::read_to_string(path).map_err(|source| TorchScriptError::Read { path: path.to_owned(), source })?;
+        let spec: TorchScriptSpec = toml::from_str(&text)
+            .map_err(|source| TorchScriptError::Parse { path: path.to_owned(), source: Box::new(source) })?;
+        spec.validate().map_err(|source| TorchScriptError::Invalid { path: path.to_owned(), source })?;
         Ok(spec)
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SpecError> {
         if !(8..=1024).contains(&self.image_size) {
-            return Err(format!("image_size = {} must be in 8..=1024", self.image_size));
+            return Err(SpecError::ImageSize(self.image_size));
         }
         if !["unit", "byte"].contains(&self.image_range.as_str()) {
-            return Err(format!("image_range = {:?}: \"unit\" ([0, 1]) or \"byte\" ([0, 255])", self.image_range));
+            return Err(SpecError::ImageRange(self.image_range.clone()));
         }
         let layouts: [&[&str]; 2] = [&["eef_pose"], &["eef_pose", "gripper_position"]];
         if !layouts.iter().any(|l| self.state.iter().map(String::as_str).eq(l.iter().copied())) {
-            return Err(format!(
-                "state = {:?}: labrig gives [\"eef_pose\"] or [\"eef_pose\", \"gripper_position\"] (xyz + quaternion xyzw, then the gripper)",
-                self.state
-            ));
+            return Err(SpecError::State(self.state.clone()));
         }
         if self.n_obs_steps < 1 || self.horizon < self.n_obs_steps {
-            return Err(format!("n_obs_steps {} and horizon {}: need 1 <= To <= Tp", self.n_obs_steps, self.horizon));
+            return Err(SpecError::Steps { n_obs_steps: self.n_obs_steps, horizon: self.horizon });
         }
         let rows = self.horizon - self.n_obs_steps + 1;
         if !(1..=rows).contains(&self.n_action_steps) {
-            return Err(format!("n_action_steps = {} must be in 1..={rows} (Tp - To + 1)", self.n_action_steps));
+            return Err(SpecError::ActionSteps { n_action_steps: self.n_action_steps, rows });
         }
         if !["eef_axis_angle", "cartesian_velocity"].contains(&self.action_space.as_str()) {
-            return Err(format!(
-                "action_space = {:?}: labrig executes \"eef_axis_angle\" or \"cartesian_velocity\" from a TorchScript module",
-                self.action_space
-            ));
+            return Err(SpecError::ActionSpace(self.action_space.clone()));
         }
         if self.action_dim != 7 {
-            return Err(format!(
-                "action_dim = {}: {:?} is 7 wide (6 + the gripper)",
-                self.action_dim, self.action_space
-            ));
+            return Err(SpecError::ActionDim { action_dim: self.action_dim, action_space: self.action_space.clone() });
         }
         if (self.rate_hz - 20.0).abs() > 1e-9 {
-            return Err(format!(
-                "rate_hz = {}: the loop runs at 20 Hz; a chunk's rows are one tick apart",
-                self.rate_hz
-            ));
+            return Err(SpecError::RateHz(self.rate_hz));
         }
         if self.cameras.iter().any(|c| c.is_empty() || c.contains('.')) {
-            return Err(format!("cameras = {:?}: names without dots", self.cameras));
+            return Err(SpecError::Cameras(self.cameras.clone()));
         }
         Ok(())
     }
@@ -162,13 +202,13 @@ action_dim = 7"#,
     fn a_spec_is_checked_field_by_field() {
         assert_eq!(spec().validate(), Ok(()));
         assert_eq!(spec().config().state_dim, 8);
-        let e = TorchScriptSpec { state: vec!["joints".into()], ..spec() }.validate().unwrap_err();
+        let e = TorchScriptSpec { state: vec!["joints".into()], ..spec() }.validate().unwrap_err().to_string();
         assert!(e.starts_with("state = [\"joints\"]"), "{e}");
-        let e = TorchScriptSpec { action_space: "joint_velocity".into(), ..spec() }.validate().unwrap_err();
+        let e = TorchScriptSpec { action_space: "joint_velocity".into(), ..spec() }.validate().unwrap_err().to_string();
         assert!(e.contains("labrig executes"), "{e}");
-        let e = TorchScriptSpec { n_action_steps: 16, ..spec() }.validate().unwrap_err();
+        let e = TorchScriptSpec { n_action_steps: 16, ..spec() }.validate().unwrap_err().to_string();
         assert!(e.contains("1..=15"), "{e}");
-        let e = TorchScriptSpec { rate_hz: 15.0, ..spec() }.validate().unwrap_err();
+        let e = TorchScriptSpec { rate_hz: 15.0, ..spec() }.validate().unwrap_err().to_string();
         assert!(e.contains("20 Hz"), "{e}");
         assert!(toml::from_str::<TorchScriptSpec>("cameras = []\nbogus = 1").is_err());
     }

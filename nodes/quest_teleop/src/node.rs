@@ -23,7 +23,7 @@ use labrig_msgs::geometry_msgs::{Point, Pose, Quaternion};
 use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, EpisodeEvent, EpisodeEventKind, RobotState, TeleopState};
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::topics;
-use labrig_runtime::ros::{Ros, qos};
+use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
 use nalgebra::{Matrix4, Rotation3, UnitQuaternion};
 use serde::Deserialize;
@@ -168,32 +168,120 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<Teleop
     let arm = ros.subscription::<RobotState>(&cfg.state_topic, qos::reliable(100))?;
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
     let _input = crate::input::start(&cfg.input, tx, crate::policy::reorder_matrix(&cfg.policy.axis_reorder))?;
-    let right = cfg.policy.hand == "right";
-    let mut policy = VrPolicy::new(cfg.policy.clone());
-    let mut stats = TeleopStats::default();
-    let mut latencies: Vec<f64> = Vec::new();
-    let mut robot: Option<(RobotView, Instant)> = None;
-    let mut last_reading: Option<(Instant, Reading)> = None;
-    let mut guard = JumpGuard::default();
-    let mut prev_buttons = (false, false);
-    let mut seq = 0u64;
-    let mut ended_at: Option<Instant> = None;
+    let mut node = Teleop::new(cfg, state_pub, action_pub, request_pub, arm);
     let mut input_open = true;
-    let mut notes: std::collections::HashMap<String, Instant> = std::collections::HashMap::new();
-    let mut disabled_published_at = Instant::now() - Duration::from_secs(1);
-    let mut stale_announced = false;
-    let mut warned_no_state = false;
-    let hand_name = cfg.policy.hand.clone();
     let mut tick = tokio::time::interval(Duration::from_millis(10));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    tracing::info!(input = ?cfg.input.kind, hand = %hand_name, "teleop up");
+    tracing::info!(input = ?node.cfg.input.kind, hand = %node.hand_name, "teleop up");
+    loop {
+        tokio::select! {
+            _ = shutdown.wait() => break,
+            ev = rx.recv(), if input_open => {
+                let Some(ev) = ev else {
+                    // The input thread is gone (playback done): keep publishing the stale state.
+                    input_open = false;
+                    node.ended_at.get_or_insert_with(Instant::now);
+                    continue;
+                };
+                if let Flow::Quit = node.on_input(ev)? {
+                    break;
+                }
+            }
+            _ = tick.tick() => {
+                node.on_tick()?;
+                if exit_at_end && node.ended_at.is_some_and(|e| e.elapsed() > Duration::from_secs(1)) {
+                    break;
+                }
+            }
+        }
+    }
+    Ok(node.finish())
+}
 
-    let state_msg = |t: i64, connected: bool, enabled: bool, r: Option<&Reading>, controller: Option<&Matrix4<f64>>| {
-        let h = r.map(|r| *r.hand(right)).unwrap_or_default();
+/// What the loop does after an input event.
+enum Flow {
+    Continue,
+    /// Quit at the keyboard.
+    Quit,
+}
+
+/// The running node: its endpoints, the mapping and the guards around it, and what it saw.
+struct Teleop {
+    cfg: TeleopConfig,
+    state_pub: RosPublisher<TeleopState>,
+    action_pub: RosPublisher<ArmCommand>,
+    request_pub: RosPublisher<EpisodeEvent>,
+    arm: RosSubscription<RobotState>,
+    /// The right hand's controller drives (else the left).
+    right: bool,
+    hand_name: String,
+    policy: VrPolicy,
+    stats: TeleopStats,
+    /// Line read -> action published, microseconds.
+    latencies: Vec<f64>,
+    /// The arm's newest state, and when it arrived.
+    robot: Option<(RobotView, Instant)>,
+    last_reading: Option<(Instant, Reading)>,
+    guard: JumpGuard,
+    /// The success and failure buttons as last read (events go out on the press).
+    prev_buttons: (bool, bool),
+    seq: u64,
+    /// When the input ended (or its thread went).
+    ended_at: Option<Instant>,
+    /// When each input note was last logged.
+    notes: std::collections::HashMap<String, Instant>,
+    disabled_published_at: Instant,
+    stale_announced: bool,
+    warned_no_state: bool,
+}
+
+impl Teleop {
+    fn new(
+        cfg: TeleopConfig,
+        state_pub: RosPublisher<TeleopState>,
+        action_pub: RosPublisher<ArmCommand>,
+        request_pub: RosPublisher<EpisodeEvent>,
+        arm: RosSubscription<RobotState>,
+    ) -> Teleop {
+        Teleop {
+            right: cfg.policy.hand == "right",
+            policy: VrPolicy::new(cfg.policy.clone()),
+            stats: TeleopStats::default(),
+            latencies: Vec::new(),
+            robot: None,
+            last_reading: None,
+            guard: JumpGuard::default(),
+            prev_buttons: (false, false),
+            seq: 0,
+            ended_at: None,
+            notes: std::collections::HashMap::new(),
+            disabled_published_at: Instant::now() - Duration::from_secs(1),
+            stale_announced: false,
+            warned_no_state: false,
+            hand_name: cfg.policy.hand.clone(),
+            cfg,
+            state_pub,
+            action_pub,
+            request_pub,
+            arm,
+        }
+    }
+
+    /// `/teleop/state` at `t`: the controller as read (`r`), its pose in the robot frame when
+    /// known.
+    fn state_msg(
+        &self,
+        t: i64,
+        connected: bool,
+        enabled: bool,
+        r: Option<&Reading>,
+        controller: Option<&Matrix4<f64>>,
+    ) -> TeleopState {
+        let h = r.map(|r| *r.hand(self.right)).unwrap_or_default();
         TeleopState {
             header: Header { stamp: Nanos(t).into(), frame_id: "base".into() },
             controller_connected: connected,
-            hand: hand_name.clone(),
+            hand: self.hand_name.clone(),
             controller_pose: controller.map(pose_msg).unwrap_or_default(),
             movement_enabled: enabled,
             grip: h.grip,
@@ -204,152 +292,212 @@ pub async fn run(cfg: TeleopConfig, shutdown: Shutdown) -> anyhow::Result<Teleop
             button_failure: h.failure,
             ..TeleopState::default()
         }
-    };
+    }
 
-    loop {
-        tokio::select! {
-            _ = shutdown.wait() => break,
-            ev = rx.recv(), if input_open => {
-                let Some(ev) = ev else {
-                    // The input thread is gone (playback done): keep publishing the stale state.
-                    input_open = false;
-                    ended_at.get_or_insert_with(Instant::now);
-                    continue;
-                };
-                let (reading, read_at) = match ev {
-                    InputEvent::Line { text, read_at } => match stats.lines.take(&text) {
-                        None => continue,
-                        Some(Err(e)) => { tracing::debug!("bad line: {e}"); continue; }
-                        Some(Ok(r)) => (r, read_at),
-                    },
-                    InputEvent::Reading { reading, read_at } => {
-                        stats.lines.readings += 1;
-                        (*reading, read_at)
-                    }
-                    InputEvent::Note(n) => {
-                        // adb retrying every second says the same things each time: each at
-                        // most every 30 s.
-                        let due = notes.get(&n).is_none_or(|at: &Instant| at.elapsed() > Duration::from_secs(30));
-                        if due {
-                            tracing::info!("input: {n}");
-                            notes.insert(n, Instant::now());
-                        }
-                        continue;
-                    }
-                    InputEvent::End => { tracing::info!("input ended"); ended_at = Some(Instant::now()); continue; }
-                    InputEvent::Quit => { tracing::info!("quit at the keyboard"); break; }
-                };
-                while let Some(s) = arm.try_take()? {
-                    let view = RobotView { cartesian_position: s.msg.cartesian_position, gripper_position: s.msg.gripper_position };
-                    robot = Some((view, Instant::now()));
+    /// An input event: a reading mapped to an action, or a line, note or end taken note of.
+    fn on_input(&mut self, ev: InputEvent) -> anyhow::Result<Flow> {
+        let (reading, read_at) = match ev {
+            InputEvent::Line { text, read_at } => match self.stats.lines.take(&text) {
+                None => return Ok(Flow::Continue),
+                Some(Err(e)) => {
+                    tracing::debug!("bad line: {e}");
+                    return Ok(Flow::Continue);
                 }
-                let hand = *reading.hand(right);
-                let Some(pose) = hand.pose else { continue };
-                let t = Clock::Wall.now().0;
-                // Episode events on the press, from either controller.
-                let buttons = (reading.right.success || reading.left.success, reading.right.failure || reading.left.failure);
-                for (pressed, was, kind, name) in [
-                    (buttons.0, prev_buttons.0, EpisodeEventKind::Success, "success (A/X)"),
-                    (buttons.1, prev_buttons.1, EpisodeEventKind::Failure, "failure (B/Y)"),
-                ] {
-                    if pressed && !was {
-                        let ev = EpisodeEvent {
-                            header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
-                            kind: kind as u8,
-                            note: format!("teleop: {name}"),
-                            ..EpisodeEvent::default()
-                        };
-                        request_pub.publish(ev)?;
-                        stats.events.push(name.to_owned());
-                    }
-                }
-                prev_buttons = buttons;
-                let (accepted, relocated) = guard.check(&pose, &cfg);
-                if !accepted {
-                    stats.jumps_refused += 1;
-                    if relocated {
-                        // The controller is somewhere else for good: motion needs a new press.
-                        tracing::warn!("the controller's pose moved for good: press the grip again to move");
-                        policy.release();
-                        state_pub.publish(state_msg(t, true, false, Some(&reading), None))?;
-                    } else {
-                        // A glitch: skipped, the origins kept (the next good reading goes on).
-                        tracing::warn!("refused a controller pose that jumped (tracking glitch)");
-                    }
-                    continue;
-                }
-                last_reading = Some((read_at, reading));
-                stale_announced = false;
-                // The mapping closes its loop on the arm's state: without a fresh one the
-                // action would chase an offset the arm may already have made up.
-                let Some(rv) = robot.filter(|(_, at)| at.elapsed().as_secs_f64() <= cfg.max_state_age_s).map(|(v, _)| v) else {
-                    if !warned_no_state {
-                        tracing::warn!("no fresh {}: motion disabled until the arm's state arrives", cfg.state_topic);
-                        warned_no_state = true;
-                    }
-                    policy.release();
-                    state_pub.publish(state_msg(t, true, false, Some(&reading), None))?;
-                    continue;
-                };
-                warned_no_state = false;
-                let Some(a) = policy.step(&reading, &rv) else { continue };
-                let gripper = (rv.gripper_position + a.velocity[6] * cfg.gripper_delta).clamp(0.0, 1.0);
-                seq += 1;
-                let cmd = ArmCommand {
-                    header: Header { stamp: Nanos(t).into(), frame_id: "base".into() },
-                    mode: ArmCommandMode::CartesianVelocity as u8,
-                    cartesian_velocity: [a.velocity[0], a.velocity[1], a.velocity[2], a.velocity[3], a.velocity[4], a.velocity[5]],
-                    gripper_position: if a.movement_enabled { gripper } else { rv.gripper_position },
-                    seq,
-                    ..ArmCommand::default()
-                };
-                state_pub.publish(state_msg(t, true, a.movement_enabled, Some(&reading), Some(&a.controller)))?;
-                action_pub.publish(cmd)?;
-                stats.actions += 1;
-                latencies.push(read_at.elapsed().as_secs_f64() * 1e6);
+                Some(Ok(r)) => (r, read_at),
+            },
+            InputEvent::Reading { reading, read_at } => {
+                self.stats.lines.readings += 1;
+                (*reading, read_at)
             }
-            _ = tick.tick() => {
-                let age = last_reading.as_ref().map(|(at, _)| at.elapsed());
-                let stale = age.is_none_or(|a| a.as_secs_f64() > cfg.stale_s);
-                if stale {
-                    let just_now = !stale_announced && age.is_some();
-                    if just_now {
-                        stale_announced = true;
-                        stats.stale_holds += 1;
-                        policy.release();
-                        tracing::warn!("no controller reading for {:.0} ms: motion disabled", cfg.stale_s * 1e3);
-                    }
-                    // Disabled at once when it turned stale, then every 100 ms.
-                    if just_now || disabled_published_at.elapsed() >= Duration::from_millis(100) {
-                        let connected = age.is_some_and(|a| a.as_secs_f64() < cfg.controller_timeout_s);
-                        state_pub.publish(state_msg(Clock::Wall.now().0, connected, false, last_reading.as_ref().map(|(_, r)| r), None))?;
-                        disabled_published_at = Instant::now();
-                    }
-                }
-                if exit_at_end && ended_at.is_some_and(|e| e.elapsed() > Duration::from_secs(1)) {
-                    break;
-                }
+            InputEvent::Note(n) => {
+                self.note(n);
+                return Ok(Flow::Continue);
             }
+            InputEvent::End => {
+                tracing::info!("input ended");
+                self.ended_at = Some(Instant::now());
+                return Ok(Flow::Continue);
+            }
+            InputEvent::Quit => {
+                tracing::info!("quit at the keyboard");
+                return Ok(Flow::Quit);
+            }
+        };
+        self.on_reading(reading, read_at)?;
+        Ok(Flow::Continue)
+    }
+
+    /// An input note, logged: adb retrying every second says the same things each time: each
+    /// at most every 30 s.
+    fn note(&mut self, n: String) {
+        let due = self.notes.get(&n).is_none_or(|at: &Instant| at.elapsed() > Duration::from_secs(30));
+        if due {
+            tracing::info!("input: {n}");
+            self.notes.insert(n, Instant::now());
         }
     }
-    latencies.sort_by(f64::total_cmp);
-    let pct = |p: f64| {
-        if latencies.is_empty() { 0.0 } else { latencies[((latencies.len() - 1) as f64 * p).round() as usize] }
-    };
-    stats.latency_us_p50 = pct(0.5);
-    stats.latency_us_p99 = pct(0.99);
-    stats.latency_us_max = pct(1.0);
-    stats.latency_n = latencies.len();
-    tracing::info!(
-        readings = stats.lines.readings,
-        bad = stats.lines.bad,
-        actions = stats.actions,
-        jumps_refused = stats.jumps_refused,
-        p50_us = stats.latency_us_p50,
-        p99_us = stats.latency_us_p99,
-        "teleop stopped"
-    );
-    Ok(stats)
+
+    /// A controller reading (read at `read_at`): the buttons' events, the glitch guard, and
+    /// against a fresh arm state the action and state published.
+    fn on_reading(&mut self, reading: Reading, read_at: Instant) -> anyhow::Result<()> {
+        self.take_arm_state()?;
+        let hand = *reading.hand(self.right);
+        let Some(pose) = hand.pose else { return Ok(()) };
+        let t = Clock::Wall.now().0;
+        self.publish_button_events(&reading, t)?;
+        if !self.pose_accepted(&pose, &reading, t)? {
+            return Ok(());
+        }
+        self.last_reading = Some((read_at, reading));
+        self.stale_announced = false;
+        let Some(rv) = self.fresh_robot(&reading, t)? else { return Ok(()) };
+        self.act(&reading, &rv, t, read_at)
+    }
+
+    /// The arm's states that arrived (the newest kept).
+    fn take_arm_state(&mut self) -> anyhow::Result<()> {
+        while let Some(s) = self.arm.try_take()? {
+            let view =
+                RobotView { cartesian_position: s.msg.cartesian_position, gripper_position: s.msg.gripper_position };
+            self.robot = Some((view, Instant::now()));
+        }
+        Ok(())
+    }
+
+    /// Episode events on the press, from either controller.
+    fn publish_button_events(&mut self, reading: &Reading, t: i64) -> anyhow::Result<()> {
+        let buttons = (reading.right.success || reading.left.success, reading.right.failure || reading.left.failure);
+        for (pressed, was, kind, name) in [
+            (buttons.0, self.prev_buttons.0, EpisodeEventKind::Success, "success (A/X)"),
+            (buttons.1, self.prev_buttons.1, EpisodeEventKind::Failure, "failure (B/Y)"),
+        ] {
+            if pressed && !was {
+                let ev = EpisodeEvent {
+                    header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
+                    kind: kind as u8,
+                    note: format!("teleop: {name}"),
+                    ..EpisodeEvent::default()
+                };
+                self.request_pub.publish(ev)?;
+                self.stats.events.push(name.to_owned());
+            }
+        }
+        self.prev_buttons = buttons;
+        Ok(())
+    }
+
+    /// Whether the glitch guard accepts `pose`; a refused one is counted and warned, and one
+    /// that moved for good disables motion until the grip is pressed again.
+    fn pose_accepted(&mut self, pose: &Matrix4<f64>, reading: &Reading, t: i64) -> anyhow::Result<bool> {
+        let (accepted, relocated) = self.guard.check(pose, &self.cfg);
+        if accepted {
+            return Ok(true);
+        }
+        self.stats.jumps_refused += 1;
+        if relocated {
+            // The controller is somewhere else for good: motion needs a new press.
+            tracing::warn!("the controller's pose moved for good: press the grip again to move");
+            self.policy.release();
+            self.state_pub.publish(self.state_msg(t, true, false, Some(reading), None))?;
+        } else {
+            // A glitch: skipped, the origins kept (the next good reading goes on).
+            tracing::warn!("refused a controller pose that jumped (tracking glitch)");
+        }
+        Ok(false)
+    }
+
+    /// The arm's state when fresh. The mapping closes its loop on it: without a fresh one the
+    /// action would chase an offset the arm may already have made up, so motion is disabled.
+    fn fresh_robot(&mut self, reading: &Reading, t: i64) -> anyhow::Result<Option<RobotView>> {
+        let max_age = self.cfg.max_state_age_s;
+        let Some(rv) = self.robot.filter(|(_, at)| at.elapsed().as_secs_f64() <= max_age).map(|(v, _)| v) else {
+            if !self.warned_no_state {
+                tracing::warn!("no fresh {}: motion disabled until the arm's state arrives", self.cfg.state_topic);
+                self.warned_no_state = true;
+            }
+            self.policy.release();
+            self.state_pub.publish(self.state_msg(t, true, false, Some(reading), None))?;
+            return Ok(None);
+        };
+        self.warned_no_state = false;
+        Ok(Some(rv))
+    }
+
+    /// The mapping's action for `reading` against the arm's state: `/teleop/state` and
+    /// `/teleop/action` published, the latency since `read_at` kept.
+    fn act(&mut self, reading: &Reading, rv: &RobotView, t: i64, read_at: Instant) -> anyhow::Result<()> {
+        let Some(a) = self.policy.step(reading, rv) else { return Ok(()) };
+        let gripper = (rv.gripper_position + a.velocity[6] * self.cfg.gripper_delta).clamp(0.0, 1.0);
+        self.seq += 1;
+        let cmd = ArmCommand {
+            header: Header { stamp: Nanos(t).into(), frame_id: "base".into() },
+            mode: ArmCommandMode::CartesianVelocity as u8,
+            cartesian_velocity: [
+                a.velocity[0],
+                a.velocity[1],
+                a.velocity[2],
+                a.velocity[3],
+                a.velocity[4],
+                a.velocity[5],
+            ],
+            gripper_position: if a.movement_enabled { gripper } else { rv.gripper_position },
+            seq: self.seq,
+            ..ArmCommand::default()
+        };
+        self.state_pub.publish(self.state_msg(t, true, a.movement_enabled, Some(reading), Some(&a.controller)))?;
+        self.action_pub.publish(cmd)?;
+        self.stats.actions += 1;
+        self.latencies.push(read_at.elapsed().as_secs_f64() * 1e6);
+        Ok(())
+    }
+
+    /// The 10 ms tick: no reading for `stale_s` disables motion, announced once and then
+    /// published every 100 ms.
+    fn on_tick(&mut self) -> anyhow::Result<()> {
+        let age = self.last_reading.as_ref().map(|(at, _)| at.elapsed());
+        let stale = age.is_none_or(|a| a.as_secs_f64() > self.cfg.stale_s);
+        if stale {
+            let just_now = !self.stale_announced && age.is_some();
+            if just_now {
+                self.stale_announced = true;
+                self.stats.stale_holds += 1;
+                self.policy.release();
+                tracing::warn!("no controller reading for {:.0} ms: motion disabled", self.cfg.stale_s * 1e3);
+            }
+            // Disabled at once when it turned stale, then every 100 ms.
+            if just_now || self.disabled_published_at.elapsed() >= Duration::from_millis(100) {
+                let connected = age.is_some_and(|a| a.as_secs_f64() < self.cfg.controller_timeout_s);
+                let last = self.last_reading.as_ref().map(|(_, r)| r);
+                self.state_pub.publish(self.state_msg(Clock::Wall.now().0, connected, false, last, None))?;
+                self.disabled_published_at = Instant::now();
+            }
+        }
+        Ok(())
+    }
+
+    /// The run's figures (the latency percentiles computed), logged.
+    fn finish(mut self) -> TeleopStats {
+        let mut stats = std::mem::take(&mut self.stats);
+        let latencies = &mut self.latencies;
+        latencies.sort_by(f64::total_cmp);
+        let pct = |p: f64| {
+            if latencies.is_empty() { 0.0 } else { latencies[((latencies.len() - 1) as f64 * p).round() as usize] }
+        };
+        stats.latency_us_p50 = pct(0.5);
+        stats.latency_us_p99 = pct(0.99);
+        stats.latency_us_max = pct(1.0);
+        stats.latency_n = latencies.len();
+        tracing::info!(
+            readings = stats.lines.readings,
+            bad = stats.lines.bad,
+            actions = stats.actions,
+            jumps_refused = stats.jumps_refused,
+            p50_us = stats.latency_us_p50,
+            p99_us = stats.latency_us_p99,
+            "teleop stopped"
+        );
+        stats
+    }
 }
 
 #[cfg(test)]

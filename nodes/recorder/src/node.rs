@@ -56,7 +56,7 @@ pub struct TopicSpec {
     /// `pkg/msg/Name`; must be a type labrig-msgs knows (its schema goes into the file).
     #[serde(rename = "type")]
     pub type_name: String,
-    #[serde(default = "yes")]
+    #[serde(default = "default_true")]
     pub reliable: bool,
     /// Transient-local (latched) context topics like /tf_static and /sim/scene: their last
     /// message goes into every episode at its start.
@@ -68,7 +68,7 @@ pub struct TopicSpec {
     pub durable: bool,
 }
 
-fn yes() -> bool {
+fn default_true() -> bool {
     true
 }
 
@@ -239,7 +239,7 @@ impl Episode {
     /// A step's `action_source`, for the takeover counts.
     fn count_source(&mut self, source: u8) {
         use labrig_msgs::labrig_msgs::Step;
-        let operator = source != Step::SOURCE_POLICY && source != Step::SOURCE_NONE;
+        let operator = Step::is_operator(source);
         self.takeovers += u64::from(operator && !self.operator_acting);
         self.operator_steps += u64::from(operator);
         self.operator_acting = operator;
@@ -716,7 +716,7 @@ impl Recorder {
             Verdict::Ended(o) => o,
             _ => Outcome::Failure,
         };
-        let dest = unused(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
+        let dest = free_name(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
         let moved = dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(dir, &dest));
         self.last = match moved {
             Ok(()) => {
@@ -988,7 +988,7 @@ impl Recorder {
         let Episode { staging, writer, uuid, .. } = ep;
         let start_ns = writer.metadata().start_ns;
         drop(writer);
-        let dest = unused(episode_dir(&self.cfg.root, Outcome::Failure, Nanos(start_ns)));
+        let dest = free_name(episode_dir(&self.cfg.root, Outcome::Failure, Nanos(start_ns)));
         let moved =
             dest.parent().map(std::fs::create_dir_all).transpose().and_then(|_| std::fs::rename(&staging, &dest));
         let kept = match moved {
@@ -1052,7 +1052,7 @@ impl Recorder {
                 self.sizes.push(dir_bytes(&staging));
                 // Two episodes may start in the same second (DROID's directory names are to the
                 // second): the later one gets a suffix rather than failing to move.
-                let dest = unused(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
+                let dest = free_name(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
                 let moved = dest
                     .parent()
                     .map(std::fs::create_dir_all)
@@ -1106,7 +1106,9 @@ fn encode_frame(camera: &str, frame: &OwnedFrame, quality: u8) -> Option<Encoded
             "jpeg",
         ),
         Some(FrameEncoding::Jpeg) => (Ok(frame.pixels().to_vec()), "jpeg"),
-        Some(FrameEncoding::Depth16) => (depth_png(frame.pixels(), h.width, h.height), "png"),
+        Some(FrameEncoding::Depth16) => {
+            (depth_png(frame.pixels(), h.width, h.height).map_err(|e| e.to_string()), "png")
+        }
         other => {
             tracing::warn!("camera {camera}: only rgb8, jpeg and depth16 frames are recorded, got {other:?}");
             return None;
@@ -1130,10 +1132,10 @@ fn encode_frame(camera: &str, frame: &OwnedFrame, quality: u8) -> Option<Encoded
 }
 
 /// Little-endian uint16 depth (mm) as a 16-bit greyscale PNG (PNG is big endian).
-fn depth_png(le: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
+fn depth_png(le: &[u8], width: u32, height: u32) -> Result<Vec<u8>, DepthPngError> {
     let n = width as usize * height as usize * 2;
     let Some(le) = le.get(..n) else {
-        return Err(format!("a {width}x{height} depth frame of {} bytes, expected {n}", le.len()));
+        return Err(DepthPngError::Size { width, height, len: le.len(), expected: n });
     };
     let be: Vec<u8> = le.chunks_exact(2).flat_map(|p| [p[1], p[0]]).collect();
     let mut out = Vec::new();
@@ -1141,10 +1143,19 @@ fn depth_png(le: &[u8], width: u32, height: u32) -> Result<Vec<u8>, String> {
     enc.set_color(png::ColorType::Grayscale);
     enc.set_depth(png::BitDepth::Sixteen);
     enc.set_compression(png::Compression::Fast);
-    let mut w = enc.write_header().map_err(|e| e.to_string())?;
-    w.write_image_data(&be).map_err(|e| e.to_string())?;
-    w.finish().map_err(|e| e.to_string())?;
+    let mut w = enc.write_header()?;
+    w.write_image_data(&be)?;
+    w.finish()?;
     Ok(out)
+}
+
+/// Why a depth frame could not be recorded as PNG.
+#[derive(Debug, thiserror::Error)]
+enum DepthPngError {
+    #[error("a {width}x{height} depth frame of {len} bytes, expected {expected}")]
+    Size { width: u32, height: u32, len: usize, expected: usize },
+    #[error("{0}")]
+    Png(#[from] png::EncodingError),
 }
 
 /// A camera frame encoded, with its times.
@@ -1247,7 +1258,7 @@ fn drain_topics(
 }
 
 /// `path`, or `path_2`, `path_3`, ... when it exists.
-fn unused(path: PathBuf) -> PathBuf {
+fn free_name(path: PathBuf) -> PathBuf {
     if !path.exists() {
         return path;
     }
@@ -1264,8 +1275,8 @@ fn extrinsics(tf: &TFMessage) -> BTreeMap<String, [f64; 6]> {
             let cam = t.child_frame_id.strip_suffix("_optical")?;
             let (p, q) = (&t.transform.translation, &t.transform.rotation);
             let rot = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z));
-            let (r, pi, y) = rot.euler_angles();
-            Some((cam.to_owned(), [p.x, p.y, p.z, r, pi, y]))
+            let (roll, pitch, yaw) = rot.euler_angles();
+            Some((cam.to_owned(), [p.x, p.y, p.z, roll, pitch, yaw]))
         })
         .collect()
 }

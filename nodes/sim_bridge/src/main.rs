@@ -195,14 +195,7 @@ fn snapshot(a: SnapshotArgs) -> anyhow::Result<ExitCode> {
 
 fn eval(a: EvalArgs) -> anyhow::Result<ExitCode> {
     let (spec, assets) = labrig_sim::resolve_scene(a.scene.scene.as_deref(), a.scene.assets.as_deref())?;
-    let bar = indicatif::ProgressBar::new(a.episodes);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} scenes, {msg} [{elapsed}]")
-            .expect("static template"),
-    );
-    if a.json {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar = labrig_episode::progress::bar("{bar:30} {pos}/{len} scenes", a.episodes, a.json);
     let mut results: Vec<EpisodeResult> = Vec::new();
     for seed in a.first_seed..a.first_seed + a.episodes {
         let mut sim = Sim::new(&assets, &spec, seed, Nanos::from_millis(50)).with_context(|| format!("seed {seed}"))?;
@@ -334,14 +327,8 @@ fn calib_capture(a: CalibCaptureArgs) -> anyhow::Result<ExitCode> {
         out: a.out,
         rig: a.rig,
     };
-    let bar = indicatif::ProgressBar::new(a.views as u64);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(&format!("{{bar:30}} {{pos}}/{{len}} {camera} views [{{elapsed}}]"))
-            .expect("static template"),
-    );
-    if a.quiet {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
+    let bar =
+        labrig_episode::progress::bar(&format!("{{bar:30}} {{pos}}/{{len}} {camera} views"), a.views as u64, a.quiet);
     let report = labrig_sim_bridge::calib::capture(&opts, &bar)?;
     bar.finish_and_clear();
     if !a.quiet {

@@ -552,85 +552,149 @@ impl CameraOut {
     }
 }
 
+/// Runs the bridge until shut down (or `max_ticks`): the rig and its endpoints set up, then
+/// each turn of the loop takes the requests and commands and steps when a step is due.
 async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+    raise_priority(&a);
+    let (spec, assets) = labrig_sim::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
+    let period = Nanos::from_secs_rounded(a.period_s);
+    let sim = a.sim(&assets, &spec, a.seed, period)?;
+    let safety = labrig_sim::safety_filter(period, None)?;
+    let cfg = a.ros.clone();
+    let hw = a.hardware_prefix.trim_end_matches('/');
+    let mut ros = Ros::new(&cfg, "labrig_sim")?;
+    let cameras = a.camera_names();
+    let mut io = RosIo::open(&mut ros, &a, hw, &cameras, &sim, &safety)?;
+    let frames = FrameNode::new()?;
+    let frame_pubs = frame_publishers(&frames, &a, &cameras)?;
+    let scene = SceneSource { assets, spec, period, board_mount: a.calib_board.as_ref().map(|b| b.mount) };
+    let in_force = calibration_in_force(&sim, &scene.spec, io.calibrations.as_ref(), &mut io.pubs)?;
+    scene.publish(&sim, &io, in_force.as_ref(), a.cameras)?;
+    tracing::info!(
+        mode = ?a.mode, scene = %scene.spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.ros.domain_id,
+        "sim bridge up"
+    );
+    let rig = SimHardware::new(sim, safety, hw.is_empty());
+    let mut b = Bridge::new(&a, scene, rig, cameras, frame_pubs, io);
+    b.publish_first_state();
+    while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| b.ticks < m) {
+        b.take_resets()?;
+        // Gripper commands first, so an arm command of the same tick can override them.
+        b.take_gripper_commands();
+        if !b.step_due() {
+            b.idle().await;
+            continue;
+        }
+        b.step()?;
+    }
+    b.report_stop();
+    Ok(())
+}
+
+/// In realtime with a `realtime_priority`, the bridge's thread at that SCHED_FIFO priority.
+fn raise_priority(a: &BridgeConfig) {
     if let (Some(p), Mode::Realtime) = (a.realtime_priority, a.mode) {
         // Before the renderer exists: the threads it starts inherit the policy.
         if let Err(e) = labrig_runtime::realtime_priority(p) {
             tracing::warn!("{e}; the bridge runs at normal priority");
         }
     }
-    let (spec, assets) = labrig_sim::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
-    let period = Nanos::from_secs_rounded(a.period_s);
-    let sim = a.sim(&assets, &spec, a.seed, period)?;
-    let board_mount = a.calib_board.as_ref().map(|b| b.mount);
-    // A step that starts at wall time w ends at sim time w: its state and frames go out
-    // stamped about when they were made, as a real rig's are.
-    let wall_line = |period: Nanos| labrig_runtime::Clock::Wall.now().0 - period.0;
-    let safety = labrig_sim::safety_filter(period, None)?;
+}
 
-    let cfg = a.ros.clone();
-    let hw = a.hardware_prefix.trim_end_matches('/');
-    let arm_sets_gripper = hw.is_empty();
-    let mut ros = Ros::new(&cfg, "labrig_sim")?;
-    let cameras: Vec<&'static str> = if !a.cameras {
-        vec![]
-    } else {
+impl BridgeConfig {
+    /// The cameras the bridge renders and sends (`only_cameras` of the rig's, or none).
+    fn camera_names(&self) -> Vec<&'static str> {
+        if !self.cameras {
+            return vec![];
+        }
         labrig_sim::rig::CAMERAS
             .iter()
             .copied()
-            .filter(|c| a.only_cameras.is_empty() || a.only_cameras.iter().any(|o| o == c))
+            .filter(|c| self.only_cameras.is_empty() || self.only_cameras.iter().any(|o| o == c))
             .collect()
-    };
-    let mut pubs = Publishers {
-        joint_states: ros.publisher_on(&topics::JOINT_STATES, 10)?,
-        arm_state: ros.publisher_at(hw, &topics::ARM_STATE, 10)?,
-        gripper_state: ros.publisher_at(hw, &topics::GRIPPER_STATE, 10)?,
-        tf: ros.publisher_on(&topics::TF, 10)?,
-        clock: ros.publisher_on(&topics::CLOCK, 10)?,
-        task: ros.publisher_on(&topics::SIM_TASK, 10)?,
-        wrist_in_tcp: None,
-        camera_info: cameras
-            .iter()
-            .map(|c| ros.publisher(&topics::camera_info(c), qos::reliable(10)))
-            .collect::<Result<_, _>>()?,
-    };
-    let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;
-    let scene_pub = ros.publisher_on(&topics::SIM_SCENE, 1)?;
-    let calibrations = match &a.calibration {
-        None => None,
-        Some(dir) => {
-            let c = labrig_episode::calibration::load(dir, &labrig_sim::rig::CAMERAS);
-            let now = labrig_runtime::Clock::Wall.now().0 / 1_000_000_000;
-            for w in c.warnings(now, a.calibration_max_age_s) {
-                tracing::warn!("calibration: {w}");
+    }
+}
+
+/// A step that starts at wall time w ends at sim time w: its state and frames go out stamped
+/// about when they were made, as a real rig's are.
+fn wall_line(period: Nanos) -> i64 {
+    labrig_runtime::Clock::Wall.now().0 - period.0
+}
+
+/// The bridge's ROS endpoints (besides the cameras' frames) and the expert publishing on them.
+struct RosIo {
+    pubs: Publishers,
+    tf_static: RosPublisher<TFMessage>,
+    scene_pub: RosPublisher<StringMsg>,
+    /// The camera calibrations loaded, and their `/calibration` publisher.
+    calibrations: Option<(labrig_episode::calibration::Calibrations, RosPublisher<StringMsg>)>,
+    expert: Option<ExpertPub>,
+    reset_sub: RosSubscription<StringMsg>,
+    /// Fault injection for tests and `labrig bench faults`: a camera that stops sending.
+    fault_sub: RosSubscription<StringMsg>,
+    arm_sub: RosSubscription<ArmCommand>,
+    gripper_sub: RosSubscription<GripperCommand>,
+}
+
+impl RosIo {
+    /// Opens the publishers and subscriptions (the arm's and gripper's under the hardware
+    /// prefix `hw`), loading the calibrations and making the expert on the way.
+    fn open(
+        ros: &mut Ros,
+        a: &BridgeConfig,
+        hw: &str,
+        cameras: &[&'static str],
+        sim: &Sim,
+        safety: &labrig_arm::safety::SafetyFilter,
+    ) -> anyhow::Result<RosIo> {
+        let pubs = Publishers {
+            joint_states: ros.publisher_on(&topics::JOINT_STATES, 10)?,
+            arm_state: ros.publisher_at(hw, &topics::ARM_STATE, 10)?,
+            gripper_state: ros.publisher_at(hw, &topics::GRIPPER_STATE, 10)?,
+            tf: ros.publisher_on(&topics::TF, 10)?,
+            clock: ros.publisher_on(&topics::CLOCK, 10)?,
+            task: ros.publisher_on(&topics::SIM_TASK, 10)?,
+            wrist_in_tcp: None,
+            camera_info: cameras
+                .iter()
+                .map(|c| ros.publisher(&topics::camera_info(c), qos::reliable(10)))
+                .collect::<Result<_, _>>()?,
+        };
+        let tf_static = ros.publisher_on(&topics::TF_STATIC, 1)?;
+        let scene_pub = ros.publisher_on(&topics::SIM_SCENE, 1)?;
+        let calibrations = match &a.calibration {
+            None => None,
+            Some(dir) => {
+                let c = labrig_episode::calibration::load(dir, &labrig_sim::rig::CAMERAS);
+                let now = labrig_runtime::Clock::Wall.now().0 / 1_000_000_000;
+                for w in c.warnings(now, a.calibration_max_age_s) {
+                    tracing::warn!("calibration: {w}");
+                }
+                Some((c, ros.publisher_on(&topics::CALIBRATION, 1)?))
             }
-            Some((c, ros.publisher_on(&topics::CALIBRATION, 1)?))
-        }
-    };
-    let mut expert = if a.expert {
-        Some(ExpertPub {
-            expert: labrig_sim::expert::Expert::new(&sim)
-                .with_aim_error(&sim, a.expert_aim_error_m)
-                .with_missed_grasp(&sim, a.expert_miss_fraction),
-            aim_error_m: a.expert_aim_error_m,
-            miss_fraction: a.expert_miss_fraction,
-            resume: a.expert_resume.then(|| (labrig_sim::expert::Expert::new(&sim), safety.ik().kinematics().clone())),
-            last_action: None,
-            action: ros.publisher_on(&topics::SIM_EXPERT_ACTION, 10)?,
-            status: ros.publisher_on(&topics::SIM_EXPERT_STATUS, 10)?,
-            seq: 0,
-            last: None,
+        };
+        let expert = if a.expert { Some(ExpertPub::open(ros, a, sim, safety)?) } else { None };
+        Ok(RosIo {
+            pubs,
+            tf_static,
+            scene_pub,
+            calibrations,
+            expert,
+            reset_sub: ros.subscription_on(&topics::SIM_RESET, 10)?,
+            fault_sub: ros.subscription_on(&topics::SIM_FAULT, 10)?,
+            arm_sub: ros.subscription_at(hw, &topics::ARM_COMMAND, 100)?,
+            gripper_sub: ros.subscription_at(hw, &topics::GRIPPER_COMMAND, 100)?,
         })
-    } else {
-        None
-    };
-    let reset_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_RESET, 10)?;
-    // Fault injection for tests and `labrig bench faults`: a camera that stops sending.
-    let fault_sub: RosSubscription<StringMsg> = ros.subscription_on(&topics::SIM_FAULT, 10)?;
-    let arm_sub: RosSubscription<ArmCommand> = ros.subscription_at(hw, &topics::ARM_COMMAND, 100)?;
-    let gripper_sub: RosSubscription<GripperCommand> = ros.subscription_at(hw, &topics::GRIPPER_COMMAND, 100)?;
-    let frames = FrameNode::new()?;
-    let frame_pubs: Vec<FramePublisher> = cameras
+    }
+}
+
+/// Each camera's shared-memory frame publisher (RGB8 at the configured size).
+fn frame_publishers(
+    frames: &FrameNode,
+    a: &BridgeConfig,
+    cameras: &[&'static str],
+) -> anyhow::Result<Vec<FramePublisher>> {
+    Ok(cameras
         .iter()
         .map(|c| {
             frames.publisher(
@@ -638,199 +702,302 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
                 FrameFormat { width: a.width as u32, height: a.height as u32, encoding: FrameEncoding::Rgb8 },
             )
         })
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<_, _>>()?)
+}
 
-    let in_force = calibration_in_force(&sim, &spec, calibrations.as_ref(), &mut pubs)?;
-    publish_scene(&sim, &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount, a.cameras)?;
-    tracing::info!(
-        mode = ?a.mode, scene = %spec.name, seed = a.seed, cameras = cameras.len(), domain_id = a.ros.domain_id,
-        "sim bridge up"
-    );
+/// What a scene is built from, and what is published with each one.
+struct SceneSource {
+    assets: PathBuf,
+    spec: labrig_sim::scene::SceneSpec,
+    period: Nanos,
+    board_mount: Option<CalibBoardMount>,
+}
 
-    let mut rig = SimHardware::new(sim, safety, arm_sets_gripper);
-    let mut out = CameraOut {
-        rgb: cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect(),
-        stalled_until: cameras.iter().map(|_| Instant::now()).collect(),
-        cameras: cameras.clone(),
-        pubs: frame_pubs,
-        fovy: Vec::new(),
-        size: (a.width, a.height),
-    };
-    out.set_scene(rig.sim());
-    let mut ticks = 0u64;
-    let started = Instant::now();
-    let mut next_deadline = Instant::now();
-    let mut idle_publish = Instant::now();
-    let mut late_ticks = 0u64;
-    let mut last_tick = Instant::now();
-    if a.wall_clock_origin {
-        rig.sim_mut().resume_clock(Nanos(wall_line(period)));
+impl SceneSource {
+    /// `/sim/scene` and `/tf_static` for `sim`'s scene.
+    fn publish(
+        &self,
+        sim: &Sim,
+        io: &RosIo,
+        in_force: Option<&labrig_episode::calibration::Calibrations>,
+        renders_cameras: bool,
+    ) -> anyhow::Result<()> {
+        publish_scene(sim, &io.scene_pub, &io.tf_static, &self.spec, in_force, self.board_mount, renders_cameras)
     }
-    let sim_start = rig.sim().time();
-    // The next frame's time (sim time) when cameras send at their own rate.
-    let frame_period = a.camera_rate_hz.map(|hz| Nanos::from_secs_rounded(1.0 / hz));
-    let mut next_frame = sim_start;
-    report_publish(publish_state(rig.sim(), &pubs, rig.state()));
-    if let Some(e) = &mut expert {
-        e.publish(rig.sim());
+}
+
+/// The bridge's loop: the simulated rig, its outputs and its pace.
+struct Bridge<'a> {
+    a: &'a BridgeConfig,
+    out: CameraOut,
+    rig: SimHardware,
+    io: RosIo,
+    scene: SceneSource,
+    ticks: u64,
+    started: Instant,
+    /// Realtime: when the next step is due (wall clock).
+    next_deadline: Instant,
+    /// When the state last went out (lockstep repeats it while idle).
+    idle_publish: Instant,
+    late_ticks: u64,
+    last_tick: Instant,
+    sim_start: Nanos,
+    /// The frames' period (sim time) when cameras send at their own rate.
+    frame_period: Option<Nanos>,
+    /// The next frame's time (sim time) when cameras send at their own rate.
+    next_frame: Nanos,
+}
+
+impl<'a> Bridge<'a> {
+    /// The loop about to start: the cameras' outputs set for the scene, and on the wall
+    /// clock's time line the sim's clock moved onto it.
+    fn new(
+        a: &'a BridgeConfig,
+        scene: SceneSource,
+        mut rig: SimHardware,
+        cameras: Vec<&'static str>,
+        frame_pubs: Vec<FramePublisher>,
+        io: RosIo,
+    ) -> Bridge<'a> {
+        let mut out = CameraOut {
+            rgb: cameras.iter().map(|_| Vec::with_capacity(a.width * a.height * 3)).collect(),
+            stalled_until: cameras.iter().map(|_| Instant::now()).collect(),
+            cameras,
+            pubs: frame_pubs,
+            fovy: Vec::new(),
+            size: (a.width, a.height),
+        };
+        out.set_scene(rig.sim());
+        let (started, next_deadline, idle_publish) = (Instant::now(), Instant::now(), Instant::now());
+        let last_tick = Instant::now();
+        if a.wall_clock_origin {
+            rig.sim_mut().resume_clock(Nanos(wall_line(scene.period)));
+        }
+        let sim_start = rig.sim().time();
+        let frame_period = a.camera_rate_hz.map(|hz| Nanos::from_secs_rounded(1.0 / hz));
+        Bridge {
+            a,
+            out,
+            rig,
+            io,
+            scene,
+            ticks: 0,
+            started,
+            next_deadline,
+            idle_publish,
+            late_ticks: 0,
+            last_tick,
+            sim_start,
+            frame_period,
+            next_frame: sim_start,
+        }
     }
-    while !shutdown.is_triggered() && a.max_ticks.is_none_or(|m| ticks < m) {
-        // A new scene (`/sim/reset`, JSON {"seed": N}): the rig rebuilt with that seed at the
-        // reset pose, its clock going on from here; the scene and camera poses re-published.
-        while let Some(r) = take(&reset_sub, &mut rig) {
+
+    /// The state (and the expert's action) before the first step.
+    fn publish_first_state(&mut self) {
+        report_publish(publish_state(self.rig.sim(), &self.io.pubs, self.rig.state()));
+        if let Some(e) = &mut self.io.expert {
+            e.publish(self.rig.sim());
+        }
+    }
+
+    /// Each `/sim/reset` (JSON {"seed": N}) that arrived: a new scene, or the request refused.
+    fn take_resets(&mut self) -> anyhow::Result<()> {
+        while let Some(r) = take(&self.io.reset_sub, &mut self.rig) {
             match serde_json::from_str::<ResetRequest>(&r.msg.data) {
-                Ok(req) => {
-                    let mut next = a.sim(&assets, &spec, req.seed, period)?;
-                    // On the wall clock's time line the rebuild's time is lost, as a real rig's.
-                    // The new scene starts a period on: its first state is a tick of its own.
-                    let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
-                    next.resume_clock(Nanos((rig.sim().time().0 + period.0).max(now)));
-                    rig.replace_scene(next);
-                    out.set_scene(rig.sim());
-                    let in_force = calibration_in_force(rig.sim(), &spec, calibrations.as_ref(), &mut pubs)?;
-                    publish_scene(rig.sim(), &scene_pub, &tf_static, &spec, in_force.as_ref(), board_mount, a.cameras)?;
-                    if let Some(e) = &mut expert {
-                        e.new_scene(rig.sim());
-                    }
-                    tracing::info!(seed = req.seed, time_s = rig.sim().time().as_secs_f64(), "new scene");
-                    // The new scene's first state comes with its own frames: the episode's
-                    // first step must not see the last scene's images.
-                    out.send(rig.sim_mut(), &pubs.camera_info)?;
-                    report_publish(publish_state(rig.sim(), &pubs, rig.state()));
-                    if let Some(e) = &mut expert {
-                        e.publish(rig.sim());
-                    }
-                }
+                Ok(req) => self.new_scene(req.seed)?,
                 Err(e) => {
-                    rig.refuse(format!("refused /sim/reset {:?}: {e} (expected {{\"seed\": N}})", r.msg.data));
+                    self.rig.refuse(format!("refused /sim/reset {:?}: {e} (expected {{\"seed\": N}})", r.msg.data));
                 }
             }
         }
-        // Gripper commands first, so an arm command of the same tick can override them.
-        while let Some(g) = take(&gripper_sub, &mut rig) {
-            rig.gripper_command(g.msg.position);
+        Ok(())
+    }
+
+    /// The rig rebuilt with `seed` at the reset pose, its clock going on from here; the scene
+    /// and camera poses re-published, then the new scene's first state and frames.
+    fn new_scene(&mut self, seed: u64) -> anyhow::Result<()> {
+        let (a, period) = (self.a, self.scene.period);
+        let mut next = a.sim(&self.scene.assets, &self.scene.spec, seed, period)?;
+        // On the wall clock's time line the rebuild's time is lost, as a real rig's.
+        // The new scene starts a period on: its first state is a tick of its own.
+        let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
+        next.resume_clock(Nanos((self.rig.sim().time().0 + period.0).max(now)));
+        self.rig.replace_scene(next);
+        self.out.set_scene(self.rig.sim());
+        let in_force =
+            calibration_in_force(self.rig.sim(), &self.scene.spec, self.io.calibrations.as_ref(), &mut self.io.pubs)?;
+        self.scene.publish(self.rig.sim(), &self.io, in_force.as_ref(), a.cameras)?;
+        if let Some(e) = &mut self.io.expert {
+            e.new_scene(self.rig.sim());
         }
-        let step_now = match a.mode {
-            Mode::Lockstep => match take(&arm_sub, &mut rig) {
+        tracing::info!(seed, time_s = self.rig.sim().time().as_secs_f64(), "new scene");
+        // The new scene's first state comes with its own frames: the episode's
+        // first step must not see the last scene's images.
+        self.out.send(self.rig.sim_mut(), &self.io.pubs.camera_info)?;
+        report_publish(publish_state(self.rig.sim(), &self.io.pubs, self.rig.state()));
+        if let Some(e) = &mut self.io.expert {
+            e.publish(self.rig.sim());
+        }
+        Ok(())
+    }
+
+    /// The gripper commands that arrived.
+    fn take_gripper_commands(&mut self) {
+        while let Some(g) = take(&self.io.gripper_sub, &mut self.rig) {
+            self.rig.gripper_command(g.msg.position);
+        }
+    }
+
+    /// Whether to step now, the arm commands that arrived taken: in lockstep, when one did; in
+    /// realtime, when the period is up.
+    fn step_due(&mut self) -> bool {
+        match self.a.mode {
+            Mode::Lockstep => match take(&self.io.arm_sub, &mut self.rig) {
                 Some(cmd) => {
-                    let now = rig.sim().time();
-                    rig.arm_command(&cmd.msg, now);
+                    let now = self.rig.sim().time();
+                    self.rig.arm_command(&cmd.msg, now);
                     true
                 }
                 None => false,
             },
             Mode::Realtime => {
-                while let Some(cmd) = take(&arm_sub, &mut rig) {
+                while let Some(cmd) = take(&self.io.arm_sub, &mut self.rig) {
                     // Arrival on the sim's time line: the last tick's time + wall time since it.
-                    let since_tick = (last_tick.elapsed().as_nanos() as i64).min(period.0 - 1);
-                    let at = Nanos(rig.sim().time().0 + since_tick);
-                    rig.arm_command(&cmd.msg, at);
+                    let since_tick = (self.last_tick.elapsed().as_nanos() as i64).min(self.scene.period.0 - 1);
+                    let at = Nanos(self.rig.sim().time().0 + since_tick);
+                    self.rig.arm_command(&cmd.msg, at);
                 }
-                if a.wall_clock_origin {
-                    // On the wall clock's line a step ending at sim time T starts when the
-                    // wall clock reaches T: its state goes out stamped T, a compute time later.
-                    let now = labrig_runtime::Clock::Wall.now().0;
-                    let end = rig.sim().time().0 + period.0;
-                    next_deadline = Instant::now() + Duration::from_nanos((end - now).max(0) as u64);
-                    if now >= end {
-                        if now > end + period.0 {
-                            // Late by more than a period: the lost time is skipped.
-                            late_ticks += 1;
-                            rig.sim_mut().resume_clock(Nanos(now - period.0));
-                        }
-                        true
-                    } else {
-                        false
-                    }
-                } else {
-                    let now = Instant::now();
-                    if now >= next_deadline {
-                        if now > next_deadline + Duration::from_nanos(period.0 as u64) {
-                            late_ticks += 1;
-                            next_deadline = now;
-                        }
-                        next_deadline += Duration::from_nanos(period.0 as u64);
-                        true
-                    } else {
-                        false
-                    }
-                }
+                if self.a.wall_clock_origin { self.wall_line_due() } else { self.deadline_due() }
             }
-        };
-        if !step_now {
-            // Lockstep and idle: repeat the current state now and then, for late joiners.
-            if a.mode == Mode::Lockstep && idle_publish.elapsed() > Duration::from_millis(200) {
-                report_publish(publish_state(rig.sim(), &pubs, rig.state()));
-                if let Some(e) = &expert {
-                    e.republish();
-                }
-                idle_publish = Instant::now();
-            }
-            match a.mode {
-                Mode::Lockstep => tokio::time::sleep(Duration::from_micros(200)).await,
-                // The bridge's own thread sleeps (at most 1 ms, for commands): tokio's timers
-                // are woken by a worker and land 1-5 ms late on a busy machine.
-                Mode::Realtime => std::thread::sleep(
-                    next_deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(1)),
-                ),
-            }
-            continue;
         }
-        rig.step()?;
-        ticks += 1;
-        last_tick = Instant::now();
-        // The state and /clock first, the moment the step is done (the loop's tick follows
-        // them); the frames of the same instant after, a render later.
-        report_publish(publish_state(rig.sim(), &pubs, rig.state()));
-        while let Some(f) = take(&fault_sub, &mut rig) {
+    }
+
+    /// Realtime on the wall clock's line: a step ending at sim time T starts when the wall
+    /// clock reaches T (its state goes out stamped T, a compute time later).
+    fn wall_line_due(&mut self) -> bool {
+        let period = self.scene.period;
+        let now = labrig_runtime::Clock::Wall.now().0;
+        let end = self.rig.sim().time().0 + period.0;
+        self.next_deadline = Instant::now() + Duration::from_nanos((end - now).max(0) as u64);
+        if now >= end {
+            if now > end + period.0 {
+                // Late by more than a period: the lost time is skipped.
+                self.late_ticks += 1;
+                self.rig.sim_mut().resume_clock(Nanos(now - period.0));
+            }
+            true
+        } else {
+            false
+        }
+    }
+
+    /// Realtime from 0: a step every period of the monotonic clock (a late one resets the pace).
+    fn deadline_due(&mut self) -> bool {
+        let period = Duration::from_nanos(self.scene.period.0 as u64);
+        let now = Instant::now();
+        if now >= self.next_deadline {
+            if now > self.next_deadline + period {
+                self.late_ticks += 1;
+                self.next_deadline = now;
+            }
+            self.next_deadline += period;
+            true
+        } else {
+            false
+        }
+    }
+
+    /// No step yet: in lockstep the current state is repeated now and then (for late joiners);
+    /// then a short wait.
+    async fn idle(&mut self) {
+        if self.a.mode == Mode::Lockstep && self.idle_publish.elapsed() > Duration::from_millis(200) {
+            report_publish(publish_state(self.rig.sim(), &self.io.pubs, self.rig.state()));
+            if let Some(e) = &self.io.expert {
+                e.republish();
+            }
+            self.idle_publish = Instant::now();
+        }
+        match self.a.mode {
+            Mode::Lockstep => tokio::time::sleep(Duration::from_micros(200)).await,
+            // The bridge's own thread sleeps (at most 1 ms, for commands): tokio's timers
+            // are woken by a worker and land 1-5 ms late on a busy machine.
+            Mode::Realtime => std::thread::sleep(
+                self.next_deadline.saturating_duration_since(Instant::now()).min(Duration::from_millis(1)),
+            ),
+        }
+    }
+
+    /// One physics step and what follows it: the state and /clock first, the moment the step
+    /// is done (the loop's tick follows them); the frames of the same instant after, a render
+    /// later; then the expert's next action.
+    fn step(&mut self) -> anyhow::Result<()> {
+        self.rig.step()?;
+        self.ticks += 1;
+        self.last_tick = Instant::now();
+        report_publish(publish_state(self.rig.sim(), &self.io.pubs, self.rig.state()));
+        self.take_faults();
+        if self.frame_due() {
+            self.out.send(self.rig.sim_mut(), &self.io.pubs.camera_info)?;
+        }
+        if let Some(e) = &mut self.io.expert {
+            e.follow(self.rig.sim(), self.rig.state());
+            e.publish(self.rig.sim());
+        }
+        self.idle_publish = Instant::now();
+        Ok(())
+    }
+
+    /// Each `/sim/fault` that arrived: the fault injected, or the request refused.
+    fn take_faults(&mut self) {
+        while let Some(f) = take(&self.io.fault_sub, &mut self.rig) {
             match serde_json::from_str::<FaultRequest>(&f.msg.data) {
                 Ok(FaultRequest::StallCamera { camera, seconds }) if seconds.is_finite() && (0.0..=60.0).contains(&seconds) => {
-                    match cameras.iter().position(|c| *c == camera) {
+                    match self.out.cameras.iter().position(|c| *c == camera) {
                         Some(i) => {
                             tracing::warn!(camera, seconds, "fault injected: the camera stalls");
-                            out.stalled_until[i] = Instant::now() + Duration::from_secs_f64(seconds);
+                            self.out.stalled_until[i] = Instant::now() + Duration::from_secs_f64(seconds);
                         }
-                        None => rig.refuse(format!("refused /sim/fault: no camera {camera:?}")),
+                        None => self.rig.refuse(format!("refused /sim/fault: no camera {camera:?}")),
                     }
                 }
-                Ok(other) => rig.refuse(format!("refused /sim/fault {other:?}: seconds must be 0..=60")),
-                Err(e) => rig.refuse(format!(
+                Ok(other) => self.rig.refuse(format!("refused /sim/fault {other:?}: seconds must be 0..=60")),
+                Err(e) => self.rig.refuse(format!(
                     "refused /sim/fault {:?}: {e} (expected {{\"stall_camera\": {{\"camera\": \"wrist\", \"seconds\": 1.0}}}})",
                     f.msg.data
                 )),
             }
         }
-        let frame_due = match frame_period {
+    }
+
+    /// Whether this step's frames are due (every step, or at `camera_rate_hz`).
+    fn frame_due(&mut self) -> bool {
+        match self.frame_period {
             None => true,
-            Some(p) if rig.sim().time() >= next_frame => {
-                next_frame = Nanos(next_frame.0.max(rig.sim().time().0 - p.0) + p.0);
+            Some(p) if self.rig.sim().time() >= self.next_frame => {
+                self.next_frame = Nanos(self.next_frame.0.max(self.rig.sim().time().0 - p.0) + p.0);
                 true
             }
             Some(_) => false,
-        };
-        if frame_due {
-            out.send(rig.sim_mut(), &pubs.camera_info)?;
         }
-        if let Some(e) = &mut expert {
-            e.follow(rig.sim(), rig.state());
-            e.publish(rig.sim());
-        }
-        idle_publish = Instant::now();
     }
-    let wall = started.elapsed().as_secs_f64();
-    let sim_s = (rig.sim().time().0 - sim_start.0) as f64 / 1e9;
-    tracing::info!(
-        ticks,
-        sim_seconds = sim_s,
-        wall_seconds = wall,
-        realtime_factor = sim_s / wall.max(1e-9),
-        late_ticks,
-        commands = rig.state().commands,
-        refused = rig.state().refused,
-        clipped = rig.state().clipped,
-        "sim bridge stopped"
-    );
-    Ok(())
+
+    /// The run's figures, logged as the bridge stops.
+    fn report_stop(&self) {
+        let wall = self.started.elapsed().as_secs_f64();
+        let sim_s = (self.rig.sim().time().0 - self.sim_start.0) as f64 / 1e9;
+        tracing::info!(
+            ticks = self.ticks,
+            sim_seconds = sim_s,
+            wall_seconds = wall,
+            realtime_factor = sim_s / wall.max(1e-9),
+            late_ticks = self.late_ticks,
+            commands = self.rig.state().commands,
+            refused = self.rig.state().refused,
+            clipped = self.rig.state().clipped,
+            "sim bridge stopped"
+        );
+    }
 }
 
 /// `/sim/reset`'s request.
@@ -868,6 +1035,28 @@ struct ExpertPub {
 }
 
 impl ExpertPub {
+    /// The expert for `sim`'s scene, as `a`'s `expert_*` keys make it, and its publishers.
+    fn open(
+        ros: &mut Ros,
+        a: &BridgeConfig,
+        sim: &Sim,
+        safety: &labrig_arm::safety::SafetyFilter,
+    ) -> anyhow::Result<ExpertPub> {
+        Ok(ExpertPub {
+            expert: labrig_sim::expert::Expert::new(sim)
+                .with_aim_error(sim, a.expert_aim_error_m)
+                .with_missed_grasp(sim, a.expert_miss_fraction),
+            aim_error_m: a.expert_aim_error_m,
+            miss_fraction: a.expert_miss_fraction,
+            resume: a.expert_resume.then(|| (labrig_sim::expert::Expert::new(sim), safety.ik().kinematics().clone())),
+            last_action: None,
+            action: ros.publisher_on(&topics::SIM_EXPERT_ACTION, 10)?,
+            status: ros.publisher_on(&topics::SIM_EXPERT_STATUS, 10)?,
+            seq: 0,
+            last: None,
+        })
+    }
+
     /// A new scene at its reset pose: a new expert (and template).
     fn new_scene(&mut self, sim: &Sim) {
         self.expert = labrig_sim::expert::Expert::new(sim)

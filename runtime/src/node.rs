@@ -86,11 +86,18 @@ pub struct CommonFlags {
     pub stats_out: Option<PathBuf>,
 }
 
+/// A `--set` argument that is not `KEY=VALUE`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("`{arg}`: expected KEY=VALUE")]
+pub struct SetFlagError {
+    pub arg: String,
+}
+
 /// `--set`'s `KEY=VALUE` (a malformed one is a bad command line: exit 2).
-fn key_value(arg: &str) -> Result<(String, String), String> {
+fn key_value(arg: &str) -> Result<(String, String), SetFlagError> {
     match arg.split_once('=') {
         Some((k, v)) if !k.trim().is_empty() => Ok((k.trim().to_owned(), v.trim().to_owned())),
-        _ => Err(format!("`{arg}`: expected KEY=VALUE")),
+        _ => Err(SetFlagError { arg: arg.to_owned() }),
     }
 }
 
