@@ -458,12 +458,58 @@ fn video_rel(format: Format, key: &str, episode: usize) -> String {
     }
 }
 
+/// Exports `episodes` into the dataset at `root`: the episodes (in parallel), the ones kept
+/// renumbered, the frames, the statistics, then the metadata of `spec.format`.
 fn write_all(
     episodes: &[PathBuf],
     root: &Path,
     spec: &Spec,
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<ExportReport, LeRobotError> {
+    let format = spec.format;
+    let results = export_in_parallel(episodes, root, spec, progress);
+    let Kept { mut done, skipped, cameras, sizes, filled } = Kept::gather(episodes, results, root, format)?;
+    progress(episodes.len(), episodes.len());
+    if done.is_empty() {
+        return Err(nothing_exported(root, &skipped));
+    }
+    let cameras = cameras.expect("an episode was exported");
+    number_frames(&mut done);
+    let tasks = tasks_in_order(&done);
+    let total: usize = done.iter().map(|e| e.steps.len()).sum();
+    write_frames(root, format, spec.schema, &done, &tasks)?;
+    let per_feature = episode_stats(&done, &tasks, spec.schema);
+    if format == Format::V21 {
+        return write_v21_meta(root, spec.schema, &done, &tasks, &cameras, &sizes, &per_feature, filled, skipped);
+    }
+    write_stats_json(root, &per_feature, &cameras)?;
+    write_tasks_parquet(root, &tasks)?;
+    write_episodes_parquet(root, &done, &cameras, &per_feature)?;
+    let info = info_json(Format::V30, spec.schema, done.len(), total, tasks.len(), &cameras, &sizes);
+    std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
+        .map_err(io(root))?;
+    Ok(ExportReport {
+        out: root.to_owned(),
+        format: Format::V30,
+        schema: spec.schema,
+        episodes: done.len(),
+        frames: total,
+        cameras,
+        frames_filled: filled,
+        skipped,
+        bytes: 0,
+        seconds: 0.0,
+    })
+}
+
+/// Exports each episode (`export_one`) on a worker per core, reporting progress as each ends;
+/// the results by the episode's place in the input.
+fn export_in_parallel(
+    episodes: &[PathBuf],
+    root: &Path,
+    spec: &Spec,
+    progress: &mut impl FnMut(usize, usize),
+) -> Vec<Option<OneExport>> {
     let format = spec.format;
     // Episodes in parallel (each one's MP4s are written by its own ffmpeg processes), a worker
     // per core; each writes its videos under its place in the input, renumbered below once the
@@ -495,85 +541,139 @@ fn write_all(
             progress(received + 1, episodes.len());
         }
     });
-    let mut done: Vec<Exported> = Vec::new();
-    let mut skipped = Vec::new();
-    let mut cameras: Option<Vec<String>> = None;
-    let mut sizes: BTreeMap<String, [usize; 2]> = BTreeMap::new();
-    let mut filled: BTreeMap<String, usize> = BTreeMap::new();
-    for (k, (src, result)) in episodes.iter().zip(results).enumerate() {
-        match result.expect("every episode was exported or failed") {
-            Ok((mut e, fill)) => {
-                let cams: Vec<String> = e.videos.iter().map(|(c, _)| c.clone()).collect();
-                let same_sizes = e.image_stats.iter().all(|(c, _, wh)| sizes.get(c).is_none_or(|s| s == wh));
-                match &cameras {
-                    Some(want) if *want != cams || !same_sizes => {
-                        for (_, p) in &e.videos {
-                            let _ = std::fs::remove_file(p);
-                        }
-                        skipped.push((
-                            src.clone(),
-                            format!("its cameras {cams:?} (or their sizes) differ from the first episode's {want:?}"),
-                        ));
-                        continue;
-                    }
-                    None => cameras = Some(cams),
-                    _ => {}
-                }
-                // Its place in the dataset (earlier ones skipped: its videos move down).
-                let index = done.len();
-                if index != k {
-                    for (key, path) in &mut e.videos {
-                        let to = root.join(video_rel(format, key, index));
-                        std::fs::rename(&*path, &to).map_err(io(&to))?;
-                        *path = to;
-                    }
-                }
-                for (c, _, wh) in &e.image_stats {
-                    sizes.insert(c.clone(), *wh);
-                }
-                for (c, n) in fill {
-                    *filled.entry(c).or_default() += n;
-                }
-                done.push(e);
+    results
+}
+
+/// The episodes kept for the dataset, the ones skipped, and what the kept ones share.
+struct Kept {
+    done: Vec<Exported>,
+    skipped: Vec<(PathBuf, String)>,
+    /// The first kept episode's cameras: every other one must have the same.
+    cameras: Option<Vec<String>>,
+    sizes: BTreeMap<String, [usize; 2]>,
+    filled: BTreeMap<String, usize>,
+}
+
+impl Kept {
+    /// Goes through the export results in input order, keeping or skipping each episode.
+    fn gather(
+        episodes: &[PathBuf],
+        results: Vec<Option<OneExport>>,
+        root: &Path,
+        format: Format,
+    ) -> Result<Kept, LeRobotError> {
+        let mut kept = Kept {
+            done: Vec::new(),
+            skipped: Vec::new(),
+            cameras: None,
+            sizes: BTreeMap::new(),
+            filled: BTreeMap::new(),
+        };
+        for (k, (src, result)) in episodes.iter().zip(results).enumerate() {
+            match result.expect("every episode was exported or failed") {
+                Ok((e, fill)) => kept.admit(k, src, e, fill, root, format)?,
+                Err(why) => kept.skipped.push((src.clone(), why.to_string())),
             }
-            Err(why) => skipped.push((src.clone(), why.to_string())),
         }
+        Ok(kept)
     }
-    progress(episodes.len(), episodes.len());
-    if done.is_empty() {
-        let why = skipped.iter().map(|(p, w)| format!("{}: {w}", p.display())).collect::<Vec<_>>().join("; ");
-        return Err(bad(root, format!("no episode could be exported ({why})")));
+
+    /// Keeps episode `k` (its videos moved to its place in the dataset), or skips it (its
+    /// videos removed) where its cameras or their sizes differ from the first kept one's.
+    fn admit(
+        &mut self,
+        k: usize,
+        src: &Path,
+        mut e: Exported,
+        fill: Vec<(String, usize)>,
+        root: &Path,
+        format: Format,
+    ) -> Result<(), LeRobotError> {
+        let cams: Vec<String> = e.videos.iter().map(|(c, _)| c.clone()).collect();
+        let same_sizes = e.image_stats.iter().all(|(c, _, wh)| self.sizes.get(c).is_none_or(|s| s == wh));
+        match &self.cameras {
+            Some(want) if *want != cams || !same_sizes => {
+                for (_, p) in &e.videos {
+                    let _ = std::fs::remove_file(p);
+                }
+                self.skipped.push((
+                    src.to_owned(),
+                    format!("its cameras {cams:?} (or their sizes) differ from the first episode's {want:?}"),
+                ));
+                return Ok(());
+            }
+            None => self.cameras = Some(cams),
+            _ => {}
+        }
+        // Its place in the dataset (earlier ones skipped: its videos move down).
+        let index = self.done.len();
+        if index != k {
+            for (key, path) in &mut e.videos {
+                let to = root.join(video_rel(format, key, index));
+                std::fs::rename(&*path, &to).map_err(io(&to))?;
+                *path = to;
+            }
+        }
+        for (c, _, wh) in &e.image_stats {
+            self.sizes.insert(c.clone(), *wh);
+        }
+        for (c, n) in fill {
+            *self.filled.entry(c).or_default() += n;
+        }
+        self.done.push(e);
+        Ok(())
     }
-    let cameras = cameras.expect("an episode was exported");
+}
+
+/// The error of an export that kept no episode, with why each one was skipped.
+fn nothing_exported(root: &Path, skipped: &[(PathBuf, String)]) -> LeRobotError {
+    let why = skipped.iter().map(|(p, w)| format!("{}: {w}", p.display())).collect::<Vec<_>>().join("; ");
+    bad(root, format!("no episode could be exported ({why})"))
+}
+
+/// Numbers each episode's first frame in the dataset: the episodes end to end.
+fn number_frames(done: &mut [Exported]) {
     let mut first_index = 0;
-    for e in &mut done {
+    for e in done {
         e.first_index = first_index;
         first_index += e.steps.len();
     }
-    // Tasks in order of first appearance.
+}
+
+/// The episodes' tasks in order of first appearance.
+fn tasks_in_order(done: &[Exported]) -> Vec<String> {
     let mut tasks: Vec<String> = Vec::new();
-    for e in &done {
+    for e in done {
         if !tasks.contains(&e.task) {
             tasks.push(e.task.clone());
         }
     }
-    let feats = numeric_features(spec.schema);
-    let total: usize = done.iter().map(|e| e.steps.len()).sum();
+    tasks
+}
 
-    // The frames: one data file (v3.0), or one per episode (v2.1).
+/// The frames: one data file (v3.0), or one per episode (v2.1).
+fn write_frames(
+    root: &Path,
+    format: Format,
+    schema: Schema,
+    done: &[Exported],
+    tasks: &[String],
+) -> Result<(), LeRobotError> {
     match format {
-        Format::V30 => {
-            write_data(&root.join("data/chunk-000/file-000.parquet"), &done, 0, &tasks, "List", spec.schema)?
-        }
+        Format::V30 => write_data(&root.join("data/chunk-000/file-000.parquet"), done, 0, tasks, "List", schema)?,
         Format::V21 => {
             for ei in 0..done.len() {
                 let path = root.join(format!("data/chunk-{:03}/episode_{ei:06}.parquet", ei / CHUNKS_SIZE));
-                write_data(&path, &done[ei..=ei], ei, &tasks, "Sequence", spec.schema)?;
+                write_data(&path, &done[ei..=ei], ei, tasks, "Sequence", schema)?;
             }
         }
     }
+    Ok(())
+}
 
-    // Statistics: per episode, then aggregated.
+/// Each feature's statistics per episode, in episode order (the images' from `export_one`).
+fn episode_stats(done: &[Exported], tasks: &[String], schema: Schema) -> BTreeMap<String, Vec<Stats>> {
+    let feats = numeric_features(schema);
     let mut per_feature: BTreeMap<String, Vec<Stats>> = BTreeMap::new();
     for (ei, e) in done.iter().enumerate() {
         let n = e.steps.len();
@@ -597,15 +697,22 @@ fn write_all(
             per_feature.entry(c.clone()).or_default().push(s.clone());
         }
     }
-    if format == Format::V21 {
-        return write_v21_meta(root, spec.schema, &done, &tasks, &cameras, &sizes, &per_feature, filled, skipped);
-    }
+    per_feature
+}
+
+/// meta/stats.json: each feature's statistics aggregated across the episodes.
+fn write_stats_json(
+    root: &Path,
+    per_feature: &BTreeMap<String, Vec<Stats>>,
+    cameras: &[String],
+) -> Result<(), LeRobotError> {
     let stats: serde_json::Map<String, Value> =
         per_feature.iter().map(|(k, v)| (k.clone(), aggregate(v).to_json(cameras.contains(k)))).collect();
-    std::fs::write(root.join("meta/stats.json"), serde_json::to_string_pretty(&stats).expect("json"))
-        .map_err(io(root))?;
+    std::fs::write(root.join("meta/stats.json"), serde_json::to_string_pretty(&stats).expect("json")).map_err(io(root))
+}
 
-    // meta/tasks.parquet, as pandas writes it (the task string is the index).
+/// meta/tasks.parquet, as pandas writes it (the task string is the index).
+fn write_tasks_parquet(root: &Path, tasks: &[String]) -> Result<(), LeRobotError> {
     let pandas = json!({
         "index_columns": ["__index_level_0__"],
         "column_indexes": [{"name": null, "field_name": null, "pandas_type": "unicode", "numpy_type": "object", "metadata": {"encoding": "UTF-8"}}],
@@ -626,18 +733,44 @@ fn write_all(
             ),
             (
                 Field::new("__index_level_0__", DataType::LargeUtf8, true),
-                Arc::new(LargeStringArray::from(tasks.clone())),
+                Arc::new(LargeStringArray::from(tasks.to_vec())),
             ),
         ],
         Some(("pandas", pandas.to_string())),
-    )?;
+    )
+}
 
-    // meta/episodes/chunk-000/file-000.parquet
+/// meta/episodes/chunk-000/file-000.parquet: a row per episode, its place in the data and
+/// video files, its statistics and labrig's own columns.
+fn write_episodes_parquet(
+    root: &Path,
+    done: &[Exported],
+    cameras: &[String],
+    per_feature: &BTreeMap<String, Vec<Stats>>,
+) -> Result<(), LeRobotError> {
     let n_ep = done.len();
     let lengths: Vec<i64> = done.iter().map(|e| e.steps.len() as i64).collect();
+    let mut ep_cols = episode_columns(root, done, &lengths)?;
+    ep_cols.extend(video_columns(cameras, &lengths));
+    ep_cols.extend(episode_stats_columns(root, per_feature, cameras, n_ep)?);
+    ep_cols.push((Field::new("meta/episodes/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])));
+    ep_cols.push((Field::new("meta/episodes/file_index", DataType::Int64, true), i64s(vec![0; n_ep])));
+    ep_cols.extend(labrig_columns(done));
+    write_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), ep_cols, None)
+}
+
+/// An int64 column.
+fn i64s(v: Vec<i64>) -> ArrayRef {
+    Arc::new(Int64Array::from(v))
+}
+
+/// The episodes table's first columns: each episode's index, tasks, length and rows in the
+/// data file.
+fn episode_columns(root: &Path, done: &[Exported], lengths: &[i64]) -> Result<Vec<(Field, ArrayRef)>, LeRobotError> {
+    let n_ep = done.len();
     let mut from = 0i64;
     let (mut froms, mut tos) = (vec![], vec![]);
-    for l in &lengths {
+    for l in lengths {
         froms.push(from);
         from += l;
         tos.push(from);
@@ -657,41 +790,56 @@ fn write_all(
         )
         .map_err(|e| bad(root, e.to_string()))?
     };
-    let i64s = |v: Vec<i64>| -> ArrayRef { Arc::new(Int64Array::from(v)) };
-    let mut ep_cols: Vec<(Field, ArrayRef)> = vec![
+    Ok(vec![
         (Field::new("episode_index", DataType::Int64, true), i64s((0..n_ep as i64).collect())),
         (
             Field::new("tasks", DataType::List(Arc::new(Field::new("element", DataType::Utf8, true))), true),
             Arc::new(task_lists),
         ),
-        (Field::new("length", DataType::Int64, true), i64s(lengths.clone())),
+        (Field::new("length", DataType::Int64, true), i64s(lengths.to_vec())),
         (Field::new("data/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])),
         (Field::new("data/file_index", DataType::Int64, true), i64s(vec![0; n_ep])),
         (Field::new("dataset_from_index", DataType::Int64, true), i64s(froms)),
         (Field::new("dataset_to_index", DataType::Int64, true), i64s(tos)),
-    ];
-    for c in &cameras {
+    ])
+}
+
+/// Per camera, where each episode's video is: its chunk and file, from and to which time.
+fn video_columns(cameras: &[String], lengths: &[i64]) -> Vec<(Field, ArrayRef)> {
+    let n_ep = lengths.len();
+    let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
+    for c in cameras {
         let key = format!("videos/{c}");
-        ep_cols.push((
+        cols.push((
             Field::new(format!("{key}/chunk_index"), DataType::Int64, true),
             i64s((0..n_ep).map(|i| (i / CHUNKS_SIZE) as i64).collect()),
         ));
-        ep_cols.push((
+        cols.push((
             Field::new(format!("{key}/file_index"), DataType::Int64, true),
             i64s((0..n_ep).map(|i| (i % CHUNKS_SIZE) as i64).collect()),
         ));
-        ep_cols.push((
+        cols.push((
             Field::new(format!("{key}/from_timestamp"), DataType::Float64, true),
             Arc::new(Float64Array::from(vec![0.0; n_ep])),
         ));
-        ep_cols.push((
+        cols.push((
             Field::new(format!("{key}/to_timestamp"), DataType::Float64, true),
             Arc::new(Float64Array::from(lengths.iter().map(|&l| l as f64 / f64::from(FPS)).collect::<Vec<_>>())),
         ));
     }
-    // Each episode's own statistics (`stats/<feature>/<stat>`), as LeRobot 0.4 keeps them
-    // (its dataset tools, e.g. deleting episodes, re-aggregate from these).
-    for (feature, per_episode) in &per_feature {
+    cols
+}
+
+/// Each episode's own statistics (`stats/<feature>/<stat>`), as LeRobot 0.4 keeps them (its
+/// dataset tools, e.g. deleting episodes, re-aggregate from these).
+fn episode_stats_columns(
+    root: &Path,
+    per_feature: &BTreeMap<String, Vec<Stats>>,
+    cameras: &[String],
+    n_ep: usize,
+) -> Result<Vec<(Field, ArrayRef)>, LeRobotError> {
+    let mut cols: Vec<(Field, ArrayRef)> = Vec::new();
+    for (feature, per_episode) in per_feature {
         let image = cameras.contains(feature);
         let mut stat_cols: Vec<(String, Vec<Vec<f64>>)> = ["min", "max", "mean", "std"]
             .iter()
@@ -706,7 +854,7 @@ fn write_all(
         }
         for (stat, rows) in stat_cols {
             let name = format!("stats/{feature}/{stat}");
-            ep_cols.push(if image { image_stat_column(&name, &rows)? } else { list_column(&name, &rows)? });
+            cols.push(if image { image_stat_column(&name, &rows)? } else { list_column(&name, &rows)? });
         }
         let counts: Vec<i64> = per_episode.iter().map(|st| st.count as i64).collect();
         let item = Arc::new(Field::new("element", DataType::Int64, true));
@@ -714,40 +862,26 @@ fn write_all(
         (0..n_ep).for_each(|_| ones.push_length(1));
         let arr = ListArray::try_new(item.clone(), ones.finish(), Arc::new(Int64Array::from(counts)), None)
             .map_err(|e| bad(root, e.to_string()))?;
-        ep_cols.push((Field::new(format!("stats/{feature}/count"), DataType::List(item), true), Arc::new(arr)));
+        cols.push((Field::new(format!("stats/{feature}/count"), DataType::List(item), true), Arc::new(arr)));
     }
-    ep_cols.push((Field::new("meta/episodes/chunk_index", DataType::Int64, true), i64s(vec![0; n_ep])));
-    ep_cols.push((Field::new("meta/episodes/file_index", DataType::Int64, true), i64s(vec![0; n_ep])));
-    // labrig's own: the DROID metadata LeRobot has no field for (the whole record, as JSON, so
-    // `labrig import lerobot` gets it back).
-    ep_cols.push((
-        Field::new("labrig/uuid", DataType::Utf8, true),
-        Arc::new(StringArray::from(done.iter().map(|e| e.steps[0].episode_id.clone()).collect::<Vec<_>>())),
-    ));
-    ep_cols.push((
-        Field::new("labrig/metadata", DataType::Utf8, true),
-        Arc::new(StringArray::from(
-            done.iter().map(|e| serde_json::to_string(&e.metadata).expect("json")).collect::<Vec<_>>(),
-        )),
-    ));
-    write_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), ep_cols, None)?;
+    Ok(cols)
+}
 
-    // meta/info.json
-    let info = info_json(Format::V30, spec.schema, n_ep, total, tasks.len(), &cameras, &sizes);
-    std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json") + "\n")
-        .map_err(io(root))?;
-    Ok(ExportReport {
-        out: root.to_owned(),
-        format: Format::V30,
-        schema: spec.schema,
-        episodes: n_ep,
-        frames: total,
-        cameras,
-        frames_filled: filled,
-        skipped,
-        bytes: 0,
-        seconds: 0.0,
-    })
+/// labrig's own: the DROID metadata LeRobot has no field for (the whole record, as JSON, so
+/// `labrig import lerobot` gets it back).
+fn labrig_columns(done: &[Exported]) -> [(Field, ArrayRef); 2] {
+    [
+        (
+            Field::new("labrig/uuid", DataType::Utf8, true),
+            Arc::new(StringArray::from(done.iter().map(|e| e.steps[0].episode_id.clone()).collect::<Vec<_>>())),
+        ),
+        (
+            Field::new("labrig/metadata", DataType::Utf8, true),
+            Arc::new(StringArray::from(
+                done.iter().map(|e| serde_json::to_string(&e.metadata).expect("json")).collect::<Vec<_>>(),
+            )),
+        ),
+    ]
 }
 
 /// The data file of `episodes` (the first one numbered `first`): every numeric feature,

@@ -445,127 +445,33 @@ impl Dataset {
     pub fn read(&mut self, e: &EpisodeEntry, kin: &Fr3Kinematics) -> Result<ReadEpisode, LeRobotError> {
         let path = self.data_file(e);
         let rows = self.rows(e)?;
-        let n = rows.iter().map(RecordBatch::num_rows).sum::<usize>();
-        if n == 0 {
-            return Err(bad(&path, format!("episode {}: no rows", e.index)));
-        }
-        if e.length != 0 && e.length != n {
-            return Err(bad(&path, format!("episode {}: {n} rows, the metadata says {}", e.index, e.length)));
-        }
-        let frame_index: Vec<i64> = column(&rows, "frame_index", |a| floats(a.as_ref()))
-            .map(|v| v.into_iter().map(|x| x as i64).collect())
-            .unwrap_or_else(|| (0..n as i64).collect());
-        if frame_index.iter().enumerate().any(|(k, f)| *f != k as i64) {
-            return Err(bad(&path, format!("episode {}: frame_index is not 0..{n} in order", e.index)));
-        }
-        let mut absent = Vec::new();
-        let get = |key: &str, width: usize| -> Result<Option<Vec<Vec<f64>>>, LeRobotError> {
-            let Some(v) = column(&rows, key, rows_of) else {
-                if rows.first().is_some_and(|b| b.column_by_name(key).is_some()) {
-                    return Err(bad(&path, format!("`{key}` is not numeric")));
-                }
-                return Ok(None);
-            };
-            if let Some((k, r)) = v.iter().enumerate().find(|(_, r)| r.len() < width) {
-                return Err(bad(
-                    &path,
-                    format!("episode {}, frame {k}: `{key}` has {} values, labrig reads {width}", e.index, r.len()),
-                ));
-            }
-            if let Some(k) = v.iter().position(|r| r.iter().any(|x| !x.is_finite())) {
-                return Err(bad(&path, format!("episode {}, frame {k}: `{key}` is not finite", e.index)));
-            }
-            Ok(Some(v))
-        };
-        let state = get("observation.state", 0)?;
-        let width = |v: &Option<Vec<Vec<f64>>>| v.as_ref().and_then(|v| v.first()).map_or(0, Vec::len);
-        // openpi's flat DROID keys (`labrig export lerobot --schema openpi-droid`, openpi's own
-        // converter): `joint_position`, `gripper_position`, `actions` = joint velocity + gripper.
-        let flat_joints = get("joint_position", 7)?;
-        let flat_gripper = get("gripper_position", 1)?;
-        let flat_actions = get("actions", 8)?;
-        let joints = match get("observation.state.joint_position", 7)? {
-            Some(j) => j,
-            None if width(&state) >= 8 => state.clone().expect("wide"),
-            None if flat_joints.is_some() => flat_joints.clone().expect("there"),
-            None => {
-                return Err(bad(
-                    &path,
-                    format!(
-                        "observation.state has {} values and there is no observation.state.joint_position: labrig reads DROID's layout (7 joints + gripper)",
-                        width(&state)
-                    ),
-                ));
-            }
-        };
-        let gripper = match get("observation.state.gripper_position", 1)? {
-            Some(g) => g.into_iter().map(|r| r[0]).collect::<Vec<_>>(),
-            None if width(&state) >= 8 => state.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
-            None if flat_gripper.is_some() => flat_gripper.as_ref().expect("there").iter().map(|r| r[0]).collect(),
-            None => {
-                return Err(bad(
-                    &path,
-                    "no gripper: neither observation.state.gripper_position nor observation.state[7]",
-                ));
-            }
-        };
-        let cartesian = get("observation.state.cartesian_position", 6)?;
-        let action = get("action", 0)?;
-        let a_joints = match get("action.joint_position", 7)? {
-            Some(j) => j,
-            None if width(&action) >= 8 => action.clone().expect("wide"),
-            // openpi's `actions` are velocities: the commanded position is where the joints went.
-            None if flat_actions.is_some() => (0..n).map(|k| joints[(k + 1).min(n - 1)].clone()).collect(),
-            None => {
-                return Err(bad(
-                    &path,
-                    format!(
-                        "action has {} values and there is no action.joint_position: labrig reads DROID's action (7 joint positions + gripper)",
-                        width(&action)
-                    ),
-                ));
-            }
-        };
-        let a_gripper: Vec<f64> = match get("action.gripper_position", 1)? {
-            Some(g) => g.into_iter().map(|r| r[0]).collect(),
-            None if width(&action) >= 8 => action.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
-            None if flat_actions.is_some() => flat_actions.as_ref().expect("there").iter().map(|r| r[7]).collect(),
-            None => return Err(bad(&path, "no gripper action: neither action.gripper_position nor action[7]")),
-        };
-        let mut optional = |key: &str, w: usize| -> Result<Vec<Vec<f64>>, LeRobotError> {
-            Ok(match get(key, w)? {
-                Some(v) => v,
-                None => {
-                    absent.push(key.to_owned());
-                    vec![vec![0.0; w]; n]
-                }
-            })
-        };
-        let a_cart = optional("action.cartesian_position", 6)?;
-        let a_cvel = optional("action.cartesian_velocity", 6)?;
-        let a_jvel = match &flat_actions {
-            Some(a) if get("action.joint_velocity", 7)?.is_none() => a.iter().map(|r| r[..7].to_vec()).collect(),
-            _ => optional("action.joint_velocity", 7)?,
-        };
-        let a_gvel = optional("action.gripper_velocity", 1)?;
-        let j_vel = optional("observation.state.joint_velocity", 7)?;
-        absent.retain(|k| k != "observation.state.joint_velocity");
+        let n = checked_length(&path, e, &rows)?;
+        let cols = EpisodeColumns::read(&ColumnReader { path: &path, rows: &rows, episode: e.index }, n)?;
+        let metadata = self.episode_metadata(&path, e, &rows, n)?;
+        let steps = self.steps_of(&metadata, &cols, kin, n);
+        Ok(ReadEpisode { metadata, steps, absent: cols.absent })
+    }
 
+    /// Episode `e`'s metadata: labrig's, where labrig exported the dataset, else what the
+    /// dataset says; its length `n`.
+    fn episode_metadata(
+        &self,
+        path: &Path,
+        e: &EpisodeEntry,
+        rows: &[RecordBatch],
+        n: usize,
+    ) -> Result<EpisodeMetadata, LeRobotError> {
         let mut metadata = match &e.labrig_metadata {
-            Some(text) => {
-                let v: Value = serde_json::from_str(text).map_err(|x| bad(&path, format!("labrig/metadata: {x}")))?;
-                // v2.x keeps it as an object; v3.0 as a JSON string.
-                let v = match v {
-                    Value::String(s) => {
-                        serde_json::from_str(&s).map_err(|x| bad(&path, format!("labrig/metadata: {x}")))?
-                    }
-                    other => other,
-                };
-                serde_json::from_value::<EpisodeMetadata>(v).map_err(|x| bad(&path, format!("labrig/metadata: {x}")))?
-            }
-            None => self.metadata_of(e, &rows, n),
+            Some(text) => labrig_metadata(path, text)?,
+            None => self.metadata_of(e, rows, n),
         };
         metadata.trajectory_length = n as u64;
+        Ok(metadata)
+    }
+
+    /// The `n` steps from the columns read: on the dataset's frame grid from the episode's
+    /// start, every camera with a frame at each step.
+    fn steps_of(&self, metadata: &EpisodeMetadata, cols: &EpisodeColumns, kin: &Fr3Kinematics, n: usize) -> Vec<Step> {
         let dt = (1e9 / self.fps).round() as i64;
         let arr = |v: &[f64]| -> [f64; 7] { std::array::from_fn(|i| v[i]) };
         let arr6 = |v: &[f64]| -> [f64; 6] { std::array::from_fn(|i| v[i]) };
@@ -573,8 +479,8 @@ impl Dataset {
         for k in 0..n {
             let t = metadata.start_ns + k as i64 * dt;
             let header = Header { stamp: Nanos(t).into(), frame_id: String::new() };
-            let q = arr(&joints[k]);
-            let cart = match &cartesian {
+            let q = arr(&cols.joints[k]);
+            let cart = match &cols.cartesian {
                 Some(c) => arr6(&c[k]),
                 None => labrig_arm::ik::xyz_euler(&kin.tcp_pose(&q)),
             };
@@ -585,9 +491,9 @@ impl Dataset {
                 robot_state: RobotState {
                     header,
                     cartesian_position: cart,
-                    gripper_position: gripper[k],
+                    gripper_position: cols.gripper[k],
                     joint_positions: q,
-                    joint_velocities: arr(&j_vel[k]),
+                    joint_velocities: arr(&cols.j_vel[k]),
                     prev_command_successful: true,
                     mode: RobotState::MODE_MOVING,
                     ..RobotState::default()
@@ -612,14 +518,14 @@ impl Dataset {
                     ..ControlTiming::default()
                 },
                 action: ActionDict {
-                    cartesian_velocity: arr6(&a_cvel[k]),
-                    cartesian_position: arr6(&a_cart[k]),
-                    joint_velocity: arr(&a_jvel[k]),
-                    joint_position: arr(&a_joints[k]),
-                    gripper_velocity: a_gvel[k][0],
-                    gripper_position: a_gripper[k],
-                    target_cartesian_position: arr6(&a_cart[k]),
-                    target_gripper_position: a_gripper[k],
+                    cartesian_velocity: arr6(&cols.a_cvel[k]),
+                    cartesian_position: arr6(&cols.a_cart[k]),
+                    joint_velocity: arr(&cols.a_jvel[k]),
+                    joint_position: arr(&cols.a_joints[k]),
+                    gripper_velocity: cols.a_gvel[k][0],
+                    gripper_position: cols.a_gripper[k],
+                    target_cartesian_position: arr6(&cols.a_cart[k]),
+                    target_gripper_position: cols.a_gripper[k],
                     ..ActionDict::default()
                 },
                 action_source: Step::SOURCE_TELEOP,
@@ -627,7 +533,7 @@ impl Dataset {
                 ..Step::default()
             });
         }
-        Ok(ReadEpisode { metadata, steps, absent })
+        steps
     }
 
     /// The metadata of an episode labrig did not export.
@@ -669,6 +575,220 @@ impl Dataset {
             ..EpisodeMetadata::default()
         }
     }
+}
+
+/// Episode `e`'s number of rows, refused if there are none, if the metadata says another
+/// length, or if the frame indices are not 0..n in order.
+fn checked_length(path: &Path, e: &EpisodeEntry, rows: &[RecordBatch]) -> Result<usize, LeRobotError> {
+    let n = rows.iter().map(RecordBatch::num_rows).sum::<usize>();
+    if n == 0 {
+        return Err(bad(path, format!("episode {}: no rows", e.index)));
+    }
+    if e.length != 0 && e.length != n {
+        return Err(bad(path, format!("episode {}: {n} rows, the metadata says {}", e.index, e.length)));
+    }
+    let frame_index: Vec<i64> = column(rows, "frame_index", |a| floats(a.as_ref()))
+        .map(|v| v.into_iter().map(|x| x as i64).collect())
+        .unwrap_or_else(|| (0..n as i64).collect());
+    if frame_index.iter().enumerate().any(|(k, f)| *f != k as i64) {
+        return Err(bad(path, format!("episode {}: frame_index is not 0..{n} in order", e.index)));
+    }
+    Ok(n)
+}
+
+/// Reads an episode's numeric columns from its rows (of the data file at `path`).
+struct ColumnReader<'a> {
+    path: &'a Path,
+    rows: &'a [RecordBatch],
+    episode: i64,
+}
+
+impl ColumnReader<'_> {
+    /// Column `key`, each row at least `width` wide and finite; None: no such column.
+    fn get(&self, key: &str, width: usize) -> Result<Option<Vec<Vec<f64>>>, LeRobotError> {
+        let Some(v) = column(self.rows, key, rows_of) else {
+            if self.rows.first().is_some_and(|b| b.column_by_name(key).is_some()) {
+                return Err(bad(self.path, format!("`{key}` is not numeric")));
+            }
+            return Ok(None);
+        };
+        if let Some((k, r)) = v.iter().enumerate().find(|(_, r)| r.len() < width) {
+            return Err(bad(
+                self.path,
+                format!("episode {}, frame {k}: `{key}` has {} values, labrig reads {width}", self.episode, r.len()),
+            ));
+        }
+        if let Some(k) = v.iter().position(|r| r.iter().any(|x| !x.is_finite())) {
+            return Err(bad(self.path, format!("episode {}, frame {k}: `{key}` is not finite", self.episode)));
+        }
+        Ok(Some(v))
+    }
+
+    /// Column `key` of `n` rows `w` wide, zeros where there is none (its key added to `absent`).
+    fn optional(&self, key: &str, w: usize, n: usize, absent: &mut Vec<String>) -> Result<Vec<Vec<f64>>, LeRobotError> {
+        Ok(match self.get(key, w)? {
+            Some(v) => v,
+            None => {
+                absent.push(key.to_owned());
+                vec![vec![0.0; w]; n]
+            }
+        })
+    }
+}
+
+/// The width of a column's first row (0: no column, or no rows).
+fn width(v: &Option<Vec<Vec<f64>>>) -> usize {
+    v.as_ref().and_then(|v| v.first()).map_or(0, Vec::len)
+}
+
+/// An episode's columns as labrig's steps need them, from DROID's keys (the LeRobot DROID
+/// port's), the 8-wide state and action, or openpi's flat keys.
+struct EpisodeColumns {
+    joints: Vec<Vec<f64>>,
+    gripper: Vec<f64>,
+    cartesian: Option<Vec<Vec<f64>>>,
+    j_vel: Vec<Vec<f64>>,
+    a_joints: Vec<Vec<f64>>,
+    a_gripper: Vec<f64>,
+    a_cart: Vec<Vec<f64>>,
+    a_cvel: Vec<Vec<f64>>,
+    a_jvel: Vec<Vec<f64>>,
+    a_gvel: Vec<Vec<f64>>,
+    /// Keys the steps are made without (their fields left at zero).
+    absent: Vec<String>,
+}
+
+impl EpisodeColumns {
+    /// Reads the columns of `n` rows, state then action.
+    fn read(r: &ColumnReader, n: usize) -> Result<EpisodeColumns, LeRobotError> {
+        let state = r.get("observation.state", 0)?;
+        // openpi's flat DROID keys (`labrig export lerobot --schema openpi-droid`, openpi's own
+        // converter): `joint_position`, `gripper_position`, `actions` = joint velocity + gripper.
+        let flat_joints = r.get("joint_position", 7)?;
+        let flat_gripper = r.get("gripper_position", 1)?;
+        let flat_actions = r.get("actions", 8)?;
+        let joints = state_joints(r, &state, &flat_joints)?;
+        let gripper = state_gripper(r, &state, &flat_gripper)?;
+        let cartesian = r.get("observation.state.cartesian_position", 6)?;
+        let action = r.get("action", 0)?;
+        let a_joints = action_joints(r, &action, &flat_actions, &joints, n)?;
+        let a_gripper = action_gripper(r, &action, &flat_actions)?;
+        let mut absent = Vec::new();
+        let a_cart = r.optional("action.cartesian_position", 6, n, &mut absent)?;
+        let a_cvel = r.optional("action.cartesian_velocity", 6, n, &mut absent)?;
+        let a_jvel = match &flat_actions {
+            Some(a) if r.get("action.joint_velocity", 7)?.is_none() => a.iter().map(|r| r[..7].to_vec()).collect(),
+            _ => r.optional("action.joint_velocity", 7, n, &mut absent)?,
+        };
+        let a_gvel = r.optional("action.gripper_velocity", 1, n, &mut absent)?;
+        let j_vel = r.optional("observation.state.joint_velocity", 7, n, &mut absent)?;
+        absent.retain(|k| k != "observation.state.joint_velocity");
+        Ok(EpisodeColumns {
+            joints,
+            gripper,
+            cartesian,
+            j_vel,
+            a_joints,
+            a_gripper,
+            a_cart,
+            a_cvel,
+            a_jvel,
+            a_gvel,
+            absent,
+        })
+    }
+}
+
+/// The 7 joint positions: `observation.state.joint_position`, else the 8-wide state's, else
+/// openpi's `joint_position`.
+fn state_joints(
+    r: &ColumnReader,
+    state: &Option<Vec<Vec<f64>>>,
+    flat_joints: &Option<Vec<Vec<f64>>>,
+) -> Result<Vec<Vec<f64>>, LeRobotError> {
+    Ok(match r.get("observation.state.joint_position", 7)? {
+        Some(j) => j,
+        None if width(state) >= 8 => state.clone().expect("wide"),
+        None if flat_joints.is_some() => flat_joints.clone().expect("there"),
+        None => {
+            return Err(bad(
+                r.path,
+                format!(
+                    "observation.state has {} values and there is no observation.state.joint_position: labrig reads DROID's layout (7 joints + gripper)",
+                    width(state)
+                ),
+            ));
+        }
+    })
+}
+
+/// The gripper position: `observation.state.gripper_position`, else the 8-wide state's
+/// last, else openpi's `gripper_position`.
+fn state_gripper(
+    r: &ColumnReader,
+    state: &Option<Vec<Vec<f64>>>,
+    flat_gripper: &Option<Vec<Vec<f64>>>,
+) -> Result<Vec<f64>, LeRobotError> {
+    Ok(match r.get("observation.state.gripper_position", 1)? {
+        Some(g) => g.into_iter().map(|r| r[0]).collect::<Vec<_>>(),
+        None if width(state) >= 8 => state.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
+        None if flat_gripper.is_some() => flat_gripper.as_ref().expect("there").iter().map(|r| r[0]).collect(),
+        None => {
+            return Err(bad(r.path, "no gripper: neither observation.state.gripper_position nor observation.state[7]"));
+        }
+    })
+}
+
+/// The commanded joint positions: `action.joint_position`, else the 8-wide action's, else
+/// (openpi's `actions` are velocities) where the joints went: the next step's `joints`.
+fn action_joints(
+    r: &ColumnReader,
+    action: &Option<Vec<Vec<f64>>>,
+    flat_actions: &Option<Vec<Vec<f64>>>,
+    joints: &[Vec<f64>],
+    n: usize,
+) -> Result<Vec<Vec<f64>>, LeRobotError> {
+    Ok(match r.get("action.joint_position", 7)? {
+        Some(j) => j,
+        None if width(action) >= 8 => action.clone().expect("wide"),
+        // openpi's `actions` are velocities: the commanded position is where the joints went.
+        None if flat_actions.is_some() => (0..n).map(|k| joints[(k + 1).min(n - 1)].clone()).collect(),
+        None => {
+            return Err(bad(
+                r.path,
+                format!(
+                    "action has {} values and there is no action.joint_position: labrig reads DROID's action (7 joint positions + gripper)",
+                    width(action)
+                ),
+            ));
+        }
+    })
+}
+
+/// The commanded gripper position: `action.gripper_position`, else the 8-wide action's or
+/// openpi's `actions`' last.
+fn action_gripper(
+    r: &ColumnReader,
+    action: &Option<Vec<Vec<f64>>>,
+    flat_actions: &Option<Vec<Vec<f64>>>,
+) -> Result<Vec<f64>, LeRobotError> {
+    Ok(match r.get("action.gripper_position", 1)? {
+        Some(g) => g.into_iter().map(|r| r[0]).collect(),
+        None if width(action) >= 8 => action.as_ref().expect("wide").iter().map(|r| r[7]).collect(),
+        None if flat_actions.is_some() => flat_actions.as_ref().expect("there").iter().map(|r| r[7]).collect(),
+        None => return Err(bad(r.path, "no gripper action: neither action.gripper_position nor action[7]")),
+    })
+}
+
+/// labrig's metadata carried in the dataset (`labrig/metadata`: v2.x keeps it as an object,
+/// v3.0 as a JSON string).
+fn labrig_metadata(path: &Path, text: &str) -> Result<EpisodeMetadata, LeRobotError> {
+    let v: Value = serde_json::from_str(text).map_err(|x| bad(path, format!("labrig/metadata: {x}")))?;
+    let v = match v {
+        Value::String(s) => serde_json::from_str(&s).map_err(|x| bad(path, format!("labrig/metadata: {x}")))?,
+        other => other,
+    };
+    serde_json::from_value::<EpisodeMetadata>(v).map_err(|x| bad(path, format!("labrig/metadata: {x}")))
 }
 
 /// What an import did.

@@ -328,6 +328,19 @@ pub fn from_droid(
     episode_id: &str,
     serial_to_id: &BTreeMap<String, String>,
 ) -> Result<Trajectory, Invalid> {
+    let n = step_count(doc)?;
+    let state = StateColumns::read(doc, n)?;
+    let clock = Clock::read(doc, n)?;
+    let cams = CameraColumns::read(doc, n, serial_to_id, &clock.control[0])?.in_rig_order();
+    let actions = ActionColumns::read(doc, n)?;
+    let steps = build_steps(episode_id, n, &state, &clock, &cams, &actions);
+    let (success, labelled) = outcome(doc);
+    let CameraColumns { cameras, hand_offset, extrinsics, .. } = cams;
+    Ok(Trajectory { steps, cameras, hand_offset, extrinsics, success, labelled })
+}
+
+/// The number of steps: `action/joint_position`'s rows, refused if there are none.
+fn step_count(doc: &H5Doc) -> Result<usize, Invalid> {
     let n = *doc
         .datasets
         .get("action/joint_position")
@@ -348,143 +361,247 @@ pub fn from_droid(
     if n == 0 {
         return Err(Invalid::new("trajectory", "trajectory.h5 holds no steps"));
     }
-    let o = "observation/robot_state";
-    let zeros7 = || vec![[0.0; 7]; n];
-    let cart = rows::<6>(doc, &format!("{o}/cartesian_position"), n)?;
-    let grip = scalars(doc, &format!("{o}/gripper_position"), n)?;
-    let q = rows::<7>(doc, &format!("{o}/joint_positions"), n)?;
-    let dq = opt_rows::<7>(doc, &format!("{o}/joint_velocities"), n)?.unwrap_or_else(zeros7);
-    let tau = opt_rows::<7>(doc, &format!("{o}/joint_torques_computed"), n)?.unwrap_or_else(zeros7);
-    let ptau = opt_rows::<7>(doc, &format!("{o}/prev_joint_torques_computed"), n)?.unwrap_or_else(zeros7);
-    let ptau_s = opt_rows::<7>(doc, &format!("{o}/prev_joint_torques_computed_safened"), n)?.unwrap_or_else(zeros7);
-    let motor = opt_rows::<7>(doc, &format!("{o}/motor_torques_measured"), n)?.unwrap_or_else(zeros7);
-    let latency = match opt_rows::<1>(doc, &format!("{o}/prev_controller_latency_ms"), n)? {
-        Some(v) => v.into_iter().map(|[x]| x).collect(),
-        None => vec![0.0; n],
-    };
-    let ok = bools(doc, &format!("{o}/prev_command_successful"), n)?.unwrap_or_else(|| vec![true; n]);
+    Ok(n)
+}
 
-    let t = "observation/timestamp";
-    // ns from here on.
-    let mut control: Vec<Vec<i64>> = Vec::new();
-    for key in CONTROL_KEYS {
-        control.push(times_ns(doc, &format!("{t}/control/{key}"), n)?.unwrap_or_else(|| vec![0; n]));
-    }
-    let secs = ints(doc, &format!("{t}/robot_state/robot_timestamp_seconds"), n)?;
-    let nanos = ints(doc, &format!("{t}/robot_state/robot_timestamp_nanos"), n)?;
-    let stamp = |i: usize| -> Time {
-        match (&secs, &nanos) {
-            (Some(s), Some(ns)) => Time { sec: s[i] as i32, nanosec: ns[i] as u32 },
-            _ => Time::from(labrig_msgs::Nanos(control[0][i])),
-        }
-    };
+/// `observation/robot_state/*` per step; the optional keys default to zeros (latency), true
+/// (command successful).
+struct StateColumns {
+    cart: Vec<[f64; 6]>,
+    grip: Vec<f64>,
+    q: Vec<[f64; 7]>,
+    dq: Vec<[f64; 7]>,
+    tau: Vec<[f64; 7]>,
+    ptau: Vec<[f64; 7]>,
+    ptau_s: Vec<[f64; 7]>,
+    motor: Vec<[f64; 7]>,
+    latency: Vec<f64>,
+    ok: Vec<bool>,
+}
 
-    // Cameras: every serial with a camera_type (DROID writes one per camera).
-    let mut cameras = Vec::new();
-    let mut extrinsics = BTreeMap::new();
-    let mut hand_offset = None;
-    let mut frames: Vec<(Vec<i64>, Vec<i64>)> = Vec::new();
-    let prefix = "observation/camera_type/";
-    for key in doc.datasets.keys().filter(|k| k.starts_with(prefix)) {
-        let serial = key[prefix.len()..].to_owned();
-        let k = intrinsics(doc, &format!("observation/camera_intrinsics/{serial}_left"), n)?;
-        let hand_type = ints(doc, key, n)?.is_some_and(|t| t[0] == 0);
-        let id = match serial_to_id.get(&serial) {
-            Some(id) => id.clone(),
-            None if hand_type => HAND_CAMERA.to_owned(),
-            None => serial.clone(),
+impl StateColumns {
+    /// Reads the robot state's columns of `n` steps.
+    fn read(doc: &H5Doc, n: usize) -> Result<StateColumns, Invalid> {
+        let o = "observation/robot_state";
+        let zeros7 = || vec![[0.0; 7]; n];
+        let cart = rows::<6>(doc, &format!("{o}/cartesian_position"), n)?;
+        let grip = scalars(doc, &format!("{o}/gripper_position"), n)?;
+        let q = rows::<7>(doc, &format!("{o}/joint_positions"), n)?;
+        let dq = opt_rows::<7>(doc, &format!("{o}/joint_velocities"), n)?.unwrap_or_else(zeros7);
+        let tau = opt_rows::<7>(doc, &format!("{o}/joint_torques_computed"), n)?.unwrap_or_else(zeros7);
+        let ptau = opt_rows::<7>(doc, &format!("{o}/prev_joint_torques_computed"), n)?.unwrap_or_else(zeros7);
+        let ptau_s = opt_rows::<7>(doc, &format!("{o}/prev_joint_torques_computed_safened"), n)?.unwrap_or_else(zeros7);
+        let motor = opt_rows::<7>(doc, &format!("{o}/motor_torques_measured"), n)?.unwrap_or_else(zeros7);
+        let latency = match opt_rows::<1>(doc, &format!("{o}/prev_controller_latency_ms"), n)? {
+            Some(v) => v.into_iter().map(|[x]| x).collect(),
+            None => vec![0.0; n],
         };
-        let ext = format!("observation/camera_extrinsics/{serial}_left");
-        if let Some(off) = opt_rows::<6>(doc, &format!("{ext}_gripper_offset"), n)? {
-            hand_offset = Some(off[0]);
-        } else if let Some(e) = opt_rows::<6>(doc, &ext, n)? {
-            extrinsics.insert(id.clone(), e[0]);
-        }
-        let capture = times_ns(doc, &format!("{t}/cameras/{serial}_estimated_capture"), n)?;
-        let received = times_ns(doc, &format!("{t}/cameras/{serial}_frame_received"), n)?;
-        let capture = capture.or_else(|| received.clone()).unwrap_or_else(|| control[0].clone());
-        let received = received.unwrap_or_else(|| capture.clone());
-        frames.push((capture, received));
-        cameras.push(Camera { id, serial, k });
+        let ok = bools(doc, &format!("{o}/prev_command_successful"), n)?.unwrap_or_else(|| vec![true; n]);
+        Ok(StateColumns { cart, grip, q, dq, tau, ptau, ptau_s, motor, latency, ok })
     }
-    // Cameras in the rig's order, as an export lists them.
-    let mut order: Vec<usize> = (0..cameras.len()).collect();
-    let rank = |id: &str| labrig_msgs::labrig_msgs::RIG_CAMERAS.iter().position(|c| *c == id).unwrap_or(usize::MAX);
-    order.sort_by(|&a, &b| rank(&cameras[a].id).cmp(&rank(&cameras[b].id)).then(cameras[a].id.cmp(&cameras[b].id)));
-    let cameras: Vec<Camera> = order.iter().map(|&i| cameras[i].clone()).collect();
-    let frames: Vec<(Vec<i64>, Vec<i64>)> = order.iter().map(|&i| frames[i].clone()).collect();
+}
 
-    let enabled = bools(doc, "observation/controller_info/movement_enabled", n)?.unwrap_or_else(|| vec![true; n]);
-    let sources: Vec<u8> = match ints(doc, ACTION_SOURCE_KEY, n)? {
-        Some(v) => v
+/// The steps' times (ns from here on): the control timestamps in [`CONTROL_KEYS`]' order
+/// (zeros where absent) and the robot state's stamp, where the file has it.
+struct Clock {
+    control: Vec<Vec<i64>>,
+    secs: Option<Vec<i64>>,
+    nanos: Option<Vec<i64>>,
+}
+
+impl Clock {
+    /// Reads `observation/timestamp`'s control and robot state times of `n` steps.
+    fn read(doc: &H5Doc, n: usize) -> Result<Clock, Invalid> {
+        let t = "observation/timestamp";
+        let mut control: Vec<Vec<i64>> = Vec::new();
+        for key in CONTROL_KEYS {
+            control.push(times_ns(doc, &format!("{t}/control/{key}"), n)?.unwrap_or_else(|| vec![0; n]));
+        }
+        let secs = ints(doc, &format!("{t}/robot_state/robot_timestamp_seconds"), n)?;
+        let nanos = ints(doc, &format!("{t}/robot_state/robot_timestamp_nanos"), n)?;
+        Ok(Clock { control, secs, nanos })
+    }
+
+    /// Step `i`'s stamp: the robot state's, else the step's start.
+    fn stamp(&self, i: usize) -> Time {
+        match (&self.secs, &self.nanos) {
+            (Some(s), Some(ns)) => Time { sec: s[i] as i32, nanosec: ns[i] as u32 },
+            _ => Time::from(labrig_msgs::Nanos(self.control[0][i])),
+        }
+    }
+}
+
+/// The cameras: every serial with a camera_type (DROID writes one per camera), with each
+/// one's capture and arrival time per step, the external ones' extrinsics and the hand
+/// camera's offset.
+struct CameraColumns {
+    cameras: Vec<Camera>,
+    /// Per camera, each step's (capture, arrival) time in ns.
+    frames: Vec<(Vec<i64>, Vec<i64>)>,
+    extrinsics: BTreeMap<String, [f64; 6]>,
+    hand_offset: Option<[f64; 6]>,
+}
+
+impl CameraColumns {
+    /// Reads the cameras of `n` steps in the file's key order; a camera without times of its
+    /// own takes `step_start`'s.
+    fn read(
+        doc: &H5Doc,
+        n: usize,
+        serial_to_id: &BTreeMap<String, String>,
+        step_start: &[i64],
+    ) -> Result<CameraColumns, Invalid> {
+        let t = "observation/timestamp";
+        let mut cameras = Vec::new();
+        let mut extrinsics = BTreeMap::new();
+        let mut hand_offset = None;
+        let mut frames: Vec<(Vec<i64>, Vec<i64>)> = Vec::new();
+        let prefix = "observation/camera_type/";
+        for key in doc.datasets.keys().filter(|k| k.starts_with(prefix)) {
+            let serial = key[prefix.len()..].to_owned();
+            let k = intrinsics(doc, &format!("observation/camera_intrinsics/{serial}_left"), n)?;
+            let hand_type = ints(doc, key, n)?.is_some_and(|t| t[0] == 0);
+            let id = match serial_to_id.get(&serial) {
+                Some(id) => id.clone(),
+                None if hand_type => HAND_CAMERA.to_owned(),
+                None => serial.clone(),
+            };
+            let ext = format!("observation/camera_extrinsics/{serial}_left");
+            if let Some(off) = opt_rows::<6>(doc, &format!("{ext}_gripper_offset"), n)? {
+                hand_offset = Some(off[0]);
+            } else if let Some(e) = opt_rows::<6>(doc, &ext, n)? {
+                extrinsics.insert(id.clone(), e[0]);
+            }
+            let capture = times_ns(doc, &format!("{t}/cameras/{serial}_estimated_capture"), n)?;
+            let received = times_ns(doc, &format!("{t}/cameras/{serial}_frame_received"), n)?;
+            let capture = capture.or_else(|| received.clone()).unwrap_or_else(|| step_start.to_vec());
+            let received = received.unwrap_or_else(|| capture.clone());
+            frames.push((capture, received));
+            cameras.push(Camera { id, serial, k });
+        }
+        Ok(CameraColumns { cameras, frames, extrinsics, hand_offset })
+    }
+
+    /// The cameras in the rig's order, as an export lists them.
+    fn in_rig_order(self) -> CameraColumns {
+        let CameraColumns { cameras, frames, extrinsics, hand_offset } = self;
+        let mut order: Vec<usize> = (0..cameras.len()).collect();
+        let rank = |id: &str| labrig_msgs::labrig_msgs::RIG_CAMERAS.iter().position(|c| *c == id).unwrap_or(usize::MAX);
+        order.sort_by(|&a, &b| rank(&cameras[a].id).cmp(&rank(&cameras[b].id)).then(cameras[a].id.cmp(&cameras[b].id)));
+        let cameras: Vec<Camera> = order.iter().map(|&i| cameras[i].clone()).collect();
+        let frames: Vec<(Vec<i64>, Vec<i64>)> = order.iter().map(|&i| frames[i].clone()).collect();
+        CameraColumns { cameras, frames, extrinsics, hand_offset }
+    }
+
+    /// Step `i`'s frame of each camera; a camera's sequence (in `sequence`) counts a new
+    /// capture time as a new frame.
+    fn frame_refs(&self, i: usize, sequence: &mut [u64]) -> Vec<CameraFrameRef> {
+        self.cameras
             .iter()
-            .map(|&x| {
-                u8::try_from(x).map_err(|_| {
-                    Invalid::new(
-                        ACTION_SOURCE_KEY,
-                        format!("trajectory.h5 `{ACTION_SOURCE_KEY}` holds {x}, not a source (0..=255)"),
-                    )
-                })
+            .zip(&self.frames)
+            .enumerate()
+            .map(|(c, (cam, (cap, rec)))| {
+                if i > 0 && cap[i] != cap[i - 1] {
+                    sequence[c] += 1;
+                }
+                CameraFrameRef {
+                    camera_id: cam.id.clone(),
+                    sequence: sequence[c],
+                    capture_ns: cap[i],
+                    arrival_ns: rec[i],
+                    ..CameraFrameRef::default()
+                }
             })
-            .collect::<Result<_, _>>()?,
-        None => vec![Step::SOURCE_TELEOP; n],
-    };
-    let acart_v = rows::<6>(doc, "action/cartesian_velocity", n)?;
-    let acart = rows::<6>(doc, "action/cartesian_position", n)?;
-    let aq_v = rows::<7>(doc, "action/joint_velocity", n)?;
-    let aq = rows::<7>(doc, "action/joint_position", n)?;
-    let ag_v = scalars(doc, "action/gripper_velocity", n)?;
-    let ag = scalars(doc, "action/gripper_position", n)?;
-    let at_cart = opt_rows::<6>(doc, "action/target_cartesian_position", n)?.unwrap_or_else(|| acart.clone());
-    let at_g = match opt_rows::<1>(doc, "action/target_gripper_position", n)? {
-        Some(v) => v.into_iter().map(|[x]| x).collect(),
-        None => ag.clone(),
-    };
+            .collect()
+    }
+}
 
-    let mut sequence = vec![0u64; cameras.len()];
-    let steps = (0..n)
-        .map(|i| {
-            let cams = cameras
+/// Who acted at each step and DROID's `action/*` keys; the targets default to the
+/// commanded positions, the source to teleop and movement_enabled to true.
+struct ActionColumns {
+    enabled: Vec<bool>,
+    sources: Vec<u8>,
+    acart_v: Vec<[f64; 6]>,
+    acart: Vec<[f64; 6]>,
+    aq_v: Vec<[f64; 7]>,
+    aq: Vec<[f64; 7]>,
+    ag_v: Vec<f64>,
+    ag: Vec<f64>,
+    at_cart: Vec<[f64; 6]>,
+    at_g: Vec<f64>,
+}
+
+impl ActionColumns {
+    /// Reads the controller info and action columns of `n` steps.
+    fn read(doc: &H5Doc, n: usize) -> Result<ActionColumns, Invalid> {
+        let enabled = bools(doc, "observation/controller_info/movement_enabled", n)?.unwrap_or_else(|| vec![true; n]);
+        let sources: Vec<u8> = match ints(doc, ACTION_SOURCE_KEY, n)? {
+            Some(v) => v
                 .iter()
-                .zip(&frames)
-                .enumerate()
-                .map(|(c, (cam, (cap, rec)))| {
-                    if i > 0 && cap[i] != cap[i - 1] {
-                        sequence[c] += 1;
-                    }
-                    CameraFrameRef {
-                        camera_id: cam.id.clone(),
-                        sequence: sequence[c],
-                        capture_ns: cap[i],
-                        arrival_ns: rec[i],
-                        ..CameraFrameRef::default()
-                    }
+                .map(|&x| {
+                    u8::try_from(x).map_err(|_| {
+                        Invalid::new(
+                            ACTION_SOURCE_KEY,
+                            format!("trajectory.h5 `{ACTION_SOURCE_KEY}` holds {x}, not a source (0..=255)"),
+                        )
+                    })
                 })
-                .collect::<Vec<_>>();
+                .collect::<Result<_, _>>()?,
+            None => vec![Step::SOURCE_TELEOP; n],
+        };
+        let acart_v = rows::<6>(doc, "action/cartesian_velocity", n)?;
+        let acart = rows::<6>(doc, "action/cartesian_position", n)?;
+        let aq_v = rows::<7>(doc, "action/joint_velocity", n)?;
+        let aq = rows::<7>(doc, "action/joint_position", n)?;
+        let ag_v = scalars(doc, "action/gripper_velocity", n)?;
+        let ag = scalars(doc, "action/gripper_position", n)?;
+        let at_cart = opt_rows::<6>(doc, "action/target_cartesian_position", n)?.unwrap_or_else(|| acart.clone());
+        let at_g = match opt_rows::<1>(doc, "action/target_gripper_position", n)? {
+            Some(v) => v.into_iter().map(|[x]| x).collect(),
+            None => ag.clone(),
+        };
+        Ok(ActionColumns { enabled, sources, acart_v, acart, aq_v, aq, ag_v, ag, at_cart, at_g })
+    }
+}
+
+/// The `n` steps from the columns read.
+fn build_steps(
+    episode_id: &str,
+    n: usize,
+    state: &StateColumns,
+    clock: &Clock,
+    cameras: &CameraColumns,
+    actions: &ActionColumns,
+) -> Vec<Step> {
+    let (s, a, control) = (state, actions, &clock.control);
+    let mut sequence = vec![0u64; cameras.cameras.len()];
+    (0..n)
+        .map(|i| {
+            let frames = cameras.frame_refs(i, &mut sequence);
             let (lo, hi) =
-                cams.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
-            let header = Header { stamp: stamp(i), frame_id: "base".into() };
+                frames.iter().fold((i64::MAX, i64::MIN), |(lo, hi), c| (lo.min(c.capture_ns), hi.max(c.capture_ns)));
+            let header = Header { stamp: clock.stamp(i), frame_id: "base".into() };
             Step {
                 header: header.clone(),
                 episode_id: episode_id.to_owned(),
                 step_index: i as u64,
                 robot_state: RobotState {
                     header,
-                    cartesian_position: cart[i],
-                    gripper_position: grip[i],
-                    joint_positions: q[i],
-                    joint_velocities: dq[i],
-                    joint_torques_computed: tau[i],
-                    prev_joint_torques_computed: ptau[i],
-                    prev_joint_torques_computed_safened: ptau_s[i],
-                    motor_torques_measured: motor[i],
-                    prev_controller_latency_ms: latency[i],
-                    prev_command_successful: ok[i],
+                    cartesian_position: s.cart[i],
+                    gripper_position: s.grip[i],
+                    joint_positions: s.q[i],
+                    joint_velocities: s.dq[i],
+                    joint_torques_computed: s.tau[i],
+                    prev_joint_torques_computed: s.ptau[i],
+                    prev_joint_torques_computed_safened: s.ptau_s[i],
+                    motor_torques_measured: s.motor[i],
+                    prev_controller_latency_ms: s.latency[i],
+                    prev_command_successful: s.ok[i],
                     mode: RobotState::MODE_MOVING,
                     ..RobotState::default()
                 },
-                camera_skew_ns: if cams.is_empty() { 0 } else { hi - lo },
-                cameras: cams,
+                camera_skew_ns: if frames.is_empty() { 0 } else { hi - lo },
+                cameras: frames,
                 timing: ControlTiming {
                     step_start: control[0][i],
                     policy_start: control[1][i],
@@ -494,30 +611,34 @@ pub fn from_droid(
                     ..ControlTiming::default()
                 },
                 action: ActionDict {
-                    cartesian_velocity: acart_v[i],
-                    cartesian_position: acart[i],
-                    joint_velocity: aq_v[i],
-                    joint_position: aq[i],
-                    gripper_velocity: ag_v[i],
-                    gripper_position: ag[i],
-                    target_cartesian_position: at_cart[i],
-                    target_gripper_position: at_g[i],
+                    cartesian_velocity: a.acart_v[i],
+                    cartesian_position: a.acart[i],
+                    joint_velocity: a.aq_v[i],
+                    joint_position: a.aq[i],
+                    gripper_velocity: a.ag_v[i],
+                    gripper_position: a.ag[i],
+                    target_cartesian_position: a.at_cart[i],
+                    target_gripper_position: a.at_g[i],
                     ..ActionDict::default()
                 },
-                action_source: sources[i],
-                movement_enabled: enabled[i],
+                action_source: a.sources[i],
+                movement_enabled: a.enabled[i],
                 ..Step::default()
             }
         })
-        .collect();
-    // success/failure both false: an episode nobody judged (DROID's own can be).
+        .collect()
+}
+
+/// The episode's success (None: nobody judged it; DROID's own can have success and failure
+/// both false) and whether the file carries DROID's success/failure attributes.
+fn outcome(doc: &H5Doc) -> (Option<bool>, bool) {
     let labelled = doc.attrs.contains_key("success") || doc.attrs.contains_key("failure");
     let success = match (doc.attrs.get("success"), doc.attrs.get("failure")) {
         (Some(Attr::Bool(true)), _) => Some(true),
         (_, Some(Attr::Bool(true))) => Some(false),
         _ => None,
     };
-    Ok(Trajectory { steps, cameras, hand_offset, extrinsics, success, labelled })
+    (success, labelled)
 }
 
 /// A root attribute of trajectory.h5 as text (DROID writes strings; numbers are accepted).

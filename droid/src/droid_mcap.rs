@@ -646,39 +646,89 @@ fn variant_of(v: &Value) -> Option<Variant> {
 /// Reads a DROID-layout MCAP file (either variant).
 pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
     let buf = std::fs::read(path).map_err(io(path))?;
-    if !buf.starts_with(mcap::MAGIC) {
-        return Err(bad(path, "not an MCAP file (it does not start with MCAP's magic bytes)"));
+    let FileRecords { channels, records, by_time } = FileRecords::read(path, &buf)?;
+    check_droid_layout(path, &channels)?;
+    let mut timeline = Timeline::default();
+    for (t, msgs) in &by_time {
+        let (here, imgs) = messages_at(path, &channels, *t, msgs)?;
+        timeline.add(path, *t, here, imgs)?;
     }
-    let mut schemas: BTreeMap<u16, String> = BTreeMap::new();
-    let mut channels: BTreeMap<u16, (String, String, String)> = BTreeMap::new();
-    let mut records: BTreeMap<String, BTreeMap<String, String>> = BTreeMap::new();
-    // Log time -> (topic, payload) in file order.
-    let mut by_time: BTreeMap<u64, Vec<(u16, Vec<u8>)>> = BTreeMap::new();
-    labrig_episode::walk_records(&buf, |rec| match rec {
-        Record::Schema { header, .. } => {
-            schemas.insert(header.id, header.name);
+    let mut warnings = Vec::new();
+    let (steps, images) = timeline.finish(path, &mut warnings)?;
+    let n = steps.len();
+    let (times_ns, times_in_ms) = log_times_ns(&steps);
+    let variant = common_variant(path, &steps)?;
+    let contents = StepContents::gather(path, &steps, variant)?;
+    let mut doc = H5Doc::default();
+    contents.stacks.into_doc(n, &mut doc).map_err(layout(path))?;
+    add_derived_actions(path, &mut doc, &contents.flat_actions, n, &mut warnings)?;
+    add_log_times(&mut doc, &times_ns, n);
+    add_camera_types(&mut doc, &images, n);
+    add_attributes(&mut doc, &records);
+    Ok(DroidMcap { variant, doc, times_ns, times_in_ms, images, records, vr: contents.vr, warnings })
+}
+
+/// One log time's JSON payloads by topic.
+type Messages = BTreeMap<String, Value>;
+
+/// One log time's left images: (camera serial, JPEG).
+type Jpegs = Vec<(String, Vec<u8>)>;
+
+/// Each camera's JPEG (by serial) per step; None: no image at that step.
+type StepImages = BTreeMap<String, Vec<Option<Vec<u8>>>>;
+
+/// What an MCAP file holds, as read record by record.
+struct FileRecords {
+    /// Channel id -> (topic, message encoding, schema name).
+    channels: BTreeMap<u16, (String, String, String)>,
+    /// Metadata records by name.
+    records: BTreeMap<String, BTreeMap<String, String>>,
+    /// Log time -> (channel, payload) in file order.
+    by_time: BTreeMap<u64, Vec<(u16, Vec<u8>)>>,
+}
+
+impl FileRecords {
+    /// Reads every record of `buf` (the file at `path`), refusing what is not a readable MCAP.
+    fn read(path: &Path, buf: &[u8]) -> Result<FileRecords, DroidError> {
+        if !buf.starts_with(mcap::MAGIC) {
+            return Err(bad(path, "not an MCAP file (it does not start with MCAP's magic bytes)"));
         }
-        Record::Channel(c) => {
-            let schema = schemas.get(&c.schema_id).cloned().unwrap_or_default();
-            channels.insert(c.id, (c.topic, c.message_encoding, schema));
-        }
-        Record::Metadata(m) => {
-            records.insert(m.name, m.metadata);
-        }
-        Record::Message { header, data } => {
-            by_time.entry(header.log_time).or_default().push((header.channel_id, data.into_owned()))
-        }
-        _ => {}
-    })
-    .map_err(|e| match e {
-        mcap::McapError::UnsupportedCompression(c) => bad(
-            path,
-            format!(
-                "its chunks are compressed with {c}, which labrig does not read (zstd or none): re-write it with zstd"
+        let mut schemas: BTreeMap<u16, String> = BTreeMap::new();
+        let mut channels: BTreeMap<u16, (String, String, String)> = BTreeMap::new();
+        let mut records: BTreeMap<String, BTreeMap<String, String>> = BTreeMap::new();
+        // Log time -> (topic, payload) in file order.
+        let mut by_time: BTreeMap<u64, Vec<(u16, Vec<u8>)>> = BTreeMap::new();
+        labrig_episode::walk_records(buf, |rec| match rec {
+            Record::Schema { header, .. } => {
+                schemas.insert(header.id, header.name);
+            }
+            Record::Channel(c) => {
+                let schema = schemas.get(&c.schema_id).cloned().unwrap_or_default();
+                channels.insert(c.id, (c.topic, c.message_encoding, schema));
+            }
+            Record::Metadata(m) => {
+                records.insert(m.name, m.metadata);
+            }
+            Record::Message { header, data } => {
+                by_time.entry(header.log_time).or_default().push((header.channel_id, data.into_owned()))
+            }
+            _ => {}
+        })
+        .map_err(|e| match e {
+            mcap::McapError::UnsupportedCompression(c) => bad(
+                path,
+                format!(
+                    "its chunks are compressed with {c}, which labrig does not read (zstd or none): re-write it with zstd"
+                ),
             ),
-        ),
-        e => bad(path, format!("a damaged MCAP file: {e}")),
-    })?;
+            e => bad(path, format!("a damaged MCAP file: {e}")),
+        })?;
+        Ok(FileRecords { channels, records, by_time })
+    }
+}
+
+/// Refuses a file without DROID's JSON `/robot_state` channel (naming a labrig episode as such).
+fn check_droid_layout(path: &Path, channels: &BTreeMap<u16, (String, String, String)>) -> Result<(), DroidError> {
     let topic_names: Vec<&str> = channels.values().map(|(t, ..)| t.as_str()).collect();
     let Some((_, (_, encoding, _))) = channels.iter().find(|(_, (t, ..))| t == ROBOT_STATE) else {
         if topic_names.contains(&topics::RIG_STEP.name) {
@@ -696,87 +746,124 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
     if encoding != "json" {
         return Err(bad(path, format!("/robot_state is encoded as `{encoding}`; DROID's MCAP layout is JSON")));
     }
+    Ok(())
+}
 
-    // One timestep per log time that has a /robot_state; images logged between steps (DROID's
-    // converter logs a video's frames at its own times) go to the step before them.
-    let mut steps: Vec<(u64, BTreeMap<String, Value>)> = Vec::new();
-    let mut images: BTreeMap<String, Vec<Option<Vec<u8>>>> = BTreeMap::new();
-    let mut warnings = Vec::new();
-    let mut orphans = 0usize;
-    let b64 = base64::engine::general_purpose::STANDARD;
-    for (t, msgs) in &by_time {
-        let mut here: BTreeMap<String, Value> = BTreeMap::new();
-        let mut imgs: Vec<(String, Vec<u8>)> = Vec::new();
-        for (channel, data) in msgs {
-            let Some((topic, enc, _)) = channels.get(channel) else { continue };
-            if enc != "json" {
-                continue;
-            }
-            let v: Value = serde_json::from_slice(data)
-                .map_err(|e| bad(path, format!("{topic} at log time {t}: not JSON ({e})")))?;
-            if let Some(cam) = topic.strip_prefix("/camera/").and_then(|r| r.strip_suffix("/compressed")) {
-                let Some(serial) = cam.strip_suffix("_left") else {
-                    if cam.ends_with("_right") {
-                        continue; // stereo right images: labrig's cameras are monocular
-                    }
-                    return Err(bad(path, format!("{topic}: DROID names images <serial>_left or <serial>_right")));
-                };
-                let text = v
-                    .get("data")
-                    .and_then(Value::as_str)
-                    .ok_or_else(|| bad(path, format!("{topic} at log time {t}: no base64 `data` string")))?;
-                let jpeg = b64
-                    .decode(text)
-                    .map_err(|e| bad(path, format!("{topic} at log time {t}: `data` is not base64 ({e})")))?;
-                if !(jpeg.starts_with(&[0xFF, 0xD8]) && jpeg.ends_with(&[0xFF, 0xD9])) {
-                    return Err(bad(path, format!("{topic} at log time {t}: the image is not a whole JPEG")));
-                }
-                imgs.push((serial.to_owned(), jpeg));
-                continue;
-            }
-            if here.insert(topic.clone(), v).is_some() && topic == ROBOT_STATE {
-                return Err(bad(path, format!("two /robot_state messages at log time {t}: which is the step?")));
-            }
+/// The JSON messages logged at time `t`: the payloads by topic, and the left images (JPEG) by
+/// camera serial; messages of other encodings are passed over.
+fn messages_at(
+    path: &Path,
+    channels: &BTreeMap<u16, (String, String, String)>,
+    t: u64,
+    msgs: &[(u16, Vec<u8>)],
+) -> Result<(Messages, Jpegs), DroidError> {
+    let mut here: Messages = BTreeMap::new();
+    let mut imgs: Jpegs = Vec::new();
+    for (channel, data) in msgs {
+        let Some((topic, enc, _)) = channels.get(channel) else { continue };
+        if enc != "json" {
+            continue;
         }
+        let v: Value =
+            serde_json::from_slice(data).map_err(|e| bad(path, format!("{topic} at log time {t}: not JSON ({e})")))?;
+        if let Some(cam) = topic.strip_prefix("/camera/").and_then(|r| r.strip_suffix("/compressed")) {
+            imgs.extend(left_image(path, topic, cam, t, &v)?);
+            continue;
+        }
+        if here.insert(topic.clone(), v).is_some() && topic == ROBOT_STATE {
+            return Err(bad(path, format!("two /robot_state messages at log time {t}: which is the step?")));
+        }
+    }
+    Ok((here, imgs))
+}
+
+/// The JPEG of camera message `v` (on `topic`, camera `cam`) with its serial; None: a stereo
+/// right image (labrig's cameras are monocular).
+fn left_image(path: &Path, topic: &str, cam: &str, t: u64, v: &Value) -> Result<Option<(String, Vec<u8>)>, DroidError> {
+    let Some(serial) = cam.strip_suffix("_left") else {
+        if cam.ends_with("_right") {
+            return Ok(None); // stereo right images: labrig's cameras are monocular
+        }
+        return Err(bad(path, format!("{topic}: DROID names images <serial>_left or <serial>_right")));
+    };
+    let text = v
+        .get("data")
+        .and_then(Value::as_str)
+        .ok_or_else(|| bad(path, format!("{topic} at log time {t}: no base64 `data` string")))?;
+    let jpeg = base64::engine::general_purpose::STANDARD
+        .decode(text)
+        .map_err(|e| bad(path, format!("{topic} at log time {t}: `data` is not base64 ({e})")))?;
+    if !(jpeg.starts_with(&[0xFF, 0xD8]) && jpeg.ends_with(&[0xFF, 0xD9])) {
+        return Err(bad(path, format!("{topic} at log time {t}: the image is not a whole JPEG")));
+    }
+    Ok(Some((serial.to_owned(), jpeg)))
+}
+
+/// The timesteps and each camera's image per step, as the log times come. One timestep per log
+/// time that has a /robot_state; images logged between steps (DROID's converter logs a video's
+/// frames at its own times) go to the step before them.
+#[derive(Default)]
+struct Timeline {
+    steps: Vec<(u64, Messages)>,
+    images: StepImages,
+    /// Images at no step's time (before the first, or a second one for a step).
+    orphans: usize,
+}
+
+impl Timeline {
+    /// Adds the messages of log time `t`: a new step, or images for the step before.
+    fn add(&mut self, path: &Path, t: u64, here: Messages, imgs: Jpegs) -> Result<(), DroidError> {
         if here.contains_key(ROBOT_STATE) {
-            steps.push((*t, here));
-            let i = steps.len() - 1;
-            for cams in images.values_mut() {
+            self.steps.push((t, here));
+            let i = self.steps.len() - 1;
+            for cams in self.images.values_mut() {
                 cams.resize(i + 1, None);
             }
             for (serial, jpeg) in imgs {
-                let cams = images.entry(serial).or_insert_with(|| vec![None; i + 1]);
+                let cams = self.images.entry(serial).or_insert_with(|| vec![None; i + 1]);
                 cams[i] = Some(jpeg);
             }
         } else if !here.is_empty() {
             let names: Vec<&String> = here.keys().collect();
             return Err(bad(path, format!("the timestep at log time {t} has no /robot_state (it has {names:?})")));
-        } else if let Some(i) = steps.len().checked_sub(1) {
+        } else if let Some(i) = self.steps.len().checked_sub(1) {
             for (serial, jpeg) in imgs {
-                let cams = images.entry(serial).or_insert_with(|| vec![None; i + 1]);
+                let cams = self.images.entry(serial).or_insert_with(|| vec![None; i + 1]);
                 cams.resize(i + 1, None);
                 if cams[i].is_none() {
                     cams[i] = Some(jpeg);
                 } else {
-                    orphans += 1;
+                    self.orphans += 1;
                 }
             }
         } else {
-            orphans += imgs.len();
+            self.orphans += imgs.len();
         }
+        Ok(())
     }
-    if steps.is_empty() {
-        return Err(bad(path, "no /robot_state message: no step to import"));
+
+    /// The steps and every camera's images over all of them; refused without a step, the
+    /// images left out counted in `warnings`.
+    fn finish(self, path: &Path, warnings: &mut Vec<String>) -> Result<(Vec<(u64, Messages)>, StepImages), DroidError> {
+        let Timeline { steps, mut images, orphans } = self;
+        if steps.is_empty() {
+            return Err(bad(path, "no /robot_state message: no step to import"));
+        }
+        let n = steps.len();
+        for cams in images.values_mut() {
+            cams.resize(n, None);
+        }
+        if orphans > 0 {
+            warnings.push(format!(
+                "{orphans} images at no step's time (before the first, or a second one for a step) were left out"
+            ));
+        }
+        Ok((steps, images))
     }
-    let n = steps.len();
-    for cams in images.values_mut() {
-        cams.resize(n, None);
-    }
-    if orphans > 0 {
-        warnings.push(format!(
-            "{orphans} images at no step's time (before the first, or a second one for a step) were left out"
-        ));
-    }
+}
+
+/// Each step's log time in ns, and whether the file's log times were DROID's milliseconds.
+fn log_times_ns(steps: &[(u64, Messages)]) -> (Vec<i64>, bool) {
     // DROID's writers put time_ms() in the nanosecond field. Told apart by the steps' spacing: a
     // rig steps every 50-100 ms, so a median step under 100,000 units is milliseconds (in ns it
     // would be 0.1 ms); a file of one step by magnitude (below 1e15: 11 days in ns, 31,700
@@ -789,7 +876,11 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
     };
     let scale = if times_in_ms { 1_000_000 } else { 1 };
     let times_ns: Vec<i64> = steps.iter().map(|(t, _)| (*t as i64).saturating_mul(scale)).collect();
+    (times_ns, times_in_ms)
+}
 
+/// The variant of step 0's `/robot_state`, refused unless every step's is the same.
+fn common_variant(path: &Path, steps: &[(u64, Messages)]) -> Result<Variant, DroidError> {
     let variant = variant_of(&steps[0].1[ROBOT_STATE]).ok_or_else(|| {
         let keys: Vec<&String> = steps[0].1[ROBOT_STATE].as_object().map(|m| m.keys().collect()).unwrap_or_default();
         bad(
@@ -812,71 +903,102 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
             ));
         }
     }
+    Ok(variant)
+}
 
-    let mut doc = H5Doc::default();
-    let mut stacks = Stacks::default();
-    let mut flat_actions: Vec<Vec<f64>> = Vec::new();
-    let mut vr = vec![None; n];
-    for (i, (_, m)) in steps.iter().enumerate() {
-        for (topic, v) in m {
-            if topic == VR_CONTROLLER {
-                vr[i] = Some(
-                    teleop_state(v)
-                        .map_err(|source| DroidMcapError::VrController { step: i, source })
-                        .map_err(layout(path))?,
-                );
-                continue;
+/// The steps' messages sorted by kind: trajectory.h5's columns, the flat variant's 7-vector
+/// actions, and the `/vr_controller` states.
+struct StepContents {
+    stacks: Stacks,
+    flat_actions: Vec<Vec<f64>>,
+    vr: Vec<Option<TeleopState>>,
+}
+
+impl StepContents {
+    /// Goes through every step's messages in order.
+    fn gather(path: &Path, steps: &[(u64, Messages)], variant: Variant) -> Result<StepContents, DroidError> {
+        let mut contents =
+            StepContents { stacks: Stacks::default(), flat_actions: Vec::new(), vr: vec![None; steps.len()] };
+        for (i, (_, m)) in steps.iter().enumerate() {
+            for (topic, v) in m {
+                contents.add(path, i, topic, v, variant)?;
             }
-            let data = if variant == Variant::Flat && topic == ROBOT_STATE {
-                // The top level, without the stamp and the fields the writer left empty.
-                let mut obj = v.as_object().cloned().unwrap_or_default();
-                obj.remove("timestamp");
-                obj.retain(|_, x| !matches!(x, Value::Array(a) if a.is_empty()));
-                Value::Object(obj)
-            } else {
-                match v.get("data") {
-                    Some(d) => d.clone(),
-                    None => return Err(bad(path, format!("step {i}: {topic} has no `data`"))),
-                }
-            };
-            if topic == ACTION && data.is_array() {
-                let a: Vec<f64> = data
-                    .as_array()
-                    .map(|a| a.iter().map(|x| x.as_f64().unwrap_or(f64::NAN)).collect())
-                    .unwrap_or_default();
-                if a.len() != 7 || a.iter().any(|x| !x.is_finite()) {
-                    return Err(bad(
-                        path,
-                        format!(
-                            "step {i}: /action is {data}, DROID's is 7 numbers (cartesian velocity + gripper velocity)"
-                        ),
-                    ));
-                }
-                if flat_actions.len() != i {
-                    return Err(bad(path, format!("step {i}: an /action is missing before it")));
-                }
-                flat_actions.push(a);
-                continue;
-            }
-            if !data.is_object() {
-                return Err(bad(path, format!("step {i}: {topic}'s `data` is {data}, not an object of DROID's keys")));
-            }
-            stacks.add(topic, &mut Vec::new(), &data, i).map_err(layout(path))?;
         }
+        Ok(contents)
     }
-    stacks.into_doc(n, &mut doc).map_err(layout(path))?;
-    if !flat_actions.is_empty() {
-        if flat_actions.len() != n {
-            return Err(bad(path, format!("/action is in {} of {n} steps", flat_actions.len())));
+
+    /// Adds step `i`'s message `v` on `topic`.
+    fn add(&mut self, path: &Path, i: usize, topic: &str, v: &Value, variant: Variant) -> Result<(), DroidError> {
+        if topic == VR_CONTROLLER {
+            self.vr[i] = Some(
+                teleop_state(v)
+                    .map_err(|source| DroidMcapError::VrController { step: i, source })
+                    .map_err(layout(path))?,
+            );
+            return Ok(());
         }
-        derive_actions(&mut doc, &flat_actions, n).map_err(layout(path))?;
-        warnings.push(
-            "the action is DROID's 7-vector (cartesian velocity + gripper velocity); action/joint_position, \
-             cartesian_position, gripper_position and joint_velocity are the next step's observed state"
-                .into(),
-        );
+        let data = if variant == Variant::Flat && topic == ROBOT_STATE {
+            // The top level, without the stamp and the fields the writer left empty.
+            let mut obj = v.as_object().cloned().unwrap_or_default();
+            obj.remove("timestamp");
+            obj.retain(|_, x| !matches!(x, Value::Array(a) if a.is_empty()));
+            Value::Object(obj)
+        } else {
+            match v.get("data") {
+                Some(d) => d.clone(),
+                None => return Err(bad(path, format!("step {i}: {topic} has no `data`"))),
+            }
+        };
+        if topic == ACTION && data.is_array() {
+            let a: Vec<f64> =
+                data.as_array().map(|a| a.iter().map(|x| x.as_f64().unwrap_or(f64::NAN)).collect()).unwrap_or_default();
+            if a.len() != 7 || a.iter().any(|x| !x.is_finite()) {
+                return Err(bad(
+                    path,
+                    format!(
+                        "step {i}: /action is {data}, DROID's is 7 numbers (cartesian velocity + gripper velocity)"
+                    ),
+                ));
+            }
+            if self.flat_actions.len() != i {
+                return Err(bad(path, format!("step {i}: an /action is missing before it")));
+            }
+            self.flat_actions.push(a);
+            return Ok(());
+        }
+        if !data.is_object() {
+            return Err(bad(path, format!("step {i}: {topic}'s `data` is {data}, not an object of DROID's keys")));
+        }
+        self.stacks.add(topic, &mut Vec::new(), &data, i).map_err(layout(path))
     }
-    // Times the file does not carry as datasets: from the log times.
+}
+
+/// DROID's action keys from the flat variant's 7-vector actions, where the file has them
+/// (every step or none), with a warning that says where they came from.
+fn add_derived_actions(
+    path: &Path,
+    doc: &mut H5Doc,
+    flat_actions: &[Vec<f64>],
+    n: usize,
+    warnings: &mut Vec<String>,
+) -> Result<(), DroidError> {
+    if flat_actions.is_empty() {
+        return Ok(());
+    }
+    if flat_actions.len() != n {
+        return Err(bad(path, format!("/action is in {} of {n} steps", flat_actions.len())));
+    }
+    derive_actions(doc, flat_actions, n).map_err(layout(path))?;
+    warnings.push(
+        "the action is DROID's 7-vector (cartesian velocity + gripper velocity); action/joint_position, \
+         cartesian_position, gripper_position and joint_velocity are the next step's observed state"
+            .into(),
+    );
+    Ok(())
+}
+
+/// Times the file does not carry as datasets: from the log times.
+fn add_log_times(doc: &mut H5Doc, times_ns: &[i64], n: usize) {
     let t = "observation/timestamp";
     if !doc.datasets.contains_key(&format!("{t}/robot_state/robot_timestamp_seconds")) {
         let secs = times_ns.iter().map(|x| x.div_euclid(1_000_000_000)).collect();
@@ -894,12 +1016,18 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
             Column { shape: vec![n], data: Data::I64(times_ns.iter().map(|x| x.div_euclid(1_000_000)).collect()) },
         );
     }
-    // Cameras that only have images (the flat writer has no camera_type): external ones.
+}
+
+/// Cameras that only have images (the flat writer has no camera_type): external ones.
+fn add_camera_types(doc: &mut H5Doc, images: &StepImages, n: usize) {
     for serial in images.keys() {
         let key = format!("observation/camera_type/{serial}");
         doc.datasets.entry(key).or_insert_with(|| Column { shape: vec![n], data: Data::I64(vec![1; n]) });
     }
-    // trajectory.h5's attributes, one record each (DROID's converter).
+}
+
+/// trajectory.h5's attributes, one metadata record each (DROID's converter).
+fn add_attributes(doc: &mut H5Doc, records: &BTreeMap<String, BTreeMap<String, String>>) {
     for key in ["user", "building", "scene_id", "current_task", "success", "failure"] {
         if let Some(v) = records.get(key).and_then(|r| r.get("value")) {
             let a = match key {
@@ -909,7 +1037,6 @@ pub fn read_mcap(path: &Path) -> Result<DroidMcap, DroidError> {
             doc.attrs.insert(key.to_owned(), a);
         }
     }
-    Ok(DroidMcap { variant, doc, times_ns, times_in_ms, images, records, vr, warnings })
 }
 
 /// The flat variant's 7-vector as DROID's action keys; the position targets DROID's raw files

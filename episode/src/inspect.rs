@@ -437,6 +437,7 @@ fn scan_file(
     Ok(Part { file: file.to_owned(), complete, damage, messages, start_ns, end_ns, first_step: None, last_step: None })
 }
 
+/// The inspection of a scanned episode: its figures, and the flags that say what is wrong.
 fn summarise(scan: Scan) -> Inspection {
     let Scan { file: path, complete, damage, topics, mut steps, droid, parts } = scan;
     let gaps = gaps(&parts);
@@ -447,18 +448,57 @@ fn summarise(scan: Scan) -> Inspection {
     let clock = if metadata.as_ref().is_some_and(|m| m.sim_scene.is_some()) { "sim" } else { "wall" };
     steps.sort_by_key(|s| s.step_index);
     steps.dedup_by_key(|s| s.step_index);
-    let step_time = |s: &Step| {
-        if s.timing.step_start != 0 { s.timing.step_start } else { labrig_msgs::Nanos::from(s.header.stamp).0 }
-    };
-    // The episode's own time: its steps' span on the rig's clock (lockstep sim time runs at
-    // whatever pace the machine allows, so receive times say nothing of it).
-    let episode_s = match (steps.first(), steps.last()) {
+    let episode_s = episode_span_s(&steps);
+    let duration_s = episode_s.unwrap_or(wall_duration_s);
+    let topic_stats = topic_stats(&topics, episode_s);
+    let timing = ControlTiming::of(&steps);
+    let cameras = camera_stats(&topics, &steps, scene_since(metadata.as_ref()));
+    let sources = step_sources(&steps);
+    let mut flags = topic_flags(&topic_stats, &gaps);
+    flags.extend(camera_flags(&cameras));
+    flags.extend(record_flags(&steps, timing.missed_ticks, &parts, &gaps, metadata.as_ref(), sources.as_ref()));
+    Inspection {
+        path,
+        complete,
+        damage,
+        start_ns: start,
+        end_ns: end,
+        duration_s,
+        wall_duration_s,
+        clock,
+        messages: topic_stats.iter().map(|t| t.count).sum(),
+        topics: topic_stats,
+        steps: steps.len() as u64,
+        camera_skew_ms: Percentiles::of(timing.skew),
+        control_period_ms: Percentiles::of(timing.periods),
+        control_jitter_ms: Percentiles::of(timing.jitter),
+        missed_ticks: timing.missed_ticks,
+        cameras,
+        metadata,
+        flags,
+        parts,
+        gaps,
+        sources,
+    }
+}
+
+/// A step's time on the rig's clock: its start, or its stamp when the timing is not filled.
+fn step_time(s: &Step) -> i64 {
+    if s.timing.step_start != 0 { s.timing.step_start } else { labrig_msgs::Nanos::from(s.header.stamp).0 }
+}
+
+/// The episode's own time: its steps' span on the rig's clock (lockstep sim time runs at
+/// whatever pace the machine allows, so receive times say nothing of it); None under two steps.
+fn episode_span_s(steps: &[Step]) -> Option<f64> {
+    match (steps.first(), steps.last()) {
         (Some(a), Some(b)) if steps.len() > 1 => Some(step_time(b).saturating_sub(step_time(a)) as f64 / 1e9),
         _ => None,
-    };
-    let duration_s = episode_s.unwrap_or(wall_duration_s);
-    let mut flags = Vec::new();
-    let topic_stats: Vec<TopicStats> = topics
+    }
+}
+
+/// Each topic's figures; rates over the episode's span (`episode_s`), else the topic's own.
+fn topic_stats(topics: &BTreeMap<String, Topic>, episode_s: Option<f64>) -> Vec<TopicStats> {
+    topics
         .iter()
         .map(|(name, t)| {
             let span = episode_s.unwrap_or((t.last - t.first) as f64 / 1e9);
@@ -472,8 +512,87 @@ fn summarise(scan: Scan) -> Inspection {
                 last_publish_ns: crate::log_ns(t.last_publish),
             }
         })
-        .collect();
-    for t in &topic_stats {
+        .collect()
+}
+
+/// The steps' timing: the cameras' skew per step, the control period and its jitter (ms),
+/// and the ticks missed.
+struct ControlTiming {
+    skew: Vec<f64>,
+    periods: Vec<f64>,
+    jitter: Vec<f64>,
+    /// Steps more than 1.5 periods after the previous one.
+    missed_ticks: u64,
+}
+
+impl ControlTiming {
+    fn of(steps: &[Step]) -> ControlTiming {
+        let skew: Vec<f64> = steps
+            .iter()
+            .filter(|s| s.cameras.len() > 1)
+            .map(|s| {
+                let (lo, hi) =
+                    s.cameras.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
+                hi.saturating_sub(lo) as f64 / 1e6
+            })
+            .collect();
+        let periods: Vec<f64> =
+            steps.windows(2).map(|w| step_time(&w[1]).saturating_sub(step_time(&w[0])) as f64 / 1e6).collect();
+        let nominal = CONTROL_PERIOD_NS as f64 / 1e6;
+        let missed_ticks = periods.iter().filter(|&&p| p > 1.5 * nominal).count() as u64;
+        let jitter: Vec<f64> = periods.iter().map(|p| (p - nominal).abs()).collect();
+        ControlTiming { skew, periods, jitter, missed_ticks }
+    }
+}
+
+/// When the sim's scene was set (`sim_scene.since_ns`), if the metadata says.
+fn scene_since(metadata: Option<&EpisodeMetadata>) -> Option<i64> {
+    metadata
+        .and_then(|m| m.sim_scene.as_deref())
+        .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
+        .and_then(|v| v["since_ns"].as_i64())
+}
+
+/// Cameras: frames and gaps per image topic; late frames from the steps' references.
+fn camera_stats(topics: &BTreeMap<String, Topic>, steps: &[Step], scene_since: Option<i64>) -> Vec<CameraStats> {
+    topics
+        .iter()
+        .filter(|(_, t)| t.type_name == "sensor_msgs/msg/CompressedImage")
+        .map(|(name, t)| camera_stats_of(name, t, steps, scene_since))
+        .collect()
+}
+
+/// One image topic's camera figures.
+fn camera_stats_of(name: &str, t: &Topic, steps: &[Step], scene_since: Option<i64>) -> CameraStats {
+    let camera = name.trim_start_matches(topics::CAMERAS_PREFIX).split('/').next().unwrap_or(name).to_owned();
+    let mut stamps = t.stamps.clone();
+    stamps.sort_unstable();
+    let dropped = stamps
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|&g| g as f64 > 1.5 * CONTROL_PERIOD_NS as f64)
+        .map(|g| (g as f64 / CONTROL_PERIOD_NS as f64).round() as u64 - 1)
+        .sum();
+    let late = steps
+        .iter()
+        .filter(|s| {
+            s.cameras
+                .iter()
+                .any(|c| c.camera_id == camera && step_time(s).saturating_sub(c.capture_ns) > CONTROL_PERIOD_NS)
+        })
+        .count() as u64;
+    let named = |s: &Step| s.cameras.iter().find(|c| c.camera_id == camera).map(|c| c.capture_ns);
+    let steps_without_frame = steps.iter().filter(|s| named(s).is_none()).count() as u64;
+    let frames_missing =
+        steps.iter().filter(|s| named(s).is_some_and(|t| stamps.binary_search(&t).is_err())).count() as u64;
+    let frames_before_scene = scene_since.map_or(0, |since| stamps.iter().filter(|&&t| t < since).count() as u64);
+    CameraStats { camera, frames: t.count, dropped, late, steps_without_frame, frames_missing, frames_before_scene }
+}
+
+/// The topics' malformed and out-of-order messages, and the recorder restarts between parts.
+fn topic_flags(topic_stats: &[TopicStats], gaps: &[Gap]) -> Vec<String> {
+    let mut flags = Vec::new();
+    for t in topic_stats {
         if t.malformed > 0 {
             flags.push(format!("{}: {} malformed messages", t.topic, t.malformed));
         }
@@ -481,7 +600,7 @@ fn summarise(scan: Scan) -> Inspection {
             flags.push(format!("{}: {} messages out of order", t.topic, t.out_of_order));
         }
     }
-    for g in &gaps {
+    for g in gaps {
         flags.push(format!(
             "recorded in parts: {:.2} s between part {} and part {} (a recorder restart), {} steps missing",
             g.seconds,
@@ -490,67 +609,16 @@ fn summarise(scan: Scan) -> Inspection {
             g.steps_missing
         ));
     }
-    let skew: Vec<f64> = steps
-        .iter()
-        .filter(|s| s.cameras.len() > 1)
-        .map(|s| {
-            let (lo, hi) =
-                s.cameras.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.capture_ns), b.max(c.capture_ns)));
-            hi.saturating_sub(lo) as f64 / 1e6
-        })
-        .collect();
-    let periods: Vec<f64> =
-        steps.windows(2).map(|w| step_time(&w[1]).saturating_sub(step_time(&w[0])) as f64 / 1e6).collect();
-    let nominal = CONTROL_PERIOD_NS as f64 / 1e6;
-    let missed_ticks = periods.iter().filter(|&&p| p > 1.5 * nominal).count() as u64;
-    let jitter: Vec<f64> = periods.iter().map(|p| (p - nominal).abs()).collect();
-    // Cameras: frames and gaps per image topic; late frames from the steps' references.
-    let scene_since = metadata
-        .as_ref()
-        .and_then(|m| m.sim_scene.as_deref())
-        .and_then(|s| serde_json::from_str::<serde_json::Value>(s).ok())
-        .and_then(|v| v["since_ns"].as_i64());
-    let mut cameras: Vec<CameraStats> = Vec::new();
-    for (name, t) in &topics {
-        if t.type_name != "sensor_msgs/msg/CompressedImage" {
-            continue;
-        }
-        let camera = name.trim_start_matches(topics::CAMERAS_PREFIX).split('/').next().unwrap_or(name).to_owned();
-        let mut stamps = t.stamps.clone();
-        stamps.sort_unstable();
-        let dropped = stamps
-            .windows(2)
-            .map(|w| w[1] - w[0])
-            .filter(|&g| g as f64 > 1.5 * CONTROL_PERIOD_NS as f64)
-            .map(|g| (g as f64 / CONTROL_PERIOD_NS as f64).round() as u64 - 1)
-            .sum();
-        let late = steps
-            .iter()
-            .filter(|s| {
-                s.cameras
-                    .iter()
-                    .any(|c| c.camera_id == camera && step_time(s).saturating_sub(c.capture_ns) > CONTROL_PERIOD_NS)
-            })
-            .count() as u64;
-        let named = |s: &Step| s.cameras.iter().find(|c| c.camera_id == camera).map(|c| c.capture_ns);
-        let steps_without_frame = steps.iter().filter(|s| named(s).is_none()).count() as u64;
-        let frames_missing =
-            steps.iter().filter(|s| named(s).is_some_and(|t| stamps.binary_search(&t).is_err())).count() as u64;
-        let frames_before_scene = scene_since.map_or(0, |since| stamps.iter().filter(|&&t| t < since).count() as u64);
-        cameras.push(CameraStats {
-            camera,
-            frames: t.count,
-            dropped,
-            late,
-            steps_without_frame,
-            frames_missing,
-            frames_before_scene,
-        });
-    }
+    flags
+}
+
+/// No images at all, and each camera's dropped, missing and other-scene frames.
+fn camera_flags(cameras: &[CameraStats]) -> Vec<String> {
+    let mut flags = Vec::new();
     if cameras.iter().all(|c| c.frames == 0) {
         flags.push("no camera frames: the episode has no images".into());
     }
-    for c in &cameras {
+    for c in cameras {
         if c.dropped > 0 {
             flags.push(format!("camera {}: {} frames dropped", c.camera, c.dropped));
         }
@@ -564,6 +632,20 @@ fn summarise(scan: Scan) -> Inspection {
             ));
         }
     }
+    flags
+}
+
+/// What is wrong with the record itself: no steps, missed ticks, unfinished files, no
+/// metadata, a takeover count the steps do not show.
+fn record_flags(
+    steps: &[Step],
+    missed_ticks: u64,
+    parts: &[Part],
+    gaps: &[Gap],
+    metadata: Option<&EpisodeMetadata>,
+    sources: Option<&StepSources>,
+) -> Vec<String> {
+    let mut flags = Vec::new();
     if steps.is_empty() {
         flags.push("no /rig/step records".into());
     }
@@ -580,39 +662,16 @@ fn summarise(scan: Scan) -> Inspection {
     if metadata.is_none() {
         flags.push("no DROID episode metadata".into());
     }
-    let sources = step_sources(&steps);
     // The recorder counts takeovers as the steps come; a restart loses its count (the
     // steps' own count here is the one to trust).
-    if let (Some(src), Some(n)) = (&sources, metadata.as_ref().and_then(|m| m.takeovers))
+    if let (Some(src), Some(n)) = (sources, metadata.and_then(|m| m.takeovers))
         && n != src.takeovers
         && gaps.is_empty()
         && parts.len() <= 1
     {
         flags.push(format!("the metadata says {n} takeovers, the steps show {}", src.takeovers));
     }
-    Inspection {
-        path,
-        complete,
-        damage,
-        start_ns: start,
-        end_ns: end,
-        duration_s,
-        wall_duration_s,
-        clock,
-        messages: topic_stats.iter().map(|t| t.count).sum(),
-        topics: topic_stats,
-        steps: steps.len() as u64,
-        camera_skew_ms: Percentiles::of(skew),
-        control_period_ms: Percentiles::of(periods),
-        control_jitter_ms: Percentiles::of(jitter),
-        missed_ticks,
-        cameras,
-        metadata,
-        flags,
-        parts,
-        gaps,
-        sources,
-    }
+    flags
 }
 
 impl Inspection {

@@ -36,7 +36,9 @@ pub struct RigIdentity {
     pub building: String,
     pub user: String,
     pub robot_serial: String,
-    /// Camera id (ext1, ext2, wrist, rs1, rs2) -> the camera's serial.
+    /// Camera id (ext1, ext2, wrist, rs1, rs2) -> the camera's serial (on a launched rig, the
+    /// launch config's `rig.devices.camera_serials` fill the cameras not named here).
+    #[serde(default)]
     pub camera_serials: BTreeMap<String, String>,
 }
 

@@ -34,16 +34,8 @@ pub enum OnFailure {
     Stop,
 }
 
-/// The real rig's devices (informational for the launcher; node configs use them).
-#[derive(Debug, Clone, Deserialize, Default, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct Devices {
-    pub robot_ip: Option<String>,
-    pub gripper_port: Option<String>,
-    pub quest_device: Option<String>,
-    #[serde(default)]
-    pub camera_serials: BTreeMap<String, String>,
-}
+/// The real rig's devices: written once here, handed by the launcher to every node it starts.
+pub use labrig_runtime::devices::Devices;
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]

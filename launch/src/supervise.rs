@@ -4,7 +4,7 @@
 //! (as the config says); on Ctrl-C (or a deadline, or the caller's signal) everything stops in
 //! reverse order: SIGTERM, then SIGKILL after 10 s.
 
-use crate::config::{LaunchConfig, NodeSpec, OnFailure};
+use crate::config::{Devices, LaunchConfig, NodeSpec, OnFailure};
 use labrig_msgs::dds_type_name;
 use labrig_runtime::ros::{Ros, qos};
 use labrig_runtime::{RosConfig, Shutdown};
@@ -22,7 +22,7 @@ struct Running {
     up: bool,
 }
 
-fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Result<Child> {
+fn spawn(spec: &NodeSpec, devices: &Devices, dir: &Path, domain: u16, out: Output) -> anyhow::Result<Child> {
     let exe = crate::programs::sibling_binary(&spec.program)?;
     let mut cmd = Command::new(&exe);
     // Quiet: the nodes log warnings and errors only (unless RUST_LOG says otherwise).
@@ -30,6 +30,11 @@ fn spawn(spec: &NodeSpec, dir: &Path, domain: u16, out: Output) -> anyhow::Resul
         cmd.env("RUST_LOG", "warn,rustdds=off,ros2_client=error,mujoco=warn");
     }
     cmd.args(&spec.args).envs(&spec.env);
+    // The rig's devices, written once in the launch config: the nodes take camera serials (and
+    // the rest) from here instead of copies in their own configs.
+    if *devices != Devices::default() {
+        cmd.env(labrig_runtime::devices::DEVICES_ENV, devices.to_env());
+    }
     if let Some(c) = &spec.config {
         cmd.arg("--config").arg(dir.join(c));
     }
@@ -137,7 +142,7 @@ pub async fn supervise_until(
             break;
         }
         let spec = running[i].spec.clone();
-        running[i].child = Some(spawn(&spec, &dir, domain, out)?);
+        running[i].child = Some(spawn(&spec, &cfg.rig.devices, &dir, domain, out)?);
         report(json!({ "event": "started", "node": spec.name }), format!("started {} ({})", spec.name, spec.program));
         // Up when its health topic appears; a node that exits first has failed to start.
         let waited = Instant::now();
@@ -199,7 +204,7 @@ pub async fn supervise_until(
                     json!({ "event": "restart", "node": r.spec.name, "status": status.to_string(), "restarts": r.restarts }),
                     format!("{what}: restarting ({}/{})", r.restarts, r.spec.max_restarts),
                 );
-                r.child = Some(spawn(&r.spec, &dir, domain, out)?);
+                r.child = Some(spawn(&r.spec, &cfg.rig.devices, &dir, domain, out)?);
                 r.up = true;
             } else {
                 failure = Some(format!("{what}: stopping the rig (on_failure = {policy:?}, {} restarts)", r.restarts));

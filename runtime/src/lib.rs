@@ -1,6 +1,7 @@
 //! labrig-runtime: what every labrig node shares.
 //!
 //! - [`config`]: typed TOML config, unknown keys rejected with the key named, parse-then-validate.
+//! - [`devices`]: the real rig's devices, handed by the launcher to every node.
 //! - [`node`]: the one shape of a node: a [`node::Node`] declaration and `node_main`.
 //! - [`lifecycle`]: SIGINT/SIGTERM -> a [`lifecycle::Shutdown`] token every loop watches.
 //! - [`clock`]: one [`clock::Clock`]: wall time on hardware, sim time from `/clock`, or a mock.
@@ -16,6 +17,7 @@
 pub mod bench;
 pub mod clock;
 pub mod config;
+pub mod devices;
 pub mod frames;
 pub mod lifecycle;
 pub mod logging;

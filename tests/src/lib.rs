@@ -144,6 +144,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("launch_sim_droid_rig", 123, 1),
     ("launch_broken_rig", 124, 1),
     ("launch_orphans", 125, 1),
+    ("launch_devices_handed", 184, 1),
     ("joint_states_100hz", 126, 1),
     ("pose_stamped_from_rclpy", 127, 1),
     ("rclpy_calls_labrig", 128, 1),

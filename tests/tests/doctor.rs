@@ -254,6 +254,12 @@ fn the_doctor_passes_a_ready_rig_and_names_each_broken_part_with_its_fix() {
     fails_alone(&launch, "camera ext3", "no such camera connected", "labrig cameras list");
     let launch = write_rig(dir, &fr3, pty.path(), with_ext3("zed:LABRIG0000", "LABRIG0001"));
     fails_alone(&launch, "camera ext3", "wrong serial", "same serial");
+    // A camera named by its kind alone takes the rig's serial (sought, and not connected here);
+    // with none in the rig's devices it is named.
+    let launch = write_rig(dir, &fr3, pty.path(), with_ext3("zed", "LABRIG0002"));
+    fails_alone(&launch, "camera ext3", "LABRIG0002", "labrig cameras list");
+    let launch = write_rig(dir, &fr3, pty.path(), with_ext3("zed", ""));
+    fails_alone(&launch, "camera ext3", "names no serial", "[rig.devices.camera_serials]");
     let launch = write_rig(dir, &fr3, pty.path(), |name, t| {
         if name == "cameras.toml" { t.replacen("width = 320\nheight = 240", "width = 640\nheight = 480", 1) } else { t }
     });

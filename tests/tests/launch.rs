@@ -1,7 +1,7 @@
 //! `labrig launch`: every file in launch_configs/ validates; bad files are refused with the
 //! problem named; the simulated rig (sim_droid.toml) starts in dependency order, reports
 //! health, restarts a killed node, stops cleanly; a node that fails to start stops the rig; a
-//! SIGKILLed launcher leaves no node running.
+//! SIGKILLed launcher leaves no node running; the rig's devices reach every node it starts.
 
 use labrig_tests::{Proc, domain_for, labrig_bin, repo_root};
 use serde_json::Value;
@@ -172,4 +172,43 @@ fn no_node_outlives_a_killed_launcher() {
     // Whatever the outcome, nothing of this test stays behind.
     labrig_tests::kill_domain(domain);
     assert!(left.is_empty(), "nodes still running 30 s after the launcher was killed: {left}");
+}
+
+#[test]
+fn the_rigs_devices_reach_every_node_it_starts() {
+    // A one-node rig whose launch config names devices: the node's process environment carries
+    // them (`LABRIG_RIG_DEVICES`), as the camera node and the recorder read them.
+    let domain = domain_for("launch_devices_handed");
+    let dir = tempfile::tempdir().unwrap();
+    let launch = dir.path().join("rig.toml");
+    std::fs::write(
+        &launch,
+        "[rig]\nname = \"devices\"\n\n[rig.devices]\nrobot_ip = \"127.0.0.1\"\n\n[rig.devices.camera_serials]\next1 = \"ZED2-LABRIG7\"\n\n\
+         [[node]]\nname = \"station\"\nprogram = \"labrig-station\"\n\
+         args = [\"run\", \"--root\", \"episodes\", \"--listen\", \"127.0.0.1:0\"]\nhealth = \"/station/status\"\n",
+    )
+    .unwrap();
+    let mut cmd = Command::new(labrig_bin());
+    cmd.args(["launch", "--json", "--seconds", "60", "--domain-id", &domain.to_string()])
+        .arg(&launch)
+        .current_dir(dir.path());
+    let mut rig = Proc::spawn("labrig launch", cmd);
+    rig.wait_json(Duration::from_secs(120), "the station up", |v| v["event"] == "up");
+    let pattern = format!("labrig-station run --root episodes --listen 127.0.0.1:0 --domain-id {domain}");
+    let pgrep = Command::new("pgrep").args(["-f", &pattern]).output().unwrap();
+    let pid = String::from_utf8_lossy(&pgrep.stdout).lines().next().map(str::to_owned).expect("the station's process");
+    let environ = std::fs::read(format!("/proc/{pid}/environ")).unwrap();
+    let handed: Vec<String> = environ
+        .split(|b| *b == 0)
+        .filter_map(|v| String::from_utf8_lossy(v).strip_prefix("LABRIG_RIG_DEVICES=").map(str::to_owned))
+        .collect();
+    assert_eq!(handed.len(), 1, "the node's environment hands the devices once: {handed:?}");
+    let devices: Value = serde_json::from_str(&handed[0]).unwrap();
+    assert_eq!(devices["camera_serials"]["ext1"], "ZED2-LABRIG7", "{devices}");
+    assert_eq!(devices["robot_ip"], "127.0.0.1", "{devices}");
+    let launcher = format!("labrig launch --json --seconds 60 --domain-id {domain}");
+    assert!(Command::new("pkill").args(["-INT", "-f", &launcher]).status().unwrap().success());
+    assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
+    let left = labrig_tests::nodes_on_domain(domain);
+    assert!(left.is_empty(), "nodes left running: {left}");
 }

@@ -24,6 +24,7 @@ use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
 use labrig_msgs::{Invalid, Nanos, topics};
+use labrig_runtime::devices::Devices;
 use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode, FramePublisher};
 use labrig_runtime::ros::{Ros, RosPublisher, qos};
 use labrig_runtime::{Clock, RosConfig, Shutdown};
@@ -278,7 +279,7 @@ impl CamerasConfig {
             let looks_like_file = !c.source.contains("://")
                 && !c.source.contains(':')
                 && !c.source.starts_with("/dev/")
-                && c.source != "testsrc";
+                && !["testsrc", "zed", "realsense", "v4l2"].contains(&c.source.as_str());
             if looks_like_file && Path::new(&c.source).is_relative() {
                 c.source = dir.join(&c.source).display().to_string();
             }
@@ -312,8 +313,18 @@ pub enum CameraError {
 impl Camera {
     /// Loads what a camera needs before it starts; a missing or unreadable calibration file,
     /// a section it lacks, a size it does not scale to: refused, naming the camera.
-    pub fn resolve(id: &str, c: &CameraConfig) -> Result<Camera, CameraError> {
-        let spec = SourceSpec::parse(&c.source).map_err(|source| CameraError::Source { camera: id.into(), source })?;
+    ///
+    /// A source named by its kind alone (`zed`, `realsense`, `v4l2`) takes the camera's serial
+    /// from the rig's devices (`rig.devices.camera_serials`, handed by the launcher).
+    pub fn resolve(id: &str, c: &CameraConfig, devices: Option<&Devices>) -> Result<Camera, CameraError> {
+        let source_error = |source| CameraError::Source { camera: id.into(), source };
+        let mut spec = SourceSpec::parse(&c.source).map_err(source_error)?;
+        if spec.needs_serial() {
+            let serial = devices.and_then(|d| d.camera_serials.get(id)).ok_or_else(|| {
+                source_error(SourceError::NoSerial { source_name: c.source.clone(), camera: id.into() })
+            })?;
+            spec = spec.with_serial(serial);
+        }
         let sbs = c.side_by_side.unwrap_or_else(|| spec.side_by_side_default());
         let intr = |source| CameraError::Intrinsics { camera: id.into(), source };
         let intrinsics = match &c.intrinsics {
@@ -693,7 +704,9 @@ pub struct CamerasStats {
 
 /// Runs the node until `shutdown`.
 pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<CamerasStats> {
-    let cameras: Vec<Camera> = config.cameras.iter().map(|(id, c)| Camera::resolve(id, c)).collect::<Result<_, _>>()?;
+    let devices = Devices::from_launcher()?;
+    let cameras: Vec<Camera> =
+        config.cameras.iter().map(|(id, c)| Camera::resolve(id, c, devices.as_ref())).collect::<Result<_, _>>()?;
     let timeouts = Timeouts {
         connect: Duration::from_secs_f64(config.stall_s.max(1.0)),
         read: Duration::from_secs_f64(2.0 * config.stall_s),
@@ -936,24 +949,50 @@ mod tests {
     }
 
     #[test]
+    fn a_source_named_by_its_kind_takes_the_serial_from_the_rigs_devices() {
+        let mut c = CameraConfig::new("zed");
+        (c.width, c.height) = (1280, 720);
+        let devices =
+            Devices { camera_serials: [("ext1".to_owned(), "ZED2-7".to_owned())].into(), ..Devices::default() };
+        let cam = Camera::resolve("ext1", &c, Some(&devices)).unwrap();
+        assert_eq!(cam.spec, SourceSpec::Device { kind: DeviceKind::Zed, serial: Some("ZED2-7".into()), path: None });
+        assert_eq!(cam.side_by_side, Some(Eye::Left), "a ZED by kind is still side by side");
+        let rs = Camera::resolve(
+            "rs1",
+            &CameraConfig::new("realsense"),
+            Some(&Devices { camera_serials: [("rs1".to_owned(), "D435-4".to_owned())].into(), ..Devices::default() }),
+        )
+        .unwrap();
+        assert_eq!(rs.spec, SourceSpec::RealSense { serial: Some("D435-4".into()), file: None });
+        // No devices, or none for this camera: refused, naming the camera and where to put it.
+        for d in [None, Some(&devices)] {
+            let e = Camera::resolve("ext2", &c, d).unwrap_err().to_string();
+            assert!(e.contains("camera ext2") && e.contains("rig.devices.camera_serials"), "{e}");
+        }
+        // A serial in the source is the source's own.
+        let cam = Camera::resolve("ext1", &CameraConfig::new("zed:ZED2-9"), Some(&devices)).unwrap();
+        assert_eq!(cam.spec, SourceSpec::Device { kind: DeviceKind::Zed, serial: Some("ZED2-9".into()), path: None });
+    }
+
+    #[test]
     fn intrinsics_come_from_a_zed_file_inline_or_nowhere_and_a_missing_file_is_named() {
         let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/SN000012345.conf");
         let mut c = CameraConfig::new("zed:000012345");
         (c.width, c.height) = (640, 360);
         c.intrinsics = Some(IntrinsicsSpec::File(fixture));
-        let cam = Camera::resolve("ext1", &c).unwrap();
+        let cam = Camera::resolve("ext1", &c, None).unwrap();
         assert_eq!(cam.side_by_side, Some(Eye::Left));
         assert_eq!(cam.source_size(), (1280, 360));
         assert_eq!(cam.intrinsics.unwrap().fx, 264.75);
         c.intrinsics = Some(IntrinsicsSpec::File("/nowhere/SN1.conf".into()));
-        let e = Camera::resolve("ext2", &c).unwrap_err().to_string();
+        let e = Camera::resolve("ext2", &c, None).unwrap_err().to_string();
         assert!(e.starts_with("camera ext2: /nowhere/SN1.conf: "), "{e}");
         let inline: CameraConfig = toml::from_str(
             "source = \"http://127.0.0.1:9/x\"\nwidth = 320\nheight = 180\n\
              intrinsics = { width = 1280, height = 720, fx = 600.0, fy = 600.0, cx = 639.5, cy = 359.5 }\n",
         )
         .unwrap();
-        let cam = Camera::resolve("rs1", &inline).unwrap();
+        let cam = Camera::resolve("rs1", &inline, None).unwrap();
         let i = cam.intrinsics.unwrap();
         assert_eq!((i.fx, i.cx, i.cy), (150.0, 159.5, 89.5));
         assert_eq!(cam.side_by_side, None);
@@ -985,7 +1024,7 @@ mod tests {
     fn extrinsics_become_a_static_transform_to_the_optical_frame() {
         let mut c = CameraConfig::new("http://127.0.0.1:9/x");
         c.extrinsics = Some([0.1, -0.5, 0.6, 0.0, 0.0, std::f64::consts::FRAC_PI_2]);
-        let cam = Camera::resolve("ext1", &c).unwrap();
+        let cam = Camera::resolve("ext1", &c, None).unwrap();
         let t = cam.transform("base", Time::default()).unwrap();
         assert_eq!((t.header.frame_id.as_str(), t.child_frame_id.as_str()), ("base", "ext1_optical"));
         assert_eq!((t.transform.translation.x, t.transform.translation.y), (0.1, -0.5));

@@ -63,6 +63,10 @@ pub enum SourceError {
         "`{0}` is not a camera source: use zed:SERIAL, realsense:SERIAL, v4l2:SERIAL, /dev/videoN, http://..., rtsp://..., a video file or testsrc"
     )]
     Unknown(String),
+    #[error(
+        "`{source_name}` names no serial, and the launch config's rig.devices.camera_serials has none for camera {camera} (give it one there, or write {source_name}:SERIAL)"
+    )]
+    NoSerial { source_name: String, camera: String },
     #[error("{0}: no such video file")]
     NoFile(String),
     #[error("{url}: {reason}")]
@@ -83,6 +87,14 @@ impl SourceSpec {
             }
             Ok(SourceSpec::Device { kind, serial: Some(serial.to_owned()), path: None })
         };
+        // A kind alone: the serial is the rig's (`rig.devices.camera_serials`, handed by the
+        // launcher; [`SourceSpec::with_serial`]).
+        match s {
+            "zed" => return Ok(SourceSpec::Device { kind: DeviceKind::Zed, serial: None, path: None }),
+            "v4l2" => return Ok(SourceSpec::Device { kind: DeviceKind::Uvc, serial: None, path: None }),
+            "realsense" => return Ok(SourceSpec::RealSense { serial: None, file: None }),
+            _ => {}
+        }
         if let Some(serial) = s.strip_prefix("zed:") {
             return device(DeviceKind::Zed, serial);
         }
@@ -117,6 +129,28 @@ impl SourceSpec {
             return Ok(SourceSpec::RealSense { serial: None, file: Some(PathBuf::from(s)) });
         }
         Ok(SourceSpec::Ffmpeg { input: s.to_owned(), file: true })
+    }
+
+    /// A device named by its kind alone (`zed`, `realsense`, `v4l2`), whose serial comes from the
+    /// rig's devices.
+    pub fn needs_serial(&self) -> bool {
+        matches!(
+            self,
+            SourceSpec::Device { serial: None, path: None, .. } | SourceSpec::RealSense { serial: None, file: None }
+        )
+    }
+
+    /// The device with `serial` (for a source that [needs one](Self::needs_serial)).
+    pub fn with_serial(self, serial: &str) -> SourceSpec {
+        match self {
+            SourceSpec::Device { kind, serial: None, path: None } => {
+                SourceSpec::Device { kind, serial: Some(serial.to_owned()), path: None }
+            }
+            SourceSpec::RealSense { serial: None, file: None } => {
+                SourceSpec::RealSense { serial: Some(serial.to_owned()), file: None }
+            }
+            other => other,
+        }
     }
 
     /// Whether the frames carry a stereo pair side by side by default (the ZEDs).

@@ -362,6 +362,19 @@ fn camera(name: &str, cam: &CameraConfig, rig_serial: Option<&str>, within: Dura
             return row(part, State::Fail, e.to_string(), "fix the camera's `source` in the camera node's config");
         }
     };
+    // A source named by its kind alone takes the rig's serial, as the node does.
+    let spec = match (spec.needs_serial(), rig_serial) {
+        (true, Some(s)) => spec.with_serial(s),
+        (true, None) => {
+            return row(
+                part,
+                State::Fail,
+                format!("its source `{source}` names no serial, and rig.devices.camera_serials has none for {name}"),
+                "give the launch config's [rig.devices.camera_serials] one (`labrig cameras list` prints them)",
+            );
+        }
+        (false, _) => spec,
+    };
     let serial = match &spec {
         SourceSpec::Device { serial, .. } | SourceSpec::RealSense { serial, .. } => serial.clone(),
         _ => None,
@@ -387,6 +400,14 @@ fn camera(name: &str, cam: &CameraConfig, rig_serial: Option<&str>, within: Dura
         );
     }
     let mode = format!("{}x{}@{}", cam.width, cam.height, cam.fps);
+    // A source by kind is shown with the serial the rig gave it.
+    let source = &match (&spec, source.contains(':')) {
+        (SourceSpec::Device { serial: Some(s), .. } | SourceSpec::RealSense { serial: Some(s), .. }, false) => {
+            format!("{source}:{s} (the serial from rig.devices.camera_serials)")
+        }
+        _ => source.to_owned(),
+    };
+    let source = source.as_str();
     match spec {
         SourceSpec::Device { kind, serial: Some(serial), .. } => device_camera(part, source, kind, &serial, cam),
         SourceSpec::RealSense { serial: Some(serial), .. } => {
@@ -689,6 +710,12 @@ fn recording_rate(cams: &CamerasConfig, rec: &labrig_recorder::node::RecorderCon
 /// that drives an arm are a warning.
 fn episode_metadata(id: &RigIdentity, devices: &labrig_launch::config::Devices, drives_an_arm: bool) -> Check {
     const PART: &str = "episode metadata";
+    // The recorder takes the serials its config does not name from the launcher, as here.
+    let mut id = id.clone();
+    for (camera, serial) in &devices.camera_serials {
+        id.camera_serials.entry(camera.clone()).or_insert_with(|| serial.clone());
+    }
+    let id = &id;
     let wrong: Vec<String> = devices
         .camera_serials
         .iter()
@@ -701,7 +728,7 @@ fn episode_metadata(id: &RigIdentity, devices: &labrig_launch::config::Devices, 
             PART,
             State::Fail,
             format!("the recorder would write wrong camera serials: {}", wrong.join(", ")),
-            "give the recorder's [rig.camera_serials] the same serials as [rig.devices.camera_serials]",
+            "leave the serials to [rig.devices.camera_serials] (the recorder takes them from the launcher), or give the recorder's [rig.camera_serials] the same",
         );
     }
     let default = RigIdentity::default();
@@ -712,22 +739,15 @@ fn episode_metadata(id: &RigIdentity, devices: &labrig_launch::config::Devices, 
         id.robot_serial,
         id.camera_serials.len()
     );
-    let missing: Vec<&str> =
-        devices.camera_serials.keys().filter(|c| !id.camera_serials.contains_key(*c)).map(String::as_str).collect();
-    let warning = if drives_an_arm && (id.robot_serial == default.robot_serial || id.building == default.building) {
-        Some((
+    if drives_an_arm && (id.robot_serial == default.robot_serial || id.building == default.building) {
+        return row(
+            PART,
+            State::Warn,
             format!("{what}: the simulator's defaults"),
             "give the recorder a config with [rig] (launch_configs/nodes/recorder_real.toml)",
-        ))
-    } else if !missing.is_empty() {
-        Some((format!("{what}; none for {}", missing.join(", ")), "add them to the recorder's [rig.camera_serials]"))
-    } else {
-        None
-    };
-    match warning {
-        Some((detail, fix)) => row(PART, State::Warn, detail, fix),
-        None => ok(PART, what),
+        );
     }
+    ok(PART, what)
 }
 
 fn disk(root: &Path, rate_bps: Option<f64>, hours: f64) -> Check {

@@ -365,8 +365,16 @@ const INTAKE_FRAMES_PER_CAMERA: usize = 60;
 /// ...and at most this many bytes of them (1280x720 RGB: 34 frames, 1.7 s).
 const INTAKE_BYTES_PER_CAMERA: usize = 96 << 20;
 
-pub async fn run(cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
+pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     cfg.validate()?;
+    // The cameras' serials are the rig's, written once in the launch config and handed by the
+    // launcher; a serial in this config's [rig.camera_serials] is its own (the doctor checks
+    // that the two agree).
+    if let Some(devices) = labrig_runtime::devices::Devices::from_launcher()? {
+        for (camera, serial) in devices.camera_serials {
+            cfg.rig.camera_serials.entry(camera).or_insert(serial);
+        }
+    }
     // Frames first: a restarted recorder takes them again as soon as it can (shared memory
     // keeps none for a subscriber that is not there).
     let frames = match &cfg.frames_namespace {
