@@ -27,7 +27,7 @@ use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, qos};
-use serde::Serialize;
+use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -218,7 +218,7 @@ pub enum InterveneArg {
 }
 
 /// One rollout as the run saw it.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Rollout {
     pub episode_id: String,
     pub seed: Option<u64>,
@@ -244,18 +244,22 @@ pub struct Rollout {
 }
 
 /// The run's report.
-#[derive(Debug, Clone, Serialize)]
+/// The report a rollout run writes (`rollouts.json`) and its readers (the benches, the
+/// experiment) read back.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RolloutReport {
     pub policy: String,
     pub scene: String,
-    pub mode: &'static str,
+    pub mode: String,
     pub first_seed: u64,
     pub rollouts: Vec<Rollout>,
     pub successes: u64,
     pub success_rate: f64,
     /// Wilson score interval, 95%.
     pub ci95: [f64; 2],
+    #[serde(deserialize_with = "nan_if_null")]
     pub inference_ms_p50: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub inference_ms_p99: f64,
     pub chunks: u64,
     pub held_steps: u64,
@@ -263,7 +267,7 @@ pub struct RolloutReport {
     pub held_after_first_chunk: u64,
     pub steps_after_first_chunk: u64,
     /// `--intervene`: who played the operator (None: nobody could take over).
-    pub intervene: Option<&'static str>,
+    pub intervene: Option<String>,
     /// Takeovers and operator steps over all rollouts, and the successes without any.
     pub takeovers: u64,
     pub operator_steps: u64,
@@ -545,7 +549,7 @@ fn summarise(
             (None, None, None) => String::new(),
         },
         scene: args.scene.clone(),
-        mode: if args.realtime { "realtime" } else { "lockstep" },
+        mode: if args.realtime { "realtime" } else { "lockstep" }.to_owned(),
         first_seed: args.first_seed,
         successes,
         success_rate: if n > 0 { successes as f64 / n as f64 } else { 0.0 },
@@ -556,7 +560,7 @@ fn summarise(
         held_steps: rollouts.iter().map(|r| r.held_steps).sum(),
         held_after_first_chunk: rollouts.iter().map(|r| r.held_after_first_chunk).sum(),
         steps_after_first_chunk: rollouts.iter().map(|r| r.steps_after_first_chunk).sum(),
-        intervene: args.intervene.map(|_| "expert"),
+        intervene: args.intervene.map(|_| "expert".to_owned()),
         takeovers: rollouts.iter().map(|r| r.takeovers).sum(),
         operator_steps: rollouts.iter().map(|r| r.operator_steps).sum(),
         successes_without_help: rollouts.iter().filter(|r| r.success && r.takeovers == 0).count() as u64,
@@ -567,6 +571,16 @@ fn summarise(
         summary_png: None,
         errors: Vec::new(),
     }
+}
+
+/// A figure JSON wrote as `null` (serde_json writes NaN so: no chunk was timed) read back as NaN.
+fn nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// A run's `rollouts.json`, when it can be read.
+pub fn read_report(path: &Path) -> Option<RolloutReport> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
 
 /// "k of n rollouts succeeded (p%, 95% CI lo-hi%)".

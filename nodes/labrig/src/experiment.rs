@@ -18,7 +18,7 @@
 use anyhow::{Context, bail, ensure};
 use clap::{Args, Subcommand};
 use labrig_episode::progress;
-use labrig_launch::rollout::wilson95;
+use labrig_launch::rollout::{RolloutReport, wilson95};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeSet;
@@ -408,13 +408,28 @@ fn minutes(s: f64) -> String {
     if s < 90.0 { format!("{s:.0} s") } else { format!("{:.1} min", s / 60.0) }
 }
 
+/// A stage's wall time (`train_time.json`, a rollout set's `wall.json`): written by the stage,
+/// read by the table.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize)]
+struct WallTime {
+    wall_s: f64,
+    /// The sittings a stage cut off and resumed took (0 where it is not counted).
+    #[serde(default)]
+    sittings: u64,
+}
+
+impl WallTime {
+    fn read(path: &Path) -> Option<WallTime> {
+        serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+    }
+}
+
 /// Adds `seconds` to the wall time kept in `path` (a stage run in several sittings).
 fn add_wall(path: &Path, seconds: f64) -> anyhow::Result<f64> {
-    let kept = read_json(path).unwrap_or_default();
-    let before = kept["wall_s"].as_f64().unwrap_or(0.0);
-    let sittings = kept["sittings"].as_u64().unwrap_or(0);
-    write_json(path, &json!({"wall_s": before + seconds, "sittings": sittings + 1}))?;
-    Ok(before + seconds)
+    let kept = WallTime::read(path).unwrap_or_default();
+    let wall = WallTime { wall_s: kept.wall_s + seconds, sittings: kept.sittings + 1 };
+    write_json(path, &wall)?;
+    Ok(wall.wall_s)
 }
 
 pub fn run(cmd: ExperimentCommand) -> anyhow::Result<ExitCode> {
@@ -728,7 +743,7 @@ fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
     let stage = format!("[rollout] {} seeds {first}..{}", c.name, first + cfg.rollouts - 1);
     let report_path = rollouts.join("rollouts.json");
     if let Some(r) = complete_rollouts(cfg, &report_path) {
-        say(format!("{stage}: done earlier ({} of {})", r["successes"], cfg.rollouts));
+        say(format!("{stage}: done earlier ({} of {})", r.successes, cfg.rollouts));
         return Ok(());
     }
     if rollouts.exists() {
@@ -762,9 +777,9 @@ fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
     result?;
     // The set's own wall time (a set cut off runs again from scratch: its time is the last run's).
     let wall = t.elapsed().as_secs_f64();
-    write_json(&rollouts.join("wall.json"), &json!({"wall_s": wall}))?;
+    write_json(&rollouts.join("wall.json"), &WallTime { wall_s: wall, sittings: 0 })?;
     let r = complete_rollouts(cfg, &report_path).context("the rollouts wrote no complete rollouts.json")?;
-    let k = r["successes"].as_u64().unwrap_or(0);
+    let k = r.successes;
     let [lo, hi] = wilson95(k, cfg.rollouts);
     say(format!(
         "{stage}: {k} of {} ({:.0}%, 95% CI {:.0}-{:.0}%) in {}",
@@ -778,8 +793,8 @@ fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
 }
 
 /// A set's report when it holds every rollout.
-fn complete_rollouts(cfg: &ExperimentConfig, report: &Path) -> Option<Value> {
-    read_json(report).filter(|r| r["rollouts"].as_array().map(Vec::len) == Some(cfg.rollouts as usize))
+fn complete_rollouts(cfg: &ExperimentConfig, report: &Path) -> Option<RolloutReport> {
+    labrig_launch::rollout::read_report(report).filter(|r| r.rollouts.len() == cfg.rollouts as usize)
 }
 
 /// One condition's row of the table.
@@ -845,15 +860,14 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
         let dir = layout.condition(&c.name);
         let manifest = read_json(&dir.join("manifest.json"));
         let run = read_json(&dir.join("run/run.json")).filter(|r| r["steps"].as_u64() == Some(cfg.steps));
-        let sets: Vec<(u64, Value)> = cfg
+        let sets: Vec<(u64, RolloutReport)> = cfg
             .seed_sets()
             .into_iter()
             .filter_map(|first| {
                 Some((first, complete_rollouts(cfg, &dir.join(cfg.rollouts_dir(first)).join("rollouts.json"))?))
             })
             .collect();
-        let by_seed_set: Vec<(u64, u64)> =
-            sets.iter().map(|(first, r)| (*first, r["successes"].as_u64().unwrap_or(0))).collect();
+        let by_seed_set: Vec<(u64, u64)> = sets.iter().map(|(first, r)| (*first, r.successes)).collect();
         let judged = by_seed_set.len() as u64 * cfg.rollouts;
         let succeeded: u64 = by_seed_set.iter().map(|(_, k)| k).sum();
         let all_sets = sets.len() == cfg.seed_sets().len();
@@ -897,10 +911,7 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             drawn_target: u(&run, "drawn_target"),
             drawn_cotrain: u(&run, "drawn_cotrain"),
             steps: u(&run, "steps"),
-            train_wall_s: run
-                .as_ref()
-                .and_then(|_| read_json(&dir.join("train_time.json")))
-                .and_then(|t| t["wall_s"].as_f64()),
+            train_wall_s: run.as_ref().and_then(|_| WallTime::read(&dir.join("train_time.json"))).map(|t| t.wall_s),
             samples_per_s: f(&run, "samples_per_s"),
             last_val_loss: f(&run, "last_val_loss"),
             open_loop_mm: f(&run, "last_open_loop_mm"),
@@ -913,15 +924,16 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
                     .filter_map(|(first, _)| {
                         let set = dir.join(cfg.rollouts_dir(*first));
                         // (Runs before the per-set file kept the main set's in the condition's folder.)
-                        read_json(&set.join("wall.json"))
+                        WallTime::read(&set.join("wall.json"))
                             .or_else(|| {
-                                read_json(&dir.join("rollout_time.json")).filter(|_| *first == cfg.rollout_first_seed)
+                                WallTime::read(&dir.join("rollout_time.json"))
+                                    .filter(|_| *first == cfg.rollout_first_seed)
                             })
-                            .and_then(|t| t["wall_s"].as_f64())
+                            .map(|t| t.wall_s)
                     })
                     .sum()
             }),
-            inference_ms_p50: f(&rollouts, "inference_ms_p50"),
+            inference_ms_p50: rollouts.as_ref().map(|r| r.inference_ms_p50).filter(|v| v.is_finite()),
         });
     }
     let results = Results {

@@ -40,7 +40,7 @@ fn report_text(r: &RolloutReport) -> String {
         100.0 * r.held_after_first_chunk as f64 / r.steps_after_first_chunk.max(1) as f64,
         r.steps_after_first_chunk
     );
-    if let Some(who) = r.intervene {
+    if let Some(who) = &r.intervene {
         let _ = writeln!(
             s,
             "operator corrections ({who}): {} takeovers, {} operator steps; {} of {} successes without help",

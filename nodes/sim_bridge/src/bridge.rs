@@ -502,9 +502,6 @@ pub fn camera_info(t: Nanos, camera: &str, width: usize, height: usize, fovy_deg
     }
 }
 
-/// Renders every camera at the sim's time, then sends the frames and their camera_info back
-/// to back: a reader never sees one tick's frames from some cameras and the last tick's from
-/// others for longer than the sends take.
 /// `/sim/fault` (std_msgs/String, JSON): a fault the sim injects on request.
 #[derive(Debug, serde::Deserialize)]
 enum FaultRequest {
@@ -532,7 +529,9 @@ impl CameraOut {
             self.cameras.iter().map(|c| sim.model().cam_fovy()[sim.camera_id(c).expect("rig camera")]).collect();
     }
 
-    /// Renders every camera, then sends each frame and camera_info (stalled cameras: none).
+    /// Renders every camera at the sim's time, then sends the frames and their camera_info back
+    /// to back (stalled cameras: none): a reader never sees one tick's frames from some cameras
+    /// and the last tick's from others for longer than the sends take.
     fn send(&mut self, sim: &mut Sim, info: &[RosPublisher<CameraInfo>]) -> anyhow::Result<()> {
         let t = sim.time();
         for (camera, buf) in self.cameras.iter().zip(self.rgb.iter_mut()) {
