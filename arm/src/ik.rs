@@ -110,7 +110,7 @@ impl Default for IkConfig {
         IkConfig {
             damping: 0.01,
             nullspace_gain: 0.02,
-            rest: labrig_msgs::labrig_msgs::DROID_RESET_POSE,
+            rest: labrig_msgs::rig::DROID_RESET_POSE,
             limit_margin: 0.02,
             max_iterations: 12,
             tolerance_m: 1e-5,

@@ -22,7 +22,7 @@
 
 use crate::ik::{self, Ik};
 use crate::kinematics::{DOF, Joints};
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode};
 use labrig_msgs::{Invalid, Nanos};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};

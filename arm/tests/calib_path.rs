@@ -6,7 +6,7 @@ use labrig_arm::calib_path::{self, StartError};
 use labrig_arm::ik::{Ik, IkConfig};
 use labrig_arm::safety::{SafetyConfig, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, TcpOffset, urdf_path};
-use labrig_msgs::labrig_msgs::DROID_RESET_POSE;
+use labrig_msgs::rig::DROID_RESET_POSE;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 fn filter() -> SafetyFilter {

@@ -5,7 +5,7 @@ use labrig_arm::ik::{Ik, IkConfig};
 use labrig_arm::safety::{ArmView, Clip, Refusal, SafetyConfig, SafetyFilter, Watchdog};
 use labrig_arm::{Fr3Kinematics, TcpOffset, urdf_path};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
 use proptest::prelude::*;
 
 const NOW: i64 = 1_000_000_000_000;

@@ -471,7 +471,7 @@ impl Drop for Work {
 }
 
 fn cameras(arg: &str) -> anyhow::Result<Vec<&'static str>> {
-    let all = labrig_msgs::labrig_msgs::RIG_CAMERAS;
+    let all = labrig_msgs::rig::RIG_CAMERAS;
     if arg == "all" {
         return Ok(all.to_vec());
     }

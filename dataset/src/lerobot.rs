@@ -27,7 +27,7 @@ use arrow_array::{
     StringArray,
 };
 use arrow_schema::{DataType, Field};
-use labrig_msgs::labrig_msgs::Step;
+use labrig_msgs::rig::Step;
 use parquet::arrow::ArrowWriter;
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, HashMap};
@@ -884,9 +884,6 @@ fn labrig_columns(done: &[Exported]) -> [(Field, ArrayRef); 2] {
     ]
 }
 
-/// The data file of `episodes` (the first one numbered `first`): every numeric feature,
-/// timestamps on the grid, the indices. `list_type`: the `datasets` feature type of a vector
-/// (`List` in datasets 4, which LeRobot 0.4 uses; `Sequence` in datasets 3, LeRobot 0.3).
 /// v2.1's metadata: episodes.jsonl, episodes_stats.jsonl (min, max, mean, std, count per
 /// feature, as LeRobot 0.3 writes them), tasks.jsonl, info.json.
 #[allow(clippy::too_many_arguments)]
@@ -1011,6 +1008,9 @@ fn info_json(
     info
 }
 
+/// The data file of `episodes` (the first one numbered `first`): every numeric feature,
+/// timestamps on the grid, the indices. `list_type`: the `datasets` feature type of a vector
+/// (`List` in datasets 4, which LeRobot 0.4 uses; `Sequence` in datasets 3, LeRobot 0.3).
 fn write_data(
     path: &Path,
     episodes: &[Exported],

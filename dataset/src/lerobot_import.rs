@@ -41,7 +41,7 @@ use labrig_droid::import::{FrameSource, ImportOptions, StepFrame, next_step_fram
 use labrig_droid::video::Mp4Reader;
 use labrig_episode::metadata::EpisodeMetadata;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
+use labrig_msgs::rig::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
 use labrig_msgs::std_msgs::Header;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use serde_json::Value;
@@ -636,9 +636,10 @@ impl ColumnReader<'_> {
     }
 }
 
-/// The width of a column's first row (0: no column, or no rows).
+/// The width of a column's narrowest row (0: no column, or no rows): a ragged column is read
+/// only as wide as all its rows are (a row shorter than the first once panicked the import).
 fn width(v: &Option<Vec<Vec<f64>>>) -> usize {
-    v.as_ref().and_then(|v| v.first()).map_or(0, Vec::len)
+    v.as_ref().and_then(|v| v.iter().map(Vec::len).min()).unwrap_or(0)
 }
 
 /// An episode's columns as labrig's steps need them, from DROID's keys (the LeRobot DROID
@@ -1090,6 +1091,14 @@ fn import_one(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_ragged_column_is_as_wide_as_its_narrowest_row() {
+        assert_eq!(width(&None), 0);
+        assert_eq!(width(&Some(vec![])), 0);
+        assert_eq!(width(&Some(vec![vec![0.0; 8], vec![0.0; 4], vec![0.0; 8]])), 4);
+        assert_eq!(width(&Some(vec![vec![0.0; 8]; 3])), 8);
+    }
 
     #[test]
     fn templates_fill_as_python_formats_them() {

@@ -28,7 +28,7 @@ use labrig_arm::ik::{pose_from_xyz_euler, xyz_euler};
 use labrig_episode::metadata::EpisodeMetadata;
 use labrig_msgs::Invalid;
 use labrig_msgs::builtin_interfaces::Time;
-use labrig_msgs::labrig_msgs::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
+use labrig_msgs::rig::{ActionDict, CameraFrameRef, ControlTiming, RobotState, Step};
 use labrig_msgs::std_msgs::Header;
 use std::collections::BTreeMap;
 
@@ -105,7 +105,7 @@ pub fn cameras_of(steps: &[Step], meta: &EpisodeMetadata, intrinsics: &BTreeMap<
             }
         }
     }
-    let rank = |id: &str| labrig_msgs::labrig_msgs::RIG_CAMERAS.iter().position(|c| *c == id).unwrap_or(usize::MAX);
+    let rank = |id: &str| labrig_msgs::rig::RIG_CAMERAS.iter().position(|c| *c == id).unwrap_or(usize::MAX);
     ids.sort_by(|a, b| rank(a).cmp(&rank(b)).then(a.cmp(b)));
     ids.into_iter()
         .map(|id| Camera {
@@ -486,7 +486,7 @@ impl CameraColumns {
     fn in_rig_order(self) -> CameraColumns {
         let CameraColumns { cameras, frames, extrinsics, hand_offset } = self;
         let mut order: Vec<usize> = (0..cameras.len()).collect();
-        let rank = |id: &str| labrig_msgs::labrig_msgs::RIG_CAMERAS.iter().position(|c| *c == id).unwrap_or(usize::MAX);
+        let rank = |id: &str| labrig_msgs::rig::RIG_CAMERAS.iter().position(|c| *c == id).unwrap_or(usize::MAX);
         order.sort_by(|&a, &b| rank(&cameras[a].id).cmp(&rank(&cameras[b].id)).then(cameras[a].id.cmp(&cameras[b].id)));
         let cameras: Vec<Camera> = order.iter().map(|&i| cameras[i].clone()).collect();
         let frames: Vec<(Vec<i64>, Vec<i64>)> = order.iter().map(|&i| frames[i].clone()).collect();

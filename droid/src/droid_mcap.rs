@@ -33,7 +33,7 @@ use crate::{DroidError, bad, io, meta};
 use base64::Engine as _;
 use labrig_episode::metadata::{EpisodeMetadata, Outcome, episode_dir};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::TeleopState;
+use labrig_msgs::rig::TeleopState;
 use labrig_msgs::topics;
 use mcap::records::Record;
 use serde_json::{Map, Value, json};

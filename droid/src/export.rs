@@ -93,7 +93,7 @@ impl CameraOut {
 /// metadata, every step there).
 pub(crate) fn read_checked(
     source: &Path,
-) -> Result<(PathBuf, labrig_episode::EpisodeMetadata, Vec<labrig_msgs::labrig_msgs::Step>), DroidError> {
+) -> Result<(PathBuf, labrig_episode::EpisodeMetadata, Vec<labrig_msgs::rig::Step>), DroidError> {
     let data = read_episode(source)?;
     let file = data.file.clone();
     if !data.complete {
@@ -215,7 +215,7 @@ fn camera_videos(
     file: &Path,
     buf: &[u8],
     cameras: &[Camera],
-    refs: &[Vec<labrig_msgs::labrig_msgs::CameraFrameRef>],
+    refs: &[Vec<labrig_msgs::rig::CameraFrameRef>],
     seen: &mut Seen,
     paths: &[PathBuf],
     fps: u32,
@@ -254,7 +254,7 @@ fn camera_videos(
 pub struct StepVideos {
     pub file: PathBuf,
     pub metadata: labrig_episode::EpisodeMetadata,
-    pub steps: Vec<labrig_msgs::labrig_msgs::Step>,
+    pub steps: Vec<labrig_msgs::rig::Step>,
     /// The cameras in the rig's order, with the path of each one's video.
     pub cameras: Vec<(Camera, PathBuf)>,
     /// Frames per camera, and the steps that had no frame of their own (filled in).

@@ -16,7 +16,7 @@ use labrig_episode::bag::Reliability;
 use labrig_episode::episode::EpisodeWriter;
 use labrig_episode::metadata::{Outcome, episode_dir};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, TeleopState};
+use labrig_msgs::rig::{EpisodeEvent, EpisodeEventKind, TeleopState};
 use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::topics;
@@ -287,7 +287,7 @@ impl FrameSource for Mp4Frames {
 #[allow(clippy::too_many_arguments)]
 pub fn write_imported(
     meta: labrig_episode::metadata::EpisodeMetadata,
-    steps: &[labrig_msgs::labrig_msgs::Step],
+    steps: &[labrig_msgs::rig::Step],
     cameras: &[Camera],
     hand_offset: Option<[f64; 6]>,
     out_root: &Path,
@@ -316,7 +316,7 @@ pub fn write_imported(
 fn write_episode(
     dir: &Path,
     mut meta: labrig_episode::metadata::EpisodeMetadata,
-    steps: &[labrig_msgs::labrig_msgs::Step],
+    steps: &[labrig_msgs::rig::Step],
     cameras: &[Camera],
     hand_offset: Option<[f64; 6]>,
     frames: &mut dyn FrameSource,

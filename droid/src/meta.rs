@@ -11,7 +11,7 @@
 use chrono::{DateTime, NaiveDateTime, Utc};
 use labrig_episode::metadata::EpisodeMetadata;
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::Step;
+use labrig_msgs::rig::Step;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 

@@ -4,7 +4,7 @@
 //! DROID's metadata. Reads damaged (unfinished) files too, up to their damage.
 
 use crate::metadata::EpisodeMetadata;
-use labrig_msgs::labrig_msgs::Step;
+use labrig_msgs::rig::Step;
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::topics;
 use labrig_msgs::{TypeVisitor, visit_type};

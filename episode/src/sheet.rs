@@ -1,7 +1,7 @@
 //! An episode's contact sheet: one PNG, a row per moment (first, middle, last recorded frame),
 //! a column per camera (`labrig demo` writes one per episode; the operator station serves them).
 
-use labrig_msgs::labrig_msgs::RIG_CAMERAS;
+use labrig_msgs::rig::RIG_CAMERAS;
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::topics;
 use std::path::Path;

@@ -15,7 +15,7 @@ use labrig_episode::bag::Reliability;
 use labrig_episode::recover::recover;
 use labrig_episode::{EpisodeMetadata, EpisodeWriter, ReadError, RigIdentity, inspect, read_episode};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{CameraFrameRef, ControlTiming, RobotState, Step};
+use labrig_msgs::rig::{CameraFrameRef, ControlTiming, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
 use proptest::prelude::*;

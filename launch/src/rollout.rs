@@ -22,7 +22,7 @@ use crate::sim::{SIM_ROLLOUT, SimRig, contact_sheet, set_arg};
 use anyhow::{Context, bail};
 use clap::Args;
 use labrig_episode::progress;
-use labrig_msgs::labrig_msgs::{EpisodeEventKind, Step};
+use labrig_msgs::rig::{EpisodeEventKind, Step};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;

@@ -8,7 +8,7 @@
 //! where the endpoint is made (`labrig_runtime::ros::Ros::publisher_on(&topics::ARM_STATE, 10)`).
 //! Tools that learn topics at run time (`labrig topic echo`, the recorder) still take names.
 
-use crate::labrig_msgs::{
+use crate::rig::{
     ActionChunk, ArmCommand, EpisodeEvent, GripperCommand, GripperState, PolicyRequest, RobotState, Step, TeleopState,
 };
 use crate::rosgraph_msgs::Clock;

@@ -97,10 +97,10 @@ fn trailing_garbage_is_an_error_naming_the_type() {
 
 #[test]
 fn wrong_schema_version_is_refused_with_both_versions_named() {
-    let mut step = labrig_msgs::labrig_msgs::Step::default();
+    let mut step = labrig_msgs::rig::Step::default();
     step.version.0 = 2;
     let bytes = encode(&step).unwrap();
-    let err = decode::<labrig_msgs::labrig_msgs::Step>(&bytes).unwrap_err();
+    let err = decode::<labrig_msgs::rig::Step>(&bytes).unwrap_err();
     assert!(matches!(err, CodecError::Invalid { .. }));
     assert_eq!(
         err.to_string(),

@@ -12,7 +12,7 @@ use crate::policy::{ActionSpace, DiffusionConfig};
 // --schema labrig` writes), in labrig-arm so the dataset tools use the very same numbers.
 pub use labrig_arm::ik::{canonical_axis_angle, canonical_quaternion};
 use labrig_episode::{ReadError, read_episode};
-use labrig_msgs::labrig_msgs::{ActionDict, RobotState, Step};
+use labrig_msgs::rig::{ActionDict, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::topics::CAMERAS_PREFIX;
 use nalgebra::UnitQuaternion;

@@ -296,8 +296,7 @@ impl SampleSet {
         let mut offset = 0i64;
         for (e, ep) in episodes.iter().enumerate() {
             let keep = ep.len().saturating_sub(drop_last).max(1);
-            let operator: Vec<bool> =
-                ep.source.iter().map(|&s| labrig_msgs::labrig_msgs::Step::is_operator(s)).collect();
+            let operator: Vec<bool> = ep.source.iter().map(|&s| labrig_msgs::rig::Step::is_operator(s)).collect();
             let missed = if skip_missed {
                 crate::data::missed_grasps(&ep.state, &ep.action, crate::data::GRIPPER_COLUMN)
             } else {
@@ -1322,7 +1321,8 @@ impl Tally {
             step_s: 0.0,
             samples: 0,
             last_train: f64::NAN,
-            last_val: first_val,
+            // A resumed run's newest validation is its log's last (the first was the run's start).
+            last_val: log.iter().rev().find_map(|r| r.val).or(first_val),
             last_open_loop: log.iter().rev().find_map(|r| r.open_loop_mm),
             last_waypoint: log.iter().rev().find_map(|r| r.waypoint_mm),
             last_first_waypoint: log.iter().rev().find_map(|r| r.first_waypoint_mm),
@@ -1634,7 +1634,7 @@ fn concat(mut parts: Vec<Batch>) -> Batch {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_msgs::labrig_msgs::Step;
+    use labrig_msgs::rig::Step;
 
     #[test]
     fn the_learning_rate_warms_up_then_follows_a_cosine() {

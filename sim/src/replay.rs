@@ -17,7 +17,7 @@ use crate::scene::SceneSpec;
 use crate::{ArmTarget, Meshes, Sim, SimError};
 use labrig_arm::safety::{ArmView, SafetyFilter};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState, Step};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, RobotState, Step};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
 use serde::Serialize;
 use std::path::PathBuf;

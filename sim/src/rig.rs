@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 /// Where `scripts/setup.sh` puts the models, relative to the repository root.
 pub const DEFAULT_ASSETS: &str = ".labrig/mujoco/assets";
 
-/// The rig's five cameras (see [`labrig_msgs::labrig_msgs::RIG_CAMERAS`]).
-pub use labrig_msgs::labrig_msgs::RIG_CAMERAS as CAMERAS;
+/// The rig's five cameras (see [`labrig_msgs::rig::RIG_CAMERAS`]).
+pub use labrig_msgs::rig::RIG_CAMERAS as CAMERAS;
 
 /// The FR3's joints and position actuators (same names in the model).
 pub const ARM_JOINTS: [&str; 7] =
@@ -21,7 +21,7 @@ pub const GRIPPER_ACTUATOR: &str = "gripper_fingers_actuator";
 /// One of the 2F-85's driver joints (0 open .. ~0.8 rad closed).
 pub const GRIPPER_DRIVER_JOINT: &str = "gripper_right_driver_joint";
 
-pub use labrig_msgs::labrig_msgs::DROID_RESET_POSE as RESET_POSE;
+pub use labrig_msgs::rig::DROID_RESET_POSE as RESET_POSE;
 
 /// Why the rig model could not be composed.
 #[derive(Debug, thiserror::Error)]

@@ -5,7 +5,7 @@
 //! budget fails the episode and the loop exits once the arm is back at DROID's reset pose.
 
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, EpisodeEvent, RobotState, Step};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, EpisodeEvent, RobotState, Step};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_runtime::RosConfig;
 use labrig_runtime::frames::NAMESPACE_ENV;

@@ -6,7 +6,7 @@
 //! in /arm/state as faults while the node keeps running.
 
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, RobotState};
 use labrig_msgs::std_srvs::{Trigger, TriggerRequest};
 use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};
@@ -166,7 +166,7 @@ fn the_fci_backend_moves_franka_sims_fr3_along_commanded_paths() {
         );
 
         // To DROID's reset pose over 3 s, held for 1 s.
-        let reset = labrig_msgs::labrig_msgs::DROID_RESET_POSE;
+        let reset = labrig_msgs::rig::DROID_RESET_POSE;
         let here = rig.wait(10, "a reading", |_| true).await.joint_positions;
         let mut states = Vec::new();
         let way = |k: usize| -> [f64; 7] { std::array::from_fn(|i| here[i] + (reset[i] - here[i]) * (k as f64 / 60.0)) };
@@ -364,18 +364,14 @@ fn the_sim_backend_drives_the_sim_bridge_through_the_node() {
     rt().block_on(async move {
         let mut rig = Rig::new(domain).await;
         let clock = rig.ros.subscription::<labrig_msgs::rosgraph_msgs::Clock>("/clock", qos::reliable(10)).unwrap();
-        let gripper_cmd = rig
-            .ros
-            .publisher::<labrig_msgs::labrig_msgs::GripperCommand>("/sim/gripper/command", qos::reliable(10))
-            .unwrap();
-        let gripper_state = rig
-            .ros
-            .subscription::<labrig_msgs::labrig_msgs::GripperState>("/sim/gripper/state", qos::reliable(100))
-            .unwrap();
+        let gripper_cmd =
+            rig.ros.publisher::<labrig_msgs::rig::GripperCommand>("/sim/gripper/command", qos::reliable(10)).unwrap();
+        let gripper_state =
+            rig.ros.subscription::<labrig_msgs::rig::GripperState>("/sim/gripper/state", qos::reliable(100)).unwrap();
         let start = rig.wait(60, "a reading", |_| true).await.joint_positions;
         // The gripper closes (as the gripper node would ask the bridge).
         assert!(rig.ros.wait_for_subscribers("/sim/gripper/command", 1, Duration::from_secs(30)).await);
-        gripper_cmd.publish(labrig_msgs::labrig_msgs::GripperCommand { position: 1.0, ..Default::default() }).unwrap();
+        gripper_cmd.publish(labrig_msgs::rig::GripperCommand { position: 1.0, ..Default::default() }).unwrap();
 
         // Commands stamped on the sim clock, joint 1 +0.3 rad over 1 s.
         let mut sim_now = Nanos::ZERO;

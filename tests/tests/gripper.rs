@@ -4,7 +4,7 @@
 //! and a silent gripper reported in /gripper/state.
 
 use labrig_gripper::{Emulated2F85, EmulatorConfig};
-use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
+use labrig_msgs::rig::{GripperCommand, GripperState};
 use labrig_msgs::std_srvs::{Trigger, TriggerRequest};
 use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, RosSubscription, qos};

@@ -5,7 +5,7 @@
 //! tolerance of the recorded JPEGs, and the statistics labrig wrote equal what LeRobot computes
 //! from the same frames.
 
-use labrig_msgs::labrig_msgs::Step;
+use labrig_msgs::rig::Step;
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_tests::{cache_dir, domain_for, labrig_bin, lerobot_python, repo_root};
 use serde_json::Value;

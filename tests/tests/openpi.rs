@@ -269,9 +269,7 @@ fn openpis_server_drives_the_sim_rig_with_droid_joint_velocities() {
     let mut checked = 0;
     let mut moved = 0.0f64;
     // Steps that executed a row (the first had no frames to ask with: held, no chunk).
-    for s in
-        data.steps.iter().filter(|s| s.action_source == labrig_msgs::labrig_msgs::Step::SOURCE_POLICY && s.chunk_id > 0)
-    {
+    for s in data.steps.iter().filter(|s| s.action_source == labrig_msgs::rig::Step::SOURCE_POLICY && s.chunk_id > 0) {
         assert_eq!(s.policy_id, want_id);
         // Request ids count from 1; the server's log from 0.
         let req = &requests[s.chunk_id as usize - 1];

@@ -5,7 +5,7 @@
 //! giving the same chunk, a request missing its camera answered by nothing but the next good
 //! one still served, and a checkpoint needing a camera the rig lacks refused at start.
 
-use labrig_msgs::labrig_msgs::{ActionChunk, PolicyObservation, PolicyRequest};
+use labrig_msgs::rig::{ActionChunk, PolicyObservation, PolicyRequest};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;

@@ -6,7 +6,7 @@ use labrig_episode::bag::Reliability;
 use labrig_episode::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::TransformStamped;
-use labrig_msgs::labrig_msgs::{CameraFrameRef, RobotState, Step};
+use labrig_msgs::rig::{CameraFrameRef, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::tf2_msgs::TFMessage;
@@ -350,7 +350,7 @@ async fn recorder_says(
 /// files the episode in DROID's layout, and deletes a discarded one.
 #[test]
 fn the_recorder_node_records_the_sim_rig() {
-    use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+    use labrig_msgs::rig::{EpisodeEvent, EpisodeEventKind};
     use labrig_msgs::std_msgs::StringMsg;
     use labrig_runtime::ros::{Ros, qos};
     use std::time::{Duration, Instant};
@@ -386,7 +386,7 @@ fn the_recorder_node_records_the_sim_rig() {
             let has = |key: &str, want: &str| last["seen"][key].as_array().is_some_and(|a| a.iter().any(|x| x == want));
             if has("latched", "/sim/scene")
                 && has("latched", "/tf_static")
-                && labrig_msgs::labrig_msgs::RIG_CAMERAS.iter().all(|c| has("cameras", c))
+                && labrig_msgs::rig::RIG_CAMERAS.iter().all(|c| has("cameras", c))
             {
                 break;
             }
@@ -425,7 +425,7 @@ fn the_recorder_node_records_the_sim_rig() {
     let counts = &v["mcap"]["counts"];
     assert_eq!(counts["/rig/step"], 60, "{v}");
     assert_eq!(v["rosbags_dir"], *counts, "rosbags agrees: {v}");
-    for cam in labrig_msgs::labrig_msgs::RIG_CAMERAS {
+    for cam in labrig_msgs::rig::RIG_CAMERAS {
         let n = counts[format!("/cameras/{cam}/image/compressed")].as_u64().unwrap_or(0);
         assert!((45..=75).contains(&n), "camera {cam}: {n} frames in ~3 s at 20 Hz: {v}");
     }
@@ -568,7 +568,7 @@ fn a_dead_recorders_episode_is_recovered_and_filed_unjudged_on_restart() {
 /// the new scene's first frame.
 #[test]
 fn an_episode_holds_no_frame_of_the_scene_before_it() {
-    use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+    use labrig_msgs::rig::{EpisodeEvent, EpisodeEventKind};
     use labrig_msgs::std_msgs::StringMsg;
     use labrig_runtime::frames::{FrameEncoding, FrameFormat, FrameNode};
     use labrig_runtime::ros::{Ros, qos};

@@ -6,7 +6,7 @@
 //! counted, every step is recorded with the policy as its source, lockstep repeats itself,
 //! a dead server holds the arm and fails the episode, a mismatch is refused by name.
 
-use labrig_msgs::labrig_msgs::{ActionChunk, EpisodeEvent, EpisodeEventKind, PolicyRequest, Step};
+use labrig_msgs::rig::{ActionChunk, EpisodeEvent, EpisodeEventKind, PolicyRequest, Step};
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;
 use labrig_runtime::frames::NAMESPACE_ENV;

@@ -5,7 +5,7 @@
 //! real time the watchdog holds the arm when commands stop.
 
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE as RESET, RobotState};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, DROID_RESET_POSE as RESET, RobotState};
 use labrig_runtime::RosConfig;
 use labrig_runtime::frames::{FrameNode, NAMESPACE_ENV};
 use labrig_runtime::ros::{Ros, qos};

@@ -9,7 +9,7 @@
 //! - `labrig rollout --intervene expert`: the sim's scripted expert takes over by the loop's
 //!   rule from a policy that stalls, and hands back; the same accounting.
 
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, Step, TeleopState};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, Step, TeleopState};
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;
 use labrig_runtime::frames::NAMESPACE_ENV;

@@ -35,7 +35,7 @@ fn find_episode(root: &Path) -> Option<PathBuf> {
     None
 }
 
-fn tcp(s: &labrig_msgs::labrig_msgs::Step) -> [f64; 3] {
+fn tcp(s: &labrig_msgs::rig::Step) -> [f64; 3] {
     let c = s.robot_state.cartesian_position;
     [c[0], c[1], c[2]]
 }
@@ -137,7 +137,7 @@ fn a_recorded_controller_trace_drives_the_sim_rig() {
     assert_eq!(meta.task_instruction, "teleop square trace");
     let steps = ep.steps;
     assert!(steps.len() > 100, "{} steps", steps.len());
-    assert!(steps.iter().all(|s| s.action_source == labrig_msgs::labrig_msgs::Step::SOURCE_TELEOP));
+    assert!(steps.iter().all(|s| s.action_source == labrig_msgs::rig::Step::SOURCE_TELEOP));
 
     // The phases, from the recorded deadman: off, on (8 cm +x), off (controller moves 8 cm
     // +y), on (5 cm up).
@@ -239,7 +239,7 @@ fn last_stamp(dir: &Path, topic: &str) -> i64 {
     for m in mcap::MessageStream::new(&buf).unwrap() {
         let m = m.unwrap();
         if m.channel.topic == topic {
-            let a: labrig_msgs::labrig_msgs::ArmCommand = labrig_msgs::decode(&m.data).unwrap();
+            let a: labrig_msgs::rig::ArmCommand = labrig_msgs::decode(&m.data).unwrap();
             last = last.max(Nanos::from(a.header.stamp).0);
         }
     }
@@ -256,7 +256,7 @@ fn b_records_a_failure() {
     let (dir, ep) = rig.recorded();
     assert!(dir.starts_with(rig.root.join("failure")), "{}", dir.display());
     assert_eq!(ep.metadata.unwrap().success, Some(false));
-    let moving: Vec<&labrig_msgs::labrig_msgs::Step> = ep.steps.iter().filter(|s| s.movement_enabled).collect();
+    let moving: Vec<&labrig_msgs::rig::Step> = ep.steps.iter().filter(|s| s.movement_enabled).collect();
     let moved = sub(tcp(moving.last().unwrap()), tcp(moving[0]));
     eprintln!("fail trace: moved {moved:?}");
     let err = sub(moved, [0.0, -0.03, 0.0]).iter().map(|v| v * v).sum::<f64>().sqrt();

@@ -6,7 +6,7 @@
 use crate::info::EXECUTABLE;
 use labrig_arm::safety::SafetyConfig;
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::RIG_CAMERAS;
+use labrig_msgs::rig::RIG_CAMERAS;
 use labrig_runtime::RosConfig;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;

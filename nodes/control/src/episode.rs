@@ -3,7 +3,7 @@
 //! what the loop must do (start/stop the recorder, send the arm home) and refuses events that
 //! make no sense in the current state, naming both.
 
-use labrig_msgs::labrig_msgs::EpisodeEventKind;
+use labrig_msgs::rig::EpisodeEventKind;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum State {

@@ -3,7 +3,7 @@
 //! used: they were not there when the action was chosen), and the skew across cameras.
 
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::CameraFrameRef;
+use labrig_msgs::rig::CameraFrameRef;
 use std::collections::{BTreeMap, VecDeque};
 
 /// Frames kept per camera (a second at 30 Hz).

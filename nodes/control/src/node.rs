@@ -36,7 +36,7 @@ use labrig_arm::ik::{Ik, IkConfig};
 use labrig_arm::safety::SafetyFilter;
 use labrig_arm::{Fr3Kinematics, TcpOffset};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, EpisodeEvent, GripperCommand, GripperState, RobotState, Step};
+use labrig_msgs::rig::{ArmCommand, EpisodeEvent, GripperCommand, GripperState, RobotState, Step};
 use labrig_msgs::rosgraph_msgs::Clock;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;

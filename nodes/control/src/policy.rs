@@ -41,9 +41,7 @@ use crate::remote::{RemoteConfig, RemoteJob, RemoteReply};
 use crate::source::{ActionSource, Proposal, RgbFrame, SourceError, TickView, Verdict};
 use crate::step::ChunkRef;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{
-    ActionChunk, ArmCommand, ArmCommandMode, PolicyObservation, PolicyRequest, Step, TeleopState,
-};
+use labrig_msgs::rig::{ActionChunk, ArmCommand, ArmCommandMode, PolicyObservation, PolicyRequest, Step, TeleopState};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::topics;
@@ -86,7 +84,7 @@ pub struct PolicyStats {
 struct Obs {
     step_index: u64,
     tick_ns: i64,
-    robot: labrig_msgs::labrig_msgs::RobotState,
+    robot: labrig_msgs::rig::RobotState,
     images: Vec<(String, Arc<RgbFrame>)>,
 }
 
@@ -202,7 +200,7 @@ pub enum PolicyStartError {
     #[error(transparent)]
     RemoteThread(#[from] tokio::task::JoinError),
     #[error(transparent)]
-    Rtc(#[from] labrig_msgs::labrig_msgs::RtcBoundsError),
+    Rtc(#[from] labrig_msgs::rig::RtcBoundsError),
 }
 
 /// Real-time chunking's bounds for this policy, where the delay is known at start (lockstep,
@@ -218,7 +216,7 @@ fn check_rtc(cfg: &PolicySourceConfig, info: &PolicyInfo, clock: ClockKind) -> R
         (0, ClockKind::Wall) => return Ok(()),
         (d, _) => d,
     };
-    Ok(labrig_msgs::labrig_msgs::rtc_bounds(d, s, rows)?)
+    Ok(labrig_msgs::rig::rtc_bounds(d, s, rows)?)
 }
 
 impl PolicySource {

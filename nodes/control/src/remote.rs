@@ -18,7 +18,7 @@
 
 use crate::info::PolicyInfo;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
+use labrig_msgs::rig::{ActionChunk, PolicyRequest};
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_openpi::codec::{self, Value};
 use labrig_openpi::droid::{self, ActionConvention, ActionMode, DroidActionError};

@@ -3,7 +3,7 @@
 
 use labrig_arm::ik::{delta_to_velocity, pose_error, xyz_euler};
 use labrig_arm::{Fr3Kinematics, Joints};
-use labrig_msgs::labrig_msgs::{ActionDict, ArmCommand, ArmCommandMode, GripperState, RobotState};
+use labrig_msgs::rig::{ActionDict, ArmCommand, ArmCommandMode, GripperState, RobotState};
 use serde::Serialize;
 
 /// DROID's `max_gripper_delta`: a full-scale gripper velocity moves it this far per step.

@@ -24,7 +24,7 @@ use crate::step::{Decision, Observation, TickTimes, make_step};
 use labrig_arm::safety::{ArmView, Refusal, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, Joints};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{
+use labrig_msgs::rig::{
     ArmCommand, ArmCommandMode, DROID_RESET_POSE, EpisodeEvent, EpisodeEventKind, GripperCommand, GripperState,
     RobotState, Step,
 };

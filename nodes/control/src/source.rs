@@ -5,7 +5,7 @@
 
 use crate::step::ChunkRef;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, RobotState, Step, TeleopState};
+use labrig_msgs::rig::{ArmCommand, RobotState, Step, TeleopState};
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, RosError, RosSubscription};

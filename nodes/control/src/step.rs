@@ -4,7 +4,7 @@
 
 use crate::frames::TickFrames;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ActionDict, ControlTiming, GripperState, RobotState, Step};
+use labrig_msgs::rig::{ActionDict, ControlTiming, GripperState, RobotState, Step};
 use labrig_msgs::std_msgs::Header;
 
 /// Times of one tick (ns), in the order the loop takes them.

@@ -300,7 +300,7 @@ impl ActionSource for Takeover {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_msgs::labrig_msgs::{ArmCommand, Step};
+    use labrig_msgs::rig::{ArmCommand, Step};
 
     fn rule() -> ExpertRule {
         ExpertRule::new(&PolicySourceConfig::default())

@@ -9,7 +9,7 @@
 use clap::Args;
 use indicatif::ProgressBar;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode};
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;
 use serde_json::json;

@@ -7,7 +7,7 @@ use labrig_arm::ik::{self, Ik, IkConfig};
 use labrig_arm::safety::{ArmView, SafetyConfig, SafetyFilter};
 use labrig_arm::{Fr3Kinematics, TcpOffset};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, DROID_RESET_POSE};
 use nalgebra::Vector3;
 use serde_json::json;
 use std::path::PathBuf;

@@ -21,7 +21,7 @@ use labrig_arm::{Fr3Kinematics, Joints, TcpOffset};
 use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
-use labrig_msgs::labrig_msgs::{ArmCommand, RobotState};
+use labrig_msgs::rig::{ArmCommand, RobotState};
 use labrig_msgs::sensor_msgs::JointState;
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::std_srvs::TriggerResponse;

@@ -7,7 +7,7 @@
 
 use crate::backend::{ArmBackend, ArmReading, BackendError};
 use labrig_arm::Joints;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RobotState};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, RobotState};
 use labrig_msgs::topics;
 use labrig_runtime::Clock;
 use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};

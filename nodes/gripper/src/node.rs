@@ -13,7 +13,7 @@ use crate::emulator::{Emulated2F85, EmulatorConfig, PtyEmulator};
 use crate::registers::{Status, counts_to_droid, droid_to_counts, fault_meaning};
 use crate::sim::SimGripper;
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
+use labrig_msgs::rig::{GripperCommand, GripperState};
 use labrig_msgs::std_srvs::TriggerResponse;
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;

@@ -5,7 +5,7 @@
 
 use crate::driver::GripperError;
 use crate::registers::{Activation, Object, Status, counts_to_droid, droid_to_counts};
-use labrig_msgs::labrig_msgs::{GripperCommand, GripperState};
+use labrig_msgs::rig::{GripperCommand, GripperState};
 use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, RosError, RosPublisher, RosSubscription};
 use std::time::{Duration, Instant};

@@ -27,7 +27,7 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use labrig_launch::config::{LaunchConfig, OnFailure};
 use labrig_launch::supervise::Output;
-use labrig_msgs::labrig_msgs::EpisodeEventKind;
+use labrig_msgs::rig::EpisodeEventKind;
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;
 use labrig_runtime::{RosConfig, Shutdown};
@@ -444,7 +444,7 @@ async fn run_one(
         while let Some(s) = arm_state.try_take()? {
             if times.hit_at.is_some()
                 && times.arm_fault.is_none()
-                && s.msg.mode == labrig_msgs::labrig_msgs::RobotState::MODE_FAULT
+                && s.msg.mode == labrig_msgs::rig::RobotState::MODE_FAULT
             {
                 times.arm_fault = Some((Instant::now(), s.msg.fault.clone()));
             }

@@ -20,7 +20,7 @@ use anyhow::Context;
 use clap::Args;
 use labrig_episode::progress;
 use labrig_launch::rollout::{BlendArg, RolloutArgs, wilson95};
-use labrig_msgs::labrig_msgs::Step;
+use labrig_msgs::rig::Step;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -356,7 +356,7 @@ fn run_point(a: &LatencyArgs, p: &Point) -> anyhow::Result<PointResult> {
         trace: Vec::new(),
     };
     if p.mode == "rtc"
-        && let Err(e) = labrig_msgs::labrig_msgs::rtc_bounds(p.delay, p.execute, chunk_rows(ckpt)?)
+        && let Err(e) = labrig_msgs::rig::rtc_bounds(p.delay, p.execute, chunk_rows(ckpt)?)
     {
         r.infeasible = Some(e.to_string());
         return Ok(r);

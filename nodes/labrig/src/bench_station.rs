@@ -49,7 +49,7 @@ fn page_client(base: String, stop: Arc<AtomicBool>) -> Value {
     while !stop.load(Ordering::Relaxed) {
         let t = Instant::now();
         get("/api/status");
-        for c in labrig_msgs::labrig_msgs::RIG_CAMERAS {
+        for c in labrig_msgs::rig::RIG_CAMERAS {
             get(&format!("/api/cameras/{c}.jpg"));
         }
         if last_list.elapsed() > Duration::from_secs(3) {

@@ -27,7 +27,7 @@ use labrig_msgs::Nanos;
 use labrig_msgs::calibration::{
     BoardSpec, CAPTURE_VERSION, CaptureFile, CaptureTruth, CapturedView, Intrinsics, Mount, Pose,
 };
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, RIG_CAMERAS, RobotState};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, RIG_CAMERAS, RobotState};
 use labrig_msgs::sensor_msgs::CameraInfo;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::tf2_msgs::TFMessage;

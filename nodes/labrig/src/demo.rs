@@ -10,7 +10,7 @@ use clap::Args;
 use labrig_episode::progress;
 use labrig_launch::config::LaunchConfig;
 use labrig_launch::sim::{SIM_DEMO, SimRig, contact_sheet, set_arg};
-use labrig_msgs::labrig_msgs::EpisodeEventKind;
+use labrig_msgs::rig::EpisodeEventKind;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;

@@ -7,7 +7,7 @@
 
 use clap::{Args, ValueEnum};
 use labrig_launch::programs::RosArgs;
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+use labrig_msgs::rig::{EpisodeEvent, EpisodeEventKind};
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;
 use std::process::ExitCode;

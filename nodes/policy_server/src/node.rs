@@ -2,7 +2,7 @@
 
 use crate::serve::Server;
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest, RIG_CAMERAS};
+use labrig_msgs::rig::{ActionChunk, PolicyRequest, RIG_CAMERAS};
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;
 use labrig_runtime::{RosConfig, Shutdown};

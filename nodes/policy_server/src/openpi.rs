@@ -17,7 +17,7 @@ use crate::serve::{ServeError, Server};
 use labrig_arm::kinematics::Fr3Kinematics;
 use labrig_episode::jpeg::JpegError;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{PolicyObservation, PolicyRequest, RobotState};
+use labrig_msgs::rig::{PolicyObservation, PolicyRequest, RobotState};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
 use labrig_openpi::codec::{self, Array, CodecError, Value};

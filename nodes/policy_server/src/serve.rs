@@ -5,7 +5,7 @@
 //! the data.
 
 use crate::torchscript::TorchScriptSpec;
-use labrig_msgs::labrig_msgs::{ActionChunk, PolicyRequest};
+use labrig_msgs::rig::{ActionChunk, PolicyRequest};
 use labrig_msgs::std_msgs::Header;
 use labrig_policies::checkpoint::{self, CheckpointError, CheckpointMeta};
 use labrig_policies::data::{resize_rgb, scene_positions, state_of, state_row};
@@ -416,7 +416,7 @@ pub fn noise_seed(seed: u64, step: u64) -> i64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use labrig_msgs::labrig_msgs::{PolicyObservation, RobotState};
+    use labrig_msgs::rig::{PolicyObservation, RobotState};
     use labrig_msgs::sensor_msgs::CompressedImage;
     use labrig_policies::normalize::MinMax;
     use std::path::PathBuf;
@@ -544,7 +544,7 @@ mod tests {
     /// a checkpoint with `cfg`'s cameras and image size: `obs(t, grey)` (grey: every pixel 128).
     pub(super) fn episode_observations(
         cfg: &DiffusionConfig,
-    ) -> (Vec<labrig_msgs::labrig_msgs::Step>, impl Fn(usize, bool) -> PolicyObservation + use<>) {
+    ) -> (Vec<labrig_msgs::rig::Step>, impl Fn(usize, bool) -> PolicyObservation + use<>) {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
         let episode = root.join("tests/fixtures/episodes/pick_place_seed7");
         let steps = labrig_episode::read_episode(&episode).unwrap().steps;

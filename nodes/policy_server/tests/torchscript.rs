@@ -3,7 +3,7 @@
 //! `torch.jit.trace` of one small policy) loaded through tch's CModule: the same outputs as
 //! PyTorch's on the same inputs, and a spec that disagrees with the module is named.
 
-use labrig_msgs::labrig_msgs::{PolicyObservation, PolicyRequest, RobotState};
+use labrig_msgs::rig::{PolicyObservation, PolicyRequest, RobotState};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
 use labrig_policy_server::serve::Server;

@@ -7,7 +7,7 @@
 
 use clap::Args;
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::RobotState;
+use labrig_msgs::rig::RobotState;
 use labrig_msgs::topics;
 use labrig_runtime::ros::Ros;
 use serde_json::json;

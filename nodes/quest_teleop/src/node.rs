@@ -20,7 +20,7 @@ use crate::policy::{PolicyConfig, RobotView, VrPolicy};
 use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::{Point, Pose, Quaternion};
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode, EpisodeEvent, EpisodeEventKind, RobotState, TeleopState};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode, EpisodeEvent, EpisodeEventKind, RobotState, TeleopState};
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::topics;
 use labrig_runtime::ros::{Ros, RosPublisher, RosSubscription, qos};

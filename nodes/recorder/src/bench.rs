@@ -9,7 +9,7 @@ use clap::Args;
 use labrig_episode::bag::Reliability;
 use labrig_episode::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episode_dir};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{CameraFrameRef, RIG_CAMERAS, RobotState, Step};
+use labrig_msgs::rig::{CameraFrameRef, RIG_CAMERAS, RobotState, Step};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::topics;

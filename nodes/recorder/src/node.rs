@@ -33,7 +33,7 @@ use labrig_episode::bag::{BagInfo, Reliability};
 use labrig_episode::episode::{EpisodeError, EpisodeWriter, RawType};
 use labrig_episode::metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS};
+use labrig_msgs::rig::{EpisodeEvent, EpisodeEventKind, RIG_CAMERAS};
 use labrig_msgs::sensor_msgs::CompressedImage;
 use labrig_msgs::std_msgs::{Header, StringMsg};
 use labrig_msgs::tf2_msgs::TFMessage;
@@ -238,7 +238,7 @@ impl Episode {
 
     /// A step's `action_source`, for the takeover counts.
     fn count_source(&mut self, source: u8) {
-        use labrig_msgs::labrig_msgs::Step;
+        use labrig_msgs::rig::Step;
         let operator = Step::is_operator(source);
         self.takeovers += u64::from(operator && !self.operator_acting);
         self.operator_steps += u64::from(operator);
@@ -1247,7 +1247,7 @@ fn drain_topics(
                 // A policy's rollout: the checkpoint its steps executed goes into the metadata,
                 // and who acted each step into the takeover counts.
                 if r.spec.topic == topics::RIG_STEP.name
-                    && let Ok(step) = labrig_msgs::decode::<labrig_msgs::labrig_msgs::Step>(&cdr)
+                    && let Ok(step) = labrig_msgs::decode::<labrig_msgs::rig::Step>(&cdr)
                 {
                     ep.count_source(step.action_source);
                     if ep.writer.metadata().policy.is_none() && !step.policy_id.is_empty() {

@@ -38,7 +38,7 @@ use labrig_msgs::Invalid;
 use labrig_msgs::Nanos;
 use labrig_msgs::builtin_interfaces::Time;
 use labrig_msgs::geometry_msgs::{Quaternion, Transform, TransformStamped, Vector3 as RosVector3};
-use labrig_msgs::labrig_msgs::{ArmCommand, GripperCommand, GripperState, RobotState};
+use labrig_msgs::rig::{ArmCommand, GripperCommand, GripperState, RobotState};
 use labrig_msgs::rosgraph_msgs::Clock as ClockMsg;
 use labrig_msgs::sensor_msgs::{CameraInfo, JointState};
 use labrig_msgs::std_msgs::{Header, StringMsg};
@@ -1089,7 +1089,7 @@ impl ExpertPub {
         self.last_action = Some((act.cartesian_position, act.gripper_position));
         self.seq += 1;
         let mut cmd = ArmCommand {
-            mode: labrig_msgs::labrig_msgs::ArmCommandMode::CartesianPosition as u8,
+            mode: labrig_msgs::rig::ArmCommandMode::CartesianPosition as u8,
             cartesian_position: act.cartesian_position,
             gripper_position: act.gripper_position,
             seq: self.seq,

@@ -16,7 +16,7 @@ use labrig_msgs::Nanos;
 use labrig_msgs::calibration::{
     BoardSpec, CAPTURE_VERSION, CaptureFile, CaptureTruth, CapturedView, Intrinsics, Mount, Pose,
 };
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode};
 use labrig_sim::rig::{BOARD_BODY, Board, BoardMount, Extras};
 use labrig_sim::scene::{EXTERNAL_CAMERAS, SceneSpec, TABLE_CENTRE};
 use labrig_sim::{Meshes, Sim};

@@ -13,7 +13,7 @@
 
 use labrig_arm::safety::{ArmView, SafetyFilter, Watchdog};
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode};
 use labrig_sim::{ArmTarget, Sim, SimError};
 
 /// What the hardware last heard and did.

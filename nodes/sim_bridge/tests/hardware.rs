@@ -2,7 +2,7 @@
 //! no processes (the bridge's process-level behaviour is in tests/tests/sim_bridge.rs).
 
 use labrig_msgs::Nanos;
-use labrig_msgs::labrig_msgs::{ArmCommand, ArmCommandMode};
+use labrig_msgs::rig::{ArmCommand, ArmCommandMode};
 use labrig_sim::Sim;
 use labrig_sim_bridge::hardware::SimHardware;
 

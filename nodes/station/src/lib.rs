@@ -21,7 +21,7 @@ pub mod thumbs;
 pub mod web;
 
 use labrig_msgs::Invalid;
-use labrig_msgs::labrig_msgs::RIG_CAMERAS;
+use labrig_msgs::rig::RIG_CAMERAS;
 use labrig_runtime::{RosConfig, Shutdown};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

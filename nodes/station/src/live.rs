@@ -1,7 +1,7 @@
 //! The rig as the page sees it, kept up to date by the station's ROS side, and the operator's
 //! requests going out.
 
-use labrig_msgs::labrig_msgs::{EpisodeEvent, EpisodeEventKind};
+use labrig_msgs::rig::{EpisodeEvent, EpisodeEventKind};
 use labrig_msgs::session::Session;
 use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;

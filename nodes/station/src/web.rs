@@ -23,7 +23,7 @@ use axum::http::{HeaderMap, Method, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use labrig_msgs::labrig_msgs::EpisodeEventKind;
+use labrig_msgs::rig::EpisodeEventKind;
 use labrig_msgs::session::Session;
 use labrig_runtime::Shutdown;
 use serde_json::{Value, json};
@@ -336,7 +336,7 @@ async fn foxglove_ws(State(app): State<Shared>, ws: axum::extract::WebSocketUpgr
 /// The channels Foxglove is offered.
 fn hub_for(cfg: &StationConfig) -> crate::foxglove::Hub {
     use labrig_msgs::RosMessage;
-    use labrig_msgs::labrig_msgs::{EpisodeEvent, Step};
+    use labrig_msgs::rig::{EpisodeEvent, Step};
     use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage, JointState};
     use labrig_msgs::tf2_msgs::TFMessage;
     use labrig_msgs::{schema_text, topics};

@@ -1,4 +1,6 @@
-//! `labrig_msgs`: the project's own types.
+//! The rig's own types: the ROS 2 package `labrig_msgs` (`labrig_msgs/msg/Step`, ...), as
+//! `std_msgs` and `sensor_msgs` are the modules of theirs (here `labrig_msgs::rig`, not
+//! `labrig_msgs::labrig_msgs`).
 //!
 //! Every type starts with a `uint16 version` field holding its schema version, checked on
 //! decode: a file or peer of another schema gets an error naming the type and both versions
