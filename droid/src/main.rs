@@ -234,7 +234,7 @@ fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     let (mut export_rate, mut h5_rate, mut import_rate) = (Vec::new(), Vec::new(), Vec::new());
     let (mut mcap_export_rate, mut mcap_import_rate) = (Vec::new(), Vec::new());
     let mut first: Option<Exported> = None;
-    let pb = if a.json { ProgressBar::hidden() } else { ProgressBar::new(a.repeat as u64) };
+    let pb = labrig_episode::progress::bar("bench droid {bar:30} {pos}/{len} round trips", a.repeat as u64, a.json);
     for _ in 0..a.repeat {
         let e = export_episode(&a.episode, &tmp.join("droid"), &ExportOptions { overwrite: true })?;
         let i =

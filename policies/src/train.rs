@@ -551,12 +551,11 @@ pub fn load_set(
     progress: bool,
     what: &str,
 ) -> Result<(Vec<EpisodeTensors>, usize), TrainError> {
-    let bar = if progress { indicatif::ProgressBar::new(paths.len() as u64) } else { indicatif::ProgressBar::hidden() };
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{prefix} {bar:30} {pos}/{len} episodes ({elapsed}, ETA {eta})")
-            .expect("a valid template"),
+    let bar = labrig_episode::progress::bar(
+        &format!("decoding {what} {{bar:30}} {{pos}}/{{len}} episodes (ETA {{eta}})"),
+        paths.len() as u64,
+        !progress,
     );
-    bar.set_prefix(format!("decoding {what}"));
     let mut kept = Vec::new();
     let mut skipped = 0;
     for p in paths {
@@ -1389,11 +1388,7 @@ impl Training<'_> {
             (&self.opts.preset.train, &self.opts.preset.model, self.ranks.world, self.ranks.lead);
         let total = self.total;
         let progress = self.opts.progress && lead;
-        let bar = if progress { indicatif::ProgressBar::new(total) } else { indicatif::ProgressBar::hidden() };
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  ETA {eta}")
-                .expect("a valid template"),
-        );
+        let bar = labrig_episode::progress::bar("{bar:30} {pos}/{len} steps (ETA {eta})", total, !progress);
         bar.set_position(trainer.step);
         let mut tally = Tally::new(self.first_val, log);
         let mut rng =
