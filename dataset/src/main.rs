@@ -394,9 +394,11 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
                     bytes += r.first().map(|r| r.file_size).unwrap_or(0);
                     rows.extend(r);
                 }
-                Err(why) => {
-                    bad.push(serde_json::json!({"path": key, "format": f.format.name(), "reason": why.to_string()}))
-                }
+                Err(why) => bad.push(labrig_reports::BadSource {
+                    path: key,
+                    format: f.format.name().to_owned(),
+                    reason: why.to_string(),
+                }),
             }
         }
         bar.inc(1);
@@ -427,11 +429,20 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
     if a.json {
         println!(
             "{}",
-            serde_json::json!({"part": part, "shard": [i, n], "found": total, "in_shard": mine.len(),
-                "indexed": rows.len() - skipped, "unchanged": skipped, "bad": bad, "by_format": by_format,
-                "extrinsics_override": recalibration,
-                "seconds": seconds, "episodes_per_s": mine.len() as f64 / seconds.max(1e-9),
-                "mb_per_s": bytes as f64 / 1e6 / seconds.max(1e-9)})
+            serde_json::to_string(&labrig_reports::IndexReport {
+                part: part.clone(),
+                shard: [i, n],
+                found: total,
+                in_shard: mine.len(),
+                indexed: rows.len() - skipped,
+                unchanged: skipped,
+                bad: bad.clone(),
+                by_format: by_format.iter().map(|(k, v)| ((*k).to_owned(), *v)).collect(),
+                extrinsics_override: recalibration.clone(),
+                seconds,
+                episodes_per_s: mine.len() as f64 / seconds.max(1e-9),
+                mb_per_s: bytes as f64 / 1e6 / seconds.max(1e-9),
+            })?
         );
     } else {
         println!(
@@ -453,7 +464,7 @@ fn index(a: IndexArgs) -> anyhow::Result<ExitCode> {
             );
         }
         for b in &bad {
-            println!("    skipped {}: {}", b["path"].as_str().unwrap_or(""), b["reason"].as_str().unwrap_or(""));
+            println!("    skipped {}: {}", b.path, b.reason);
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -171,22 +171,9 @@ impl Target {
     }
 }
 
-/// One stage of the funnel.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Stage {
-    pub stage: String,
-    pub kept: usize,
-}
-
-/// A retrieved episode.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Retrieved {
-    pub id: String,
-    pub format: String,
-    pub path: String,
-    /// The rules it passed, in order.
-    pub passed: Vec<String>,
-}
+/// A rule and the episodes left after it; a retrieved episode (shared with the manifest's
+/// readers, `labrig experiment` among them).
+pub use labrig_reports::{Retrieved, Stage};
 
 /// The manifest `labrig dataset retrieve` writes and `labrig train --cotrain` reads.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

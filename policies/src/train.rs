@@ -464,64 +464,8 @@ pub struct RunOptions {
     pub dist: Option<std::sync::Arc<crate::dist::Group>>,
 }
 
-/// The figures of a run (also `run.json`).
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct RunReport {
-    pub steps: u64,
-    pub resumed_from: Option<u64>,
-    pub target_episodes: usize,
-    pub val_episodes: usize,
-    pub cotrain_episodes: usize,
-    pub skipped_unsuccessful: usize,
-    /// Episodes (target and co-training) in which an operator took over from a policy.
-    #[serde(default)]
-    pub correction_episodes: usize,
-    /// The training samples (windows) drawn from those.
-    #[serde(default)]
-    pub correction_samples: usize,
-    /// With `skip_missed_grasps`: missed grasps found in the training episodes, and the
-    /// windows left out for holding their mistake.
-    #[serde(default)]
-    pub missed_grasps: usize,
-    #[serde(default)]
-    pub mistake_windows: usize,
-    pub w: f64,
-    pub drawn_target: u64,
-    pub drawn_cotrain: u64,
-    pub first_val_loss: Option<f64>,
-    pub last_val_loss: Option<f64>,
-    /// The last validation's open-loop position error (mm; see [`Validation::open_loop_mm`]).
-    #[serde(default)]
-    pub last_open_loop_mm: Option<f64>,
-    /// The last validation's waypoint errors (mm; see [`Validation::waypoint_mm`]): held-out
-    /// samples, and the held-out episodes' first steps.
-    #[serde(default)]
-    pub last_waypoint_mm: Option<f64>,
-    #[serde(default)]
-    pub last_first_waypoint_mm: Option<f64>,
-    pub last_train_loss: f64,
-    pub samples_per_s: f64,
-    /// The share of a step's time spent assembling its batch.
-    pub loader_share: f64,
-    pub decode_s: f64,
-    pub threads: i32,
-    /// Data-parallel ranks (1: one process); `samples_per_s` counts all of them.
-    #[serde(default = "one")]
-    pub world_size: usize,
-    /// Data-parallel: the largest difference between a rank's final weights and rank 0's,
-    /// summed over the ranks (0 when they stayed in step, as they must).
-    #[serde(default)]
-    pub ranks_weight_diff: Option<f64>,
-    /// Data-parallel: the share of a step's time rank 0 spent in the gradients' all-reduce
-    /// (waiting for the slowest rank included).
-    #[serde(default)]
-    pub allreduce_share: Option<f64>,
-    pub checkpoint: PathBuf,
-}
-
-fn one() -> usize {
-    1
-}
+/// The figures of a run (also `run.json`), read back by `labrig experiment`.
+pub use labrig_reports::RunReport;
 
 /// diffusers' cosine schedule with linear warm-up: the learning rate's factor at `step`.
 pub fn lr_factor(step: usize, warmup: usize, total: usize) -> f64 {

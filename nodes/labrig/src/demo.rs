@@ -157,11 +157,15 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     if args.json {
         let episodes: Vec<_> =
             reports.iter().map(|(dir, i, sheet)| json!({ "dir": dir, "contact_sheet": sheet, "inspect": i })).collect();
-        println!(
-            "{}",
-            json!({ "episodes": episodes, "recorded": reports.len(), "successes": successes, "root": root, "ok": ok,
-                    "errors": problems })
-        );
+        let report = labrig_reports::DemoReport {
+            episodes,
+            recorded: reports.len(),
+            successes,
+            root: root.clone(),
+            ok,
+            errors: problems.clone(),
+        };
+        println!("{}", serde_json::to_string(&report)?);
     } else {
         println!(
             "labrig demo: {} of {} episodes recorded ({} successful) under {}",

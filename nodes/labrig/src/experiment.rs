@@ -19,6 +19,7 @@ use anyhow::{Context, bail, ensure};
 use clap::{Args, Subcommand};
 use labrig_episode::progress;
 use labrig_launch::rollout::{RolloutReport, wilson95};
+use labrig_reports::{DemoReport, IndexReport, ManifestEpisodes, RunReport};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeSet;
@@ -367,7 +368,8 @@ fn write_json(path: &Path, v: &impl Serialize) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn read_json(path: &Path) -> Option<Value> {
+/// A stage's report as the type its writer wrote (labrig-reports, or labrig-launch's rollouts).
+fn read_typed<T: serde::de::DeserializeOwned>(path: &Path) -> Option<T> {
     serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
 
@@ -483,11 +485,11 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
                 &log,
                 quiet,
             )?;
-            let r: Value = serde_json::from_str(report.trim()).context("[index]: the index's report")?;
+            let r: IndexReport = serde_json::from_str(report.trim()).context("[index]: the index's report")?;
             say(format!(
                 "[index] the prior data: {} episodes ({} unreadable) in {}",
-                r["in_shard"],
-                r["bad"].as_array().map_or(0, Vec::len),
+                r.in_shard,
+                r.bad.len(),
                 minutes(t.elapsed().as_secs_f64())
             ));
         }
@@ -529,13 +531,8 @@ fn record_data(run: &Run) -> anyhow::Result<()> {
     let mut todo = Vec::new();
     for (d, target) in std::iter::once((&cfg.target, true)).chain(cfg.prior.iter().map(|d| (d, false))) {
         let dir = layout.data(&d.name, target);
-        if let Some(r) = read_json(&dir.join("demo.json")) {
-            say(format!(
-                "[data] {}: recorded earlier ({} episodes, {} successful)",
-                d.name,
-                r["recorded"].as_u64().unwrap_or(0),
-                r["successes"].as_u64().unwrap_or(0)
-            ));
+        if let Some(r) = read_typed::<DemoReport>(&dir.join("demo.json")) {
+            say(format!("[data] {}: recorded earlier ({} episodes, {} successful)", d.name, r.recorded, r.successes));
             continue;
         }
         if dir.exists() {
@@ -602,14 +599,14 @@ fn record_set(run: &Run, d: &DataSpec, target: bool, scene: &str, domain: u16, n
         &layout.log(&format!("data_{}", d.name)),
         true,
     )?;
-    let r: Value = serde_json::from_str(report.trim()).with_context(|| format!("{stage}: the demo's report"))?;
-    ensure!(r["ok"] == true, "{stage}: the demo reported errors: {}", r["errors"]);
+    let r: DemoReport = serde_json::from_str(report.trim()).with_context(|| format!("{stage}: the demo's report"))?;
+    ensure!(r.ok, "{stage}: the demo reported errors: {}", r.errors.join("; "));
     write_json(&dir.join("demo.json"), &r)?;
     say(format!(
         "[data] {}: {} episodes ({} successful) of {} seeds {}.. in {}",
         d.name,
-        r["recorded"].as_u64().unwrap_or(0),
-        r["successes"].as_u64().unwrap_or(0),
+        r.recorded,
+        r.successes,
         Path::new(&d.scene).file_name().map_or(d.scene.clone(), |f| f.to_string_lossy().into_owned()),
         d.first_seed,
         minutes(t.elapsed().as_secs_f64())
@@ -658,14 +655,9 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
             run_stage(&format!("[retrieve] {}", c.name), &a, &[], &layout.log(&format!("{}_retrieve", c.name)), quiet)?;
             std::fs::rename(dir.join("manifest.json.part"), &manifest)?;
         }
-        let m = read_json(&manifest).with_context(|| format!("{}", manifest.display()))?;
-        let funnel: Vec<String> = m["funnel"]
-            .as_array()
-            .into_iter()
-            .flatten()
-            .map(|s| format!("{} {}", s["stage"].as_str().unwrap_or("?"), s["kept"]))
-            .collect();
-        let kept = m["episodes"].as_array().map_or(0, Vec::len);
+        let m: ManifestEpisodes = read_typed(&manifest).with_context(|| format!("{}", manifest.display()))?;
+        let funnel: Vec<String> = m.funnel.iter().map(|s| format!("{} {}", s.stage, s.kept)).collect();
+        let kept = m.episodes.len();
         say(format!("[retrieve] {}: {kept} episodes ({})", c.name, funnel.join(" -> ")));
         if kept == 0 {
             say(format!("[retrieve] {}: nothing retrieved; the condition is not trained", c.name));
@@ -675,7 +667,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
     };
     // Training: the same recipe and steps for every condition; resumed from its last checkpoint.
     let run_dir = dir.join("run");
-    let done = read_json(&run_dir.join("run.json")).is_some_and(|r| r["steps"].as_u64() == Some(cfg.steps));
+    let done = read_typed::<RunReport>(&run_dir.join("run.json")).is_some_and(|r| r.steps == cfg.steps);
     let stage = format!("[train] {}", c.name);
     if done {
         say(format!("{stage}: trained earlier ({} steps)", cfg.steps));
@@ -715,16 +707,16 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
         let result = run_stage(&stage, &a, &[], &layout.log(&format!("{}_train", c.name)), quiet);
         let wall = add_wall(&dir.join("train_time.json"), t.elapsed().as_secs_f64())?;
         result?;
-        let r = read_json(&run_dir.join("run.json")).context("the training wrote no run.json")?;
+        let r: RunReport = read_typed(&run_dir.join("run.json")).context("the training wrote no run.json")?;
         say(format!(
             "{stage}: {} steps{} in {} (target {} + co-training {} episodes, {:.0} samples/s, validation loss {:.4})",
             cfg.steps,
             if resumed { " (resumed)" } else { "" },
             minutes(wall),
-            r["target_episodes"],
-            r["cotrain_episodes"],
-            r["samples_per_s"].as_f64().unwrap_or(f64::NAN),
-            r["last_val_loss"].as_f64().unwrap_or(f64::NAN),
+            r.target_episodes,
+            r.cotrain_episodes,
+            r.samples_per_s,
+            r.last_val_loss.unwrap_or(f64::NAN),
         ));
     }
     // Rollouts on the target's seeds, set by set; a set cut off runs again.
@@ -852,14 +844,13 @@ pub struct Results {
 
 /// Builds the table and the figure from whatever the run has (and writes them).
 fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyhow::Result<Results> {
-    let demo = |d: &DataSpec, target: bool| read_json(&layout.data(&d.name, target).join("demo.json"));
-    let prior_episodes: Option<u64> =
-        cfg.prior.iter().map(|d| demo(d, false).and_then(|r| r["recorded"].as_u64())).sum();
+    let demo = |d: &DataSpec, target: bool| read_typed::<DemoReport>(&layout.data(&d.name, target).join("demo.json"));
+    let prior_episodes: Option<u64> = cfg.prior.iter().map(|d| demo(d, false).map(|r| r.recorded as u64)).sum();
     let mut rows = Vec::new();
     for c in &cfg.condition {
         let dir = layout.condition(&c.name);
-        let manifest = read_json(&dir.join("manifest.json"));
-        let run = read_json(&dir.join("run/run.json")).filter(|r| r["steps"].as_u64() == Some(cfg.steps));
+        let manifest = read_typed::<ManifestEpisodes>(&dir.join("manifest.json"));
+        let run = read_typed::<RunReport>(&dir.join("run/run.json")).filter(|r| r.steps == cfg.steps);
         let sets: Vec<(u64, RolloutReport)> = cfg
             .seed_sets()
             .into_iter()
@@ -872,14 +863,9 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
         let succeeded: u64 = by_seed_set.iter().map(|(_, k)| k).sum();
         let all_sets = sets.len() == cfg.seed_sets().len();
         let rollouts = sets.first().map(|(_, r)| r.clone());
-        let funnel: Vec<(String, u64)> = manifest
-            .as_ref()
-            .and_then(|m| m["funnel"].as_array().cloned())
-            .unwrap_or_default()
-            .iter()
-            .map(|s| (s["stage"].as_str().unwrap_or("?").to_owned(), s["kept"].as_u64().unwrap_or(0)))
-            .collect();
-        let retrieved = manifest.as_ref().and_then(|m| m["episodes"].as_array().map(|e| e.len() as u64));
+        let funnel: Vec<(String, u64)> =
+            manifest.iter().flat_map(|m| &m.funnel).map(|s| (s.stage.clone(), s.kept as u64)).collect();
+        let retrieved = manifest.as_ref().map(|m| m.episodes.len() as u64);
         let cotrain_given = if c.all {
             prior_episodes
         } else if c.align.is_empty() {
@@ -895,8 +881,6 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             (None, _, Some(_)) => "retrieved",
             _ => "pending",
         };
-        let u = |v: &Option<Value>, k: &str| v.as_ref().and_then(|v| v[k].as_u64());
-        let f = |v: &Option<Value>, k: &str| v.as_ref().and_then(|v| v[k].as_f64());
         rows.push(ConditionResult {
             name: c.name.clone(),
             about: c.about.clone(),
@@ -905,16 +889,16 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             status: status.to_owned(),
             funnel,
             cotrain_given,
-            target_episodes: u(&run, "target_episodes"),
-            val_episodes: u(&run, "val_episodes"),
-            cotrain_episodes: u(&run, "cotrain_episodes"),
-            drawn_target: u(&run, "drawn_target"),
-            drawn_cotrain: u(&run, "drawn_cotrain"),
-            steps: u(&run, "steps"),
+            target_episodes: run.as_ref().map(|r| r.target_episodes as u64),
+            val_episodes: run.as_ref().map(|r| r.val_episodes as u64),
+            cotrain_episodes: run.as_ref().map(|r| r.cotrain_episodes as u64),
+            drawn_target: run.as_ref().map(|r| r.drawn_target),
+            drawn_cotrain: run.as_ref().map(|r| r.drawn_cotrain),
+            steps: run.as_ref().map(|r| r.steps),
             train_wall_s: run.as_ref().and_then(|_| WallTime::read(&dir.join("train_time.json"))).map(|t| t.wall_s),
-            samples_per_s: f(&run, "samples_per_s"),
-            last_val_loss: f(&run, "last_val_loss"),
-            open_loop_mm: f(&run, "last_open_loop_mm"),
+            samples_per_s: run.as_ref().map(|r| r.samples_per_s),
+            last_val_loss: run.as_ref().and_then(|r| r.last_val_loss),
+            open_loop_mm: run.as_ref().and_then(|r| r.last_open_loop_mm),
             successes: rollouts.as_ref().map(|_| succeeded),
             rollouts: rollouts.as_ref().map(|_| judged),
             ci95: rollouts.as_ref().map(|_| wilson95(succeeded, judged)),
@@ -940,7 +924,7 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
         experiment: cfg.name.clone(),
         out: layout.out.clone(),
         target: cfg.target.clone(),
-        target_successful: demo(&cfg.target, true).and_then(|r| r["successes"].as_u64()),
+        target_successful: demo(&cfg.target, true).map(|r| r.successes as u64),
         prior: cfg.prior.clone(),
         prior_episodes,
         preset: resolve_preset(&cfg.preset, config_dir),
