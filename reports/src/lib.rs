@@ -34,6 +34,7 @@ pub struct RunReport {
     pub missed_grasps: usize,
     #[serde(default)]
     pub mistake_windows: usize,
+    #[serde(deserialize_with = "nan_if_null")]
     pub w: f64,
     pub drawn_target: u64,
     pub drawn_cotrain: u64,
@@ -48,10 +49,14 @@ pub struct RunReport {
     pub last_waypoint_mm: Option<f64>,
     #[serde(default)]
     pub last_first_waypoint_mm: Option<f64>,
+    #[serde(deserialize_with = "nan_if_null")]
     pub last_train_loss: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub samples_per_s: f64,
     /// The share of a step's time spent assembling its batch.
+    #[serde(deserialize_with = "nan_if_null")]
     pub loader_share: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub decode_s: f64,
     pub threads: i32,
     /// Data-parallel ranks (1: one process); `samples_per_s` counts all of them.
@@ -70,6 +75,12 @@ pub struct RunReport {
 
 fn one() -> usize {
     1
+}
+
+/// A figure JSON wrote as `null` (serde_json writes NaN so: a run resumed at its length trained
+/// no step, so it has no throughput) read back as NaN.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 /// One rule of a retrieval and the episodes left after it.
@@ -151,6 +162,15 @@ mod tests {
             "checkpoint": "run/checkpoints/step_4"}"#;
         let r: RunReport = serde_json::from_str(old).unwrap();
         assert_eq!((r.steps, r.world_size, r.last_open_loop_mm), (4, 1, None));
+        // A run resumed at its length trained nothing: its NaN figures are JSON nulls.
+        let mut again = serde_json::to_value(&r).unwrap();
+        again["samples_per_s"] = serde_json::Value::Null;
+        let back: RunReport = serde_json::from_value(again).unwrap();
+        assert!(back.samples_per_s.is_nan());
+        let nan = RunReport { loader_share: f64::NAN, ..back };
+        assert!(
+            serde_json::from_str::<RunReport>(&serde_json::to_string(&nan).unwrap()).unwrap().loader_share.is_nan()
+        );
     }
 
     #[test]
