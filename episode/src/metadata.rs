@@ -42,6 +42,16 @@ pub struct RigIdentity {
     pub camera_serials: BTreeMap<String, String>,
 }
 
+impl RigIdentity {
+    /// The rig's camera serials (the launch config's `rig.devices.camera_serials`) for the
+    /// cameras this identity does not name; a serial named here is kept.
+    pub fn fill_camera_serials(&mut self, rig: &BTreeMap<String, String>) {
+        for (camera, serial) in rig {
+            self.camera_serials.entry(camera.clone()).or_insert_with(|| serial.clone());
+        }
+    }
+}
+
 impl Default for RigIdentity {
     fn default() -> Self {
         RigIdentity {

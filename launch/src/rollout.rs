@@ -27,7 +27,7 @@ use labrig_msgs::std_msgs::StringMsg;
 use labrig_msgs::topics;
 use labrig_runtime::RosConfig;
 use labrig_runtime::ros::{Ros, qos};
-use serde::{Deserialize, Deserializer, Serialize};
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -257,9 +257,9 @@ pub struct RolloutReport {
     pub success_rate: f64,
     /// Wilson score interval, 95%.
     pub ci95: [f64; 2],
-    #[serde(deserialize_with = "nan_if_null")]
+    #[serde(deserialize_with = "labrig_reports::nan_if_null")]
     pub inference_ms_p50: f64,
-    #[serde(deserialize_with = "nan_if_null")]
+    #[serde(deserialize_with = "labrig_reports::nan_if_null")]
     pub inference_ms_p99: f64,
     pub chunks: u64,
     pub held_steps: u64,
@@ -573,14 +573,9 @@ fn summarise(
     }
 }
 
-/// A figure JSON wrote as `null` (serde_json writes NaN so: no chunk was timed) read back as NaN.
-fn nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
-}
-
 /// A run's `rollouts.json`, when it can be read.
 pub fn read_report(path: &Path) -> Option<RolloutReport> {
-    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+    labrig_reports::read(path)
 }
 
 /// "k of n rollouts succeeded (p%, 95% CI lo-hi%)".

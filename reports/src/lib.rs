@@ -77,9 +77,15 @@ fn one() -> usize {
     1
 }
 
+/// A report file read as its type; `None` when it is missing or not that report.
+pub fn read<T: serde::de::DeserializeOwned>(path: &std::path::Path) -> Option<T> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
 /// A figure JSON wrote as `null` (serde_json writes NaN so: a run resumed at its length trained
-/// no step, so it has no throughput) read back as NaN.
-fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+/// no step, so it has no throughput; a rollout timed no chunk) read back as NaN. For
+/// `#[serde(deserialize_with = "labrig_reports::nan_if_null")]`.
+pub fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 

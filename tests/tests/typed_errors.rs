@@ -38,6 +38,33 @@ fn library_files(dir: &Path, top: bool, out: &mut Vec<PathBuf>) {
     }
 }
 
+/// One character of a literal or comment as blank (newlines kept, so lines still count).
+fn blank(out: &mut String, ch: char) {
+    out.push(if ch == '\n' { '\n' } else { ' ' });
+}
+
+/// A string or char literal opening at `c[i]` with `quote`, blanked through its closing quote
+/// (escapes skipped); returns where the code goes on.
+fn blank_quoted(c: &[char], mut i: usize, quote: char, out: &mut String) -> usize {
+    blank(out, quote);
+    i += 1;
+    while i < c.len() && c[i] != quote {
+        if c[i] == '\\' {
+            blank(out, c[i]);
+            i += 1;
+        }
+        if i < c.len() {
+            blank(out, c[i]);
+            i += 1;
+        }
+    }
+    if i < c.len() {
+        blank(out, quote);
+        i += 1;
+    }
+    i
+}
+
 /// `src` with comments, string and char literals blanked (newlines kept, so lines still count),
 /// and nothing from a line `#[cfg(test)]` on.
 fn code_of(src: &str) -> String {
@@ -53,7 +80,6 @@ fn code_of(src: &str) -> String {
     let c: Vec<char> = src[..end].chars().collect();
     let word = |ch: char| ch.is_alphanumeric() || ch == '_';
     let mut out = String::with_capacity(c.len());
-    let blank = |out: &mut String, ch: char| out.push(if ch == '\n' { '\n' } else { ' ' });
     let mut i = 0;
     while i < c.len() {
         match c[i] {
@@ -105,42 +131,10 @@ fn code_of(src: &str) -> String {
                 }
                 i = stop;
             }
-            '"' => {
-                blank(&mut out, '"');
-                i += 1;
-                while i < c.len() && c[i] != '"' {
-                    if c[i] == '\\' {
-                        blank(&mut out, c[i]);
-                        i += 1;
-                    }
-                    if i < c.len() {
-                        blank(&mut out, c[i]);
-                        i += 1;
-                    }
-                }
-                if i < c.len() {
-                    blank(&mut out, '"');
-                    i += 1;
-                }
-            }
+            '"' => i = blank_quoted(&c, i, '"', &mut out),
             // A char literal ('x', '\n', '\u{..}'), not a lifetime ('a).
             '\'' if c.get(i + 1) == Some(&'\\') || c.get(i + 2) == Some(&'\'') => {
-                blank(&mut out, '\'');
-                i += 1;
-                while i < c.len() && c[i] != '\'' {
-                    if c[i] == '\\' {
-                        blank(&mut out, c[i]);
-                        i += 1;
-                    }
-                    if i < c.len() {
-                        blank(&mut out, c[i]);
-                        i += 1;
-                    }
-                }
-                if i < c.len() {
-                    blank(&mut out, '\'');
-                    i += 1;
-                }
+                i = blank_quoted(&c, i, '\'', &mut out)
             }
             ch => {
                 out.push(ch);

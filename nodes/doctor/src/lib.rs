@@ -712,9 +712,7 @@ fn episode_metadata(id: &RigIdentity, devices: &labrig_launch::config::Devices, 
     const PART: &str = "episode metadata";
     // The recorder takes the serials its config does not name from the launcher, as here.
     let mut id = id.clone();
-    for (camera, serial) in &devices.camera_serials {
-        id.camera_serials.entry(camera.clone()).or_insert_with(|| serial.clone());
-    }
+    id.fill_camera_serials(&devices.camera_serials);
     let id = &id;
     let wrong: Vec<String> = devices
         .camera_serials

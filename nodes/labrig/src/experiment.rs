@@ -368,11 +368,6 @@ fn write_json(path: &Path, v: &impl Serialize) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A stage's report as the type its writer wrote (labrig-reports, or labrig-launch's rollouts).
-fn read_typed<T: serde::de::DeserializeOwned>(path: &Path) -> Option<T> {
-    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
-}
-
 /// Runs `labrig <args>` with its stderr in `log`; returns its stdout. A failure names the
 /// stage, the exit status, the log and its last lines.
 fn run_stage(stage: &str, args: &[String], env: &[(&str, String)], log: &Path, quiet: bool) -> anyhow::Result<String> {
@@ -420,15 +415,9 @@ struct WallTime {
     sittings: u64,
 }
 
-impl WallTime {
-    fn read(path: &Path) -> Option<WallTime> {
-        serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
-    }
-}
-
 /// Adds `seconds` to the wall time kept in `path` (a stage run in several sittings).
 fn add_wall(path: &Path, seconds: f64) -> anyhow::Result<f64> {
-    let kept = WallTime::read(path).unwrap_or_default();
+    let kept = labrig_reports::read::<WallTime>(path).unwrap_or_default();
     let wall = WallTime { wall_s: kept.wall_s + seconds, sittings: kept.sittings + 1 };
     write_json(path, &wall)?;
     Ok(wall.wall_s)
@@ -531,7 +520,7 @@ fn record_data(run: &Run) -> anyhow::Result<()> {
     let mut todo = Vec::new();
     for (d, target) in std::iter::once((&cfg.target, true)).chain(cfg.prior.iter().map(|d| (d, false))) {
         let dir = layout.data(&d.name, target);
-        if let Some(r) = read_typed::<DemoReport>(&dir.join("demo.json")) {
+        if let Some(r) = labrig_reports::read::<DemoReport>(&dir.join("demo.json")) {
             say(format!("[data] {}: recorded earlier ({} episodes, {} successful)", d.name, r.recorded, r.successes));
             continue;
         }
@@ -655,7 +644,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
             run_stage(&format!("[retrieve] {}", c.name), &a, &[], &layout.log(&format!("{}_retrieve", c.name)), quiet)?;
             std::fs::rename(dir.join("manifest.json.part"), &manifest)?;
         }
-        let m: ManifestEpisodes = read_typed(&manifest).with_context(|| format!("{}", manifest.display()))?;
+        let m: ManifestEpisodes = labrig_reports::read(&manifest).with_context(|| format!("{}", manifest.display()))?;
         let funnel: Vec<String> = m.funnel.iter().map(|s| format!("{} {}", s.stage, s.kept)).collect();
         let kept = m.episodes.len();
         say(format!("[retrieve] {}: {kept} episodes ({})", c.name, funnel.join(" -> ")));
@@ -667,7 +656,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
     };
     // Training: the same recipe and steps for every condition; resumed from its last checkpoint.
     let run_dir = dir.join("run");
-    let done = read_typed::<RunReport>(&run_dir.join("run.json")).is_some_and(|r| r.steps == cfg.steps);
+    let done = labrig_reports::read::<RunReport>(&run_dir.join("run.json")).is_some_and(|r| r.steps == cfg.steps);
     let stage = format!("[train] {}", c.name);
     if done {
         say(format!("{stage}: trained earlier ({} steps)", cfg.steps));
@@ -707,7 +696,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
         let result = run_stage(&stage, &a, &[], &layout.log(&format!("{}_train", c.name)), quiet);
         let wall = add_wall(&dir.join("train_time.json"), t.elapsed().as_secs_f64())?;
         result?;
-        let r: RunReport = read_typed(&run_dir.join("run.json")).context("the training wrote no run.json")?;
+        let r: RunReport = labrig_reports::read(&run_dir.join("run.json")).context("the training wrote no run.json")?;
         say(format!(
             "{stage}: {} steps{} in {} (target {} + co-training {} episodes, {:.0} samples/s, validation loss {:.4})",
             cfg.steps,
@@ -844,13 +833,15 @@ pub struct Results {
 
 /// Builds the table and the figure from whatever the run has (and writes them).
 fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyhow::Result<Results> {
-    let demo = |d: &DataSpec, target: bool| read_typed::<DemoReport>(&layout.data(&d.name, target).join("demo.json"));
+    let demo = |d: &DataSpec, target: bool| {
+        labrig_reports::read::<DemoReport>(&layout.data(&d.name, target).join("demo.json"))
+    };
     let prior_episodes: Option<u64> = cfg.prior.iter().map(|d| demo(d, false).map(|r| r.recorded as u64)).sum();
     let mut rows = Vec::new();
     for c in &cfg.condition {
         let dir = layout.condition(&c.name);
-        let manifest = read_typed::<ManifestEpisodes>(&dir.join("manifest.json"));
-        let run = read_typed::<RunReport>(&dir.join("run/run.json")).filter(|r| r.steps == cfg.steps);
+        let manifest = labrig_reports::read::<ManifestEpisodes>(&dir.join("manifest.json"));
+        let run = labrig_reports::read::<RunReport>(&dir.join("run/run.json")).filter(|r| r.steps == cfg.steps);
         let sets: Vec<(u64, RolloutReport)> = cfg
             .seed_sets()
             .into_iter()
@@ -895,7 +886,10 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
             drawn_target: run.as_ref().map(|r| r.drawn_target),
             drawn_cotrain: run.as_ref().map(|r| r.drawn_cotrain),
             steps: run.as_ref().map(|r| r.steps),
-            train_wall_s: run.as_ref().and_then(|_| WallTime::read(&dir.join("train_time.json"))).map(|t| t.wall_s),
+            train_wall_s: run
+                .as_ref()
+                .and_then(|_| labrig_reports::read::<WallTime>(&dir.join("train_time.json")))
+                .map(|t| t.wall_s),
             samples_per_s: run.as_ref().map(|r| r.samples_per_s),
             last_val_loss: run.as_ref().and_then(|r| r.last_val_loss),
             open_loop_mm: run.as_ref().and_then(|r| r.last_open_loop_mm),
@@ -908,9 +902,9 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
                     .filter_map(|(first, _)| {
                         let set = dir.join(cfg.rollouts_dir(*first));
                         // (Runs before the per-set file kept the main set's in the condition's folder.)
-                        WallTime::read(&set.join("wall.json"))
+                        labrig_reports::read::<WallTime>(&set.join("wall.json"))
                             .or_else(|| {
-                                WallTime::read(&dir.join("rollout_time.json"))
+                                labrig_reports::read::<WallTime>(&dir.join("rollout_time.json"))
                                     .filter(|_| *first == cfg.rollout_first_seed)
                             })
                             .map(|t| t.wall_s)

@@ -371,9 +371,7 @@ pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<
     // launcher; a serial in this config's [rig.camera_serials] is its own (the doctor checks
     // that the two agree).
     if let Some(devices) = labrig_runtime::devices::Devices::from_launcher()? {
-        for (camera, serial) in devices.camera_serials {
-            cfg.rig.camera_serials.entry(camera).or_insert(serial);
-        }
+        cfg.rig.fill_camera_serials(&devices.camera_serials);
     }
     // Frames first: a restarted recorder takes them again as soon as it can (shared memory
     // keeps none for a subscriber that is not there).
