@@ -35,6 +35,10 @@ if [ -n "${LABRIG_CI_MTIMES:-}" ] && command -v python3 >/dev/null; then python3
 echo "== lint"
 cargo fmt --all --check
 cargo clippy --workspace --all-targets --locked -q -- -D warnings
+# CI (.ci/run) deletes the units of the persistent target dir that no build of this tree uses.
+if [ -n "${LABRIG_CI_MTIMES:-}" ] && command -v python3 >/dev/null; then
+    python3 scripts/prune_target.py record && python3 scripts/prune_target.py prune
+fi
 
 if ! wait "$peers_pid"; then
     cat "$peers_log" >&2
