@@ -308,6 +308,9 @@ tool_venv droid "h5py, pyarrow, mcap" h5py==3.16.0 pyarrow==26.0.1 mcap==1.6.0
 # PyPI wheel carries it inside pyrealsense2, which the node runs in a child process (the
 # extension cannot be loaded into a non-Python process). numpy: the tests' synthetic recordings.
 tool_venv realsense "pyrealsense2, numpy" pyrealsense2==2.59.1.11053 numpy==2.4.6
+# OpenCV's own Python package: the peer the ZED rectification is checked against (issue 57:
+# stereoRectify, initUndistortRectifyMap, remap, and the checkerboard corners of the results).
+tool_venv opencv "cv2, numpy" opencv-python-headless==4.14.0.94 numpy==2.4.6
 # openpi's own websocket client and server (issue 33): the real peers of labrig's openpi
 # protocol (`--source remote`, `labrig policy run --openpi`). openpi-client imports
 # typing_extensions without declaring it; the rest pinned as resolved 2026-11-29.
@@ -416,6 +419,7 @@ export LABRIG_LIBTORCH=\"$TORCH_DIR/torch\"
 export LABRIG_FRANKA_SIM_PYTHON=\"$FS_VENV/bin/python\"
 export FR3_MJCF=\"$FS_MJCF\"
 export LABRIG_READERS_PYTHON=\"$LABRIG_CACHE/venv-readers/bin/python\"
+export LABRIG_OPENCV_PYTHON=\"$LABRIG_CACHE/venv-opencv/bin/python\"
 export LABRIG_DROID_PYTHON=\"$LABRIG_CACHE/venv-droid/bin/python\"
 export LABRIG_REALSENSE_PYTHON=\"$LABRIG_CACHE/venv-realsense/bin/python\"
 export LABRIG_OPENPI_PYTHON=\"$LABRIG_CACHE/venv-openpi/bin/python\"

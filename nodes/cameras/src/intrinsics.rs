@@ -22,7 +22,11 @@ pub enum IntrinsicsError {
     )]
     NotAZedSize { width: u32, height: u32 },
     #[error("{path}: [{section}] has no `{key}`")]
-    MissingKey { path: String, section: String, key: &'static str },
+    MissingKey { path: String, section: String, key: String },
+    #[error(
+        "{width}x{height} cannot be rectified: the factory file rectifies the ZED's own resolutions only (per eye: 2208x1242, 1920x1080, 1280x720, 672x376)"
+    )]
+    NotRectifiable { width: u32, height: u32 },
 }
 
 /// A labrig intrinsics file: JSON or TOML with [`Intrinsics`]' fields (`source` = `file` when
@@ -143,13 +147,7 @@ impl ZedCalibration {
         };
         let section_name = format!("{}{name}", eye.section_prefix());
         let s = self.section(&section_name)?;
-        let get = |key: &'static str| {
-            s.get(key).copied().ok_or_else(|| IntrinsicsError::MissingKey {
-                path: self.path.clone(),
-                section: section_name.clone(),
-                key,
-            })
-        };
+        let get = |key: &str| self.value(&section_name, key);
         let native = Intrinsics {
             width: w,
             height: h,
@@ -165,11 +163,16 @@ impl ZedCalibration {
 
     /// The stereo baseline in metres (`[STEREO] Baseline`, in mm in the file).
     pub fn baseline_m(&self) -> Result<f64, IntrinsicsError> {
-        let s = self.section("STEREO")?;
-        s.get("baseline").map(|b| b / 1000.0).ok_or_else(|| IntrinsicsError::MissingKey {
+        Ok(self.value("STEREO", "baseline")? / 1000.0)
+    }
+
+    /// One key of one section (keys are case-insensitive); missing: named.
+    pub fn value(&self, section: &str, key: &str) -> Result<f64, IntrinsicsError> {
+        let key = key.to_ascii_lowercase();
+        self.section(section)?.get(&key).copied().ok_or_else(|| IntrinsicsError::MissingKey {
             path: self.path.clone(),
-            section: "STEREO".into(),
-            key: "baseline",
+            section: section.to_owned(),
+            key,
         })
     }
 }

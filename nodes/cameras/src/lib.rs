@@ -8,6 +8,7 @@
 pub mod convert;
 pub mod intrinsics;
 pub mod node;
+pub mod rectify;
 pub mod source;
 pub mod v4l2;
 
@@ -72,6 +73,19 @@ pub enum CamerasTools {
         #[arg(long)]
         json: bool,
     },
+    /// Rectifies a ZED side-by-side image (PNG, both eyes) with its factory file, as the node
+    /// does each frame: writes left.png, right.png and rectification.json (each eye's K, R and
+    /// P as camera_info carries them) into --out.
+    Rectify {
+        /// The camera's factory calibration, SN<serial>.conf.
+        #[arg(long)]
+        intrinsics: std::path::PathBuf,
+        /// A side-by-side RGB or grey PNG (two eyes of a ZED resolution).
+        #[arg(long)]
+        input: std::path::PathBuf,
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
 }
 
 impl CamerasTools {
@@ -100,6 +114,10 @@ impl CamerasTools {
                         }
                     }
                 }
+                Ok(std::process::ExitCode::SUCCESS)
+            }
+            CamerasTools::Rectify { intrinsics, input, out } => {
+                rectify::rectify_png(&intrinsics, &input, &out)?;
                 Ok(std::process::ExitCode::SUCCESS)
             }
         }
