@@ -9,6 +9,11 @@
       into OUT/cv_left.png and OUT/cv_right.png, and writes OUT/cv.json: each eye's K (P's left
       3x3), R and P (ROS's convention: the right eye's Tx = -fx * baseline, m), and each rectified
       pixel's source position (to leave the image's border out of comparisons).
+  zed_rectify.py compare DIR
+      compares labrig's DIR/left.png and DIR/right.png with OpenCV's (DIR/cv_*.png, rendered
+      there); pixels whose source lies within a pixel of the raw image's border are left out;
+      prints JSON per eye: pixels compared, the share within 1 grey level (every channel), the
+      largest difference.
   zed_rectify.py corners LEFT RIGHT
       finds the checkerboard's corners in two rectified images; prints JSON with the mean and
       max vertical disparity between matching corners.
@@ -92,6 +97,8 @@ def render(conf, width, height, out):
     right = render_eye(kr, dr, r.T, r.T @ t, width, height)
     raw = np.concatenate([left, right], axis=1)
     cv2.imwrite(str(out / "raw.png"), cv2.cvtColor(raw, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(out / "raw_left.png"), cv2.cvtColor(left, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(out / "raw_right.png"), cv2.cvtColor(right, cv2.COLOR_RGB2BGR))
 
     size = (width, height)
     # Stereolabs' call (zed-open-capture calibration.hpp): T = [Baseline, TY, TZ] in mm.
@@ -103,12 +110,26 @@ def render(conf, width, height, out):
         mx, my = cv2.initUndistortRectifyMap(k, d, rr, p, size, cv2.CV_32FC1)
         rect = cv2.remap(img, mx, my, cv2.INTER_LINEAR)
         cv2.imwrite(str(out / f"cv_{name}.png"), cv2.cvtColor(rect, cv2.COLOR_RGB2BGR))
-        np.save(out / f"cv_{name}_map.npy", np.stack([mx, my]))
+        inside = (mx >= 1) & (my >= 1) & (mx <= width - 2) & (my <= height - 2)
+        cv2.imwrite(str(out / f"cv_{name}_inside.png"), inside.astype(np.uint8) * 255)
         # ROS: P of the right eye carries Tx = -fx' * B (m); OpenCV's here is +fx' * B (mm).
         p_ros = p.copy()
         p_ros[0, 3] = -abs(p[0, 3]) / 1000.0
         result[name] = {"k": p[:, :3].ravel().tolist(), "r": rr.ravel().tolist(), "p": p_ros.ravel().tolist()}
     (out / "cv.json").write_text(json.dumps(result, indent=1))
+
+
+def compare(d):
+    d = Path(d)
+    result = {}
+    for name in ("left", "right"):
+        ours = cv2.imread(str(d / f"{name}.png")).astype(np.int32)
+        theirs = cv2.imread(str(d / f"cv_{name}.png")).astype(np.int32)
+        inside = cv2.imread(str(d / f"cv_{name}_inside.png"), cv2.IMREAD_GRAYSCALE) > 0
+        diff = np.abs(ours - theirs).max(axis=2)[inside]
+        result[name] = {"pixels": int(diff.size), "within_1": float((diff <= 1).mean()),
+                        "max_diff": int(diff.max()), "exact": float((diff == 0).mean())}
+    print(json.dumps(result))
 
 
 def corners(left, right):
@@ -131,6 +152,8 @@ def corners(left, right):
 if __name__ == "__main__":
     if sys.argv[1] == "render":
         render(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5])
+    elif sys.argv[1] == "compare":
+        compare(sys.argv[2])
     elif sys.argv[1] == "corners":
         corners(sys.argv[2], sys.argv[3])
     else:

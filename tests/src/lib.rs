@@ -380,10 +380,16 @@ pub fn read_episode_with_python(dir: &std::path::Path) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).expect("read_episode.py prints JSON")
 }
 
-/// Runs `tests/peers/<script> <arg>` with the Python of a setup venv (`env` overrides it).
-fn peer_script(env: &str, venv: &str, script: &str, arg: &std::path::Path) -> std::process::Output {
+/// The Python of a setup venv (`env` overrides it); a missing one fails, naming setup.
+pub fn peer_python(env: &str, venv: &str) -> PathBuf {
     let python = std::env::var_os(env).map(PathBuf::from).unwrap_or_else(|| cache_dir().join(venv).join("bin/python"));
     assert!(python.exists(), "the venv {} is missing: run `bash scripts/setup.sh`", python.display());
+    python
+}
+
+/// Runs `tests/peers/<script> <arg>` with the Python of a setup venv (`env` overrides it).
+fn peer_script(env: &str, venv: &str, script: &str, arg: &std::path::Path) -> std::process::Output {
+    let python = peer_python(env, venv);
     std::process::Command::new(&python)
         .arg(repo_root().join("tests/peers").join(script))
         .arg(arg)
