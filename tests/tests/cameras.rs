@@ -242,8 +242,16 @@ fn a_missing_calibration_file_or_source_is_refused_naming_the_camera() {
     );
     assert!(err.contains("camera wrist: ") && err.contains("calib/SN404.conf"), "{err}");
     // A device by a serial no camera here has (this machine has no V4L2 device at all).
-    let err = refused("[cameras.wrist]\nsource = \"zed:SN42\"\nwidth = 1280\nheight = 720\n");
+    let err = refused("[cameras.wrist]\nsource = \"zed:SN42\"\nwidth = 1280\nheight = 720\nrectify = false\n");
     assert!(err.contains("camera wrist: no Zed camera with serial SN42 (V4L2 capture devices: "), "{err}");
+    // A ZED is rectified unless told otherwise: without its factory file it is refused.
+    let err = refused("[cameras.wrist]\nsource = \"zed:SN42\"\nwidth = 1280\nheight = 720\n");
+    assert!(
+        err.contains("`cameras.wrist.rectify` is on (the default for a ZED)")
+            && err.contains("needs the camera's factory file as `intrinsics` (SN<serial>.conf)")
+            && err.contains("rectify = false"),
+        "{err}"
+    );
 
     let o = Command::new(&cams).args(["run", "--camera", "ext1=/no/such/video.mp4"]).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);

@@ -241,7 +241,9 @@ fn the_doctor_passes_a_ready_rig_and_names_each_broken_part_with_its_fix() {
     let with_ext3 = |source: &'static str, rig_serial: &'static str| {
         move |name: &str, t: String| match name {
             "cameras.toml" => {
-                format!("{t}[cameras.ext3]\nsource = \"{source}\"\nwidth = 1280\nheight = 720\nfps = 60\n")
+                format!(
+                    "{t}[cameras.ext3]\nsource = \"{source}\"\nwidth = 1280\nheight = 720\nfps = 60\nrectify = false\n"
+                )
             }
             "rig.toml" if !rig_serial.is_empty() => t.replace(
                 "[rig.devices.camera_serials]\n",

@@ -27,7 +27,11 @@ fn peer(args: &[&str]) -> Value {
         String::from_utf8_lossy(&out.stderr)
     );
     let text = String::from_utf8_lossy(&out.stdout);
-    if text.trim().is_empty() { Value::Null } else { serde_json::from_str(text.trim()).expect("JSON from zed_rectify.py") }
+    if text.trim().is_empty() {
+        Value::Null
+    } else {
+        serde_json::from_str(text.trim()).expect("JSON from zed_rectify.py")
+    }
 }
 
 fn rectify_with_labrig(dir: &Path) -> Value {
@@ -64,7 +68,10 @@ fn labrig_rectifies_a_zed_frame_as_opencv_does() {
                 let (a, b) = (numbers(&ours[eye][key]), numbers(&theirs[eye][key]));
                 assert_eq!(a.len(), b.len(), "{w}x{h} {eye} {key}");
                 for (i, (x, y)) in a.iter().zip(&b).enumerate() {
-                    assert!((x - y).abs() <= 1e-6 * y.abs().max(1.0), "{w}x{h} {eye} {key}[{i}]: labrig {x}, OpenCV {y}");
+                    assert!(
+                        (x - y).abs() <= 1e-6 * y.abs().max(1.0),
+                        "{w}x{h} {eye} {key}[{i}]: labrig {x}, OpenCV {y}"
+                    );
                 }
             }
             assert!(numbers(&ours[eye]["d"]).iter().all(|&d| d == 0.0), "{eye}: a rectified image has no distortion");
@@ -80,17 +87,26 @@ fn labrig_rectifies_a_zed_frame_as_opencv_does() {
             let pixels = c["pixels"].as_u64().unwrap();
             assert!(pixels as f64 > 0.95 * f64::from(w * h), "{w}x{h} {eye}: only {pixels} pixels compared");
             let within = c["within_1"].as_f64().unwrap();
-            assert!(within >= 0.99, "{w}x{h} {eye}: {:.4}% within 1 grey level of OpenCV's (max diff {})", within * 100.0, c["max_diff"]);
+            assert!(
+                within >= 0.99,
+                "{w}x{h} {eye}: {:.4}% within 1 grey level of OpenCV's (max diff {})",
+                within * 100.0,
+                c["max_diff"]
+            );
         }
 
         // Rows are epipolar lines: the checkerboard's corners, found by OpenCV in labrig's left
         // and right images, lie on the same rows; in the raw pair they do not.
         let rect = peer(&["corners", dir.join("left.png").to_str().unwrap(), dir.join("right.png").to_str().unwrap()]);
-        let raw = peer(&["corners", dir.join("raw_left.png").to_str().unwrap(), dir.join("raw_right.png").to_str().unwrap()]);
+        let raw =
+            peer(&["corners", dir.join("raw_left.png").to_str().unwrap(), dir.join("raw_right.png").to_str().unwrap()]);
         let (dy, dy_raw) = (rect["mean_dy"].as_f64().unwrap(), raw["mean_dy"].as_f64().unwrap());
         assert_eq!(rect["corners"].as_u64(), Some(54), "{rect}");
         assert!(dy < 0.1, "{w}x{h}: rectified corners {dy:.3} px apart vertically (goal: under 0.1)");
-        assert!(dy_raw > 1.0, "{w}x{h}: the raw pair's corners are only {dy_raw:.3} px apart: the test scene shows nothing");
+        assert!(
+            dy_raw > 1.0,
+            "{w}x{h}: the raw pair's corners are only {dy_raw:.3} px apart: the test scene shows nothing"
+        );
         eprintln!("{w}x{h}: vertical disparity {dy:.4} px rectified, {dy_raw:.2} px raw; {cmp}");
     }
 }

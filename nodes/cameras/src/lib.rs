@@ -73,6 +73,27 @@ pub enum CamerasTools {
         #[arg(long)]
         json: bool,
     },
+    /// ZED rectification's cost: the remap alone and the whole per-frame path (a side-by-side
+    /// YUYV frame -> the eye's RGB -> rectified) on synthetic frames, per frame p50/p99, and
+    /// the share of one core `--zeds` cameras at `--fps` take.
+    BenchRectify {
+        /// A factory file (default: the test fixture's values).
+        #[arg(long)]
+        intrinsics: Option<std::path::PathBuf>,
+        /// One eye's width x height: a ZED resolution.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        #[arg(long, default_value_t = 300)]
+        frames: usize,
+        #[arg(long, default_value_t = 3)]
+        zeds: u32,
+        #[arg(long, default_value_t = 30.0)]
+        fps: f64,
+        #[arg(long)]
+        json: bool,
+    },
     /// Rectifies a ZED side-by-side image (PNG, both eyes) with its factory file, as the node
     /// does each frame: writes left.png, right.png and rectification.json (each eye's K, R and
     /// P as camera_info carries them) into --out.
@@ -114,6 +135,10 @@ impl CamerasTools {
                         }
                     }
                 }
+                Ok(std::process::ExitCode::SUCCESS)
+            }
+            CamerasTools::BenchRectify { intrinsics, width, height, frames, zeds, fps, json } => {
+                rectify::bench(rectify::BenchArgs { intrinsics, width, height, frames, zeds, fps, json })?;
                 Ok(std::process::ExitCode::SUCCESS)
             }
             CamerasTools::Rectify { intrinsics, input, out } => {

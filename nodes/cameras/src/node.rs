@@ -15,6 +15,7 @@
 
 use crate::convert::{ConvertError, preview_jpeg, to_rgb};
 use crate::intrinsics::{Eye, Intrinsics, IntrinsicsError, ZedCalibration};
+use crate::rectify::EyeRectifier;
 use crate::source::{
     DeviceKind, FfmpegSource, MjpegSource, RealSenseSource, Source, SourceError, SourceSpec, Timeouts,
 };
@@ -106,6 +107,12 @@ pub struct CameraConfig {
     /// Which eye of a side-by-side frame is published (DROID records the left).
     #[serde(default)]
     pub eye: Eye,
+    /// Rectify a ZED's frames from its factory file (`intrinsics = "SN<serial>.conf"`), as the
+    /// ZED SDK does for DROID: undistorted, both eyes' rows aligned, camera_info with the
+    /// rectified K, zero distortion and the stereo R and P. Default: true for ZED sources;
+    /// false publishes the raw eye with the factory (distorted) intrinsics.
+    #[serde(default)]
+    pub rectify: Option<bool>,
     /// A ZED factory file (`SN<serial>.conf`), a labrig intrinsics file (.json/.toml), or the
     /// values inline; scaled to width x height. None: camera_info carries a zero matrix
     /// (uncalibrated, the ROS convention).
@@ -129,6 +136,13 @@ pub struct CameraConfig {
     /// (`depth16`: uint16 millimetres, 0 = no depth).
     #[serde(default)]
     pub depth: bool,
+}
+
+impl CameraConfig {
+    /// Whether this camera's frames are rectified (`rectify`, default: a ZED's are).
+    pub fn rectifies(&self, spec: &SourceSpec) -> bool {
+        self.rectify.unwrap_or(matches!(spec, SourceSpec::Device { kind: DeviceKind::Zed, .. }))
+    }
 }
 
 fn default_fps() -> f64 {
@@ -155,6 +169,7 @@ impl CameraConfig {
             fps: default_fps(),
             side_by_side: None,
             eye: Eye::Left,
+            rectify: None,
             intrinsics: None,
             extrinsics: None,
             loop_file: true,
@@ -221,6 +236,29 @@ impl CamerasConfig {
                     &key("intrinsics"),
                     format!("are set but camera {id} has no width x height to scale them to"),
                 );
+            }
+            if c.rectifies(&spec) {
+                let why = if c.side_by_side == Some(false) {
+                    Some("needs the side-by-side frame (side_by_side = false)".to_owned())
+                } else if !matches!(&c.intrinsics, Some(IntrinsicsSpec::File(p)) if p.extension().is_some_and(|e| e == "conf"))
+                {
+                    Some("needs the camera's factory file as `intrinsics` (SN<serial>.conf)".to_owned())
+                } else if !crate::intrinsics::ZED_RESOLUTIONS.iter().any(|(_, w, h)| (*w, *h) == (c.width, c.height)) {
+                    Some(format!(
+                        "needs one of the ZED's own sizes per eye (2208x1242, 1920x1080, 1280x720, 672x376), not {}x{}",
+                        c.width, c.height
+                    ))
+                } else {
+                    None
+                };
+                if let Some(why) = why {
+                    return bad(
+                        &key("rectify"),
+                        format!(
+                            "is on (the default for a ZED): camera {id}'s rectification {why}; or set rectify = false to publish the raw eye"
+                        ),
+                    );
+                }
             }
             if c.jpeg_passthrough {
                 let mjpeg = match &spec {
@@ -300,6 +338,8 @@ pub struct Camera {
     pub config: CameraConfig,
     pub side_by_side: Option<Eye>,
     pub intrinsics: Option<Intrinsics>,
+    /// A rectified ZED eye: its remap table (computed once here) and camera_info.
+    pub rectifier: Option<std::sync::Arc<EyeRectifier>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -327,6 +367,20 @@ impl Camera {
         }
         let sbs = c.side_by_side.unwrap_or_else(|| spec.side_by_side_default());
         let intr = |source| CameraError::Intrinsics { camera: id.into(), source };
+        if c.rectifies(&spec)
+            && let Some(IntrinsicsSpec::File(p)) = &c.intrinsics
+        {
+            let zed = ZedCalibration::load(p).map_err(intr)?;
+            let r = EyeRectifier::new(&zed, c.eye, c.width, c.height).map_err(intr)?;
+            return Ok(Camera {
+                id: id.to_owned(),
+                spec,
+                config: c.clone(),
+                side_by_side: Some(c.eye),
+                intrinsics: Some(r.intrinsics()),
+                rectifier: Some(std::sync::Arc::new(r)),
+            });
+        }
         let intrinsics = match &c.intrinsics {
             None => None,
             Some(IntrinsicsSpec::Inline(i)) => {
@@ -343,7 +397,14 @@ impl Camera {
                 Some(crate::intrinsics::load(p).and_then(|i| Ok(i.scaled(c.width, c.height)?)).map_err(intr)?)
             }
         };
-        Ok(Camera { id: id.to_owned(), spec, config: c.clone(), side_by_side: sbs.then_some(c.eye), intrinsics })
+        Ok(Camera {
+            id: id.to_owned(),
+            spec,
+            config: c.clone(),
+            side_by_side: sbs.then_some(c.eye),
+            intrinsics,
+            rectifier: None,
+        })
     }
 
     /// A device camera is checked before the node starts: found by its serial, offering the
@@ -501,6 +562,8 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
     let mut publisher: Option<FramePublisher> = None;
     let mut depth_publisher: Option<FramePublisher> = None;
     let mut last_preview: Option<Instant> = None;
+    // A rectified frame's buffer, reused frame after frame.
+    let mut rectified: Vec<u8> = Vec::new();
     while !ctx.shutdown.is_triggered() {
         let mut source = match cam.open(ctx.timeouts) {
             Ok(s) => s,
@@ -543,7 +606,7 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
             } else {
                 to_rgb(raw.pixels, raw.size, cam.side_by_side, want).map(|rgb| (Published::Rgb(rgb), want))
             };
-            let (out, (w, h)) = match converted {
+            let (mut out, (w, h)) = match converted {
                 Ok(c) => c,
                 Err(e) => {
                     send(Event::Down { camera: index, reason: format!("{}: {e}", cam.config.source) });
@@ -551,6 +614,11 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                     break;
                 }
             };
+            if let (Some(r), Published::Rgb(rgb)) = (&cam.rectifier, &mut out) {
+                // The table was made for the configured size, which to_rgb has checked.
+                r.table.apply(rgb, &mut rectified);
+                std::mem::swap(rgb, &mut rectified);
+            }
             if publisher.as_ref().is_some_and(|p| (p.format().width, p.format().height) != (w, h)) {
                 send(Event::Down {
                     camera: index,
@@ -690,6 +758,8 @@ pub struct CameraStatus {
     pub fps: f64,
     /// `device` (the camera's capture time) or `arrival` (when the node received the frame).
     pub time_source: &'static str,
+    /// A ZED's frames rectified from its factory file (camera_info: rectified K, D = 0, R, P).
+    pub rectified: bool,
     #[serde(skip)]
     last_frame: Option<Instant>,
     #[serde(skip)]
@@ -778,6 +848,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
             height: c.config.height,
             fps: 0.0,
             time_source: "arrival",
+            rectified: c.rectifier.is_some(),
             last_frame: None,
             frames_at_last_status: 0,
         })
@@ -890,9 +961,10 @@ fn handle(
             s.time_source = if f.device_time { "device" } else { "arrival" };
             let stamp = Time::from(f.capture);
             let frame_id = optical_frame(&cam.id);
-            let msg = match cam.intrinsics.as_ref().or(device_intrinsics[f.camera].as_ref()) {
-                Some(i) => i.camera_info(stamp, &frame_id),
-                None => CameraInfo {
+            let msg = match (&cam.rectifier, cam.intrinsics.as_ref().or(device_intrinsics[f.camera].as_ref())) {
+                (Some(r), _) => r.camera_info(stamp, &frame_id),
+                (None, Some(i)) => i.camera_info(stamp, &frame_id),
+                (None, None) => CameraInfo {
                     header: Header { stamp, frame_id: frame_id.clone() },
                     width: f.width,
                     height: f.height,
@@ -975,11 +1047,65 @@ mod tests {
     }
 
     #[test]
+    fn a_zed_is_rectified_by_default_and_its_camera_info_says_so() {
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/SN000012345.conf");
+        let conf = fixture.display();
+        let ok = config(&format!(
+            "[cameras.ext1]\nsource = \"zed:000012345\"\nwidth = 672\nheight = 376\nintrinsics = \"{conf}\"\n"
+        ));
+        ok.validate().unwrap();
+        let c = &ok.cameras["ext1"];
+        let cam = Camera::resolve("ext1", c, None).unwrap();
+        let r = cam.rectifier.as_ref().expect("rectified by default");
+        assert_eq!(cam.side_by_side, Some(Eye::Left));
+        let i = cam.intrinsics.as_ref().unwrap();
+        assert_eq!(
+            (i.fx, i.fy, i.source.as_str()),
+            (r.rectification.left.fx, r.rectification.left.fx, "zed-rectified")
+        );
+        assert!(i.fx < 264.625, "alpha 0 zooms in: {}", i.fx);
+        let info = r.camera_info(Time::default(), "ext1_optical");
+        assert_eq!(info.d, vec![0.0; 5]);
+        assert_eq!(&info.k[..], &[i.fx, 0.0, i.cx, 0.0, i.fx, i.cy, 0.0, 0.0, 1.0][..]);
+        assert_eq!(info.p[3], 0.0, "the left eye's P has no baseline term");
+        assert!(info.r != [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "the rectifying rotation is in R");
+        // The right eye as its own camera: P's Tx = -fx * baseline.
+        let mut right = c.clone();
+        right.eye = Eye::Right;
+        let cam = Camera::resolve("ext1_right", &right, None).unwrap();
+        let p = cam.rectifier.unwrap().camera_info(Time::default(), "ext1_right_optical").p;
+        assert!((p[3] / -p[0] - 0.11998).abs() < 1e-3, "{p:?}");
+        // Raw on request: the factory intrinsics, distortion and all.
+        let mut raw = c.clone();
+        raw.rectify = Some(false);
+        let cam = Camera::resolve("ext1", &raw, None).unwrap();
+        assert!(cam.rectifier.is_none());
+        assert_eq!(cam.intrinsics.unwrap().distortion[0], -0.0412);
+        // What rectification needs, each named by key.
+        for (extra, size, want) in [
+            ("", "width = 672\nheight = 376\n", "needs the camera's factory file"),
+            (&*format!("intrinsics = \"{conf}\"\n"), "width = 640\nheight = 360\n", "not 640x360"),
+            (
+                &*format!("intrinsics = \"{conf}\"\nside_by_side = false\n"),
+                "width = 672\nheight = 376\n",
+                "side_by_side = false",
+            ),
+        ] {
+            let e = config(&format!("[cameras.ext1]\nsource = \"zed:1\"\n{size}{extra}")).validate().unwrap_err();
+            assert_eq!(e.key, "cameras.ext1.rectify");
+            assert!(e.to_string().contains(want) && e.to_string().contains("rectify = false"), "{e}");
+        }
+        // Not a ZED: raw unless asked.
+        assert!(!CameraConfig::new("testsrc").rectifies(&SourceSpec::TestPattern));
+    }
+
+    #[test]
     fn intrinsics_come_from_a_zed_file_inline_or_nowhere_and_a_missing_file_is_named() {
         let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/SN000012345.conf");
         let mut c = CameraConfig::new("zed:000012345");
         (c.width, c.height) = (640, 360);
         c.intrinsics = Some(IntrinsicsSpec::File(fixture));
+        c.rectify = Some(false);
         let cam = Camera::resolve("ext1", &c, None).unwrap();
         assert_eq!(cam.side_by_side, Some(Eye::Left));
         assert_eq!(cam.source_size(), (1280, 360));
@@ -1041,7 +1167,7 @@ mod tests {
         assert!(ok.validate().is_ok());
         for (source, sbs) in [
             ("testsrc", ""),
-            ("zed:SN1", ""),
+            ("zed:SN1", "rectify = false\n"),
             ("rtsp://127.0.0.1/x", ""),
             ("http://127.0.0.1:9/c", "side_by_side = true\n"),
         ] {

@@ -305,7 +305,7 @@ const ONE: i32 = 1 << 15;
 /// [`RemapTable::apply`] per frame). Each output pixel reads a 2 x 2 block at a position
 /// rounded to 1/32 pixel, with 15-bit weights, as OpenCV's `remap` with `INTER_LINEAR` does;
 /// taps outside the source read black (`BORDER_CONSTANT`).
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct RemapTable {
     width: u32,
     height: u32,
@@ -330,6 +330,12 @@ fn weights(fx: i32, fy: i32) -> [u16; 4] {
         q[k] -= diff;
     }
     q.map(|v| v as u16)
+}
+
+impl std::fmt::Debug for RemapTable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RemapTable({}x{}, {} border pixels)", self.width, self.height, self.edge.len())
+    }
 }
 
 impl RemapTable {
@@ -490,6 +496,84 @@ pub fn rectify_png(conf: &std::path::Path, input: &std::path::Path, out: &std::p
     }
     std::fs::write(out.join("rectification.json"), serde_json::to_string_pretty(&eyes)?)?;
     println!("rectified {} ({}x{} per eye) into {}", input.display(), w / 2, h, out.display());
+    Ok(())
+}
+
+/// What `labrig-cameras bench-rectify` measures.
+#[derive(Debug)]
+pub struct BenchArgs {
+    pub intrinsics: Option<std::path::PathBuf>,
+    pub width: u32,
+    pub height: u32,
+    pub frames: usize,
+    pub zeds: u32,
+    pub fps: f64,
+    pub json: bool,
+}
+
+/// The test fixture's values, for a bench without a camera's own file.
+const BENCH_FIXTURE: &str = include_str!("../tests/fixtures/SN000012345.conf");
+
+/// `labrig bench rectify`: per-frame times on synthetic frames (a moving gradient).
+pub fn bench(a: BenchArgs) -> anyhow::Result<()> {
+    use labrig_episode::inspect::Percentiles;
+    let calibration = match &a.intrinsics {
+        Some(p) => ZedCalibration::load(p)?,
+        None => ZedCalibration::parse(BENCH_FIXTURE, "SN000012345.conf (the test fixture)")?,
+    };
+    let t0 = std::time::Instant::now();
+    let r = EyeRectifier::new(&calibration, Eye::Left, a.width, a.height)?;
+    let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let (w, h) = (a.width as usize, a.height as usize);
+    let bar = labrig_episode::progress::bar("{bar:25} {pos}/{len} frames", a.frames as u64, a.json);
+    let (mut remap_ms, mut path_ms) = (Vec::new(), Vec::new());
+    let mut rect = Vec::new();
+    for f in 0..a.frames {
+        // A side-by-side YUYV frame whose content changes every frame.
+        let yuyv: Vec<u8> = (0..2 * w * h * 2).map(|i| ((i / 2 + f * 7) % 251) as u8).collect();
+        let start = std::time::Instant::now();
+        let rgb = crate::convert::yuyv_to_rgb(&yuyv, 2 * a.width, a.height, Some(Eye::Left))?;
+        let mid = std::time::Instant::now();
+        r.table.apply(&rgb, &mut rect);
+        let end = std::time::Instant::now();
+        std::hint::black_box(&rect);
+        remap_ms.push((end - mid).as_secs_f64() * 1e3);
+        path_ms.push((end - start).as_secs_f64() * 1e3);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let remap = Percentiles::of(remap_ms).expect("frames");
+    let path = Percentiles::of(path_ms).expect("frames");
+    let rate = f64::from(a.zeds) * a.fps;
+    let report = serde_json::json!({
+        "width": a.width, "height": a.height, "frames": a.frames,
+        "profile": if cfg!(debug_assertions) { "debug" } else { "release" },
+        "maps_setup_ms": setup_ms,
+        "remap_ms": remap, "yuyv_to_rectified_ms": path,
+        "zeds": a.zeds, "fps": a.fps,
+        "core_share_remap_p50": remap.p50 * rate / 1e3,
+        "core_share_path_p50": path.p50 * rate / 1e3,
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "rectify {}x{} ({}, {} frames; maps computed once in {setup_ms:.0} ms)",
+            a.width,
+            a.height,
+            report["profile"].as_str().unwrap_or("?"),
+            a.frames
+        );
+        println!("  remap alone            p50 {:.2} ms  p99 {:.2} ms  max {:.2} ms", remap.p50, remap.p99, remap.max);
+        println!("  YUYV -> eye -> rectified p50 {:.2} ms  p99 {:.2} ms  max {:.2} ms", path.p50, path.p99, path.max);
+        println!(
+            "  {} ZEDs at {} fps: remap {:.0}% of one core, the whole path {:.0}% (p50)",
+            a.zeds,
+            a.fps,
+            remap.p50 * rate / 10.0,
+            path.p50 * rate / 10.0
+        );
+    }
     Ok(())
 }
 

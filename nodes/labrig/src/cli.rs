@@ -286,6 +286,14 @@ pub enum BenchCommand {
     /// Camera streams (ffmpeg MJPEG servers) through labrig-cameras into the loop's observation:
     /// delivered/lost frames, capture -> observation latency, skew, CPU.
     Cameras(crate::bench_cameras::CamerasBenchArgs),
+    /// ZED rectification's cost per frame (YUYV side by side -> eye RGB -> rectified), and the
+    /// share of a core three ZEDs at 30 fps take; `labrig-cameras bench-rectify`.
+    #[command(disable_help_flag = true)]
+    Rectify {
+        /// The options of `labrig-cameras bench-rectify` (see `labrig bench rectify --help`).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Recording an episode: writer MB/s, CPU, JPEG encoding (synthetic 5-camera rig); `labrig-recorder bench`.
     #[command(disable_help_flag = true)]
     Record {
@@ -408,6 +416,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Bench(BenchCommand::Franka { args }) => {
             node_renamed("labrig-franka", "bench", "labrig bench franka", &args)
+        }
+        Command::Bench(BenchCommand::Rectify { args }) => {
+            node_renamed("labrig-cameras", "bench-rectify", "labrig bench rectify", &args)
         }
         Command::Bench(BenchCommand::Record { args }) => {
             node_renamed("labrig-recorder", "bench", "labrig bench record", &args)
