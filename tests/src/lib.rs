@@ -200,6 +200,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("torchscript_rtc", 181, 1),
     ("pinned_pick_place", 182, 1),
     ("pinned_drawer", 183, 1),
+    ("cameras_zed_rectified", 185, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

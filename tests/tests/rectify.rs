@@ -7,10 +7,16 @@
 //! ZED would send, and rectifies it as Stereolabs does; `labrig-cameras rectify` rectifies the
 //! same frame through labrig's code.
 
-use labrig_tests::{peer_python, repo_root, workspace_bin};
+use labrig_msgs::sensor_msgs::CameraInfo;
+use labrig_msgs::topics;
+use labrig_runtime::RosConfig;
+use labrig_runtime::frames::FrameNode;
+use labrig_runtime::ros::{Ros, RosSubscription, qos};
+use labrig_tests::{Proc, domain_for, peer_python, repo_root, rt, workspace_bin};
 use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
+use std::time::{Duration, Instant};
 
 const FIXTURE: &str = "nodes/cameras/tests/fixtures/SN000012345.conf";
 
@@ -108,5 +114,103 @@ fn labrig_rectifies_a_zed_frame_as_opencv_does() {
             "{w}x{h}: the raw pair's corners are only {dy_raw:.3} px apart: the test scene shows nothing"
         );
         eprintln!("{w}x{h}: vertical disparity {dy:.4} px rectified, {dy_raw:.2} px raw; {cmp}");
+    }
+}
+
+fn read_png_rgb(path: &Path) -> (u32, u32, Vec<u8>) {
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!(info.color_type, png::ColorType::Rgb, "{}", path.display());
+    buf.truncate(info.buffer_size());
+    (info.width, info.height, buf)
+}
+
+/// The node's own path: a side-by-side frame (the peer's render, played by ffmpeg as a file
+/// source, the frame a ZED would send) through `labrig-cameras run` with a ZED's settings: the
+/// frame on shared memory is OpenCV's rectified left eye, and camera_info carries the
+/// rectified K, zero distortion, R and P.
+#[test]
+fn the_camera_node_publishes_the_rectified_eye_and_its_camera_info() {
+    let cams = workspace_bin("labrig-cameras", "labrig-cameras");
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    peer(&["render", repo_root().join(FIXTURE).to_str().unwrap(), "1280", "720", dir.to_str().unwrap()]);
+    let theirs: Value = serde_json::from_slice(&std::fs::read(dir.join("cv.json")).unwrap()).unwrap();
+    let config = dir.join("cameras.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[cameras.ext1]\nsource = \"{}\"\nwidth = 1280\nheight = 720\nfps = 10\nside_by_side = true\nrectify = true\nintrinsics = \"{}\"\n",
+            dir.join("raw.png").display(),
+            repo_root().join(FIXTURE).display()
+        ),
+    )
+    .unwrap();
+    let domain = domain_for("cameras_zed_rectified");
+    let ns = format!("zr_{}", std::process::id());
+    let rt = rt();
+    let _in_rt = rt.enter();
+    let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "zed_rect_test").unwrap();
+    let info: RosSubscription<CameraInfo> = ros.subscription(&topics::camera_info("ext1"), qos::reliable(10)).unwrap();
+    let frames = FrameNode::new_in(&ns).unwrap();
+    let sub = frames.subscriber("ext1").unwrap();
+    let mut cmd = Command::new(&cams);
+    cmd.args(["run", "--config"])
+        .arg(&config)
+        .args(["--domain-id", &domain.to_string()])
+        .env(labrig_runtime::frames::NAMESPACE_ENV, &ns);
+    let _node = Proc::spawn("labrig-cameras (rectified ZED)", cmd);
+
+    let until = Instant::now() + Duration::from_secs(60);
+    let (w, h, px) = loop {
+        if let Some(f) = sub.receive().unwrap() {
+            let hd = f.header();
+            break (hd.width, hd.height, f.pixels().to_vec());
+        }
+        assert!(Instant::now() < until, "no ext1 frame from the node");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    assert_eq!((w, h), (1280, 720));
+    let (cw, ch, cv) = read_png_rgb(&dir.join("cv_left.png"));
+    assert_eq!((cw, ch), (1280, 720));
+    let within = px
+        .chunks_exact(3)
+        .zip(cv.chunks_exact(3))
+        .filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| x.abs_diff(*y) <= 1))
+        .count();
+    let share = within as f64 / f64::from(w * h);
+    assert!(
+        share >= 0.99,
+        "{:.3}% of the node's pixels within 1 grey level of OpenCV's rectified left eye",
+        share * 100.0
+    );
+    // The raw left eye is not that image: the comparison sees rectification.
+    let (_, _, raw) = read_png_rgb(&dir.join("raw_left.png"));
+    let raw_within = raw
+        .chunks_exact(3)
+        .zip(cv.chunks_exact(3))
+        .filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| x.abs_diff(*y) <= 1))
+        .count();
+    assert!((raw_within as f64) < 0.9 * f64::from(w * h), "the raw eye matches too: {raw_within} pixels");
+
+    let until = Instant::now() + Duration::from_secs(20);
+    let ci = loop {
+        if let Some(m) = info.try_take().unwrap() {
+            break m.msg;
+        }
+        assert!(Instant::now() < until, "no camera_info for ext1");
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert_eq!(ci.d, vec![0.0; 5], "rectified: no distortion");
+    for (key, ours) in [("k", ci.k.to_vec()), ("r", ci.r.to_vec()), ("p", ci.p.to_vec())] {
+        for (x, y) in ours.iter().zip(numbers(&theirs["left"][key])) {
+            assert!(
+                (x - y).abs() <= 1e-6 * y.abs().max(1.0),
+                "camera_info {key}: {ours:?} vs OpenCV {}",
+                theirs["left"][key]
+            );
+        }
     }
 }
