@@ -8,6 +8,7 @@
 pub mod convert;
 pub mod intrinsics;
 pub mod node;
+pub mod realsense;
 pub mod rectify;
 pub mod source;
 pub mod v4l2;
@@ -94,6 +95,26 @@ pub enum CamerasTools {
         #[arg(long)]
         json: bool,
     },
+    /// Writes a RealSense's calibration for the Rust depth alignment (colour and depth
+    /// intrinsics, depth -> colour extrinsics, depth scale) through pyrealsense2, once at
+    /// set-up: the running rig reads the file.
+    RealsenseExport {
+        /// The camera's serial (`labrig cameras list`).
+        #[arg(long, conflicts_with = "recording")]
+        serial: Option<String>,
+        /// A librealsense recording (.db3/.bag) instead of a device.
+        #[arg(long)]
+        recording: Option<std::path::PathBuf>,
+        /// The colour size and rate the rig runs the camera at (the intrinsics depend on it).
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        #[arg(long, default_value_t = 30)]
+        fps: u32,
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
     /// Rectifies a ZED side-by-side image (PNG, both eyes) with its factory file, as the node
     /// does each frame: writes left.png, right.png and rectification.json (each eye's K, R and
     /// P as camera_info carries them) into --out.
@@ -139,6 +160,10 @@ impl CamerasTools {
             }
             CamerasTools::BenchRectify { intrinsics, width, height, frames, zeds, fps, json } => {
                 rectify::bench(rectify::BenchArgs { intrinsics, width, height, frames, zeds, fps, json })?;
+                Ok(std::process::ExitCode::SUCCESS)
+            }
+            CamerasTools::RealsenseExport { serial, recording, width, height, fps, out } => {
+                realsense::export(serial.as_deref(), recording.as_deref(), (width, height, fps), &out)?;
                 Ok(std::process::ExitCode::SUCCESS)
             }
             CamerasTools::Rectify { intrinsics, input, out } => {
