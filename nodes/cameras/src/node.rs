@@ -15,6 +15,7 @@
 
 use crate::convert::{ConvertError, preview_jpeg, to_rgb};
 use crate::intrinsics::{Eye, Intrinsics, IntrinsicsError, ZedCalibration};
+use crate::realsense::RealSenseCalibration;
 use crate::rectify::EyeRectifier;
 use crate::source::{
     DeviceKind, FfmpegSource, MjpegSource, RealSenseSource, Source, SourceError, SourceSpec, Timeouts,
@@ -136,6 +137,12 @@ pub struct CameraConfig {
     /// (`depth16`: uint16 millimetres, 0 = no depth).
     #[serde(default)]
     pub depth: bool,
+    /// A RealSense read in Rust over V4L2 (no librealsense, no Python on the rig): its
+    /// calibration file from `labrig cameras realsense-export` (colour and depth intrinsics,
+    /// depth -> colour extrinsics, depth scale). Without it a `realsense:` camera runs
+    /// librealsense through pyrealsense2 in a child process.
+    #[serde(default)]
+    pub realsense_calibration: Option<PathBuf>,
 }
 
 impl CameraConfig {
@@ -170,6 +177,7 @@ impl CameraConfig {
             side_by_side: None,
             eye: Eye::Left,
             rectify: None,
+            realsense_calibration: None,
             intrinsics: None,
             extrinsics: None,
             loop_file: true,
@@ -281,6 +289,25 @@ impl CamerasConfig {
                     );
                 }
             }
+            if c.realsense_calibration.is_some() {
+                if !matches!(spec, SourceSpec::RealSense { file: None, .. }) {
+                    return bad(
+                        &key("realsense_calibration"),
+                        format!(
+                            "is for a RealSense device read over V4L2 (realsense:SERIAL or realsense); camera {id}'s source is {}",
+                            c.source
+                        ),
+                    );
+                }
+                if c.intrinsics.is_some() {
+                    return bad(
+                        &key("intrinsics"),
+                        format!(
+                            "and realsense_calibration are both set for camera {id}: the calibration file has the colour intrinsics"
+                        ),
+                    );
+                }
+            }
             if c.depth {
                 if !matches!(spec, SourceSpec::RealSense { .. }) {
                     return bad(
@@ -326,6 +353,11 @@ impl CamerasConfig {
             {
                 *p = dir.join(&*p);
             }
+            if let Some(p) = &mut c.realsense_calibration
+                && p.is_relative()
+            {
+                *p = dir.join(&*p);
+            }
         }
     }
 }
@@ -340,6 +372,8 @@ pub struct Camera {
     pub intrinsics: Option<Intrinsics>,
     /// A rectified ZED eye: its remap table (computed once here) and camera_info.
     pub rectifier: Option<std::sync::Arc<EyeRectifier>>,
+    /// A RealSense read over V4L2: its calibration (loaded and checked here).
+    pub realsense: Option<std::sync::Arc<RealSenseCalibration>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -348,6 +382,8 @@ pub enum CameraError {
     Intrinsics { camera: String, source: IntrinsicsError },
     #[error("camera {camera}: {source}")]
     Source { camera: String, source: SourceError },
+    #[error("camera {camera}: {reason}")]
+    RealSense { camera: String, reason: String },
 }
 
 impl Camera {
@@ -379,6 +415,43 @@ impl Camera {
                 side_by_side: Some(c.eye),
                 intrinsics: Some(r.intrinsics()),
                 rectifier: Some(std::sync::Arc::new(r)),
+                realsense: None,
+            });
+        }
+        if let Some(p) = &c.realsense_calibration {
+            let rs_err = |reason: String| CameraError::RealSense { camera: id.into(), reason };
+            let cal = RealSenseCalibration::load(p).map_err(|e| rs_err(e.to_string()))?;
+            cal.check().map_err(|e| rs_err(format!("{}: {e}", p.display())))?;
+            if let SourceSpec::RealSense { serial: Some(s), .. } = &spec
+                && !cal.serial.is_empty()
+                && &cal.serial != s
+            {
+                return Err(rs_err(format!(
+                    "{} is the calibration of RealSense {}, the camera is {s}: export this camera's (labrig cameras realsense-export --serial {s})",
+                    p.display(),
+                    cal.serial
+                )));
+            }
+            if (cal.colour.width, cal.colour.height) != (c.width, c.height) {
+                return Err(rs_err(format!(
+                    "{} was exported at {}x{}, the camera runs at {}x{}: export it at that size (--width {} --height {})",
+                    p.display(),
+                    cal.colour.width,
+                    cal.colour.height,
+                    c.width,
+                    c.height,
+                    c.width,
+                    c.height
+                )));
+            }
+            return Ok(Camera {
+                id: id.to_owned(),
+                spec,
+                config: c.clone(),
+                side_by_side: None,
+                intrinsics: Some(cal.colour_intrinsics()),
+                rectifier: None,
+                realsense: Some(std::sync::Arc::new(cal)),
             });
         }
         let intrinsics = match &c.intrinsics {
@@ -404,6 +477,7 @@ impl Camera {
             side_by_side: sbs.then_some(c.eye),
             intrinsics,
             rectifier: None,
+            realsense: None,
         })
     }
 
@@ -428,6 +502,15 @@ impl Camera {
         match &self.spec {
             SourceSpec::Mjpeg { url } => Ok(Box::new(MjpegSource::open(url, t)?)),
             SourceSpec::TestPattern => Ok(Box::new(FfmpegSource::test_pattern(self.source_size(), self.config.fps)?)),
+            SourceSpec::RealSense { serial: Some(s), file: None } if self.realsense.is_some() => {
+                Ok(Box::new(crate::realsense::RealSenseV4l2::open(
+                    s,
+                    self.realsense.clone().expect("a calibration"),
+                    self.config.fps,
+                    self.config.depth,
+                    t.read,
+                )?))
+            }
             SourceSpec::RealSense { serial, file } => Ok(Box::new(RealSenseSource::open(
                 serial.as_deref(),
                 file.as_deref(),
@@ -1097,6 +1180,52 @@ mod tests {
         }
         // Not a ZED: raw unless asked.
         assert!(!CameraConfig::new("testsrc").rectifies(&SourceSpec::TestPattern));
+    }
+
+    #[test]
+    fn a_realsense_with_a_calibration_file_is_read_in_rust_and_the_file_must_be_its_own() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("rs1.json");
+        let stream = |w: u32, h: u32, f: f32| {
+            serde_json::json!({"width": w, "height": h, "fx": f, "fy": f, "ppx": 319.5, "ppy": 239.5,
+                               "model": "brown_conrady", "coeffs": [0.0, 0.0, 0.0, 0.0, 0.0]})
+        };
+        let write = |serial: &str, coeffs0: f32| {
+            let mut colour = stream(640, 480, 612.0);
+            colour["coeffs"][0] = coeffs0.into();
+            let cal = serde_json::json!({"serial": serial, "colour": colour, "depth": stream(848, 480, 420.0),
+                "depth_to_colour": {"rotation": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "translation": [0.015, 0.0, 0.0]},
+                "depth_scale_m": 0.001});
+            std::fs::write(&file, cal.to_string()).unwrap();
+        };
+        let toml = format!(
+            "[cameras.rs1]\nsource = \"realsense:D435-1\"\nwidth = 640\nheight = 480\ndepth = true\nrealsense_calibration = \"{}\"\n",
+            file.display()
+        );
+        let c = config(&toml);
+        c.validate().unwrap();
+        write("D435-1", 0.0);
+        let cam = Camera::resolve("rs1", &c.cameras["rs1"], None).unwrap();
+        assert!(cam.realsense.is_some());
+        let i = cam.intrinsics.unwrap();
+        assert_eq!((i.fx, i.cx, i.source.as_str()), (612.0, 319.5, "realsense"));
+        // Another camera's file, a size it was not exported at, distortion: refused by name.
+        write("D435-2", 0.0);
+        let e = Camera::resolve("rs1", &c.cameras["rs1"], None).unwrap_err().to_string();
+        assert!(e.contains("the calibration of RealSense D435-2, the camera is D435-1"), "{e}");
+        write("D435-1", 0.1);
+        let e = Camera::resolve("rs1", &c.cameras["rs1"], None).unwrap_err().to_string();
+        assert!(e.contains("the colour stream's distortion"), "{e}");
+        write("D435-1", 0.0);
+        let mut big = c.cameras["rs1"].clone();
+        (big.width, big.height) = (1280, 720);
+        let e = Camera::resolve("rs1", &big, None).unwrap_err().to_string();
+        assert!(e.contains("was exported at 640x480, the camera runs at 1280x720"), "{e}");
+        // Only for a device read over V4L2.
+        let e = config(&toml.replace("realsense:D435-1", "testsrc")).validate().unwrap_err();
+        assert_eq!(e.key, "cameras.rs1.realsense_calibration");
+        let e = config(&format!("{toml}intrinsics = \"x.json\"\n")).validate().unwrap_err();
+        assert_eq!(e.key, "cameras.rs1.intrinsics");
     }
 
     #[test]

@@ -141,6 +141,91 @@ pub fn align_depth_to_colour(c: &RealSenseCalibration, depth: &[u16]) -> Result<
     Ok(out)
 }
 
+/// A D435 read in Rust: its colour node (YUYV) and, with `depth`, its depth node (Z16) over
+/// V4L2, found by USB serial in sysfs; depth aligned to colour here (no librealsense, no
+/// Python). Each colour frame is paired with the next depth frame (both nodes run at the
+/// camera's rate). Untested against a device: there is none here (the pyrealsense2 source
+/// stays the fallback: a camera without `realsense_calibration`).
+pub struct RealSenseV4l2 {
+    colour: crate::v4l2::V4l2Source,
+    depth: Option<crate::v4l2::V4l2Source>,
+    calibration: std::sync::Arc<RealSenseCalibration>,
+}
+
+impl std::fmt::Debug for RealSenseV4l2 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RealSenseV4l2({})", self.calibration.serial)
+    }
+}
+
+impl RealSenseV4l2 {
+    pub fn open(
+        serial: &str,
+        calibration: std::sync::Arc<RealSenseCalibration>,
+        fps: f64,
+        depth: bool,
+        read_timeout: std::time::Duration,
+    ) -> Result<RealSenseV4l2, crate::source::SourceError> {
+        use crate::source::DeviceKind;
+        let (c, d) = (&calibration.colour, &calibration.depth);
+        let path = crate::v4l2::find_node(DeviceKind::RealSense, serial, "YUYV", (c.width, c.height), fps)?;
+        let colour = crate::v4l2::V4l2Source::open(&path, &["YUYV"], (c.width, c.height), fps, read_timeout)?;
+        let depth = if depth {
+            let path = crate::v4l2::find_node(DeviceKind::RealSense, serial, "Z16 ", (d.width, d.height), fps)?;
+            Some(crate::v4l2::V4l2Source::open(&path, &["Z16 "], (d.width, d.height), fps, read_timeout)?)
+        } else {
+            None
+        };
+        Ok(RealSenseV4l2 { colour, depth, calibration })
+    }
+}
+
+impl crate::source::Source for RealSenseV4l2 {
+    fn read(&mut self) -> Result<crate::source::RawFrame, crate::source::SourceError> {
+        let mut frame = self.colour.read()?;
+        if let Some(d) = &mut self.depth {
+            let raw = z16(&d.next_buffer()?.data);
+            let aligned = align_depth_to_colour(&self.calibration, &raw).map_err(|e| {
+                crate::source::SourceError::Io { source_name: self.calibration.serial.clone(), reason: e.to_string() }
+            })?;
+            // The node's depth frames are millimetres.
+            let mm = self.calibration.depth_scale_m * 1000.0;
+            frame.depth = Some(
+                aligned
+                    .iter()
+                    .flat_map(|&z| {
+                        let v =
+                            if (mm - 1.0).abs() < 1e-6 { z } else { (f32::from(z) * mm).round().min(65535.0) as u16 };
+                        v.to_le_bytes()
+                    })
+                    .collect(),
+            );
+        }
+        Ok(frame)
+    }
+
+    fn intrinsics(&self) -> Option<crate::intrinsics::Intrinsics> {
+        Some(self.calibration.colour_intrinsics())
+    }
+}
+
+impl RealSenseCalibration {
+    /// The colour stream's intrinsics as camera_info carries them (the depth is aligned to it).
+    pub fn colour_intrinsics(&self) -> crate::intrinsics::Intrinsics {
+        let c = &self.colour;
+        crate::intrinsics::Intrinsics {
+            width: c.width,
+            height: c.height,
+            fx: f64::from(c.fx),
+            fy: f64::from(c.fy),
+            cx: f64::from(c.ppx),
+            cy: f64::from(c.ppy),
+            distortion: c.coeffs.iter().map(|&v| f64::from(v)).collect(),
+            source: "realsense".into(),
+        }
+    }
+}
+
 /// The export's script (`python/realsense_export.py`), run with `python -c`.
 const EXPORT_SCRIPT: &str = include_str!("../python/realsense_export.py");
 

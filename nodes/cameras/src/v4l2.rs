@@ -145,6 +145,47 @@ pub fn find(kind: DeviceKind, serial: &str) -> Result<PathBuf, SourceError> {
     }
 }
 
+/// The node of a multi-node camera (a D435: depth, infrared, colour, metadata) with this USB
+/// serial and vendor that offers `fourcc` at `size` and `fps`; none: named, with the nodes of
+/// that serial and their modes.
+pub fn find_node(
+    kind: DeviceKind,
+    serial: &str,
+    fourcc: &str,
+    size: (u32, u32),
+    fps: f64,
+) -> Result<PathBuf, SourceError> {
+    let all = list();
+    let same: Vec<&DeviceInfo> = all
+        .iter()
+        .filter(|d| d.serial.as_deref() == Some(serial) && kind.usb_vendor().is_none_or(|v| d.usb_vendor == Some(v)))
+        .collect();
+    let offers = |d: &&&DeviceInfo| {
+        d.modes
+            .iter()
+            .any(|m| m.fourcc == fourcc && (m.width, m.height) == size && m.fps.iter().any(|r| (r - fps).abs() < 0.5))
+    };
+    if let Some(d) = same.iter().find(offers) {
+        return Ok(d.path.clone());
+    }
+    if same.is_empty() {
+        return find(kind, serial);
+    }
+    let nodes: Vec<String> = same
+        .iter()
+        .map(|d| {
+            let modes: Vec<String> = d.modes.iter().map(|m| format!("{} {}x{}", m.fourcc, m.width, m.height)).collect();
+            format!("{} ({})", d.path.display(), modes.join(", "))
+        })
+        .collect();
+    Err(SourceError::Device(format!(
+        "the {kind:?} camera with serial {serial} has no node offering {fourcc} {}x{} at {fps} fps: {}",
+        size.0,
+        size.1,
+        nodes.join("; ")
+    )))
+}
+
 /// A streaming V4L2 device.
 pub struct V4l2Source {
     path: PathBuf,
@@ -217,24 +258,41 @@ impl V4l2Source {
     }
 }
 
-impl Source for V4l2Source {
-    fn read(&mut self) -> Result<RawFrame, SourceError> {
+/// One buffer as the driver filled it.
+#[derive(Debug)]
+pub struct Buffer {
+    pub data: Vec<u8>,
+    /// The kernel's buffer time on CLOCK_MONOTONIC, ns, where the driver stamps it so.
+    pub monotonic_ns: Option<i64>,
+    pub sequence: u64,
+}
+
+impl V4l2Source {
+    /// The next buffer, its bytes as they came (a RealSense's Z16 depth: little-endian uint16).
+    pub fn next_buffer(&mut self) -> Result<Buffer, SourceError> {
         let (bytes, meta) = self
             .stream
             .next()
             .map_err(|e| SourceError::Io { source_name: self.path.display().to_string(), reason: e.to_string() })?;
         let data = bytes[..(meta.bytesused as usize).min(bytes.len())].to_vec();
+        let monotonic = meta.flags.contains(Flags::TIMESTAMP_MONOTONIC);
+        let ns = meta.timestamp.sec * 1_000_000_000 + meta.timestamp.usec * 1000;
+        Ok(Buffer { data, monotonic_ns: monotonic.then_some(ns), sequence: u64::from(meta.sequence) })
+    }
+}
+
+impl Source for V4l2Source {
+    fn read(&mut self) -> Result<RawFrame, SourceError> {
+        let Buffer { data, monotonic_ns, sequence } = self.next_buffer()?;
         let pixels = match &self.fourcc.repr {
             b"MJPG" | b"JPEG" => Pixels::Jpeg(data),
             _ => Pixels::Yuyv(data),
         };
-        let monotonic = meta.flags.contains(Flags::TIMESTAMP_MONOTONIC);
-        let ns = meta.timestamp.sec * 1_000_000_000 + meta.timestamp.usec * 1000;
         Ok(RawFrame {
             pixels,
             size: self.size,
-            device_monotonic_ns: monotonic.then_some(ns),
-            device_sequence: Some(u64::from(meta.sequence)),
+            device_monotonic_ns: monotonic_ns,
+            device_sequence: Some(sequence),
             capture_wall_ns: None,
             depth: None,
         })
