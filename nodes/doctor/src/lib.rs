@@ -399,6 +399,28 @@ fn camera(name: &str, cam: &CameraConfig, rig_serial: Option<&str>, within: Dura
             "a ZED's is its factory file SN<serial>.conf (download it once from Stereolabs), others a labrig intrinsics file; or drop `intrinsics`",
         );
     }
+    if let Some(f) = &cam.realsense_calibration {
+        // Read in Rust over V4L2: the set-up's export must be there, and this camera's.
+        let fix = format!(
+            "export it once: labrig cameras realsense-export --serial {} --width {} --height {} --out {}",
+            serial.as_deref().unwrap_or("<serial>"),
+            cam.width,
+            cam.height,
+            f.display()
+        );
+        match labrig_cameras::realsense::RealSenseCalibration::load(f) {
+            Err(e) => return row(part, State::Fail, format!("its RealSense calibration: {e}"), &fix),
+            Ok(c) if serial.as_deref().is_some_and(|s| s != c.serial) => {
+                return row(
+                    part,
+                    State::Fail,
+                    format!("its RealSense calibration {} is camera {}'s", f.display(), c.serial),
+                    &fix,
+                );
+            }
+            Ok(_) => {}
+        }
+    }
     let mode = format!("{}x{}@{}", cam.width, cam.height, cam.fps);
     // A source by kind is shown with the serial the rig gave it.
     let source = &match (&spec, source.contains(':')) {
@@ -957,6 +979,36 @@ mod tests {
         assert_eq!(adb_state(listed, "192.168.1.20:5555"), Some("unauthorized"));
         assert_eq!(adb_state(listed, "1WMHH000000001"), None);
         assert_eq!(adb_state("List of devices attached\n\n", "x"), None);
+    }
+
+    #[test]
+    fn a_realsense_read_in_rust_needs_its_own_exported_calibration() {
+        let dir = std::env::temp_dir().join(format!("labrig-doctor-rs-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("rs1.json");
+        let mut cam = CameraConfig::new("realsense:D435-1");
+        (cam.width, cam.height) = (1280, 720);
+        cam.realsense_calibration = Some(file.clone());
+        let check = camera("rs1", &cam, None, Duration::from_secs(1));
+        assert_eq!(check.state, State::Fail);
+        assert!(
+            check.detail.starts_with("its RealSense calibration: ") && check.detail.contains("rs1.json"),
+            "{check:?}"
+        );
+        assert!(
+            check.fix.contains("labrig cameras realsense-export --serial D435-1 --width 1280 --height 720"),
+            "{check:?}"
+        );
+        let stream = serde_json::json!({"width": 1280, "height": 720, "fx": 600.0, "fy": 600.0, "ppx": 639.5, "ppy": 359.5,
+                                        "model": "brown_conrady", "coeffs": [0.0, 0.0, 0.0, 0.0, 0.0]});
+        let cal = serde_json::json!({"serial": "D435-2", "colour": stream, "depth": stream,
+            "depth_to_colour": {"rotation": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "translation": [0.015, 0.0, 0.0]},
+            "depth_scale_m": 0.001});
+        std::fs::write(&file, cal.to_string()).unwrap();
+        let check = camera("rs1", &cam, None, Duration::from_secs(1));
+        assert_eq!(check.state, State::Fail);
+        assert!(check.detail.ends_with("is camera D435-2's"), "{check:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
