@@ -311,8 +311,8 @@ pub struct RemapTable {
     height: u32,
     /// Per output pixel, packed in 4 bytes (a frame reads 3.7 MB of table at 1280x720, not 11):
     /// the source pixel of the block's top-left tap (22 bits) and the position's fraction
-    /// (`fy * 32 + fx`, 10 bits), or `u32::MAX` when the block is not wholly inside (then
-    /// `edge` has its taps).
+    /// (`fy * 32 + fx`, 10 bits). A block not wholly inside reads pixel 0 here (no branch in
+    /// the per-pixel loop) and is computed again from `edge`, which has its taps.
     entry: Vec<u32>,
     /// The four weights (top-left, top-right, bottom-left, bottom-right) of each fraction.
     weights: Vec<[u16; 4]>,
@@ -359,7 +359,7 @@ impl RemapTable {
             if sx >= 0 && sy >= 0 && sx + 1 < w && sy + 1 < h {
                 entry.push(((sy as u32 * width + sx as u32) << 10) | frac);
             } else {
-                entry.push(u32::MAX);
+                entry.push(frac);
                 let tap = |dx: i32, dy: i32| {
                     let (tx, ty) = (sx + dx, sy + dy);
                     (tx >= 0 && ty >= 0 && tx < w && ty < h).then(|| ty as u32 * width + tx as u32)
@@ -382,9 +382,6 @@ impl RemapTable {
         let round = 1u32 << 14;
         let table: &[[u16; 4]; (TAB * TAB) as usize] = self.weights[..].try_into().expect("a weight per fraction");
         for (out, &e) in dst.chunks_exact_mut(3).zip(&self.entry) {
-            if e == u32::MAX {
-                continue;
-            }
             let o = (e >> 10) as usize * 3;
             let (a, b) = (&src[o..o + 6], &src[o + stride..o + stride + 6]);
             let [w0, w1, w2, w3] = table[(e & 1023) as usize].map(u32::from);
