@@ -368,6 +368,22 @@ impl Drop for Proc {
     }
 }
 
+/// The first message on `sub` within `timeout`; none: the test fails, naming `what`.
+pub fn first_message<T: labrig_msgs::RosMessage>(
+    sub: &labrig_runtime::ros::RosSubscription<T>,
+    what: &str,
+    timeout: Duration,
+) -> T {
+    let until = Instant::now() + timeout;
+    loop {
+        if let Some(m) = sub.try_take().unwrap() {
+            return m.msg;
+        }
+        assert!(Instant::now() < until, "no {what} within {timeout:?}");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
 /// A current-thread tokio runtime for a test body.
 pub fn rt() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime")

@@ -132,14 +132,7 @@ fn stream_cameras_from_ffmpeg_reach_shared_memory_ros_and_rclpy_and_survive_a_re
     drop(f2);
 
     // camera_info with each frame: the configured intrinsics scaled from 2560x1440 to 1280x720.
-    let until = Instant::now() + Duration::from_secs(20);
-    let ci = loop {
-        if let Some(m) = info.try_take().unwrap() {
-            break m.msg;
-        }
-        assert!(Instant::now() < until, "no camera_info for ext1");
-        std::thread::sleep(Duration::from_millis(10));
-    };
+    let ci = labrig_tests::first_message(&info, "camera_info for ext1", Duration::from_secs(20));
     assert_eq!((ci.width, ci.height, ci.header.frame_id.as_str()), (1280, 720, "ext1_optical"));
     assert_eq!(ci.k, [700.0, 0.0, 639.5, 0.0, 701.0, 359.5, 0.0, 0.0, 1.0]);
     assert_eq!(ci.d, vec![-0.04, 0.01, 0.0, 0.0, 0.0]);
@@ -392,14 +385,7 @@ fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
         new_passes <= outages,
         "the recording's frames fell {new_passes} times but the node reopened it {outages} times: out of order: {reds:?}"
     );
-    let until = Instant::now() + Duration::from_secs(10);
-    let ci = loop {
-        if let Some(m) = info.try_take().unwrap() {
-            break m.msg;
-        }
-        assert!(Instant::now() < until, "no camera_info for rs1");
-        std::thread::sleep(Duration::from_millis(10));
-    };
+    let ci = labrig_tests::first_message(&info, "camera_info for rs1", Duration::from_secs(10));
     assert_eq!((ci.k[0], ci.k[4], ci.k[2], ci.k[5]), (612.25, 611.75, 319.5, 239.5), "the device's intrinsics");
 
     // Depth, aligned: the recording's depth camera (fx x 0.8, 15 mm along x) sees a wall at

@@ -195,14 +195,7 @@ fn the_camera_node_publishes_the_rectified_eye_and_its_camera_info() {
         .count();
     assert!((raw_within as f64) < 0.9 * f64::from(w * h), "the raw eye matches too: {raw_within} pixels");
 
-    let until = Instant::now() + Duration::from_secs(20);
-    let ci = loop {
-        if let Some(m) = info.try_take().unwrap() {
-            break m.msg;
-        }
-        assert!(Instant::now() < until, "no camera_info for ext1");
-        std::thread::sleep(Duration::from_millis(10));
-    };
+    let ci = labrig_tests::first_message(&info, "camera_info for ext1", Duration::from_secs(20));
     assert_eq!(ci.d, vec![0.0; 5], "rectified: no distortion");
     for (key, ours) in [("k", ci.k.to_vec()), ("r", ci.r.to_vec()), ("p", ci.p.to_vec())] {
         for (x, y) in ours.iter().zip(numbers(&theirs["left"][key])) {
