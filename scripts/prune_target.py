@@ -11,7 +11,8 @@ from the dev profile's deps/, build/, .fingerprint/ and examples/ every unit who
 record lacks.
 
   prune_target.py record   after a successful build and lint: write the record anew
-  prune_target.py prune    delete what the record lacks (no record: delete nothing)
+  prune_target.py prune    delete what the record lacks (no record: nothing, unless the disk has
+                           under 20 GB free: then the whole debug build, for a cold one)
 
 Deleting a unit that a later build wants only costs its rebuild: cargo finds the output gone
 and compiles it again. Only .ci/run uses it (a developer's per-crate builds, whose feature sets
@@ -95,10 +96,23 @@ def size(path):
     return sum(size(p) for p in path.iterdir())
 
 
+# Below this much free space a target dir without a record (nothing says which units are in
+# use) is deleted whole: a cold build (~30 min here) beats a build that dies for want of disk.
+LOW_DISK_BYTES = 20e9
+
+
 def prune():
     rec = record_path()
     if not rec.exists():
-        print("prune_target: no record of the units in use (no successful build yet): nothing pruned")
+        free = shutil.disk_usage(target_dir()).free
+        profile = target_dir() / "debug"
+        if free < LOW_DISK_BYTES and profile.is_dir():
+            freed = size(profile)
+            shutil.rmtree(profile)
+            print(f"prune_target: no record of the units in use and {free / 1e9:.1f} GB free: the whole "
+                  f"debug build deleted ({freed / 1e9:.1f} GB; this run builds cold)")
+        else:
+            print("prune_target: no record of the units in use (no successful build yet): nothing pruned")
         return
     live = set(rec.read_text().split())
     profile = target_dir() / "debug"
