@@ -33,6 +33,11 @@ pub struct FrankaArgs {
     json: bool,
 }
 
+/// scripts/franka_sim_loopback.py, carried in the binary and run with `python -c`: a binary
+/// built in another clone of the repository (a shared target directory) must not run that
+/// clone's copy, or none.
+const FRANKA_SIM_LOOPBACK: &str = include_str!("../../../scripts/franka_sim_loopback.py");
+
 /// Kills the child on drop.
 struct Killed(Child);
 impl Drop for Killed {
@@ -57,10 +62,9 @@ pub fn run(a: FrankaArgs) -> anyhow::Result<ExitCode> {
         .unwrap_or_else(|| cache().join("venv-franka-sim/bin/python"));
     let mjcf = std::env::var_os("FR3_MJCF").map(PathBuf::from).unwrap_or_else(|| cache().join("franka-sim/fr3.xml"));
     anyhow::ensure!(python.exists(), "franka-sim is not installed ({}): run scripts/setup.sh", python.display());
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../scripts/franka_sim_loopback.py");
     let _sim = Killed(
         Command::new(&python)
-            .arg(&script)
+            .args(["-c", FRANKA_SIM_LOOPBACK])
             .args(["--no-gripper", "--port", &a.port.to_string()])
             .env("FR3_MJCF", &mjcf)
             .stdout(Stdio::null())
