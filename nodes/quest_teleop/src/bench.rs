@@ -30,9 +30,33 @@ pub struct TeleopArgs {
     json: bool,
 }
 
+/// A file deleted on drop.
+struct Removed(PathBuf);
+impl Drop for Removed {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// The default trace (tests/fixtures/square.logcat), carried in the binary: one built in
+/// another clone of the repository (a shared target directory) finds no path of its own.
+const SQUARE_TRACE: &str = include_str!("../tests/fixtures/square.logcat");
+
 pub fn run(a: TeleopArgs) -> anyhow::Result<ExitCode> {
-    let trace =
-        a.trace.unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/square.logcat"));
+    // The default trace goes to a temporary file for the node's `--file` (deleted at the end).
+    let default_trace = match &a.trace {
+        Some(_) => None,
+        None => {
+            let p = std::env::temp_dir().join(format!("labrig-bench-teleop-{}.logcat", std::process::id()));
+            std::fs::write(&p, SQUARE_TRACE)?;
+            Some(Removed(p))
+        }
+    };
+    let trace: PathBuf = match (&a.trace, &default_trace) {
+        (Some(t), _) => t.clone(),
+        (None, Some(p)) => p.0.clone(),
+        (None, None) => unreachable!("a default trace is written when none is given"),
+    };
     anyhow::ensure!(trace.is_file(), "{}: no such trace", trace.display());
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let (node, received) = rt.block_on(async {
