@@ -24,6 +24,7 @@ pub mod inspect;
 pub mod jpeg;
 pub mod judge;
 pub mod metadata;
+pub mod png;
 pub mod progress;
 pub mod recover;
 pub mod sheet;

@@ -54,16 +54,7 @@ pub fn contact_sheet_png(mcap_file: &Path) -> Result<Vec<u8>, SheetError> {
             }
         }
     }
-    let mut out = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut out, sw as u32, sh as u32);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.write_header()
-            .and_then(|mut w| w.write_image_data(&sheet))
-            .map_err(|e| bad(format!("encoding the PNG: {e}")))?;
-    }
-    Ok(out)
+    crate::png::encode_rgb(&sheet, sw as u32, sh as u32).map_err(|e| bad(format!("encoding the PNG: {e}")))
 }
 
 /// [`contact_sheet_png`] written to `png_out`.

@@ -118,13 +118,8 @@ fn labrig_rectifies_a_zed_frame_as_opencv_does() {
 }
 
 fn read_png_rgb(path: &Path) -> (u32, u32, Vec<u8>) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    assert_eq!(info.color_type, png::ColorType::Rgb, "{}", path.display());
-    buf.truncate(info.buffer_size());
-    (info.width, info.height, buf)
+    let img = labrig_episode::png::decode_rgb(&std::fs::read(path).unwrap()).unwrap();
+    (img.width as u32, img.height as u32, img.pixels)
 }
 
 /// The node's own path: a side-by-side frame (the peer's render, played by ffmpeg as a file

@@ -188,18 +188,14 @@ impl crate::source::Source for RealSenseV4l2 {
             let aligned = align_depth_to_colour(&self.calibration, &raw).map_err(|e| {
                 crate::source::SourceError::Io { source_name: self.calibration.serial.clone(), reason: e.to_string() }
             })?;
-            // The node's depth frames are millimetres.
+            // The node's depth frames are millimetres (a D435's units already are, by default).
             let mm = self.calibration.depth_scale_m * 1000.0;
-            frame.depth = Some(
-                aligned
-                    .iter()
-                    .flat_map(|&z| {
-                        let v =
-                            if (mm - 1.0).abs() < 1e-6 { z } else { (f32::from(z) * mm).round().min(65535.0) as u16 };
-                        v.to_le_bytes()
-                    })
-                    .collect(),
-            );
+            let bytes: Vec<u8> = if (mm - 1.0).abs() < 1e-6 {
+                aligned.iter().flat_map(|z| z.to_le_bytes()).collect()
+            } else {
+                aligned.iter().flat_map(|&z| ((f32::from(z) * mm).round().min(65535.0) as u16).to_le_bytes()).collect()
+            };
+            frame.depth = Some(bytes);
         }
         Ok(frame)
     }

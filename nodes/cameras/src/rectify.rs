@@ -466,20 +466,9 @@ impl EyeRectifier {
 pub fn rectify_png(conf: &std::path::Path, input: &std::path::Path, out: &std::path::Path) -> anyhow::Result<()> {
     use anyhow::Context;
     let calibration = ZedCalibration::load(conf)?;
-    let decoder = png::Decoder::new(std::io::BufReader::new(
-        std::fs::File::open(input).with_context(|| format!("{}", input.display()))?,
-    ));
-    let mut reader = decoder.read_info().with_context(|| format!("{}: not a PNG", input.display()))?;
-    let mut buf = vec![0; reader.output_buffer_size().context("PNG too large")?];
-    let info = reader.next_frame(&mut buf).with_context(|| format!("{}", input.display()))?;
-    let (w, h) = (info.width, info.height);
-    let rgb: Vec<u8> = match (info.color_type, info.bit_depth) {
-        (png::ColorType::Rgb, png::BitDepth::Eight) => buf[..w as usize * h as usize * 3].to_vec(),
-        (png::ColorType::Grayscale, png::BitDepth::Eight) => {
-            buf[..w as usize * h as usize].iter().flat_map(|&g| [g, g, g]).collect()
-        }
-        (c, d) => anyhow::bail!("{}: an 8-bit RGB or grey PNG, not {c:?} {d:?}", input.display()),
-    };
+    let bytes = std::fs::read(input).with_context(|| format!("{}", input.display()))?;
+    let img = labrig_episode::png::decode_rgb(&bytes).with_context(|| format!("{}", input.display()))?;
+    let (w, h, rgb) = (img.width as u32, img.height as u32, img.pixels);
     std::fs::create_dir_all(out).with_context(|| format!("{}", out.display()))?;
     let mut eyes = serde_json::Map::new();
     for (eye, name) in [(Eye::Left, "left"), (Eye::Right, "right")] {
@@ -488,10 +477,8 @@ pub fn rectify_png(conf: &std::path::Path, input: &std::path::Path, out: &std::p
         let mut rect = Vec::new();
         r.table.apply(&raw, &mut rect);
         let path = out.join(format!("{name}.png"));
-        let mut enc = png::Encoder::new(std::io::BufWriter::new(std::fs::File::create(&path)?), w / 2, h);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.write_header()?.write_image_data(&rect)?;
+        std::fs::write(&path, labrig_episode::png::encode_rgb(&rect, w / 2, h)?)
+            .with_context(|| format!("{}", path.display()))?;
         let info = r.camera_info(labrig_msgs::builtin_interfaces::Time::default(), name);
         eyes.insert(name.into(), serde_json::json!({ "k": info.k, "d": info.d, "r": info.r, "p": info.p }));
     }
