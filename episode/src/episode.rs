@@ -1,17 +1,19 @@
 //! One episode, one MCAP file in the rosbag2 layout: profile `ros2`, `ros2msg` schemas, `cdr`
-//! messages, channels with their QoS, zstd chunks of a quarter second each (flushed and
-//! fsynced as they close, so a killed recorder loses at most the open quarter second), DROID's
+//! messages, channels with their QoS, zstd chunks of a quarter second each (handed to the
+//! kernel as they close, so a killed recorder loses at most the open quarter second, and
+//! fsynced by a thread of their own, so a slow disk never holds the writer up), DROID's
 //! metadata as the first record, and on [`EpisodeWriter::finish`] the `rosbag2` record and a
 //! `metadata.yaml` beside the file.
 
 use crate::bag::{BagInfo, Reliability, TopicInfo, qos_yaml};
+use crate::durable::Syncer;
 use crate::metadata::EpisodeMetadata;
 use labrig_msgs::{Nanos, RosMessage};
 use mcap::records::{MessageHeader, Metadata};
 use mcap::{Attachment, Compression, WriteOptions, Writer};
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
 /// The episode file's name inside its directory (its first part).
@@ -232,8 +234,8 @@ pub struct EpisodeWriter {
     dir: PathBuf,
     path: PathBuf,
     writer: Writer<BufWriter<File>>,
-    /// A second handle on the file, to fsync each closed chunk.
-    sync: File,
+    /// Fsyncs each closed chunk on a second handle on the file, beside the writer.
+    syncer: Syncer,
     schemas: HashMap<&'static str, u16>,
     raw_schemas: HashMap<String, u16>,
     channels: HashMap<String, Channel>,
@@ -274,6 +276,7 @@ impl EpisodeWriter {
         let path = dir.join(part_file(earlier.len() as u32));
         let file = File::create(&path).map_err(|e| io("creating the episode file", e))?;
         let sync = file.try_clone().map_err(|e| io("opening the episode file twice", e))?;
+        let syncer = Syncer::start(sync).map_err(|e| io("starting the episode file's fsync thread", e))?;
         let opts = WriteOptions::new()
             .profile("ros2")
             .library(concat!("labrig-recorder ", env!("CARGO_PKG_VERSION")))
@@ -287,7 +290,7 @@ impl EpisodeWriter {
             dir: dir.to_owned(),
             path,
             writer,
-            sync,
+            syncer,
             schemas: HashMap::new(),
             raw_schemas: HashMap::new(),
             channels: HashMap::new(),
@@ -307,9 +310,15 @@ impl EpisodeWriter {
         &self.path
     }
 
-    /// Chunks closed and fsynced so far (what a crash cannot take away).
+    /// Chunks closed and handed to the kernel so far (what killing the writer's process cannot
+    /// take away).
     pub fn closed_chunks(&self) -> u64 {
         self.closed_chunks
+    }
+
+    /// Chunks known to be on the disk (fsynced: what a machine losing power cannot take away).
+    pub fn synced_chunks(&self) -> u64 {
+        self.syncer.synced()
     }
 
     /// Messages written so far on `topic`.
@@ -334,10 +343,16 @@ impl EpisodeWriter {
         |source| EpisodeError::Mcap { path: self.path.clone(), source }
     }
 
+    /// Closes the open chunk, hands it to the kernel and asks for an fsync, without waiting
+    /// for the disk; an earlier fsync's failure (a full disk, an I/O error) is returned here.
     fn sync(&mut self) -> Result<(), EpisodeError> {
         let path = self.path.clone();
         self.writer.flush().map_err(|source| EpisodeError::Mcap { path: path.clone(), source })?;
-        self.sync.sync_data().map_err(|source| EpisodeError::Io { path, what: "syncing the episode file", source })
+        self.syncer.request(self.closed_chunks).map_err(|source| EpisodeError::Io {
+            path,
+            what: "syncing the episode file",
+            source,
+        })
     }
 
     fn channel(
@@ -429,9 +444,9 @@ impl EpisodeWriter {
         // loses at most the chunk still open.
         let chunk_start = *self.chunk_start_ns.get_or_insert(log_ns);
         if log_ns - chunk_start >= CHUNK_NS {
+            self.closed_chunks += 1;
             self.sync()?;
             self.chunk_start_ns = Some(log_ns);
-            self.closed_chunks += 1;
         }
         self.sequence = self.sequence.wrapping_add(1);
         let header = MessageHeader {
@@ -474,10 +489,11 @@ impl EpisodeWriter {
             .write_metadata(&Metadata { name: "rosbag2".into(), metadata: info.record() })
             .map_err(self.mcap_err())?;
         self.writer.finish().map_err(self.mcap_err())?;
-        let EpisodeWriter { writer, sync, path, dir, mut earlier, .. } = self;
+        let EpisodeWriter { writer, syncer, path, dir, mut earlier, .. } = self;
         let io = |what, source| EpisodeError::Io { path: path.clone(), what, source };
-        writer.into_inner().flush().map_err(|e| io("writing the episode file", e))?;
-        sync.sync_all().map_err(|e| io("syncing the episode file", e))?;
+        let file = writer.into_inner().into_inner().map_err(|e| io("writing the episode file", e.into_error()))?;
+        syncer.stop().map_err(|e| io("syncing the episode file", e))?;
+        file.sync_all().map_err(|e| io("syncing the episode file", e))?;
         earlier.push(info.clone());
         write_metadata_yaml(&dir, &BagInfo::merged(&earlier))?;
         let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);

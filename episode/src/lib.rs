@@ -17,6 +17,7 @@
 pub mod bag;
 pub mod calibration;
 mod chunk;
+mod durable;
 pub mod episode;
 pub mod font;
 pub mod grey;

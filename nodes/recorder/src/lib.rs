@@ -3,6 +3,7 @@
 //! recovery) is labrig-episode; this crate adds only the transport.
 
 pub mod bench;
+mod filer;
 pub mod node;
 
 use labrig_msgs::Invalid;

@@ -29,6 +29,7 @@
 //! `/recorder/status` (std_msgs/String, JSON, latched) says what it is doing once a second and
 //! after every episode.
 
+use crate::filer::{Filed, Filer, Filing};
 use labrig_episode::bag::{BagInfo, Reliability};
 use labrig_episode::episode::{EpisodeError, EpisodeWriter, RawType};
 use labrig_episode::metadata::{EpisodeMetadata, Outcome, RigIdentity, episode_dir};
@@ -354,6 +355,8 @@ struct Recorder {
     /// Frames taken (encoded) while waiting for the loop's history on start: an episode it
     /// continues gets them.
     buffered: std::collections::VecDeque<Encoded>,
+    /// Finishes and files ended episodes beside the loop (the last fsync waits on the disk).
+    filer: Filer,
 }
 
 /// Frames kept per camera while a restarted recorder waits to rejoin (three seconds).
@@ -404,6 +407,7 @@ pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<
         .map_err(|e| anyhow::anyhow!("creating {}: {e}", cfg.root.join(".recording").display()))?;
     let orphans = orphans(&cfg.root);
     tracing::info!(root = %cfg.root.display(), topics = recorded.len(), cameras = intake.cameras().len(), orphans = orphans.len(), "recorder up");
+    let cfg_root = cfg.root.clone();
     let mut rec = Recorder {
         cfg,
         topics: recorded,
@@ -419,6 +423,7 @@ pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<
         sizes: Vec::new(),
         space: None,
         buffered: Default::default(),
+        filer: Filer::start(cfg_root).map_err(|e| anyhow::anyhow!("starting the episode filer thread: {e}"))?,
     };
     rec.check_space();
     rec.publish_status();
@@ -476,6 +481,7 @@ pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<
         if rec.episode.as_ref().and_then(|e| e.closing).is_some_and(|c| Instant::now() >= c.until) {
             rec.finish_closing();
         }
+        rec.filed();
         // Once a second, recording or not (the launcher watches it as the node's heartbeat).
         if status_at.elapsed() > Duration::from_secs(1) {
             status_at = Instant::now();
@@ -506,6 +512,7 @@ pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<
             rec.end(ep, Outcome::Failure, "the recorder stopped mid-episode");
         }
     }
+    rec.stop_filing();
     anyhow::ensure!(!intake_died, "the frame intake thread ended: no camera frames would be recorded");
     Ok(())
 }
@@ -817,11 +824,18 @@ impl Recorder {
             }
             Ok(EpisodeEventKind::Discard) => {
                 if let Some(ep) = self.episode.take() {
-                    let staging = ep.staging.clone();
-                    let _ = ep.writer.finish();
-                    let _ = std::fs::remove_dir_all(&staging);
-                    self.last = json!({ "state": "discarded", "staging": staging });
-                    self.publish_status();
+                    let Episode { writer, staging, uuid, .. } = ep;
+                    let why = String::new();
+                    let f = Filing {
+                        writer,
+                        staging,
+                        uuid,
+                        outcome: Outcome::Failure,
+                        why,
+                        disk_full: false,
+                        discard: true,
+                    };
+                    self.filer.submit(f);
                 }
             }
             Ok(EpisodeEventKind::Reset) => {}
@@ -1026,13 +1040,8 @@ impl Recorder {
         );
         tracing::error!(episode = %uuid, "{why}");
         self.errors += 1;
-        self.end(ep, Outcome::Failure, &why);
-        // The loop stops the episode on this (the recorder no longer records it).
-        if self.last["state"] == "recorded" {
-            self.last =
-                json!({ "state": "error", "episode": uuid, "error": why, "disk_full": true, "dir": self.last["dir"] });
-            self.publish_status();
-        }
+        // The loop stops the episode on the status this files (an error: the disk is full).
+        self.file(ep, Outcome::Failure, &why, true);
     }
 
     fn finish_closing(&mut self) {
@@ -1042,47 +1051,44 @@ impl Recorder {
         }
     }
 
-    /// Finishes an episode and moves it into DROID's layout.
+    /// Finishes an episode and moves it into DROID's layout, beside the loop ([`Filer`]); its
+    /// status comes back through [`Recorder::filed`].
     fn end(&mut self, ep: Episode, outcome: Outcome, why: &str) {
-        let Episode { mut writer, staging, prior_steps, takeovers, operator_steps, .. } = ep;
-        let start_ns = writer.metadata_mut().start_ns;
-        let uuid = writer.metadata().uuid.clone();
+        self.file(ep, outcome, why, false);
+    }
+
+    fn file(&mut self, ep: Episode, outcome: Outcome, why: &str, disk_full: bool) {
+        let Episode { mut writer, staging, prior_steps, takeovers, operator_steps, uuid, .. } = ep;
         writer.metadata_mut().trajectory_length = prior_steps + writer.count(topics::RIG_STEP.name);
         // A policy's rollout says how much of it was operator corrections (none: 0 and 0).
         if writer.metadata().policy.is_some() {
             writer.metadata_mut().takeovers = Some(takeovers);
             writer.metadata_mut().operator_steps = Some(operator_steps);
         }
-        self.last = match writer.finish() {
-            Ok(summary) => {
-                self.sizes.push(dir_bytes(&staging));
-                // Two episodes may start in the same second (DROID's directory names are to the
-                // second): the later one gets a suffix rather than failing to move.
-                let dest = free_name(episode_dir(&self.cfg.root, outcome, Nanos(start_ns)));
-                let moved = dest
-                    .parent()
-                    .map(std::fs::create_dir_all)
-                    .transpose()
-                    .and_then(|_| std::fs::rename(&staging, &dest));
-                match moved {
-                    Ok(()) => {
-                        tracing::info!(dir = %dest.display(), messages = summary.messages, "episode recorded {}", why);
-                        json!({ "state": "recorded", "episode": uuid, "outcome": outcome.dir(), "dir": dest, "messages": summary.messages, "bytes": summary.bytes, "note": why })
-                    }
-                    Err(e) => {
-                        tracing::error!("moving {} to {}: {e}", staging.display(), dest.display());
-                        json!({ "state": "error", "error": format!("moving the episode: {e}"), "staging": staging })
-                    }
-                }
-            }
-            Err(e) => {
-                self.errors += 1;
-                tracing::error!("finishing the episode: {e}");
-                json!({ "state": "error", "error": e.to_string(), "disk_full": e.is_disk_full(), "staging": staging })
-            }
-        };
+        // Its size for the free-space margin: every closed chunk is in the file already.
+        self.sizes.push(dir_bytes(&staging));
+        self.filer.submit(Filing { writer, staging, uuid, outcome, why: why.to_owned(), disk_full, discard: false });
+    }
+
+    /// The statuses of the episodes filed since the last call.
+    fn filed(&mut self) {
+        for f in self.filer.reports() {
+            self.report_filed(f);
+        }
+    }
+
+    fn report_filed(&mut self, f: Filed) {
+        self.errors += u64::from(f.failed);
+        self.last = f.status;
         self.check_space();
         self.publish_status();
+    }
+
+    /// Waits for the episodes still being filed (the recorder is stopping).
+    fn stop_filing(&mut self) {
+        for f in self.filer.stop() {
+            self.report_filed(f);
+        }
     }
 }
 
@@ -1264,7 +1270,7 @@ fn drain_topics(
 }
 
 /// `path`, or `path_2`, `path_3`, ... when it exists.
-fn free_name(path: PathBuf) -> PathBuf {
+pub(crate) fn free_name(path: PathBuf) -> PathBuf {
     if !path.exists() {
         return path;
     }
