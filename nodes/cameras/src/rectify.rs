@@ -375,15 +375,22 @@ impl RemapTable {
     }
 
     /// Resamples `src` (RGB8, the table's size) into `dst` (resized to fit).
+    #[allow(unsafe_code)]
     pub fn apply(&self, src: &[u8], dst: &mut Vec<u8>) {
         let stride = self.width as usize * 3;
         assert_eq!(src.len(), stride * self.height as usize, "a source image of the table's size");
         dst.resize(src.len(), 0);
         let round = 1u32 << 14;
         let table: &[[u16; 4]; (TAB * TAB) as usize] = self.weights[..].try_into().expect("a weight per fraction");
+        let last_block = src.len() - stride - 6;
         for (out, &e) in dst.chunks_exact_mut(3).zip(&self.entry) {
             let o = (e >> 10) as usize * 3;
-            let (a, b) = (&src[o..o + 6], &src[o + stride..o + stride + 6]);
+            debug_assert!(o <= last_block);
+            // SAFETY: `new` packs a position only when its whole 2x2 block lies inside the
+            // width x height image (sx + 1 < width, sy + 1 < height), so o + stride + 6 <= the
+            // length checked above; `entry` is private and written by `new` alone.
+            let (a, b) =
+                unsafe { (&*src.as_ptr().add(o).cast::<[u8; 6]>(), &*src.as_ptr().add(o + stride).cast::<[u8; 6]>()) };
             let [w0, w1, w2, w3] = table[(e & 1023) as usize].map(u32::from);
             for c in 0..3 {
                 let v =
