@@ -137,7 +137,7 @@ fn the_camera_node_publishes_the_rectified_eye_and_its_camera_info() {
     std::fs::write(
         &config,
         format!(
-            "[cameras.ext1]\nsource = \"{}\"\nwidth = 1280\nheight = 720\nfps = 10\nside_by_side = true\nrectify = true\nintrinsics = \"{}\"\n",
+            "[cameras.ext1]\nsource = \"{}\"\nwidth = 1280\nheight = 720\nfps = 10\nside_by_side = true\nrectify = true\nright_eye = true\nintrinsics = \"{}\"\n",
             dir.join("raw.png").display(),
             repo_root().join(FIXTURE).display()
         ),
@@ -149,8 +149,12 @@ fn the_camera_node_publishes_the_rectified_eye_and_its_camera_info() {
     let _in_rt = rt.enter();
     let mut ros = Ros::new(&RosConfig { domain_id: domain, ..RosConfig::default() }, "zed_rect_test").unwrap();
     let info: RosSubscription<CameraInfo> = ros.subscription(&topics::camera_info("ext1"), qos::reliable(10)).unwrap();
+    let right_info: RosSubscription<CameraInfo> =
+        ros.subscription(&topics::camera_info("ext1_right"), qos::reliable(10)).unwrap();
+    let tf_static = ros.subscription_on(&topics::TF_STATIC, 10).unwrap();
     let frames = FrameNode::new_in(&ns).unwrap();
     let sub = frames.subscriber("ext1").unwrap();
+    let right_sub = frames.subscriber("ext1_right").unwrap();
     let mut cmd = Command::new(&cams);
     cmd.args(["run", "--config"])
         .arg(&config)
@@ -158,29 +162,41 @@ fn the_camera_node_publishes_the_rectified_eye_and_its_camera_info() {
         .env(labrig_runtime::frames::NAMESPACE_ENV, &ns);
     let _node = Proc::spawn("labrig-cameras (rectified ZED)", cmd);
 
-    let until = Instant::now() + Duration::from_secs(60);
-    let (w, h, px) = loop {
-        if let Some(f) = sub.receive().unwrap() {
-            let hd = f.header();
-            break (hd.width, hd.height, f.pixels().to_vec());
+    let first_frame = |sub: &labrig_runtime::frames::FrameSubscriber, camera: &str| {
+        let until = Instant::now() + Duration::from_secs(60);
+        loop {
+            if let Some(f) = sub.receive().unwrap() {
+                let hd = f.header();
+                break (hd.width, hd.height, f.pixels().to_vec());
+            }
+            assert!(Instant::now() < until, "no {camera} frame from the node");
+            std::thread::sleep(Duration::from_millis(5));
         }
-        assert!(Instant::now() < until, "no ext1 frame from the node");
-        std::thread::sleep(Duration::from_millis(5));
     };
+    let (w, h, px) = first_frame(&sub, "ext1");
     assert_eq!((w, h), (1280, 720));
     let (cw, ch, cv) = read_png_rgb(&dir.join("cv_left.png"));
     assert_eq!((cw, ch), (1280, 720));
-    let within = px
-        .chunks_exact(3)
-        .zip(cv.chunks_exact(3))
-        .filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| x.abs_diff(*y) <= 1))
-        .count();
-    let share = within as f64 / f64::from(w * h);
+    let within = |ours: &[u8], cv: &[u8]| {
+        ours.chunks_exact(3)
+            .zip(cv.chunks_exact(3))
+            .filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| x.abs_diff(*y) <= 1))
+            .count() as f64
+            / f64::from(w * h)
+    };
+    let share = within(&px, &cv);
     assert!(
         share >= 0.99,
         "{:.3}% of the node's pixels within 1 grey level of OpenCV's rectified left eye",
         share * 100.0
     );
+    // The right eye (`right_eye`), from the same side-by-side frame, as camera ext1_right.
+    let (rw, rh, right_px) = first_frame(&right_sub, "ext1_right");
+    assert_eq!((rw, rh), (1280, 720));
+    let (_, _, cv_right) = read_png_rgb(&dir.join("cv_right.png"));
+    let share = within(&right_px, &cv_right);
+    assert!(share >= 0.99, "{:.3}% of ext1_right within 1 grey level of OpenCV's right eye", share * 100.0);
+    assert!(within(&right_px, &cv) < 0.9, "the right eye is not the left one");
     // The raw left eye is not that image: the comparison sees rectification.
     let (_, _, raw) = read_png_rgb(&dir.join("raw_left.png"));
     let raw_within = raw
@@ -190,15 +206,30 @@ fn the_camera_node_publishes_the_rectified_eye_and_its_camera_info() {
         .count();
     assert!((raw_within as f64) < 0.9 * f64::from(w * h), "the raw eye matches too: {raw_within} pixels");
 
-    let ci = labrig_tests::first_message(&info, "camera_info for ext1", Duration::from_secs(20));
-    assert_eq!(ci.d, vec![0.0; 5], "rectified: no distortion");
-    for (key, ours) in [("k", ci.k.to_vec()), ("r", ci.r.to_vec()), ("p", ci.p.to_vec())] {
-        for (x, y) in ours.iter().zip(numbers(&theirs["left"][key])) {
-            assert!(
-                (x - y).abs() <= 1e-6 * y.abs().max(1.0),
-                "camera_info {key}: {ours:?} vs OpenCV {}",
-                theirs["left"][key]
-            );
+    for (eye, sub) in [("left", &info), ("right", &right_info)] {
+        let ci = labrig_tests::first_message(sub, &format!("camera_info for the {eye} eye"), Duration::from_secs(20));
+        assert_eq!(ci.d, vec![0.0; 5], "rectified: no distortion");
+        let theirs = &theirs[eye];
+        for (key, ours) in [("k", ci.k.to_vec()), ("r", ci.r.to_vec()), ("p", ci.p.to_vec())] {
+            let cv = numbers(&theirs[key]);
+            assert_eq!(ours.len(), cv.len(), "{eye} {key}");
+            for (x, y) in ours.iter().zip(cv) {
+                assert!(
+                    (x - y).abs() <= 1e-6 * y.abs().max(1.0),
+                    "{eye} camera_info {key}: {ours:?} vs OpenCV {}",
+                    theirs[key]
+                );
+            }
         }
     }
+    // /tf_static: the right eye's optical frame the rectified baseline along the left's x.
+    let tf = labrig_tests::first_message(&tf_static, "/tf_static", Duration::from_secs(20));
+    let right = tf.transforms.iter().find(|t| t.child_frame_id == "ext1_right_optical").expect("ext1_right_optical");
+    assert_eq!(right.header.frame_id, "ext1_optical");
+    let p = numbers(&theirs["right"]["p"]);
+    let baseline_m = -p[3] / p[0];
+    let t = &right.transform.translation;
+    assert!((t.x - baseline_m).abs() < 1e-9 && t.y == 0.0 && t.z == 0.0, "{t:?} vs baseline {baseline_m} m");
+    assert!((0.05..0.2).contains(&baseline_m), "a ZED's baseline: {baseline_m} m");
+    assert_eq!(right.transform.rotation.w, 1.0);
 }

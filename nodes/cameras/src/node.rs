@@ -137,6 +137,12 @@ pub struct CameraConfig {
     /// (`depth16`: uint16 millimetres, 0 = no depth).
     #[serde(default)]
     pub depth: bool,
+    /// A rectified ZED's right eye too, as a camera of its own: `<id>_right` on shared memory,
+    /// `/cameras/<id>_right/camera_info` (its P's Tx = -fx * baseline) and on `/tf_static` its
+    /// optical frame `<id>_right_optical`, the baseline along x from `<id>_optical` (both eyes
+    /// rectified: the same orientation, rows aligned; DROID records `<serial>_right` so).
+    #[serde(default)]
+    pub right_eye: bool,
     /// A RealSense read in Rust over V4L2 (no librealsense, no Python on the rig): its
     /// calibration file from `labrig cameras realsense-export` (colour and depth intrinsics,
     /// depth -> colour extrinsics, depth scale). Without it a `realsense:` camera runs
@@ -183,8 +189,14 @@ impl CameraConfig {
             loop_file: true,
             jpeg_passthrough: false,
             depth: false,
+            right_eye: false,
         }
     }
+}
+
+/// The camera id of a rectified ZED `id`'s right eye (`right_eye`).
+pub fn right_id(id: &str) -> String {
+    format!("{id}_right")
 }
 
 /// The shared-memory camera id of camera `id`'s aligned depth.
@@ -325,6 +337,24 @@ impl CamerasConfig {
                     );
                 }
             }
+            if c.right_eye {
+                if !c.rectifies(&spec) || c.eye != Eye::Left {
+                    return bad(
+                        &key("right_eye"),
+                        format!(
+                            "is for a rectified ZED publishing its left eye (the right eye's pose follows from the rectified pair); camera {id} has rectify = {}, eye = {:?}",
+                            c.rectifies(&spec),
+                            c.eye
+                        ),
+                    );
+                }
+                if !is_camera_id(&right_id(id)) {
+                    return bad(
+                        &key("right_eye"),
+                        format!("needs a camera id of at most 26 characters (its right eye is `{}`)", right_id(id)),
+                    );
+                }
+            }
             if !(c.fps.is_finite() && (1.0..=240.0).contains(&c.fps)) {
                 return bad(&key("fps"), format!("is {}, must be 1..=240", c.fps));
             }
@@ -372,6 +402,8 @@ pub struct Camera {
     pub intrinsics: Option<Intrinsics>,
     /// A rectified ZED eye: its remap table (computed once here) and camera_info.
     pub rectifier: Option<std::sync::Arc<EyeRectifier>>,
+    /// The same ZED's rectified right eye, published as camera `<id>_right` (`right_eye`).
+    pub right: Option<std::sync::Arc<EyeRectifier>>,
     /// A RealSense read over V4L2: its calibration (loaded and checked here).
     pub realsense: Option<std::sync::Arc<RealSenseCalibration>>,
 }
@@ -408,6 +440,11 @@ impl Camera {
         {
             let zed = ZedCalibration::load(p).map_err(intr)?;
             let r = EyeRectifier::new(&zed, c.eye, c.width, c.height).map_err(intr)?;
+            let right = if c.right_eye {
+                Some(std::sync::Arc::new(EyeRectifier::new(&zed, Eye::Right, c.width, c.height).map_err(intr)?))
+            } else {
+                None
+            };
             return Ok(Camera {
                 id: id.to_owned(),
                 spec,
@@ -415,6 +452,7 @@ impl Camera {
                 side_by_side: Some(c.eye),
                 intrinsics: Some(r.intrinsics()),
                 rectifier: Some(std::sync::Arc::new(r)),
+                right,
                 realsense: None,
             });
         }
@@ -451,6 +489,7 @@ impl Camera {
                 side_by_side: None,
                 intrinsics: Some(cal.colour_intrinsics()),
                 rectifier: None,
+                right: None,
                 realsense: Some(std::sync::Arc::new(cal)),
             });
         }
@@ -477,6 +516,7 @@ impl Camera {
             side_by_side: sbs.then_some(c.eye),
             intrinsics,
             rectifier: None,
+            right: None,
             realsense: None,
         })
     }
@@ -554,6 +594,23 @@ impl Camera {
             transform: Transform {
                 translation: Vector3 { x, y, z },
                 rotation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+            },
+        })
+    }
+}
+
+impl Camera {
+    /// `/tf_static`'s transform `<id>_optical` -> `<id>_right_optical` of a ZED publishing its
+    /// right eye: the rectified baseline along x, no rotation (both eyes rectified share one
+    /// orientation; the left eye's image and K see `<id>_optical` as the rectified left eye).
+    pub fn right_transform(&self, stamp: Time) -> Option<TransformStamped> {
+        let r = self.right.as_ref()?;
+        Some(TransformStamped {
+            header: Header { stamp, frame_id: optical_frame(&self.id) },
+            child_frame_id: optical_frame(&right_id(&self.id)),
+            transform: Transform {
+                translation: Vector3 { x: r.rectification.baseline_m, y: 0.0, z: 0.0 },
+                rotation: Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 },
             },
         })
     }
@@ -644,9 +701,11 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
     };
     let mut publisher: Option<FramePublisher> = None;
     let mut depth_publisher: Option<FramePublisher> = None;
+    let mut right_publisher: Option<FramePublisher> = None;
     let mut last_preview: Option<Instant> = None;
     // A rectified frame's buffer, reused frame after frame.
     let mut rectified: Vec<u8> = Vec::new();
+    let mut right_rectified: Vec<u8> = Vec::new();
     while !ctx.shutdown.is_triggered() {
         let mut source = match cam.open(ctx.timeouts) {
             Ok(s) => s,
@@ -675,6 +734,13 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
                 (None, None) => arrival,
             };
             let want = (cam.config.width, cam.config.height);
+            // The right eye, from the same side-by-side frame (`right_eye`: a rectified ZED).
+            let right = cam.right.as_ref().map(|r| {
+                to_rgb(raw.pixels.clone(), raw.size, Some(Eye::Right), want).map(|rgb| {
+                    r.table.apply(&rgb, &mut right_rectified);
+                    std::mem::take(&mut right_rectified)
+                })
+            });
             let converted = if cam.config.jpeg_passthrough {
                 passthrough(raw.pixels, want).map(|(jpeg, size)| (Published::Jpeg(jpeg), size))
             } else if want == (0, 0) {
@@ -734,6 +800,23 @@ fn camera_thread(index: usize, cam: Camera, ctx: ThreadCtx) {
             if let Err(e) = publisher.as_mut().expect("publisher").publish(bytes, capture, arrival) {
                 send(Event::Down { camera: index, reason: e.to_string() });
                 break;
+            }
+            if let Some(right) = right {
+                let published = right.map_err(|e| format!("right eye: {e}")).and_then(|rgb| {
+                    if right_publisher.is_none() {
+                        let format = FrameFormat { encoding: FrameEncoding::Rgb8, width: w, height: h };
+                        right_publisher =
+                            Some(frames.publisher(&right_id(&cam.id), format).map_err(|e| e.to_string())?);
+                    }
+                    let p = right_publisher.as_mut().expect("right publisher");
+                    let sent = p.publish(&rgb, capture, arrival).map_err(|e| format!("right eye: {e}"));
+                    right_rectified = rgb;
+                    sent
+                });
+                if let Err(reason) = published {
+                    send(Event::Down { camera: index, reason });
+                    break;
+                }
             }
             // Aligned depth: the colour frame's size, times and sequence.
             if let Some(depth) = depth {
@@ -872,6 +955,15 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
         .iter()
         .map(|c| ros.publisher(&topics::camera_info(&c.id), qos::reliable(10)))
         .collect::<Result<_, _>>()?;
+    let right_info_pubs: Vec<Option<RosPublisher<CameraInfo>>> = cameras
+        .iter()
+        .map(|c| {
+            c.right
+                .as_ref()
+                .map(|_| ros.publisher(&topics::camera_info(&right_id(&c.id)), qos::reliable(10)))
+                .transpose()
+        })
+        .collect::<Result<_, _>>()?;
     let preview_pubs: Vec<RosPublisher<CompressedImage>> = cameras
         .iter()
         .map(|c| ros.publisher(&topics::camera_preview(&c.id), qos::reliable(2)))
@@ -893,6 +985,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
             Some(f) => Some(calibrated_transform(f, &config.base_frame, Time::from(now))),
             None => c.transform(&config.base_frame, Time::from(now)),
         })
+        .chain(cameras.iter().filter_map(|c| c.right_transform(Time::from(now))))
         .collect();
     if !statics.is_empty() {
         tf_static.publish(TFMessage { transforms: statics })?;
@@ -956,7 +1049,7 @@ pub async fn run(config: CamerasConfig, shutdown: Shutdown) -> anyhow::Result<Ca
             _ = shutdown.wait() => break,
             ev = rx.recv() => {
                 let Some(ev) = ev else { break };
-                handle(ev, &cameras, &mut device_intrinsics, &mut status, &info_pubs, &preview_pubs)?
+                handle(ev, &cameras, &mut device_intrinsics, &mut status, (&info_pubs, &right_info_pubs), &preview_pubs)?
             }
             _ = tick.tick() => {
                 let dt = last_tick.elapsed().as_secs_f64().max(1e-3);
@@ -1001,7 +1094,7 @@ fn handle(
     cameras: &[Camera],
     device_intrinsics: &mut [Option<Intrinsics>],
     status: &mut [CameraStatus],
-    info: &[RosPublisher<CameraInfo>],
+    (info, right_info): (&[RosPublisher<CameraInfo>], &[Option<RosPublisher<CameraInfo>>]),
     preview: &[RosPublisher<CompressedImage>],
 ) -> anyhow::Result<bool> {
     let now = Clock::Wall.now().0;
@@ -1057,6 +1150,9 @@ fn handle(
                 },
             };
             info[f.camera].publish(msg)?;
+            if let (Some(r), Some(p)) = (&cam.right, &right_info[f.camera]) {
+                p.publish(r.camera_info(stamp, &optical_frame(&right_id(&cam.id))))?;
+            }
             if let Some(jpeg) = f.preview {
                 preview[f.camera].publish(CompressedImage {
                     header: Header { stamp, frame_id },
@@ -1180,6 +1276,25 @@ mod tests {
         }
         // Not a ZED: raw unless asked.
         assert!(!CameraConfig::new("testsrc").rectifies(&SourceSpec::TestPattern));
+        // The right eye too: its own rectifier; only for a rectified ZED's left eye.
+        let mut both = c.clone();
+        both.right_eye = true;
+        let cam = Camera::resolve("ext1", &both, None).unwrap();
+        let right = cam.right.as_ref().expect("the right eye's rectifier");
+        assert_eq!(right.eye, Eye::Right);
+        let t = cam.right_transform(Time::default()).unwrap();
+        assert_eq!((t.header.frame_id.as_str(), t.child_frame_id.as_str()), ("ext1_optical", "ext1_right_optical"));
+        assert!((t.transform.translation.x - 0.11998).abs() < 1e-3, "{t:?}");
+        assert!(Camera::resolve("ext1", &c, None).unwrap().right_transform(Time::default()).is_none());
+        let zed = format!(
+            "[cameras.ext1]\nsource = \"zed:1\"\nwidth = 672\nheight = 376\nintrinsics = \"{conf}\"\nright_eye = true\n"
+        );
+        config(&zed).validate().unwrap();
+        for (extra, want) in [("rectify = false\n", "rectify = false"), ("eye = \"right\"\n", "eye = Right")] {
+            let e = config(&format!("{zed}{extra}")).validate().unwrap_err();
+            assert_eq!(e.key, "cameras.ext1.right_eye");
+            assert!(e.to_string().contains(want), "{e}");
+        }
     }
 
     #[test]
