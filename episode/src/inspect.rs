@@ -5,7 +5,7 @@
 
 use crate::metadata::EpisodeMetadata;
 use labrig_msgs::rig::Step;
-use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::topics;
 use labrig_msgs::{TypeVisitor, visit_type};
 use mcap::read::{LinearReader, Options};
@@ -70,6 +70,25 @@ pub struct CameraStats {
     /// Frames captured before the sim's scene was set (`sim_scene.since_ns`): another scene's,
     /// so another episode's.
     pub frames_before_scene: u64,
+    /// What the images are, from the camera's recorded camera_info: `rectified` (a stereo eye
+    /// rectified: no distortion, a rectifying rotation R), `distorted` (raw, with the lens's
+    /// distortion coefficients), `pinhole` (no distortion, no rectification), `uncalibrated`
+    /// (K all zero), or `unknown` (no camera_info recorded).
+    pub image: &'static str,
+}
+
+/// What a camera_info says the images are (see [`CameraStats::image`]).
+pub fn image_model(info: &CameraInfo) -> &'static str {
+    let identity = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+    if info.k.iter().all(|&v| v == 0.0) {
+        "uncalibrated"
+    } else if info.d.iter().any(|&v| v != 0.0) {
+        "distorted"
+    } else if info.r.iter().zip(identity).any(|(a, b)| (a - b).abs() > 1e-12) {
+        "rectified"
+    } else {
+        "pinhole"
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -183,6 +202,8 @@ struct Topic {
     /// The newest publish time (what a recorder rejoining the episode continues after).
     last_publish: u64,
     stamps: Vec<i64>,
+    /// A camera_info topic's first message's [`image_model`].
+    image: Option<&'static str>,
 }
 
 /// An episode file that cannot be read at all (damage after a readable start is reported in
@@ -400,6 +421,13 @@ fn scan_file(
                     }
                     Err(_) => false,
                 },
+                "sensor_msgs/msg/CameraInfo" => match labrig_msgs::decode::<CameraInfo>(&data) {
+                    Ok(info) => {
+                        t.image.get_or_insert(image_model(&info));
+                        true
+                    }
+                    Err(_) => false,
+                },
                 "sensor_msgs/msg/CompressedImage" => match labrig_msgs::decode::<CompressedImage>(&data) {
                     Ok(img) => {
                         t.stamps.push(labrig_msgs::Nanos::from(img.header.stamp).0);
@@ -558,7 +586,11 @@ fn camera_stats(topics: &BTreeMap<String, Topic>, steps: &[Step], scene_since: O
     topics
         .iter()
         .filter(|(_, t)| t.type_name == "sensor_msgs/msg/CompressedImage")
-        .map(|(name, t)| camera_stats_of(name, t, steps, scene_since))
+        .map(|(name, t)| {
+            let mut c = camera_stats_of(name, t, steps, scene_since);
+            c.image = topics.get(&topics::camera_info(&c.camera)).and_then(|t| t.image).unwrap_or("unknown");
+            c
+        })
         .collect()
 }
 
@@ -586,7 +618,16 @@ fn camera_stats_of(name: &str, t: &Topic, steps: &[Step], scene_since: Option<i6
     let frames_missing =
         steps.iter().filter(|s| named(s).is_some_and(|t| stamps.binary_search(&t).is_err())).count() as u64;
     let frames_before_scene = scene_since.map_or(0, |since| stamps.iter().filter(|&&t| t < since).count() as u64);
-    CameraStats { camera, frames: t.count, dropped, late, steps_without_frame, frames_missing, frames_before_scene }
+    CameraStats {
+        camera,
+        frames: t.count,
+        dropped,
+        late,
+        steps_without_frame,
+        frames_missing,
+        frames_before_scene,
+        image: "unknown",
+    }
 }
 
 /// The topics' malformed and out-of-order messages, and the recorder restarts between parts.
@@ -720,8 +761,8 @@ impl Inspection {
         for c in &self.cameras {
             let _ = writeln!(
                 s,
-                "  camera {:<8} frames {:>6}  dropped {:>4}  late {:>4}  steps without a frame {:>3}",
-                c.camera, c.frames, c.dropped, c.late, c.steps_without_frame
+                "  camera {:<8} frames {:>6}  dropped {:>4}  late {:>4}  steps without a frame {:>3}  images {}",
+                c.camera, c.frames, c.dropped, c.late, c.steps_without_frame, c.image
             );
         }
         let pct = |name: &str, p: &Option<Percentiles>| match p {

@@ -7,7 +7,7 @@ use labrig_episode::{EpisodeMetadata, EpisodeWriter, Outcome, RigIdentity, episo
 use labrig_msgs::Nanos;
 use labrig_msgs::geometry_msgs::TransformStamped;
 use labrig_msgs::rig::{CameraFrameRef, RobotState, Step};
-use labrig_msgs::sensor_msgs::CompressedImage;
+use labrig_msgs::sensor_msgs::{CameraInfo, CompressedImage};
 use labrig_msgs::std_msgs::Header;
 use labrig_msgs::tf2_msgs::TFMessage;
 use serde_json::Value;
@@ -238,6 +238,44 @@ fn inspect_reports_a_good_episode() {
     assert!((step["rate_hz"].as_f64().unwrap() - 20.0).abs() < 1e-6, "{step}");
     let wrist = v["cameras"].as_array().unwrap().iter().find(|c| c["camera"] == "wrist").unwrap();
     assert_eq!((wrist["frames"].as_u64(), wrist["dropped"].as_u64()), (Some(40), Some(0)));
+    assert_eq!(wrist["image"], "unknown", "no camera_info recorded: {wrist}");
+
+    // The recording says what its images are, from each camera's camera_info: a rectified ZED
+    // eye (no distortion, a rectifying R), a raw one (its distortion), a plain pinhole, none.
+    let dir = root.path().join("models");
+    let mut w =
+        EpisodeWriter::create(&dir, EpisodeMetadata::new(&RigIdentity::default(), "s", "t", Nanos(T0))).unwrap();
+    let k = [500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0];
+    let eye = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+    let tilted = [1.0, 0.0, 0.0, 0.0, 0.9999, -0.0141, 0.0, 0.0141, 0.9999];
+    let infos = [
+        ("ext1", k, vec![0.0; 5], tilted, "rectified"),
+        ("ext2", k, vec![-0.04, 0.01, 0.0, 0.0, -0.005], eye, "distorted"),
+        ("wrist", k, vec![0.0; 5], eye, "pinhole"),
+        ("rs1", [0.0; 9], vec![0.0; 5], eye, "uncalibrated"),
+    ];
+    for (cam, k, d, r, _) in &infos {
+        let img =
+            CompressedImage { header: header(T0, &format!("{cam}_optical")), format: "jpeg".into(), data: jpeg(0) };
+        w.write(&format!("/cameras/{cam}/image/compressed"), &img, Nanos(T0), Nanos(T0), Reliability::BestEffort)
+            .unwrap();
+        let info = CameraInfo {
+            header: header(T0, &format!("{cam}_optical")),
+            k: *k,
+            d: d.clone(),
+            r: *r,
+            ..Default::default()
+        };
+        w.write(&format!("/cameras/{cam}/camera_info"), &info, Nanos(T0), Nanos(T0), Reliability::Reliable).unwrap();
+    }
+    w.finish().unwrap();
+    let (_, v) = inspect(&dir);
+    let cams = v["cameras"].as_array().unwrap();
+    assert_eq!(cams.len(), infos.len(), "{v}");
+    for (cam, .., want) in &infos {
+        let c = cams.iter().find(|c| c["camera"] == *cam).unwrap();
+        assert_eq!(c["image"], *want, "{c}");
+    }
 }
 
 /// Malformed and out-of-order messages are counted and flagged, gaps in a camera's frames are
