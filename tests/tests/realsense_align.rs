@@ -86,3 +86,33 @@ fn depth_aligned_in_rust_matches_librealsense_on_a_recording() {
     assert!((raw_close as f64) < 0.97 * 640.0 * 480.0, "the raw depth matches librealsense's alignment: {raw_close}");
     eprintln!("aligned depth: {close} of {} valid pixels within 1 mm ({:.4}%)", valid.len(), share * 100.0);
 }
+
+/// A RealSense's colour read in Rust is librealsense's image byte for byte: a YUYV frame of
+/// random bytes (every Y, U, V value) through librealsense's own `yuy_decoder` (a software
+/// device, tests/peers/realsense_yuyv.py) and through labrig's conversion.
+#[test]
+fn colour_yuyv_converts_as_librealsense_does_byte_for_byte() {
+    let python = std::env::var_os("LABRIG_REALSENSE_PYTHON")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| cache_dir().join("venv-realsense/bin/python"));
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let (w, h) = (640u32, 480u32);
+    let o = Command::new(&python)
+        .arg(repo_root().join("tests/peers/realsense_yuyv.py"))
+        .arg(dir)
+        .args(["--width", &w.to_string(), "--height", &h.to_string()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "librealsense: {}", String::from_utf8_lossy(&o.stderr));
+    let yuyv = std::fs::read(dir.join("yuyv.bin")).unwrap();
+    let theirs = std::fs::read(dir.join("rgb.bin")).unwrap();
+    assert_eq!((yuyv.len(), theirs.len()), ((w * h * 2) as usize, (w * h * 3) as usize));
+    let ours = labrig_cameras::convert::yuyv_to_rgb_librealsense(&yuyv, w, h).unwrap();
+    let differ = ours.iter().zip(&theirs).filter(|(a, b)| a != b).count();
+    assert_eq!(differ, 0, "{differ} of {} bytes differ from librealsense's", theirs.len());
+    // The generic UVC conversion (rounded) is not librealsense's: the test sees the difference.
+    let generic = labrig_cameras::convert::yuyv_to_rgb(&yuyv, w, h, None).unwrap();
+    let pixels_differing = generic.chunks_exact(3).zip(theirs.chunks_exact(3)).filter(|(a, b)| a != b).count();
+    assert!(pixels_differing > (w * h / 2) as usize, "{pixels_differing} pixels differ");
+}

@@ -69,6 +69,33 @@ pub fn yuyv_to_rgb(yuyv: &[u8], width: u32, height: u32, side_by_side: Option<Ey
     Ok(out)
 }
 
+/// YUYV `width` x `height` -> RGB8 as librealsense converts a RealSense's colour stream (the
+/// SSSE3 path its x86-64 builds run, `unpack_yuy2`): BT.601 limited range with each term of the
+/// fixed-point sum floored on its own and no rounding term, with c = Y - 16, d = U - 128,
+/// e = V - 128: R = 298c/256 + 409e/256, G = 298c/256 - 100d/256 - 208e/256,
+/// B = 298c/256 + 516d/256 (each quotient floored), clamped to 0..=255. It differs from
+/// [`yuyv_to_rgb`]'s rounded sum by up to 2 grey levels; the RealSense read in Rust uses this
+/// one so its images are librealsense's byte for byte (tests/tests/realsense_align.rs).
+pub fn yuyv_to_rgb_librealsense(yuyv: &[u8], width: u32, height: u32) -> Result<Vec<u8>, ConvertError> {
+    let expected = width as usize * height as usize * 2;
+    if yuyv.len() < expected || !width.is_multiple_of(2) {
+        return Err(ConvertError::Size { what: "YUYV frame", got: yuyv.len(), expected, width, height });
+    }
+    let term = |k: i32, x: i32| (k * x) >> 8;
+    let pixel = |y: u8, d: i32, e: i32| {
+        let c = term(298, i32::from(y) - 16);
+        let clamp = |x: i32| x.clamp(0, 255) as u8;
+        [clamp(c + term(409, e)), clamp(c - term(100, d) - term(208, e)), clamp(c + term(516, d))]
+    };
+    let mut out = Vec::with_capacity(width as usize * height as usize * 3);
+    for q in yuyv[..expected].chunks_exact(4) {
+        let (d, e) = (i32::from(q[1]) - 128, i32::from(q[3]) - 128);
+        out.extend_from_slice(&pixel(q[0], d, e));
+        out.extend_from_slice(&pixel(q[2], d, e));
+    }
+    Ok(out)
+}
+
 /// The chosen eye of an RGB8 side-by-side frame (or the frame itself).
 pub fn crop_rgb(rgb: Vec<u8>, width: u32, height: u32, side_by_side: Option<Eye>) -> Result<Vec<u8>, ConvertError> {
     let expected = width as usize * height as usize * 3;

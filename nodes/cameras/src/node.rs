@@ -1285,7 +1285,7 @@ mod tests {
         let t = cam.right_transform(Time::default()).unwrap();
         assert_eq!((t.header.frame_id.as_str(), t.child_frame_id.as_str()), ("ext1_optical", "ext1_right_optical"));
         assert!((t.transform.translation.x - 0.11998).abs() < 1e-3, "{t:?}");
-        assert!(Camera::resolve("ext1", &c, None).unwrap().right_transform(Time::default()).is_none());
+        assert!(Camera::resolve("ext1", c, None).unwrap().right_transform(Time::default()).is_none());
         let zed = format!(
             "[cameras.ext1]\nsource = \"zed:1\"\nwidth = 672\nheight = 376\nintrinsics = \"{conf}\"\nright_eye = true\n"
         );

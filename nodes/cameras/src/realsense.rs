@@ -141,9 +141,9 @@ pub fn align_depth_to_colour(c: &RealSenseCalibration, depth: &[u16]) -> Result<
     Ok(out)
 }
 
-/// A D435 read in Rust: its colour node (YUYV) and, with `depth`, its depth node (Z16) over
-/// V4L2, found by USB serial in sysfs; depth aligned to colour here (no librealsense, no
-/// Python). Each colour frame is paired with the next depth frame (both nodes run at the
+/// A D435 read in Rust: its colour node (YUYV, converted to RGB as librealsense does) and,
+/// with `depth`, its depth node (Z16) over V4L2, found by USB serial in sysfs; depth aligned
+/// to colour here (no librealsense, no Python). Each colour frame is paired with the next depth frame (both nodes run at the
 /// camera's rate). Untested against a device: there is none here (the pyrealsense2 source
 /// stays the fallback: a camera without `realsense_calibration`).
 pub struct RealSenseV4l2 {
@@ -183,6 +183,14 @@ impl RealSenseV4l2 {
 impl crate::source::Source for RealSenseV4l2 {
     fn read(&mut self) -> Result<crate::source::RawFrame, crate::source::SourceError> {
         let mut frame = self.colour.read()?;
+        // Colour as librealsense converts it, byte for byte (not the generic UVC conversion).
+        if let crate::convert::Pixels::Yuyv(yuyv) = &frame.pixels {
+            let (w, h) = frame.size;
+            let rgb = crate::convert::yuyv_to_rgb_librealsense(yuyv, w, h).map_err(|e| {
+                crate::source::SourceError::Io { source_name: self.calibration.serial.clone(), reason: e.to_string() }
+            })?;
+            frame.pixels = crate::convert::Pixels::Rgb8(rgb);
+        }
         if let Some(d) = &mut self.depth {
             let raw = z16(&d.next_buffer()?.data);
             let aligned = align_depth_to_colour(&self.calibration, &raw).map_err(|e| {
