@@ -247,7 +247,9 @@ fn command_modules(src: &std::path::Path) -> BTreeSet<String> {
 }
 
 /// `(file, line, imported command)` for every reference from one command module's sources to
-/// another's: `crate::<other>`, `super::<other>` at the top, or `use crate::{.., <other>, ..}`.
+/// another's: `crate::<other>`, `super::<other>` in a top-level module (its `super` is the
+/// crate), a `use crate::{.., <other>, ..}` group (nested or over several lines), or the crate
+/// by its own name (`labrig::...`). Comments are left out.
 fn command_imports(src: &std::path::Path) -> Vec<(String, usize, String)> {
     let commands = command_modules(src);
     let mut found = Vec::new();
@@ -265,30 +267,78 @@ fn command_imports(src: &std::path::Path) -> Vec<(String, usize, String)> {
         }
         let shown = |f: &std::path::Path| f.strip_prefix(src).unwrap().display().to_string();
         for f in files {
+            let top_level = f.parent() == Some(src);
             let text = std::fs::read_to_string(&f).unwrap();
-            for (n, line) in text.lines().enumerate() {
-                let code = line.split("//").next().unwrap_or("");
+            // The code of each line, comments cut off; kept line by line for the line numbers.
+            let code: Vec<&str> = text.lines().map(|l| l.split("//").next().unwrap_or("")).collect();
+            let roots: &[&str] = if top_level { &["crate::", "super::"] } else { &["crate::"] };
+            for (n, line) in code.iter().enumerate() {
                 for other in commands.iter().filter(|c| *c != module) {
-                    let direct = [format!("crate::{other}::"), format!("crate::{other};"), format!("crate::{other} ")];
-                    let grouped = code.contains("crate::{")
-                        && code.split("crate::{").nth(1).is_some_and(|g| {
-                            g.split(['}', ',']).map(|s| s.trim().split("::").next().unwrap_or("")).any(|s| s == other)
-                        });
-                    if direct.iter().any(|d| code.contains(d.as_str())) || grouped {
+                    let direct = roots.iter().any(|r| {
+                        [
+                            format!("{r}{other}::"),
+                            format!("{r}{other};"),
+                            format!("{r}{other} "),
+                            format!("{r}{other},"),
+                        ]
+                        .iter()
+                        .any(|d| line.contains(d.as_str()))
+                    });
+                    if direct {
                         found.push((shown(&f), n + 1, other.clone()));
                     }
                 }
                 // The crate by its own name (`labrig::demo::...`) is the same import.
-                if code
+                if line
                     .split(|c: char| !(c.is_alphanumeric() || c == '_' || c == ':'))
                     .any(|w| w.starts_with("labrig::"))
                 {
                     found.push((shown(&f), n + 1, "labrig".to_owned()));
                 }
             }
+            // Groups: `crate::{a, b::{c}, d}` may span lines; the names at its top level.
+            let joined = code.join("\n");
+            for root in roots {
+                let open = format!("{root}{{");
+                for (at, _) in joined.match_indices(open.as_str()) {
+                    let line = joined[..at].matches('\n').count() + 1;
+                    for name in group_heads(&joined[at + open.len()..]) {
+                        if &name != module && commands.contains(&name) {
+                            found.push((shown(&f), line, name));
+                        }
+                    }
+                }
+            }
         }
     }
+    found.sort();
+    found.dedup();
     found
+}
+
+/// The first path segment of each item at the top level of a `{...}` group whose text starts
+/// after its opening brace: `demo::run, other, x::{y, z}}` gives demo, other, x.
+fn group_heads(rest: &str) -> Vec<String> {
+    let (mut depth, mut heads, mut item) = (0usize, Vec::new(), String::new());
+    let take = |item: &mut String, heads: &mut Vec<String>| {
+        let head = item.trim().split("::").next().unwrap_or("").trim().to_owned();
+        if !head.is_empty() {
+            heads.push(head);
+        }
+        item.clear();
+    };
+    for c in rest.chars() {
+        match c {
+            '{' => depth += 1,
+            '}' if depth == 0 => break,
+            '}' => depth -= 1,
+            ',' if depth == 0 => take(&mut item, &mut heads),
+            _ if depth == 0 => item.push(c),
+            _ => {}
+        }
+    }
+    take(&mut item, &mut heads);
+    heads
 }
 
 fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
@@ -329,13 +379,21 @@ fn the_command_check_sees_an_import() {
         .unwrap();
     std::fs::create_dir(src.join("bench")).unwrap();
     std::fs::write(src.join("bench/inner.rs"), "fn f() { crate::rollout::go() }\nuse labrig::demo;\n").unwrap();
+    // A group over several lines, nested; `super::` from a top-level module is the crate.
+    std::fs::write(
+        src.join("topic.rs"),
+        "use crate::{\n    other::{x, y},\n    bench::{self},\n};\nfn g() { super::demo::run() }\n",
+    )
+    .unwrap();
     let found = command_imports(src);
     assert_eq!(
         found,
         vec![
             ("bench/inner.rs".to_owned(), 1, "rollout".to_owned()),
             ("bench/inner.rs".to_owned(), 2, "labrig".to_owned()),
-            ("rollout.rs".to_owned(), 1, "demo".to_owned())
+            ("rollout.rs".to_owned(), 1, "demo".to_owned()),
+            ("topic.rs".to_owned(), 1, "bench".to_owned()),
+            ("topic.rs".to_owned(), 5, "demo".to_owned()),
         ]
     );
 }
