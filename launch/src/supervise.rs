@@ -30,6 +30,12 @@ fn spawn(spec: &NodeSpec, devices: &Devices, dir: &Path, domain: u16, out: Outpu
         cmd.env("RUST_LOG", "warn,rustdds=off,ros2_client=error,mujoco=warn");
     }
     cmd.args(&spec.args).envs(&spec.env);
+    // The rig's camera frames in a shared-memory namespace of its own, from its domain (two
+    // rigs on one machine are on two domains), unless the node's config or the caller names one.
+    let ns = labrig_runtime::frames::NAMESPACE_ENV;
+    if !spec.env.contains_key(ns) && labrig_runtime::frames::default_namespace().is_none() {
+        cmd.env(ns, rig_namespace(domain));
+    }
     // The rig's devices, written once in the launch config: the nodes take camera serials (and
     // the rest) from here instead of copies in their own configs.
     if *devices != Devices::default() {
@@ -41,6 +47,39 @@ fn spawn(spec: &NodeSpec, devices: &Devices, dir: &Path, domain: u16, out: Outpu
     cmd.args(["--domain-id", &domain.to_string()]);
     stop_with_launcher(&mut cmd);
     cmd.spawn().map_err(|e| anyhow::anyhow!("node `{}`: cannot start {}: {e}", spec.name, exe.display()))
+}
+
+/// The shared-memory namespace of the camera frames of a rig on DDS domain `domain`, when the
+/// caller names none (`LABRIG_FRAMES_NAMESPACE`): one per domain, so two rigs on one machine,
+/// which need two domains, never mix their frames.
+pub fn rig_namespace(domain: u16) -> String {
+    format!("rig_d{domain}")
+}
+
+/// The namespace a process reading a rig's frames on `domain` uses: the caller's, or the one
+/// the supervisor gives the rig's nodes ([`rig_namespace`]).
+pub fn frames_namespace(domain: u16) -> String {
+    labrig_runtime::frames::default_namespace().unwrap_or_else(|| rig_namespace(domain))
+}
+
+/// How long a starting rig listens for another rig on its domain: discovery on loopback takes
+/// ~0.2 s here (a participant's start to another's first message, five tries).
+const PROBE: Duration = Duration::from_secs(1);
+
+/// The health topics of `cfg`'s nodes that already have a publisher on the domain `ros` is on:
+/// another rig (or a node started by hand) is running there.
+async fn rig_already_there(ros: &Ros, cfg: &LaunchConfig) -> Vec<String> {
+    let mut topics: Vec<&str> = cfg.nodes.iter().map(|n| n.health.as_str()).collect();
+    topics.sort_unstable();
+    topics.dedup();
+    let until = Instant::now() + PROBE;
+    loop {
+        let busy: Vec<String> = topics.iter().filter(|t| ros.publisher_count(t) > 0).map(|t| (*t).to_owned()).collect();
+        if !busy.is_empty() || Instant::now() >= until {
+            return busy;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
 }
 
 /// A node gets SIGTERM when the launcher dies, however it dies (SIGKILL, a crash): no node
@@ -121,6 +160,15 @@ pub async fn supervise_until(
 ) -> anyhow::Result<ExitCode> {
     let ros_cfg = RosConfig { domain_id: domain, ..RosConfig::default() };
     let mut ros = Ros::new(&ros_cfg, "labrig_launch")?;
+    // One rig per domain: a second one would take the first's commands, steps and episodes.
+    let busy = rig_already_there(&ros, &cfg).await;
+    if !busy.is_empty() {
+        anyhow::bail!(
+            "DDS domain {domain} already has a rig running: {} {} a publisher there (another labrig rig, or a node started by hand). A second rig on that domain would mix with it; stop that one, or start this one on another domain with --domain-id",
+            busy.join(", "),
+            if busy.len() == 1 { "has" } else { "have" }
+        );
+    }
     let mut running: Vec<Running> = cfg
         .nodes
         .iter()

@@ -201,6 +201,8 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("pinned_pick_place", 182, 1),
     ("pinned_drawer", 183, 1),
     ("cameras_zed_rectified", 185, 1),
+    ("launch_second_rig", 186, 1),
+    ("launch_two_rigs", 187, 2),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

@@ -1,7 +1,9 @@
 //! `labrig launch`: every file in launch_configs/ validates; bad files are refused with the
 //! problem named; the simulated rig (sim_droid.toml) starts in dependency order, reports
 //! health, restarts a killed node, stops cleanly; a node that fails to start stops the rig; a
-//! SIGKILLed launcher leaves no node running; the rig's devices reach every node it starts.
+//! SIGKILLed launcher leaves no node running; the rig's devices reach every node it starts; a
+//! second rig on a domain is refused by name and the first goes on; two rigs on two domains
+//! keep their camera frames apart.
 
 use labrig_tests::{Proc, domain_for, labrig_bin, repo_root};
 use serde_json::Value;
@@ -211,4 +213,92 @@ fn the_rigs_devices_reach_every_node_it_starts() {
     assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
     let left = labrig_tests::nodes_on_domain(domain);
     assert!(left.is_empty(), "nodes left running: {left}");
+}
+
+/// A rig of one node, the simulated arm and its cameras in real time.
+fn lone_sim(dir: &std::path::Path, cameras: bool) -> std::path::PathBuf {
+    let path = dir.join("lone_sim.toml");
+    let args =
+        if cameras { r#"["run", "--mode", "realtime"]"# } else { r#"["run", "--mode", "realtime", "--no-cameras"]"# };
+    std::fs::write(
+        &path,
+        format!(
+            "[rig]\nname = \"lone_sim\"\ndomain_id = 0\non_failure = \"stop\"\n\n[[node]]\nname = \"sim\"\nprogram = \"labrig-sim\"\nargs = {args}\nhealth = \"/joint_states\"\n"
+        ),
+    )
+    .unwrap();
+    path
+}
+
+/// `labrig launch` of `config` on `domain` for `seconds`, JSON events, no frame namespace
+/// chosen by the caller.
+fn launch(config: &std::path::Path, domain: u16, seconds: u32) -> Command {
+    let mut cmd = Command::new(labrig_bin());
+    cmd.args(["launch", "--json", "--seconds", &seconds.to_string(), "--domain-id", &domain.to_string()])
+        .arg(config)
+        .env_remove(labrig_runtime::frames::NAMESPACE_ENV)
+        .current_dir(config.parent().unwrap());
+    cmd
+}
+
+/// Issue 58: a rig started on a domain where one runs is refused, naming the domain, what runs
+/// there and the flag that moves it; the first rig is not disturbed.
+#[test]
+fn a_second_rig_on_a_domain_is_refused_by_name_and_the_first_goes_on() {
+    let domain = domain_for("launch_second_rig");
+    let tmp = tempfile::tempdir().unwrap();
+    let config = lone_sim(tmp.path(), false);
+    let mut first = Proc::spawn("the first rig", launch(&config, domain, 20));
+    first.wait_json(Duration::from_secs(60), "the first rig up", |v| v["event"] == "up");
+    let o = launch(&config, domain, 5).output().unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(1), "{said}");
+    assert!(
+        said.contains(&format!("DDS domain {domain} already has a rig running: /joint_states has a publisher there"))
+            && said.contains("--domain-id"),
+        "{said}"
+    );
+    assert!(!said.contains("\"started\""), "the second rig started a node: {said}");
+    // The first rig runs its 20 s and stops cleanly, its sim never restarted or stopped early.
+    let end = first.wait_json(Duration::from_secs(60), "the first rig's stop", |v| v["event"] == "stopped");
+    assert!(end.get("error").is_none(), "{end}");
+    assert_eq!(first.wait_exit(Duration::from_secs(30)), Some(0));
+    let left = labrig_tests::nodes_on_domain(domain);
+    assert!(left.is_empty(), "nodes left running: {left}");
+}
+
+/// Issue 58: two rigs on two domains, neither naming a frame namespace, each get their own
+/// (from the domain): both sims' cameras deliver frames at once, each rig's in its namespace.
+#[test]
+fn two_rigs_on_two_domains_keep_their_camera_frames_apart() {
+    let (d1, n) = labrig_tests::domains_for("launch_two_rigs");
+    assert_eq!(n, 2);
+    let d2 = d1 + 1;
+    let tmp = tempfile::tempdir().unwrap();
+    let config = lone_sim(tmp.path(), true);
+    let mut a = Proc::spawn("rig a", launch(&config, d1, 15));
+    let mut b = Proc::spawn("rig b", launch(&config, d2, 15));
+    a.wait_json(Duration::from_secs(60), "rig a up", |v| v["event"] == "up");
+    b.wait_json(Duration::from_secs(60), "rig b up", |v| v["event"] == "up");
+    for d in [d1, d2] {
+        let ns = labrig_launch::supervise::rig_namespace(d);
+        assert_eq!(ns, format!("rig_d{d}"));
+        let node = labrig_runtime::frames::FrameNode::new_in(&ns).unwrap();
+        let sub = node.subscriber("ext1").unwrap();
+        let until = std::time::Instant::now() + Duration::from_secs(30);
+        let mut frames = 0;
+        while frames < 3 {
+            if sub.receive().unwrap().is_some() {
+                frames += 1;
+            } else {
+                assert!(std::time::Instant::now() < until, "no ext1 frames in {ns} (domain {d})");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+    }
+    for (name, rig) in [("a", &mut a), ("b", &mut b)] {
+        let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
+        assert!(end.get("error").is_none(), "rig {name}: {end}");
+        assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0), "rig {name}");
+    }
 }

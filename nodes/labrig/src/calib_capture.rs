@@ -319,7 +319,8 @@ impl Link {
             calibration: ros.subscription_on(&topics::CALIBRATION, 1)?,
             command: ros.publisher_on(&topics::ARM_COMMAND, 10)?,
             frames: None,
-            frame_node: FrameNode::new()?,
+            // The rig's frames: in the namespace its supervisor gave it (one per domain).
+            frame_node: FrameNode::new_in(&labrig_launch::supervise::frames_namespace(ros.domain_id()))?,
             camera,
             last: None,
             last_frame_at: Instant::now(),
