@@ -62,13 +62,21 @@ pub fn frames_namespace(domain: u16) -> String {
     labrig_runtime::frames::default_namespace().unwrap_or_else(|| rig_namespace(domain))
 }
 
-/// How long a starting rig listens for another rig on its domain: discovery on loopback takes
-/// ~0.2 s here (a participant's start to another's first message, five tries).
-const PROBE: Duration = Duration::from_secs(1);
+/// How long a starting rig listens for another rig on its domain when it is not alone there:
+/// discovery on loopback takes ~0.2 s here (a participant's start to another's first message,
+/// five tries); the margin is for a loaded machine.
+const PROBE: Duration = Duration::from_secs(3);
 
 /// The health topics of `cfg`'s nodes that already have a publisher on the domain `ros` is on:
 /// another rig (or a node started by hand) is running there.
+///
+/// A participant takes the lowest free participant id of its domain on this machine (the
+/// lowest free pair of its domain's ports), so id 0 means no other participant of the domain
+/// runs here and there is nothing to wait for; otherwise it listens up to [`PROBE`].
 async fn rig_already_there(ros: &Ros, cfg: &LaunchConfig) -> Vec<String> {
+    if ros.participant_id() == 0 {
+        return Vec::new();
+    }
     let mut topics: Vec<&str> = cfg.nodes.iter().map(|n| n.health.as_str()).collect();
     topics.sort_unstable();
     topics.dedup();
