@@ -65,8 +65,11 @@ pub struct CameraStats {
     pub late: u64,
     /// Steps that name no frame of this camera (a tick before its first frame came).
     pub steps_without_frame: u64,
-    /// Steps that name a frame of this camera which the file does not hold.
+    /// Steps that name a frame of this camera which the file does not hold...
     pub frames_missing: u64,
+    /// ...their `step_index`es (the first ten), to tell an episode's first or last step from
+    /// one in the middle.
+    pub frames_missing_steps: Vec<u64>,
     /// Frames captured before the sim's scene was set (`sim_scene.since_ns`): another scene's,
     /// so another episode's.
     pub frames_before_scene: u64,
@@ -483,7 +486,8 @@ fn summarise(scan: Scan) -> Inspection {
     let cameras = camera_stats(&topics, &steps, scene_since(metadata.as_ref()));
     let sources = step_sources(&steps);
     let mut flags = topic_flags(&topic_stats, &gaps);
-    flags.extend(camera_flags(&cameras));
+    let span = steps.first().zip(steps.last()).map(|(a, b)| (a.step_index, b.step_index));
+    flags.extend(camera_flags(&cameras, span));
     flags.extend(record_flags(&steps, timing.missed_ticks, &parts, &gaps, metadata.as_ref(), sources.as_ref()));
     Inspection {
         path,
@@ -615,8 +619,13 @@ fn camera_stats_of(name: &str, t: &Topic, steps: &[Step], scene_since: Option<i6
         .count() as u64;
     let named = |s: &Step| s.cameras.iter().find(|c| c.camera_id == camera).map(|c| c.capture_ns);
     let steps_without_frame = steps.iter().filter(|s| named(s).is_none()).count() as u64;
-    let frames_missing =
-        steps.iter().filter(|s| named(s).is_some_and(|t| stamps.binary_search(&t).is_err())).count() as u64;
+    let missing: Vec<u64> = steps
+        .iter()
+        .filter(|s| named(s).is_some_and(|t| stamps.binary_search(&t).is_err()))
+        .map(|s| s.step_index)
+        .collect();
+    let frames_missing = missing.len() as u64;
+    let frames_missing_steps: Vec<u64> = missing.into_iter().take(10).collect();
     let frames_before_scene = scene_since.map_or(0, |since| stamps.iter().filter(|&&t| t < since).count() as u64);
     CameraStats {
         camera,
@@ -625,6 +634,7 @@ fn camera_stats_of(name: &str, t: &Topic, steps: &[Step], scene_since: Option<i6
         late,
         steps_without_frame,
         frames_missing,
+        frames_missing_steps,
         frames_before_scene,
         image: "unknown",
     }
@@ -654,7 +664,7 @@ fn topic_flags(topic_stats: &[TopicStats], gaps: &[Gap]) -> Vec<String> {
 }
 
 /// No images at all, and each camera's dropped, missing and other-scene frames.
-fn camera_flags(cameras: &[CameraStats]) -> Vec<String> {
+fn camera_flags(cameras: &[CameraStats], steps: Option<(u64, u64)>) -> Vec<String> {
     let mut flags = Vec::new();
     if cameras.iter().all(|c| c.frames == 0) {
         flags.push("no camera frames: the episode has no images".into());
@@ -664,7 +674,15 @@ fn camera_flags(cameras: &[CameraStats]) -> Vec<String> {
             flags.push(format!("camera {}: {} frames dropped", c.camera, c.dropped));
         }
         if c.frames_missing > 0 {
-            flags.push(format!("camera {}: {} steps name a frame the file does not hold", c.camera, c.frames_missing));
+            let which: Vec<String> = c.frames_missing_steps.iter().map(u64::to_string).collect();
+            let more = if c.frames_missing > c.frames_missing_steps.len() as u64 { ", ..." } else { "" };
+            flags.push(format!(
+                "camera {}: {} steps name a frame the file does not hold (step_index {}{more} of {})",
+                c.camera,
+                c.frames_missing,
+                which.join(", "),
+                steps.map_or_else(String::new, |(a, b)| format!("{a}..={b}"))
+            ));
         }
         if c.frames_before_scene > 0 {
             flags.push(format!(

@@ -355,7 +355,10 @@ fn inspect_flags_bad_input() {
         flags.contains(&"camera ext1: 1 frames captured before the episode's scene was set (another episode's)"),
         "{flags:?}"
     );
-    assert!(flags.contains(&"camera ext1: 1 steps name a frame the file does not hold"), "{flags:?}");
+    assert!(
+        flags.contains(&"camera ext1: 1 steps name a frame the file does not hold (step_index 6 of 2..=11)"),
+        "{flags:?}"
+    );
     assert_eq!(v["clock"], "sim");
     assert!((v["duration_s"].as_f64().unwrap() - 0.45).abs() < 1e-9, "{v}");
     assert!((v["wall_duration_s"].as_f64().unwrap() - 0.010).abs() < 1e-9, "{v}");

@@ -198,6 +198,9 @@ struct Episode {
     opened_ns: i64,
     /// The end event came: finishing once the grace period is over.
     closing: Option<Closing>,
+    /// While closing, the cameras that have delivered a frame sent after the end event: all
+    /// their frames the episode's steps used are in.
+    passed_end: std::collections::BTreeSet<String>,
     /// Steps in the parts a dead recorder wrote (this is a continuation when non-zero parts).
     prior_steps: u64,
     prior_parts: usize,
@@ -227,6 +230,7 @@ impl Episode {
             frames: 0,
             opened_ns,
             closing: None,
+            passed_end: Default::default(),
             prior_steps: 0,
             prior_parts: 0,
             resume_after: BTreeMap::new(),
@@ -258,6 +262,14 @@ impl Episode {
         !before_start && !in_earlier && self.closing.is_none_or(|c| publish_ns <= c.sent_before_ns)
     }
 
+    /// Whether a closing episode is done: the grace period over and every camera that has been
+    /// sending (`cameras`) past the end event, or [`CLOSE_MAX`] more gone by.
+    fn closed(&self, cameras: &std::collections::BTreeSet<String>) -> bool {
+        let Some(c) = self.closing else { return false };
+        let now = Instant::now();
+        now >= c.until && (now >= c.deadline || cameras.iter().all(|cam| self.passed_end.contains(cam)))
+    }
+
     /// Whether a message published at `publish_ns` on `topic` belongs in this part.
     fn takes(&self, topic: &str, publish_ns: i64) -> bool {
         publish_ns >= self.opened_ns
@@ -269,27 +281,30 @@ impl Episode {
 /// No episode starts with less free space than this, whatever the configured margin.
 const HARD_FLOOR_BYTES: u64 = 1_000_000;
 
-/// How long an ended episode still takes messages sent before its end event.
+/// How long an ended episode still takes messages sent before its end event...
 const CLOSE_GRACE: Duration = Duration::from_millis(300);
+/// ...and, past that, how long it waits at most for each camera that has been sending to
+/// deliver a frame sent after the end: a frame the last step used may still be on its way
+/// through shared memory and the intake on a loaded machine.
+const CLOSE_MAX: Duration = Duration::from_secs(2);
 
 /// A frame kept from before a Start is the first step's when captured at most this long
 /// before the Start's stamp (the loop's stale-frame limit is 100 ms).
 const PREROLL_NS: i64 = 200_000_000;
 
-/// Keeps `frame` among `camera`'s frames of the last [`PREROLL_NS`] (at most
-/// [`HELD_FRAMES_PER_CAMERA`]), for the next episode's first step.
+/// Keeps `frame` among `camera`'s last [`HELD_FRAMES_PER_CAMERA`] frames, for the next
+/// episode's first step. By count, not by age against the newest frame: the loop's clock (a
+/// simulation's, say) may run behind the cameras' by more than the pre-roll, and the frame its
+/// first step uses must still be here ([`Recorder::open`] picks by the Start's stamp).
 fn hold(held: &mut BTreeMap<String, VecDeque<OwnedFrame>>, camera: &str, frame: OwnedFrame) {
     let kept = held.entry(camera.to_owned()).or_default();
-    let newest = frame.header().capture_ns;
     kept.push_back(frame);
-    while kept.front().is_some_and(|f| f.header().capture_ns < newest - PREROLL_NS)
-        || kept.len() > HELD_FRAMES_PER_CAMERA
-    {
+    while kept.len() > HELD_FRAMES_PER_CAMERA {
         kept.pop_front();
     }
 }
 
-/// At most this many frames a camera kept while idle (12 at 60 fps in the pre-roll).
+/// At most this many frames a camera kept while idle (half a second at 30 fps).
 const HELD_FRAMES_PER_CAMERA: usize = 16;
 
 #[derive(Debug, Clone, Copy)]
@@ -298,6 +313,8 @@ struct Closing {
     /// The end event's send time (wall, ns): later messages are not the episode's.
     sent_before_ns: i64,
     until: Instant,
+    /// The latest it finishes, whatever the cameras ([`CLOSE_MAX`]).
+    deadline: Instant,
 }
 
 /// Latched context an episode's metadata is filled from.
@@ -340,9 +357,9 @@ struct Recorder {
     status: RosPublisher<StringMsg>,
     context: Context,
     episode: Option<Episode>,
-    /// Each camera's frames of the last [`PREROLL_NS`] while no episode is open (the first
-    /// step uses the newest one captured at or before its tick, which a frame captured after
-    /// the tick must not displace).
+    /// Each camera's last [`HELD_FRAMES_PER_CAMERA`] frames while no episode is open (the
+    /// first step uses the newest one captured at or before its tick, which frames captured
+    /// after the tick must not displace).
     held: BTreeMap<String, VecDeque<OwnedFrame>>,
     /// The cameras a frame has come from since the recorder started (the status says them).
     cameras_seen: std::collections::BTreeSet<String>,
@@ -478,7 +495,7 @@ pub async fn run(mut cfg: RecorderConfig, shutdown: Shutdown) -> anyhow::Result<
             space_at = Instant::now();
             rec.end_if_disk_full();
         }
-        if rec.episode.as_ref().and_then(|e| e.closing).is_some_and(|c| Instant::now() >= c.until) {
+        if rec.episode.as_ref().is_some_and(|e| e.closed(&rec.cameras_seen)) {
             rec.finish_closing();
         }
         rec.filed();
@@ -818,8 +835,13 @@ impl Recorder {
                     ) {
                         tracing::warn!("/rig/episode: {err}");
                     }
-                    ep.closing =
-                        Some(Closing { outcome, sent_before_ns: sent_ns, until: Instant::now() + CLOSE_GRACE });
+                    let now = Instant::now();
+                    ep.closing = Some(Closing {
+                        outcome,
+                        sent_before_ns: sent_ns,
+                        until: now + CLOSE_GRACE,
+                        deadline: now + CLOSE_GRACE + CLOSE_MAX,
+                    });
                 }
             }
             Ok(EpisodeEventKind::Discard) => {
@@ -983,6 +1005,7 @@ impl Recorder {
                     // Sent after a closing episode's end: the next episode's first step may
                     // use it (back to back, the Start comes while the last one closes).
                     if ep.closing.is_some() {
+                        ep.passed_end.insert(camera.clone());
                         hold(&mut self.held, camera, frame);
                     }
                     continue;
