@@ -21,6 +21,14 @@ pub fn cache_dir() -> PathBuf {
     labrig_msgs::cache_dir().expect("LABRIG_CACHE or HOME is set")
 }
 
+/// The Python with pyrealsense2 the RealSense peers run on (`LABRIG_REALSENSE_PYTHON`, or the
+/// venv `scripts/setup.sh` makes in the cache).
+pub fn realsense_python() -> PathBuf {
+    std::env::var_os("LABRIG_REALSENSE_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| cache_dir().join("venv-realsense/bin/python"))
+}
+
 /// The Python of the rclpy venv made by `scripts/setup.sh`.
 pub fn ros_python() -> PathBuf {
     let p = match std::env::var_os("LABRIG_ROS_PYTHON") {

@@ -315,9 +315,7 @@ fn the_bench_rig_records_five_stream_cameras_through_the_camera_node() {
 #[test]
 fn a_realsense_recording_plays_through_the_node_with_the_device_intrinsics() {
     let cams = workspace_bin("labrig-cameras", "labrig-cameras");
-    let python = std::env::var_os("LABRIG_REALSENSE_PYTHON")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| labrig_tests::cache_dir().join("venv-realsense/bin/python"));
+    let python = labrig_tests::realsense_python();
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("d435.db3");
     let o = Command::new(&python)

@@ -107,11 +107,7 @@ fn the_sim_rig_starts_reports_health_restarts_and_stops() {
     // figure (it read 9.8 Hz once beside the rest of the suite, where > 10 Hz was asserted).
     let rate = sim["rate_hz"].as_f64().unwrap();
     assert!(rate.is_finite() && rate > 1.0, "the sim's /joint_states rate: {sim}");
-    let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
-    assert!(end.get("error").is_none(), "{end}");
-    assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
-    let left = labrig_tests::nodes_on_domain(domain);
-    assert!(left.is_empty(), "nodes left running: {left}");
+    stops_cleanly(&mut rig, domain);
 }
 
 #[test]
@@ -215,6 +211,15 @@ fn the_rigs_devices_reach_every_node_it_starts() {
     assert!(left.is_empty(), "nodes left running: {left}");
 }
 
+/// The rig's run ends with a clean stop (no error), exit 0 and no node of its domain left.
+fn stops_cleanly(rig: &mut Proc, domain: u16) {
+    let end = rig.wait_json(Duration::from_secs(60), "the stop", |v| v["event"] == "stopped");
+    assert!(end.get("error").is_none(), "{end}");
+    assert_eq!(rig.wait_exit(Duration::from_secs(30)), Some(0));
+    let left = labrig_tests::nodes_on_domain(domain);
+    assert!(left.is_empty(), "nodes left running: {left}");
+}
+
 /// A rig of one node, the simulated arm and its cameras in real time.
 fn lone_sim(dir: &std::path::Path, cameras: bool) -> std::path::PathBuf {
     let path = dir.join("lone_sim.toml");
@@ -260,11 +265,7 @@ fn a_second_rig_on_a_domain_is_refused_by_name_and_the_first_goes_on() {
     );
     assert!(!said.contains("\"started\""), "the second rig started a node: {said}");
     // The first rig runs its 20 s and stops cleanly, its sim never restarted or stopped early.
-    let end = first.wait_json(Duration::from_secs(60), "the first rig's stop", |v| v["event"] == "stopped");
-    assert!(end.get("error").is_none(), "{end}");
-    assert_eq!(first.wait_exit(Duration::from_secs(30)), Some(0));
-    let left = labrig_tests::nodes_on_domain(domain);
-    assert!(left.is_empty(), "nodes left running: {left}");
+    stops_cleanly(&mut first, domain);
 }
 
 /// Issue 58: two rigs on two domains, neither naming a frame namespace, each get their own

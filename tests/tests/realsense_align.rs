@@ -8,14 +8,12 @@
 //! exported calibration must match librealsense's within 1 mm on 99% of the valid pixels.
 
 use labrig_cameras::realsense::{RealSenseCalibration, align_depth_to_colour, z16};
-use labrig_tests::{cache_dir, repo_root, workspace_bin};
+use labrig_tests::{repo_root, workspace_bin};
 use std::process::Command;
 
 #[test]
 fn depth_aligned_in_rust_matches_librealsense_on_a_recording() {
-    let python = std::env::var_os("LABRIG_REALSENSE_PYTHON")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| cache_dir().join("venv-realsense/bin/python"));
+    let python = labrig_tests::realsense_python();
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let rec = dir.join("d435.db3");
@@ -92,9 +90,7 @@ fn depth_aligned_in_rust_matches_librealsense_on_a_recording() {
 /// device, tests/peers/realsense_yuyv.py) and through labrig's conversion.
 #[test]
 fn colour_yuyv_converts_as_librealsense_does_byte_for_byte() {
-    let python = std::env::var_os("LABRIG_REALSENSE_PYTHON")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| cache_dir().join("venv-realsense/bin/python"));
+    let python = labrig_tests::realsense_python();
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let (w, h) = (640u32, 480u32);
