@@ -211,6 +211,7 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("cameras_zed_rectified", 185, 1),
     ("launch_second_rig", 186, 1),
     ("launch_two_rigs", 187, 2),
+    ("experiment_retrieval_droid_ci", 189, 2),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).

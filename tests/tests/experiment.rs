@@ -214,3 +214,113 @@ fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut(
     assert!(summary.status.success(), "{}", output_text(&summary));
     assert!(String::from_utf8_lossy(&summary.stdout).contains("camPose+objSpat"));
 }
+
+/// experiments/retrieval/droid.toml's machinery at CI size (ci_droid.toml): every condition
+/// trained once per training seed it takes, each policy in its own folder with its seed and its
+/// preset (the ext1-only ablation's model has one camera), judged on the same seeds; the
+/// summary pools the policies and compares two conditions over seeds; a seed added to a
+/// condition later trains only the new policy.
+#[test]
+fn the_droid_shaped_experiment_trains_every_seed_and_compares_over_them() {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-policy", "labrig-dataset", "labrig-policies"] {
+        workspace_bin(p, p);
+    }
+    let (domain, count) = domains_for("experiment_retrieval_droid_ci");
+    assert_eq!(count, 2, "two demo rigs at once");
+    let config = repo_root().join("experiments/retrieval/ci_droid.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("exp");
+    let first = experiment(&config, &out, domain, &["--json"]);
+    assert!(first.status.success(), "{}", output_text(&first));
+    let stdout = String::from_utf8_lossy(&first.stdout);
+    let results: Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    assert_eq!(results["train_seeds"], serde_json::json!([0, 1]), "{results}");
+    let conditions = results["conditions"].as_array().unwrap();
+    let find = |n: &str| conditions.iter().find(|c| c["name"] == n).unwrap_or_else(|| panic!("{n}: {results}"));
+    // Each policy: its own folder, the seed it was trained with, its preset, one rollout.
+    for (name, seeds, cameras) in
+        [("target_only", vec![0, 1], 2), ("camPose+objSpat", vec![0, 1], 2), ("target_only_ext1", vec![0], 1)]
+    {
+        let c = find(name);
+        assert_eq!(c["status"], "done", "{name}: {c}");
+        assert_eq!(c["policies_done"], seeds.len(), "{name}: {c}");
+        assert_eq!(c["rollouts"], seeds.len(), "{name}: pooled over its policies: {c}");
+        let policies = c["policies"].as_array().unwrap();
+        assert_eq!(policies.iter().map(|p| p["seed"].as_u64().unwrap()).collect::<Vec<_>>(), seeds, "{name}");
+        let mut weights = Vec::new();
+        for s in &seeds {
+            let unit = out.join("conditions").join(name).join(format!("seed_{s}"));
+            // The training was given its seed (the log holds each stage's command line).
+            let log = std::fs::read_to_string(out.join(format!("logs/{name}_seed{s}_train.log"))).unwrap();
+            let command = log.lines().find(|l| l.starts_with("$ labrig train")).unwrap();
+            assert!(
+                command.ends_with(&format!("--seed {s}")) || command.contains(&format!("--seed {s} ")),
+                "{command}"
+            );
+            // (`checkpoints/last` names the newest checkpoint's folder.)
+            let last = std::fs::read_to_string(unit.join("run/checkpoints/last")).unwrap();
+            let last = unit.join("run/checkpoints").join(last.trim());
+            let checkpoint = read(&last.join("checkpoint.json"));
+            assert_eq!(checkpoint["config"]["cameras"].as_array().unwrap().len(), cameras, "{name}: {checkpoint}");
+            let rollouts = read(&unit.join("rollouts/rollouts.json"));
+            assert_eq!(
+                (rollouts["first_seed"].as_u64(), rollouts["rollouts"].as_array().unwrap().len()),
+                (Some(3000), 1)
+            );
+            assert!(rollouts["policy"].as_str().unwrap().contains(&format!("conditions/{name}/seed_{s}/run")));
+            weights.push(std::fs::read(last.join("model.safetensors")).unwrap());
+        }
+        if weights.len() == 2 {
+            assert_ne!(weights[0], weights[1], "{name}: two seeds, two different policies");
+        }
+        assert!(!out.join("conditions").join(name).join("run").exists(), "{name}: no unseeded policy");
+    }
+    // The retrieval ran once for its condition, before its first policy.
+    let m = read(&out.join("conditions/camPose+objSpat/manifest.json"));
+    assert!(!m["episodes"].as_array().unwrap().is_empty(), "{m}");
+    // The comparison over seeds: 2 + 2 policies, C(4, 2) = 6 relabellings.
+    let comparisons = results["comparisons"].as_array().unwrap();
+    assert_eq!(comparisons.len(), 1, "{results}");
+    let c = &comparisons[0];
+    assert_eq!((c["a"].as_str(), c["b"].as_str()), (Some("camPose+objSpat"), Some("target_only")));
+    assert_eq!(
+        (c["policies_a"].as_u64(), c["policies_b"].as_u64(), c["relabellings"].as_u64()),
+        (Some(2), Some(2), Some(6))
+    );
+    let rate = |n: &str| {
+        let p = find(n)["policies"].as_array().unwrap().iter().map(|p| p["successes"].as_f64().unwrap()).sum::<f64>();
+        p / 2.0
+    };
+    assert!((c["diff"].as_f64().unwrap() - (rate("camPose+objSpat") - rate("target_only"))).abs() < 1e-9, "{c}");
+    let md = std::fs::read_to_string(out.join("results.md")).unwrap();
+    assert!(md.contains("camPose+objSpat vs target_only") && md.contains("over 6 relabellings"), "{md}");
+    assert_eq!(&std::fs::read(out.join("results.png")).unwrap()[..8], b"\x89PNG\r\n\x1a\n");
+
+    // A second seed for the ablation later: only its new policy is trained and judged.
+    let other = dir.path().join("more");
+    std::fs::create_dir_all(other.join("droid")).unwrap();
+    let src = repo_root().join("experiments/retrieval");
+    for f in ["target.toml", "ext1_only.toml", "droid/aligned.toml", "droid/region_B_other_cams.toml"] {
+        std::fs::copy(src.join(f), other.join(f)).unwrap();
+    }
+    let text = std::fs::read_to_string(&config).unwrap();
+    let text = text.replace("preset = \"ext1_only.toml\"\nseeds = 1\n", "preset = \"ext1_only.toml\"\nseeds = 2\n");
+    assert!(text.contains("seeds = 2\n"));
+    std::fs::write(other.join("ci_droid.toml"), text).unwrap();
+    let before = std::fs::metadata(out.join("conditions/target_only/seed_1/run/run.json")).unwrap().modified().unwrap();
+    let more = experiment(&other.join("ci_droid.toml"), &out, domain, &[]);
+    assert!(more.status.success(), "{}", output_text(&more));
+    let text = String::from_utf8_lossy(&more.stdout);
+    for line in [
+        "[train] target_only seed 1: trained earlier (2 steps)",
+        "[rollout] target_only_ext1 seed 0 seeds 3000..3000: done earlier",
+        "[train] target_only_ext1 seed 1: 2 steps in",
+    ] {
+        assert!(text.contains(line), "`{line}` missing from:\n{text}");
+    }
+    assert_eq!(
+        std::fs::metadata(out.join("conditions/target_only/seed_1/run/run.json")).unwrap().modified().unwrap(),
+        before
+    );
+    assert!(out.join("conditions/target_only_ext1/seed_1/rollouts/rollouts.json").exists());
+}

@@ -28,6 +28,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
 use std::time::Instant;
 
+mod stats;
+
 #[derive(Debug, Subcommand)]
 pub enum ExperimentCommand {
     /// The paper's result in the sim: co-training on retrieved demos (camPose, objSpat, ...)
@@ -81,9 +83,14 @@ pub struct ExperimentConfig {
     /// The probability that a sample comes from the target demos (the paper: 0.5).
     #[serde(default = "default_w")]
     pub w: f64,
-    /// The training seed (default: the preset's).
+    /// The training seed (default: the preset's), when `train_seeds` is empty.
     #[serde(default)]
     pub train_seed: Option<u64>,
+    /// Training seeds: each condition is trained once per seed (its `seeds` first ones), every
+    /// policy judged on the same rollout seeds, into `<condition>/seed_<s>/`. Empty: one
+    /// training per condition (at `train_seed`), in the condition's own folder.
+    #[serde(default)]
+    pub train_seeds: Vec<u64>,
     /// Validation interval (default: the preset's).
     #[serde(default)]
     pub val_every: Option<u64>,
@@ -110,6 +117,10 @@ pub struct ExperimentConfig {
     #[serde(default)]
     pub prior: Vec<DataSpec>,
     pub condition: Vec<ConditionSpec>,
+    /// Paired comparisons `[a, b]` (does a beat b?) the summary tests over training seeds
+    /// ([`stats`]).
+    #[serde(default)]
+    pub compare: Vec<[String; 2]>,
 }
 
 fn default_w() -> f64 {
@@ -157,9 +168,27 @@ pub struct ConditionSpec {
     /// This condition's w (default: the experiment's).
     #[serde(default)]
     pub w: Option<f64>,
+    /// Train only the first this many of `train_seeds` (default: every one). May be raised
+    /// later: the policies done are kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seeds: Option<usize>,
+    /// This condition's training preset (default: the experiment's), e.g. an ablation's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub preset: Option<String>,
 }
 
 impl ConditionSpec {
+    /// How many policies the condition trains: one per training seed it takes.
+    fn seed_count(&self, cfg: &ExperimentConfig) -> usize {
+        if cfg.train_seeds.is_empty() { 1 } else { self.seeds.unwrap_or(cfg.train_seeds.len()) }
+    }
+
+    /// What a condition's folder must keep to be continued: everything but `seeds` (raising
+    /// it later trains more policies and keeps the done ones).
+    fn identity(&self) -> anyhow::Result<Value> {
+        Ok(serde_json::to_value(ConditionSpec { seeds: None, ..self.clone() })?)
+    }
+
     fn cotrain(&self) -> String {
         if self.all {
             "every prior demo".to_owned()
@@ -233,11 +262,33 @@ impl ExperimentConfig {
             if let Some(w) = c.w {
                 ensure!((0.0..=1.0).contains(&w), "condition `{}`: w must be in 0..=1", c.name);
             }
+            if let Some(n) = c.seeds {
+                ensure!(
+                    !self.train_seeds.is_empty() && (1..=self.train_seeds.len()).contains(&n),
+                    "condition `{}`: seeds = {n} must be in 1..={} (the train_seeds given)",
+                    c.name,
+                    self.train_seeds.len()
+                );
+            }
             ensure!(
                 !self.prior.is_empty() || (!c.all && c.align.is_empty()),
                 "condition `{}` co-trains on prior data, but the config has no [[prior]]",
                 c.name
             );
+        }
+        let mut seeds = BTreeSet::new();
+        for s in &self.train_seeds {
+            ensure!(seeds.insert(s), "train_seeds names seed {s} twice");
+        }
+        ensure!(
+            self.train_seeds.is_empty() || self.train_seed.is_none(),
+            "train_seed and train_seeds exclude each other"
+        );
+        for [a, b] in &self.compare {
+            for n in [a, b] {
+                ensure!(conditions.contains(n.as_str()), "compare: no condition `{n}`");
+            }
+            ensure!(a != b, "compare: `{a}` against itself");
         }
         Ok(())
     }
@@ -296,6 +347,32 @@ impl Layout {
     fn log(&self, stage: &str) -> PathBuf {
         self.out.join("logs").join(format!("{stage}.log"))
     }
+    /// A condition's `index`th policy (its training seed's).
+    fn unit(&self, cfg: &ExperimentConfig, c: &ConditionSpec, index: usize) -> Unit {
+        let dir = self.condition(&c.name);
+        match cfg.train_seeds.get(index) {
+            Some(&s) => Unit {
+                seed: Some(s),
+                dir: dir.join(format!("seed_{s}")),
+                name: format!("{} seed {s}", c.name),
+                log: format!("{}_seed{s}", c.name),
+            },
+            None => Unit { seed: cfg.train_seed, dir, name: c.name.clone(), log: c.name.clone() },
+        }
+    }
+    /// Every policy of a condition.
+    fn units(&self, cfg: &ExperimentConfig, c: &ConditionSpec) -> Vec<Unit> {
+        (0..c.seed_count(cfg)).map(|i| self.unit(cfg, c, i)).collect()
+    }
+}
+
+/// One policy of a condition: its training seed, its folder (`run/`, the rollout sets), its
+/// name in stage lines and its logs' stem.
+struct Unit {
+    seed: Option<u64>,
+    dir: PathBuf,
+    name: String,
+    log: String,
 }
 
 /// What a run must keep from its first invocation to be continued: everything but the
@@ -310,7 +387,7 @@ fn run_identity(cfg: &ExperimentConfig, config_dir: &Path) -> anyhow::Result<Val
     let preset = resolve_preset(&cfg.preset, config_dir);
     let preset_content =
         if Path::new(&preset).is_file() { std::fs::read_to_string(&preset)? } else { preset.to_owned() };
-    Ok(json!({
+    let mut identity = json!({
         "target": scene(&cfg.target)?,
         "prior": cfg.prior.iter().map(scene).collect::<anyhow::Result<Vec<_>>>()?,
         "expert_aim_error_m": cfg.expert_aim_error_m,
@@ -325,7 +402,12 @@ fn run_identity(cfg: &ExperimentConfig, config_dir: &Path) -> anyhow::Result<Val
         "rollouts": cfg.rollouts,
         "rollout_first_seed": cfg.rollout_first_seed,
         "max_steps": cfg.max_steps,
-    }))
+    });
+    // (Only when given: a run made before training seeds existed keeps its identity.)
+    if !cfg.train_seeds.is_empty() {
+        identity["train_seeds"] = json!(cfg.train_seeds);
+    }
+    Ok(identity)
 }
 
 /// A preset file relative to the config's folder, else the preset's name as given.
@@ -482,10 +564,33 @@ fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {
                 minutes(t.elapsed().as_secs_f64())
             ));
         }
-        for c in chosen {
-            run_condition(&run, c)?;
-            // The table after every condition: a run cut off later keeps what it has.
-            let _ = summarise(&cfg, &config_dir, &layout)?;
+        // Seed by seed across the conditions, so that a run cut off holds comparable policies.
+        let rounds = chosen.iter().map(|c| c.seed_count(&cfg)).max().unwrap_or(0);
+        let mut prepared: std::collections::BTreeMap<&str, Option<Option<PathBuf>>> = Default::default();
+        for index in 0..rounds {
+            for &c in &chosen {
+                if index >= c.seed_count(&cfg) {
+                    continue;
+                }
+                let cotrain = match prepared.get(c.name.as_str()) {
+                    Some(p) => p.clone(),
+                    None => {
+                        let p = prepare_condition(&run, c)?;
+                        prepared.insert(&c.name, p.clone());
+                        p
+                    }
+                };
+                // (None: the retrieval kept nothing; the condition is not trained.)
+                let Some(cotrain) = cotrain else { continue };
+                let unit = layout.unit(&cfg, c, index);
+                train(&run, c, &unit, cotrain.as_deref())?;
+                // Rollouts on the target's seeds, set by set; a set cut off runs again.
+                for first in cfg.seed_sets() {
+                    roll_out(&run, &unit, first)?;
+                }
+                // The table after every policy: a run cut off later keeps what it has.
+                let _ = summarise(&cfg, &config_dir, &layout)?;
+            }
         }
         say(format!("experiment {}: ran {} this sitting", cfg.name, minutes(started.elapsed().as_secs_f64())));
     }
@@ -603,17 +708,16 @@ fn record_set(run: &Run, d: &DataSpec, target: bool, scene: &str, domain: u16, n
     Ok(())
 }
 
-/// One condition: its manifest, its training, its rollouts; each skipped when done.
-fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
-    let &Run { cfg, config_dir, layout, args } = run;
+/// A condition's folder and its co-training set: none, every prior demo, or its retrieval's
+/// manifest (retrieved unless done). `None` when the retrieval kept nothing.
+fn prepare_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<Option<Option<PathBuf>>> {
+    let &Run { cfg, layout, args, .. } = run;
     let say = |line: String| run.say(line);
     let quiet = args.json;
     let dir = layout.condition(&c.name);
     std::fs::create_dir_all(&dir)?;
-    check_identity(&dir.join("condition.json"), &serde_json::to_value(c)?)?;
-    let w = c.w.unwrap_or(cfg.w);
-    // The co-training set.
-    let cotrain: Option<PathBuf> = if c.all {
+    check_identity(&dir.join("condition.json"), &c.identity()?)?;
+    Ok(Some(if c.all {
         Some(layout.prior_root())
     } else if c.align.is_empty() {
         None
@@ -650,27 +754,35 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
         say(format!("[retrieve] {}: {kept} episodes ({})", c.name, funnel.join(" -> ")));
         if kept == 0 {
             say(format!("[retrieve] {}: nothing retrieved; the condition is not trained", c.name));
-            return Ok(());
+            return Ok(None);
         }
         Some(manifest)
-    };
-    // Training: the same recipe and steps for every condition; resumed from its last checkpoint.
-    let run_dir = dir.join("run");
+    }))
+}
+
+/// A policy's training: the same recipe and steps for every condition (its seed's), resumed
+/// from its last checkpoint; skipped when done.
+fn train(run: &Run, c: &ConditionSpec, unit: &Unit, cotrain: Option<&Path>) -> anyhow::Result<()> {
+    let &Run { cfg, config_dir, layout, args } = run;
+    let say = |line: String| run.say(line);
+    let quiet = args.json;
+    let w = c.w.unwrap_or(cfg.w);
+    let run_dir = unit.dir.join("run");
     let done = labrig_reports::read::<RunReport>(&run_dir.join("run.json")).is_some_and(|r| r.steps == cfg.steps);
-    let stage = format!("[train] {}", c.name);
+    let stage = format!("[train] {}", unit.name);
     if done {
         say(format!("{stage}: trained earlier ({} steps)", cfg.steps));
     } else {
         let t = Instant::now();
         let mut a = strings(&["train", "--target", &path_str(&layout.target_episodes(cfg))]);
-        if let Some(co) = &cotrain {
+        if let Some(co) = cotrain {
             a.extend(["--cotrain".to_owned(), path_str(co)]);
         }
         a.extend(strings(&[
             "--w",
             &w.to_string(),
             "--preset",
-            &resolve_preset(&cfg.preset, config_dir),
+            &resolve_preset(c.preset.as_deref().unwrap_or(&cfg.preset), config_dir),
             "--steps",
             &cfg.steps.to_string(),
             "--out",
@@ -683,7 +795,7 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
         if let Some(b) = cfg.batch_size {
             a.extend(["--batch-size".to_owned(), b.to_string()]);
         }
-        if let Some(s) = cfg.train_seed {
+        if let Some(s) = unit.seed {
             a.extend(["--seed".to_owned(), s.to_string()]);
         }
         if let Some(v) = cfg.val_every {
@@ -693,8 +805,8 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
             a.extend(["--threads".to_owned(), n.to_string()]);
         }
         let resumed = run_dir.join("checkpoints/last").exists();
-        let result = run_stage(&stage, &a, &[], &layout.log(&format!("{}_train", c.name)), quiet);
-        let wall = add_wall(&dir.join("train_time.json"), t.elapsed().as_secs_f64())?;
+        let result = run_stage(&stage, &a, &[], &layout.log(&format!("{}_train", unit.log)), quiet);
+        let wall = add_wall(&unit.dir.join("train_time.json"), t.elapsed().as_secs_f64())?;
         result?;
         let r: RunReport = labrig_reports::read(&run_dir.join("run.json")).context("the training wrote no run.json")?;
         say(format!(
@@ -708,20 +820,16 @@ fn run_condition(run: &Run, c: &ConditionSpec) -> anyhow::Result<()> {
             r.last_val_loss.unwrap_or(f64::NAN),
         ));
     }
-    // Rollouts on the target's seeds, set by set; a set cut off runs again.
-    for first in cfg.seed_sets() {
-        roll_out(run, c, first)?;
-    }
     Ok(())
 }
 
 /// One set of rollouts of a condition's policy, from `first` seed.
-fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
+fn roll_out(run: &Run, unit: &Unit, first: u64) -> anyhow::Result<()> {
     let &Run { cfg, config_dir, layout, args } = run;
     let say = |line: String| run.say(line);
-    let dir = layout.condition(&c.name);
+    let dir = &unit.dir;
     let rollouts = dir.join(cfg.rollouts_dir(first));
-    let stage = format!("[rollout] {} seeds {first}..{}", c.name, first + cfg.rollouts - 1);
+    let stage = format!("[rollout] {} seeds {first}..{}", unit.name, first + cfg.rollouts - 1);
     let report_path = rollouts.join("rollouts.json");
     if let Some(r) = complete_rollouts(cfg, &report_path) {
         say(format!("{stage}: done earlier ({} of {})", r.successes, cfg.rollouts));
@@ -749,7 +857,7 @@ fn roll_out(run: &Run, c: &ConditionSpec, first: u64) -> anyhow::Result<()> {
         &args.domain_id.to_string(),
         "--json",
     ]);
-    let log = layout.log(&format!("{}_{}", c.name, cfg.rollouts_dir(first).replace("rollouts", "rollout")));
+    let log = layout.log(&format!("{}_{}", unit.log, cfg.rollouts_dir(first).replace("rollouts", "rollout")));
     let result = run_stage(&stage, &a, &[], &log, args.json);
     if result.is_err() {
         // An incomplete report must not count as done.
@@ -778,38 +886,125 @@ fn complete_rollouts(cfg: &ExperimentConfig, report: &Path) -> Option<RolloutRep
     labrig_launch::rollout::read_report(report).filter(|r| r.rollouts.len() == cfg.rollouts as usize)
 }
 
-/// One condition's row of the table.
+/// One policy of a condition (one training seed): its training and its judged sets.
+#[derive(Debug, Clone, Serialize)]
+pub struct PolicyResult {
+    /// The training seed (absent: the preset's, in a run without `train_seeds`).
+    pub seed: Option<u64>,
+    /// done (trained and judged on every set), partly judged, trained, pending.
+    pub status: String,
+    pub run: Option<RunReport>,
+    pub train_wall_s: Option<f64>,
+    /// Each judged set: its first seed and its successes.
+    pub by_seed_set: Vec<(u64, u64)>,
+    pub successes: u64,
+    pub rollouts: u64,
+    pub rollout_wall_s: f64,
+    pub inference_ms_p50: Option<f64>,
+}
+
+impl PolicyResult {
+    fn read(cfg: &ExperimentConfig, unit: &Unit) -> PolicyResult {
+        let dir = &unit.dir;
+        let run = labrig_reports::read::<RunReport>(&dir.join("run/run.json")).filter(|r| r.steps == cfg.steps);
+        let sets: Vec<(u64, RolloutReport)> = cfg
+            .seed_sets()
+            .into_iter()
+            .filter_map(|first| {
+                Some((first, complete_rollouts(cfg, &dir.join(cfg.rollouts_dir(first)).join("rollouts.json"))?))
+            })
+            .collect();
+        let by_seed_set: Vec<(u64, u64)> = sets.iter().map(|(first, r)| (*first, r.successes)).collect();
+        let status = match (&run, sets.len()) {
+            (Some(_), n) if n == cfg.seed_sets().len() => "done",
+            (Some(_), n) if n > 0 => "partly judged",
+            (Some(_), _) => "trained",
+            _ => "pending",
+        };
+        let rollout_wall_s = sets
+            .iter()
+            .filter_map(|(first, _)| {
+                let set = dir.join(cfg.rollouts_dir(*first));
+                // (Runs before the per-set file kept the main set's in the condition's folder.)
+                labrig_reports::read::<WallTime>(&set.join("wall.json"))
+                    .or_else(|| {
+                        labrig_reports::read::<WallTime>(&dir.join("rollout_time.json"))
+                            .filter(|_| *first == cfg.rollout_first_seed)
+                    })
+                    .map(|t| t.wall_s)
+            })
+            .sum();
+        PolicyResult {
+            seed: unit.seed,
+            status: status.to_owned(),
+            train_wall_s: run
+                .as_ref()
+                .and_then(|_| labrig_reports::read::<WallTime>(&dir.join("train_time.json")))
+                .map(|t| t.wall_s),
+            run,
+            successes: by_seed_set.iter().map(|(_, k)| k).sum(),
+            rollouts: by_seed_set.len() as u64 * cfg.rollouts,
+            by_seed_set,
+            rollout_wall_s,
+            inference_ms_p50: sets.first().map(|(_, r)| r.inference_ms_p50).filter(|v| v.is_finite()),
+        }
+    }
+
+    fn judged(&self) -> bool {
+        self.rollouts > 0
+    }
+
+    /// The success rate over every judged set.
+    pub fn rate(&self) -> Option<f64> {
+        self.judged().then(|| self.successes as f64 / self.rollouts as f64)
+    }
+}
+
+/// One condition's row of the table: its policies, pooled.
 #[derive(Debug, Clone, Serialize)]
 pub struct ConditionResult {
     pub name: String,
     pub about: String,
     pub cotrain: String,
     pub w: f64,
-    /// done (trained and judged), trained, retrieved (nothing else yet), not retrieved (empty), pending.
+    pub preset: String,
+    /// done (every policy trained and judged), partly judged, trained, retrieved (nothing else
+    /// yet), retrieved nothing, pending.
     pub status: String,
     /// The retrieval's funnel (stage, kept), when retrieved.
     pub funnel: Vec<(String, u64)>,
     /// Episodes in the co-training set given to training (before unsuccessful ones are dropped).
     pub cotrain_given: Option<u64>,
-    /// What training used: target (training) episodes, held-out ones, co-training episodes.
+    /// What training used (the first trained policy's): target (training) episodes, held-out
+    /// ones, co-training episodes, and the samples drawn from each.
     pub target_episodes: Option<u64>,
     pub val_episodes: Option<u64>,
     pub cotrain_episodes: Option<u64>,
     pub drawn_target: Option<u64>,
     pub drawn_cotrain: Option<u64>,
     pub steps: Option<u64>,
+    /// Over the trained policies: wall time summed; throughput, validation loss and open-loop
+    /// error averaged.
     pub train_wall_s: Option<f64>,
     pub samples_per_s: Option<f64>,
     pub last_val_loss: Option<f64>,
     pub open_loop_mm: Option<f64>,
-    /// Over the seed sets judged so far.
+    /// Over every judged set of every policy.
     pub successes: Option<u64>,
     pub rollouts: Option<u64>,
+    /// Wilson's interval of the pooled count (it treats the rollouts as independent, which
+    /// policies of different seeds are not: see `comparisons` for the test over seeds).
     pub ci95: Option<[f64; 2]>,
-    /// Each judged set: its first seed and its successes.
+    /// Each seed set: its first seed and its successes over the policies judged on it.
     pub by_seed_set: Vec<(u64, u64)>,
+    /// Policies trained (of `policies`) and judged on every set.
+    pub policies_done: usize,
+    /// The judged policies' success rates: mean and standard deviation over training seeds.
+    pub seed_mean: Option<f64>,
+    pub seed_sd: Option<f64>,
     pub rollout_wall_s: Option<f64>,
     pub inference_ms_p50: Option<f64>,
+    pub policies: Vec<PolicyResult>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -819,16 +1014,24 @@ pub struct Results {
     pub target: DataSpec,
     pub target_successful: Option<u64>,
     pub prior: Vec<DataSpec>,
+    /// Each prior set's recorded and successful episodes.
+    pub prior_recorded: Vec<(String, Option<u64>, Option<u64>)>,
     pub prior_episodes: Option<u64>,
     pub preset: String,
     pub steps: u64,
     pub batch_size: Option<u64>,
+    pub train_seeds: Vec<u64>,
     pub rollouts: u64,
     pub rollout_first_seed: u64,
     /// Every seed set's first seed (`rollouts` rollouts each).
     pub seed_sets: Vec<u64>,
     pub max_steps: u64,
     pub conditions: Vec<ConditionResult>,
+    pub comparisons: Vec<stats::Comparison>,
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
 /// Builds the table and the figure from whatever the run has (and writes them).
@@ -841,19 +1044,24 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
     for c in &cfg.condition {
         let dir = layout.condition(&c.name);
         let manifest = labrig_reports::read::<ManifestEpisodes>(&dir.join("manifest.json"));
-        let run = labrig_reports::read::<RunReport>(&dir.join("run/run.json")).filter(|r| r.steps == cfg.steps);
-        let sets: Vec<(u64, RolloutReport)> = cfg
+        let policies: Vec<PolicyResult> = layout.units(cfg, c).iter().map(|u| PolicyResult::read(cfg, u)).collect();
+        let trained: Vec<&RunReport> = policies.iter().filter_map(|p| p.run.as_ref()).collect();
+        let first = trained.first();
+        let judged: Vec<&PolicyResult> = policies.iter().filter(|p| p.judged()).collect();
+        let done: Vec<f64> = policies.iter().filter(|p| p.status == "done").filter_map(|p| p.rate()).collect();
+        let by_seed_set: Vec<(u64, u64)> = cfg
             .seed_sets()
             .into_iter()
             .filter_map(|first| {
-                Some((first, complete_rollouts(cfg, &dir.join(cfg.rollouts_dir(first)).join("rollouts.json"))?))
+                let ks: Vec<u64> = judged
+                    .iter()
+                    .filter_map(|p| p.by_seed_set.iter().find(|(f, _)| *f == first).map(|(_, k)| *k))
+                    .collect();
+                (!ks.is_empty()).then(|| (first, ks.iter().sum()))
             })
             .collect();
-        let by_seed_set: Vec<(u64, u64)> = sets.iter().map(|(first, r)| (*first, r.successes)).collect();
-        let judged = by_seed_set.len() as u64 * cfg.rollouts;
-        let succeeded: u64 = by_seed_set.iter().map(|(_, k)| k).sum();
-        let all_sets = sets.len() == cfg.seed_sets().len();
-        let rollouts = sets.first().map(|(_, r)| r.clone());
+        let (succeeded, n): (u64, u64) =
+            (judged.iter().map(|p| p.successes).sum(), judged.iter().map(|p| p.rollouts).sum());
         let funnel: Vec<(String, u64)> =
             manifest.iter().flat_map(|m| &m.funnel).map(|s| (s.stage.clone(), s.kept as u64)).collect();
         let retrieved = manifest.as_ref().map(|m| m.episodes.len() as u64);
@@ -864,71 +1072,94 @@ fn summarise(cfg: &ExperimentConfig, config_dir: &Path, layout: &Layout) -> anyh
         } else {
             retrieved
         };
-        let status = match (&run, &rollouts, retrieved) {
-            (Some(_), Some(_), _) if all_sets => "done",
-            (Some(_), Some(_), _) => "partly judged",
-            (Some(_), None, _) => "trained",
-            (None, _, Some(0)) => "retrieved nothing",
-            (None, _, Some(_)) => "retrieved",
-            _ => "pending",
+        let status = if !policies.is_empty() && policies.iter().all(|p| p.status == "done") {
+            "done"
+        } else if !judged.is_empty() {
+            "partly judged"
+        } else if !trained.is_empty() {
+            "trained"
+        } else {
+            match retrieved {
+                Some(0) => "retrieved nothing",
+                Some(_) => "retrieved",
+                None => "pending",
+            }
         };
+        let seed_mean = mean(&done);
+        let seed_sd = seed_mean
+            .filter(|_| done.len() > 1)
+            .map(|m| (done.iter().map(|r| (r - m).powi(2)).sum::<f64>() / (done.len() - 1) as f64).sqrt());
+        let of_trained =
+            |f: &dyn Fn(&RunReport) -> Option<f64>| mean(&trained.iter().filter_map(|r| f(r)).collect::<Vec<_>>());
         rows.push(ConditionResult {
             name: c.name.clone(),
             about: c.about.clone(),
             cotrain: c.cotrain(),
             w: c.w.unwrap_or(cfg.w),
+            preset: c.preset.clone().unwrap_or_else(|| cfg.preset.clone()),
             status: status.to_owned(),
             funnel,
             cotrain_given,
-            target_episodes: run.as_ref().map(|r| r.target_episodes as u64),
-            val_episodes: run.as_ref().map(|r| r.val_episodes as u64),
-            cotrain_episodes: run.as_ref().map(|r| r.cotrain_episodes as u64),
-            drawn_target: run.as_ref().map(|r| r.drawn_target),
-            drawn_cotrain: run.as_ref().map(|r| r.drawn_cotrain),
-            steps: run.as_ref().map(|r| r.steps),
-            train_wall_s: run
-                .as_ref()
-                .and_then(|_| labrig_reports::read::<WallTime>(&dir.join("train_time.json")))
-                .map(|t| t.wall_s),
-            samples_per_s: run.as_ref().map(|r| r.samples_per_s),
-            last_val_loss: run.as_ref().and_then(|r| r.last_val_loss),
-            open_loop_mm: run.as_ref().and_then(|r| r.last_open_loop_mm),
-            successes: rollouts.as_ref().map(|_| succeeded),
-            rollouts: rollouts.as_ref().map(|_| judged),
-            ci95: rollouts.as_ref().map(|_| wilson95(succeeded, judged)),
+            target_episodes: first.map(|r| r.target_episodes as u64),
+            val_episodes: first.map(|r| r.val_episodes as u64),
+            cotrain_episodes: first.map(|r| r.cotrain_episodes as u64),
+            drawn_target: first.map(|r| r.drawn_target),
+            drawn_cotrain: first.map(|r| r.drawn_cotrain),
+            steps: first.map(|r| r.steps),
+            train_wall_s: (!trained.is_empty()).then(|| policies.iter().filter_map(|p| p.train_wall_s).sum()),
+            samples_per_s: of_trained(&|r| Some(r.samples_per_s)),
+            last_val_loss: of_trained(&|r| r.last_val_loss),
+            open_loop_mm: of_trained(&|r| r.last_open_loop_mm),
+            successes: (!judged.is_empty()).then_some(succeeded),
+            rollouts: (!judged.is_empty()).then_some(n),
+            ci95: (!judged.is_empty()).then(|| wilson95(succeeded, n)),
             by_seed_set,
-            rollout_wall_s: rollouts.as_ref().map(|_| {
-                sets.iter()
-                    .filter_map(|(first, _)| {
-                        let set = dir.join(cfg.rollouts_dir(*first));
-                        // (Runs before the per-set file kept the main set's in the condition's folder.)
-                        labrig_reports::read::<WallTime>(&set.join("wall.json"))
-                            .or_else(|| {
-                                labrig_reports::read::<WallTime>(&dir.join("rollout_time.json"))
-                                    .filter(|_| *first == cfg.rollout_first_seed)
-                            })
-                            .map(|t| t.wall_s)
-                    })
-                    .sum()
-            }),
-            inference_ms_p50: rollouts.as_ref().map(|r| r.inference_ms_p50).filter(|v| v.is_finite()),
+            policies_done: done.len(),
+            seed_mean,
+            seed_sd,
+            rollout_wall_s: (!judged.is_empty()).then(|| judged.iter().map(|p| p.rollout_wall_s).sum()),
+            inference_ms_p50: mean(&judged.iter().filter_map(|p| p.inference_ms_p50).collect::<Vec<_>>()),
+            policies,
         });
     }
+    let comparisons = cfg
+        .compare
+        .iter()
+        .filter_map(|[a, b]| {
+            let rates = |name: &str| -> Vec<f64> {
+                rows.iter()
+                    .find(|r| r.name == name)
+                    .map(|r| r.policies.iter().filter(|p| p.status == "done").filter_map(|p| p.rate()).collect())
+                    .unwrap_or_default()
+            };
+            stats::compare(a, &rates(a), b, &rates(b))
+        })
+        .collect();
     let results = Results {
         experiment: cfg.name.clone(),
         out: layout.out.clone(),
         target: cfg.target.clone(),
         target_successful: demo(&cfg.target, true).map(|r| r.successes as u64),
         prior: cfg.prior.clone(),
+        prior_recorded: cfg
+            .prior
+            .iter()
+            .map(|d| {
+                let r = demo(d, false);
+                (d.name.clone(), r.as_ref().map(|r| r.recorded as u64), r.as_ref().map(|r| r.successes as u64))
+            })
+            .collect(),
         prior_episodes,
         preset: resolve_preset(&cfg.preset, config_dir),
         steps: cfg.steps,
         batch_size: cfg.batch_size,
+        train_seeds: cfg.train_seeds.clone(),
         rollouts: cfg.rollouts,
         rollout_first_seed: cfg.rollout_first_seed,
         seed_sets: cfg.seed_sets(),
         max_steps: cfg.max_steps,
         conditions: rows,
+        comparisons,
     };
     write_json(&layout.out.join("results.json"), &results)?;
     std::fs::write(layout.out.join("results.md"), table_markdown(&results))?;
@@ -946,7 +1177,14 @@ fn success_text(r: &ConditionResult) -> String {
     match (r.successes, r.rollouts, r.ci95) {
         (Some(k), Some(n), Some([lo, hi])) => {
             let mut t = format!("{k}/{n} ({:.0}%, {:.0}-{:.0}%)", 100.0 * k as f64 / n as f64, 100.0 * lo, 100.0 * hi);
-            if r.by_seed_set.len() > 1 {
+            if r.policies.len() > 1 {
+                let per: Vec<String> = r
+                    .policies
+                    .iter()
+                    .map(|p| if p.judged() { format!("{}/{}", p.successes, p.rollouts) } else { "-".to_owned() })
+                    .collect();
+                t += &format!(" [by training seed: {}]", per.join(" "));
+            } else if r.by_seed_set.len() > 1 {
                 let sets: Vec<String> = r.by_seed_set.iter().map(|(_, k)| k.to_string()).collect();
                 t += &format!(" [{}]", sets.join(" + "));
             }
@@ -983,14 +1221,36 @@ fn table_text(r: &Results) -> String {
             success_text(c)
         );
     }
+    for c in &r.comparisons {
+        s += &format!("  {}\n", comparison_text(c));
+    }
     s
+}
+
+/// A comparison on one line.
+fn comparison_text(c: &stats::Comparison) -> String {
+    format!(
+        "{} vs {}: {:+.0} points ({:.0}% of {} policies vs {:.0}% of {}; 95% bootstrap {:+.0} to {:+.0}), permutation p = {:.3} over {} relabellings (smallest possible {:.3})",
+        c.a,
+        c.b,
+        100.0 * c.diff,
+        100.0 * c.rate_a,
+        c.policies_a,
+        100.0 * c.rate_b,
+        c.policies_b,
+        100.0 * c.diff_ci95[0],
+        100.0 * c.diff_ci95[1],
+        c.p_permutation,
+        c.relabellings,
+        c.p_min
+    )
 }
 
 fn table_markdown(r: &Results) -> String {
     let mut s = format!(
         "# {}: co-training on retrieved data (labrig experiment retrieval)\n\n\
          Target: `{}`, {} demos (seeds {}..{}; {} successful). Prior: {} episodes ({}). \
-         Training: preset `{}`, {} steps{} for every condition. Judged by {} rollouts per seed set of at most {} steps \
+         Training: preset `{}`, {} steps{} for every condition{}. Judged by {} rollouts per seed set of at most {} steps \
          on the target scene's seeds {} (lockstep). Success with its 95% Wilson interval (over every set; \
          each set's count in brackets).\n\n",
         r.experiment,
@@ -1008,20 +1268,35 @@ fn table_markdown(r: &Results) -> String {
         r.preset,
         r.steps,
         r.batch_size.map_or(String::new(), |b| format!(" at batch {b}")),
+        if r.train_seeds.is_empty() {
+            String::new()
+        } else {
+            format!(
+                ", once per training seed ({}; a condition may take the first few)",
+                r.train_seeds.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
+            )
+        },
         r.rollouts,
         r.max_steps,
         seeds_text(r),
     );
-    s += "| condition | co-training set | retrieval funnel | co-training episodes (used) | w | samples drawn target / co-training | steps | train wall | samples/s | val loss | open loop (mm) | success | rollouts wall |\n";
-    s += "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+    s += "| condition | co-training set | retrieval funnel | co-training episodes (used) | w | samples drawn target / co-training | steps | train wall | samples/s | val loss | open loop (mm) | success | over training seeds | rollouts wall |\n";
+    s += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for c in &r.conditions {
         let funnel = if c.funnel.is_empty() {
             "-".to_owned()
         } else {
             c.funnel.iter().map(|(k, n)| format!("{k} {n}")).collect::<Vec<_>>().join(" → ")
         };
+        let seeds = match (c.seed_mean, c.seed_sd) {
+            (Some(m), Some(sd)) => {
+                format!("{:.0}% ± {:.0} ({} of {} policies)", 100.0 * m, 100.0 * sd, c.policies_done, c.policies.len())
+            }
+            (Some(m), None) => format!("{:.0}% ({} of {} policies)", 100.0 * m, c.policies_done, c.policies.len()),
+            _ => format!("- (0 of {} policies)", c.policies.len()),
+        };
         s += &format!(
-            "| {} | {} | {} | {} ({}) | {} | {} / {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} ({}) | {} | {} / {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             c.name,
             c.cotrain,
             funnel,
@@ -1036,8 +1311,16 @@ fn table_markdown(r: &Results) -> String {
             c.last_val_loss.map_or("-".to_owned(), |v| format!("{v:.4}")),
             c.open_loop_mm.map_or("-".to_owned(), |v| format!("{v:.1}")),
             success_text(c),
+            seeds,
             c.rollout_wall_s.map_or("-".to_owned(), minutes),
         );
+    }
+    if !r.comparisons.is_empty() {
+        s += "\nPaired comparisons over training seeds (policies as the unit; an exact permutation test of the \
+              difference of mean success, two-sided, and a bootstrap interval of it):\n\n";
+        for c in &r.comparisons {
+            s += &format!("- {}\n", comparison_text(c));
+        }
     }
     s
 }
@@ -1114,6 +1397,17 @@ fn plot(r: &Results, path: &Path) -> anyhow::Result<()> {
                     .map_err(e)?;
             }
         }
+        // Each judged policy's own rate (one dot per training seed).
+        let dots: Vec<(f64, f64)> = c
+            .policies
+            .iter()
+            .filter_map(|p| p.rate())
+            .enumerate()
+            .map(|(i, rate)| (x - 0.2 + 0.1 * (i % 5) as f64, 100.0 * rate))
+            .collect();
+        if c.policies.len() > 1 {
+            chart.draw_series(dots.into_iter().map(|p| Circle::new(p, 4, BLACK.mix(0.7).filled()))).map_err(e)?;
+        }
         let used = c.cotrain_episodes.or(c.cotrain_given).map_or(String::new(), |n| format!("+{n} eps"));
         chart
             .draw_series(std::iter::once(Text::new(
@@ -1148,15 +1442,27 @@ mod tests {
 
     #[test]
     fn the_committed_configs_parse_and_bad_ones_are_named() {
-        for f in ["full.toml", "ci.toml"] {
+        for f in ["full.toml", "ci.toml", "droid.toml", "ci_droid.toml"] {
             let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../experiments/retrieval").join(f);
             let cfg = ExperimentConfig::load(&path).unwrap();
-            assert!(cfg.condition.len() >= 6, "{f}");
+            assert!(cfg.condition.len() >= 3, "{f}");
             let dir = path.parent().unwrap();
             for d in std::iter::once(&cfg.target).chain(&cfg.prior) {
                 resolve_scene(&d.scene, dir).unwrap();
             }
+            for c in &cfg.condition {
+                if let Some(p) = &c.preset {
+                    assert!(Path::new(&resolve_preset(p, dir)).is_file(), "{f}: {}", c.name);
+                }
+            }
         }
+        // The DROID-shaped prior: 300 demos, a tenth of them aligned with the target.
+        let droid = ExperimentConfig::load(
+            &Path::new(env!("CARGO_MANIFEST_DIR")).join("../../experiments/retrieval/droid.toml"),
+        )
+        .unwrap();
+        let total: u64 = droid.prior.iter().map(|d| d.episodes).sum();
+        assert_eq!((total, droid.prior[0].name.as_str(), droid.prior[0].episodes), (300, "aligned", 30));
         let a = "[[condition]]\nname = \"a\"\n";
         let ok = parse(&config("more_rollout_seeds = [2000]\n", &format!("{a}all = true\n"))).unwrap();
         assert_eq!(ok.seed_sets(), [1000, 2000]);
@@ -1169,6 +1475,28 @@ mod tests {
         assert!(err("", "[[condition]]\nname = \"../a\"\n").contains("condition name `../a`"));
         assert!(err("w = 1.5\n", a).contains("w must be in 0..=1"));
         assert!(err("", "").contains("condition"));
+        assert!(err("", &format!("{a}seeds = 2\n")).contains("seeds = 2 must be in 1..=0"));
+        assert!(err("train_seeds = [0, 1]\n", &format!("{a}seeds = 3\n")).contains("seeds = 3 must be in 1..=2"));
+        assert!(err("train_seeds = [4, 4]\n", a).contains("seed 4 twice"));
+        assert!(err("train_seeds = [4]\ntrain_seed = 1\n", a).contains("exclude each other"));
+        assert!(err("compare = [[\"a\", \"b\"]]\n", a).contains("compare: no condition `b`"));
+        let seeded =
+            parse(&config("train_seeds = [7, 8, 9]\n", &format!("{a}seeds = 2\n[[condition]]\nname = \"b\"\n")))
+                .unwrap();
+        assert_eq!(seeded.condition.iter().map(|c| c.seed_count(&seeded)).collect::<Vec<_>>(), [2, 3]);
+        assert_eq!(ok.condition[0].seed_count(&ok), 1, "no train_seeds: one policy");
+        // Raising a condition's seeds later keeps its folder's identity.
+        let mut more = seeded.condition[0].clone();
+        more.seeds = Some(3);
+        assert_eq!(more.identity().unwrap(), seeded.condition[0].identity().unwrap());
+        let layout = Layout { out: PathBuf::from("/x") };
+        let u = layout.unit(&seeded, &seeded.condition[0], 1);
+        assert_eq!(
+            (u.seed, u.dir.as_path(), u.name.as_str()),
+            (Some(8), Path::new("/x/conditions/a/seed_8"), "a seed 8")
+        );
+        let u = layout.unit(&ok, &ok.condition[0], 0);
+        assert_eq!((u.seed, u.dir.as_path()), (None, Path::new("/x/conditions/a")));
         assert!(
             format!("{:#}", resolve_scene("nope.toml", Path::new("/")).unwrap_err()).contains("not a built-in scene")
         );
