@@ -36,6 +36,42 @@ pub enum ExperimentCommand {
     /// against the target demos alone and against every prior demo; resumable, with a table and
     /// a figure (experiments/retrieval/README.md).
     Retrieval(RetrievalArgs),
+    /// How many training seeds and rollouts a difference between two conditions needs: the
+    /// power of the comparison's permutation test over seeds, simulated, with the spread
+    /// between training runs estimated from a finished run's results.json.
+    Power(PowerArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct PowerArgs {
+    /// A run's results.json: the conditions' success (their spread gives the spread between
+    /// training runs, an upper bound) and the time a policy took to train and judge.
+    #[arg(long, default_value = "experiments/retrieval/results/results.json")]
+    pub from: PathBuf,
+    /// The spread between training seeds (a standard deviation of success rates) instead of the
+    /// estimate.
+    #[arg(long)]
+    pub sd: Option<f64>,
+    /// The weaker condition's success rate (default: the run's mean).
+    #[arg(long)]
+    pub base: Option<f64>,
+    /// True differences to find (success rate, 0..1).
+    #[arg(long, value_delimiter = ',', default_values_t = [0.15, 0.2])]
+    pub diff: Vec<f64>,
+    /// Training seeds (policies) per condition.
+    #[arg(long, value_delimiter = ',', default_values_t = [3, 5, 8])]
+    pub seeds: Vec<usize>,
+    /// Rollouts per policy.
+    #[arg(long, value_delimiter = ',', default_values_t = [20, 40])]
+    pub rollouts: Vec<u64>,
+    /// The test's level (two-sided).
+    #[arg(long, default_value_t = 0.05)]
+    pub alpha: f64,
+    /// Simulated experiments per point.
+    #[arg(long, default_value_t = 1000)]
+    pub sims: usize,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -387,7 +423,7 @@ fn run_identity(cfg: &ExperimentConfig, config_dir: &Path) -> anyhow::Result<Val
     let preset = resolve_preset(&cfg.preset, config_dir);
     let preset_content =
         if Path::new(&preset).is_file() { std::fs::read_to_string(&preset)? } else { preset.to_owned() };
-    let mut identity = json!({
+    let identity = json!({
         "target": scene(&cfg.target)?,
         "prior": cfg.prior.iter().map(scene).collect::<anyhow::Result<Vec<_>>>()?,
         "expert_aim_error_m": cfg.expert_aim_error_m,
@@ -403,10 +439,8 @@ fn run_identity(cfg: &ExperimentConfig, config_dir: &Path) -> anyhow::Result<Val
         "rollout_first_seed": cfg.rollout_first_seed,
         "max_steps": cfg.max_steps,
     });
-    // (Only when given: a run made before training seeds existed keeps its identity.)
-    if !cfg.train_seeds.is_empty() {
-        identity["train_seeds"] = json!(cfg.train_seeds);
-    }
+    // (Not `train_seeds`: a policy's folder is named by its seed, so seeds may be added to a
+    // run later and the policies done are kept.)
     Ok(identity)
 }
 
@@ -508,7 +542,108 @@ fn add_wall(path: &Path, seconds: f64) -> anyhow::Result<f64> {
 pub fn run(cmd: ExperimentCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         ExperimentCommand::Retrieval(a) => retrieval(a),
+        ExperimentCommand::Power(a) => power(&a),
     }
+}
+
+/// What `labrig experiment power` reads of a run's results.json.
+#[derive(Debug, Deserialize)]
+struct JudgedRun {
+    conditions: Vec<JudgedCondition>,
+}
+
+#[derive(Debug, Deserialize)]
+struct JudgedCondition {
+    successes: Option<u64>,
+    rollouts: Option<u64>,
+    train_wall_s: Option<f64>,
+    rollout_wall_s: Option<f64>,
+    #[serde(default)]
+    policies: Vec<serde::de::IgnoredAny>,
+}
+
+/// One point of the power table.
+#[derive(Debug, Serialize)]
+struct PowerPoint {
+    diff: f64,
+    seeds: usize,
+    rollouts: u64,
+    power: f64,
+    /// Machine time for the two conditions' policies at the run's pace (minutes).
+    minutes: Option<f64>,
+}
+
+fn power(a: &PowerArgs) -> anyhow::Result<ExitCode> {
+    ensure!((0.0..1.0).contains(&a.alpha) && a.alpha > 0.0, "--alpha must be in (0, 1)");
+    ensure!(a.sims >= 10, "--sims must be at least 10");
+    ensure!(
+        a.seeds.iter().all(|&k| k >= 1) && a.rollouts.iter().all(|&n| n >= 1),
+        "--seeds and --rollouts must be >= 1"
+    );
+    let text = std::fs::read_to_string(&a.from).with_context(|| format!("--from {}", a.from.display()))?;
+    let run: JudgedRun = serde_json::from_str(&text)
+        .with_context(|| format!("--from {}: not a results.json of `labrig experiment retrieval`", a.from.display()))?;
+    let counts: Vec<(u64, u64)> = run.conditions.iter().filter_map(|c| Some((c.successes?, c.rollouts?))).collect();
+    let estimate = stats::between_sd(&counts);
+    let (run_mean, sd_est) = estimate.unzip();
+    let sd = a.sd.or(sd_est).with_context(|| {
+        format!("{}: fewer than two judged conditions to estimate the spread from; give --sd", a.from.display())
+    })?;
+    let base = a.base.or(run_mean).context("give --base")?;
+    // The run's pace: a policy's training, and one rollout (per policy: a condition judged
+    // once holds one policy).
+    let policies = |c: &JudgedCondition| c.policies.len().max(1) as f64;
+    let judged: Vec<&JudgedCondition> = run.conditions.iter().filter(|c| c.rollouts.is_some()).collect();
+    let train_s = mean(&judged.iter().filter_map(|c| Some(c.train_wall_s? / policies(c))).collect::<Vec<_>>());
+    let rollout_s =
+        mean(&judged.iter().filter_map(|c| Some(c.rollout_wall_s? / c.rollouts? as f64)).collect::<Vec<_>>());
+    let mut points = Vec::new();
+    let bar = progress::bar("power", (a.diff.len() * a.seeds.len() * a.rollouts.len()) as u64, a.json);
+    for &diff in &a.diff {
+        for &seeds in &a.seeds {
+            for &rollouts in &a.rollouts {
+                let p = stats::power(base, diff, sd, seeds, rollouts, a.alpha, a.sims);
+                let minutes =
+                    train_s.zip(rollout_s).map(|(t, r)| 2.0 * seeds as f64 * (t + r * rollouts as f64) / 60.0);
+                points.push(PowerPoint { diff, seeds, rollouts, power: p, minutes });
+                bar.inc(1);
+            }
+        }
+    }
+    bar.finish_and_clear();
+    if a.json {
+        println!(
+            "{}",
+            json!({"from": a.from, "base": base, "sd": sd, "sd_estimated": sd_est, "alpha": a.alpha, "sims": a.sims, "points": points})
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "power of the permutation test over training seeds (two-sided, level {}), {} simulated experiments per point",
+        a.alpha, a.sims
+    );
+    println!(
+        "  weaker condition {:.0}%, spread between training runs sd {:.3}{}",
+        100.0 * base,
+        sd,
+        match (a.sd, sd_est) {
+            (Some(_), _) => " (given)".to_owned(),
+            (None, Some(_)) => format!(" (estimated from {}: an upper bound)", a.from.display()),
+            _ => String::new(),
+        }
+    );
+    println!("  {:>6} {:>6} {:>9} {:>6}  machine time (2 conditions)", "diff", "seeds", "rollouts", "power");
+    for p in &points {
+        println!(
+            "  {:>5.0}% {:>6} {:>9} {:>5.0}%  {}",
+            100.0 * p.diff,
+            p.seeds,
+            p.rollouts,
+            100.0 * p.power,
+            p.minutes.map_or("-".to_owned(), |m| format!("{:.0} min", m))
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn retrieval(args: RetrievalArgs) -> anyhow::Result<ExitCode> {

@@ -115,6 +115,52 @@ pub fn compare(a: &str, rates_a: &[f64], b: &str, rates_b: &[f64]) -> Option<Com
     })
 }
 
+/// The spread of policies' success rates between training runs, estimated from a run's
+/// conditions judged once each: the variance of their rates less the binomial variance of
+/// their rollouts. Conditions that truly differ add to it, so it is an upper bound on the
+/// spread between seeds of one condition (`None` with fewer than two conditions).
+pub fn between_sd(counts: &[(u64, u64)]) -> Option<(f64, f64)> {
+    let rates: Vec<f64> = counts.iter().filter(|(_, n)| *n > 0).map(|&(k, n)| k as f64 / n as f64).collect();
+    if rates.len() < 2 {
+        return None;
+    }
+    let m = mean(&rates);
+    let var = rates.iter().map(|r| (r - m).powi(2)).sum::<f64>() / (rates.len() - 1) as f64;
+    let binomial =
+        mean(&counts.iter().filter(|(_, n)| *n > 0).map(|&(_, n)| m * (1.0 - m) / n as f64).collect::<Vec<_>>());
+    Some((m, (var - binomial).max(0.0).sqrt()))
+}
+
+/// The power of [`compare`]'s permutation test (two-sided, level `alpha`) to find a true
+/// difference `diff` between two conditions with `seeds` policies each, judged on `rollouts`
+/// rollouts each: each policy's rate drawn around its condition's (`base` and `base + diff`)
+/// with standard deviation `sd` (clipped to 0..1), its successes binomial; `sims` simulated
+/// experiments (seeded).
+pub fn power(base: f64, diff: f64, sd: f64, seeds: usize, rollouts: u64, alpha: f64, sims: usize) -> f64 {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let normal = |rng: &mut rand_chacha::ChaCha8Rng| {
+        // Box-Muller.
+        let (u, v): (f64, f64) = (rng.random_range(f64::EPSILON..1.0), rng.random());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    };
+    let mut rejected = 0;
+    for _ in 0..sims {
+        let draw = |p: f64, rng: &mut rand_chacha::ChaCha8Rng| -> Vec<f64> {
+            (0..seeds)
+                .map(|_| {
+                    let rate = (p + sd * normal(rng)).clamp(0.0, 1.0);
+                    (0..rollouts).filter(|_| rng.random::<f64>() < rate).count() as f64 / rollouts as f64
+                })
+                .collect()
+        };
+        let (a, b) = (draw(base + diff, &mut rng), draw(base, &mut rng));
+        if compare("a", &a, "b", &b).is_some_and(|c| c.p_permutation <= alpha) {
+            rejected += 1;
+        }
+    }
+    rejected as f64 / sims as f64
+}
+
 /// Calls `f` with every `k`-subset of `0..n` (in lexicographic order).
 fn for_each_subset(n: usize, k: usize, f: &mut impl FnMut(&[usize])) {
     let mut idx: Vec<usize> = (0..k).collect();
@@ -167,6 +213,22 @@ mod tests {
         let c = compare("a", &[0.5, 0.3], "b", &[0.4, 0.2]).unwrap();
         assert!((c.p_permutation - 4.0 / 6.0).abs() < 1e-12, "{c:?}");
         assert!(compare("a", &[], "b", &[0.5]).is_none());
+    }
+
+    #[test]
+    fn the_power_grows_with_seeds_and_is_the_level_without_a_difference() {
+        // No difference: rejections at about the level or below (the test is exact, and with
+        // 3 + 3 policies it cannot reach p <= 0.05 at all).
+        assert_eq!(power(0.4, 0.0, 0.07, 3, 40, 0.05, 200), 0.0);
+        let none = power(0.4, 0.0, 0.07, 5, 40, 0.05, 400);
+        assert!(none < 0.1, "{none}");
+        let (five, eight) = (power(0.35, 0.2, 0.07, 5, 40, 0.05, 300), power(0.35, 0.2, 0.07, 8, 40, 0.05, 150));
+        assert!(five > 0.5 && eight > five, "{five} {eight}");
+        // The first run's seven conditions: 13 21 12 15 9 15 9 of 40.
+        let (m, sd) = between_sd(&[(13, 40), (21, 40), (12, 40), (15, 40), (9, 40), (15, 40), (9, 40)]).unwrap();
+        assert!((m - 94.0 / 280.0).abs() < 1e-12);
+        assert!((0.06..0.08).contains(&sd), "{sd}");
+        assert!(between_sd(&[(10, 40)]).is_none());
     }
 
     #[test]
