@@ -13,6 +13,7 @@
 //! libraries, never on each other; this crate depends on no command (both checked by
 //! `tests/tests/layering.rs`).
 
+pub mod clients;
 pub mod config;
 pub mod measure;
 pub mod programs;

@@ -60,6 +60,12 @@ fn rig_pids(domain: u16) -> BTreeMap<String, u32> {
     found
 }
 
+/// The space free to an unprivileged writer on the file system holding `path` (0 when it cannot
+/// be read).
+pub fn free_bytes(path: &Path) -> u64 {
+    nix::sys::statvfs::statvfs(path).map_or(0, |s| s.blocks_available() * s.fragment_size())
+}
+
 /// What runs beside the rig while it is measured: a node added to the launch config, and a
 /// load started once the rig is up (it runs until the flag turns true).
 pub struct Beside {
@@ -77,10 +83,45 @@ impl std::fmt::Debug for Beside {
     }
 }
 
+/// Called every half second with the rig's processes (program -> pid) and the seconds since
+/// the start.
+pub type Every<'a> = &'a mut dyn FnMut(&BTreeMap<String, u32>, f64);
+
+/// What a long measurement adds (`labrig bench soak`).
+#[derive(Default)]
+pub struct Hooks<'a> {
+    /// Settings for the control loop (`--set key=value`), e.g. its window figures.
+    pub control_sets: Vec<(String, String)>,
+    pub every: Option<Every<'a>>,
+    /// A Ctrl-C (or SIGTERM) ends the measured window early with the report so far, instead of
+    /// failing the run.
+    pub interruptible: bool,
+}
+
+impl std::fmt::Debug for Hooks<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Hooks")
+            .field("control_sets", &self.control_sets)
+            .field("every", &self.every.is_some())
+            .field("interruptible", &self.interruptible)
+            .finish()
+    }
+}
+
 /// One measured run of the demo's rig in real time for `a.seconds` (episodes under
 /// `out/episodes`), with `beside` running next to it; the report as JSON (`load`: what the load
 /// returned).
 pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Result<serde_json::Value> {
+    measure_with(a, out, beside, Hooks::default())
+}
+
+/// [`measure`] with `hooks`; the report also says whether the run was `interrupted`.
+pub fn measure_with(
+    a: &LoopArgs,
+    out: &Path,
+    beside: Option<Beside>,
+    mut hooks: Hooks,
+) -> anyhow::Result<serde_json::Value> {
     let root = out.join("episodes");
     let stats = out.join("control_stats.json");
     let (mut cfg, order) = LaunchConfig::parse(crate::sim::SIM_DEMO, Path::new("launch_configs/sim_demo.toml"))?;
@@ -96,6 +137,9 @@ pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Resu
         set_arg(&mut ctl.args, "--clock", "wall");
         set_arg(&mut ctl.args, "--episodes", "0");
         set_arg(&mut ctl.args, "--stats-out", &stats.display().to_string());
+        for (k, v) in &hooks.control_sets {
+            ctl.args.extend(["--set".into(), format!("{k}={v}")]);
+        }
     }
     let (mut load, mut order) = (None, order);
     if let Some(b) = beside {
@@ -106,19 +150,25 @@ pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Resu
     let stop_load = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let mut load_thread = None;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let shutdown = labrig_runtime::Shutdown::new();
+    if hooks.interruptible {
+        let _in_runtime = rt.enter();
+        shutdown.trigger_on_signals()?;
+    }
     let bar = labrig_episode::progress::bar("bench loop {bar:30} {pos}/{len} s", a.seconds as u64, a.json);
     let started = Instant::now();
     // First and last sample of each process's CPU seconds, with their times.
     let mut cpu: BTreeMap<String, [CpuSample; 2]> = BTreeMap::new();
     let code = rt.block_on(async {
         let seconds = a.seconds;
-        let rig = tokio::spawn(crate::supervise::supervise(
+        let rig = tokio::spawn(crate::supervise::supervise_until(
             cfg,
             order,
             PathBuf::from("launch_configs"),
             a.domain_id,
             Some(seconds + 15.0),
             Output::Quiet,
+            shutdown.clone(),
         ));
         let mut control_pid = None;
         while !rig.is_finished() {
@@ -133,6 +183,9 @@ pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Resu
             }
             if let Some(&pid) = pids.get("labrig-control") {
                 control_pid = Some(pid);
+            }
+            if let Some(f) = hooks.every.as_mut() {
+                f(&pids, started.elapsed().as_secs_f64());
             }
             // The load starts once every node of the rig is running.
             if load_thread.is_none()
@@ -157,7 +210,8 @@ pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Resu
     bar.finish_and_clear();
     stop_load.store(true, std::sync::atomic::Ordering::Relaxed);
     let load_report = load_thread.map(|t| t.join().unwrap_or(serde_json::Value::Null));
-    anyhow::ensure!(code == ExitCode::SUCCESS, "the rig stopped with an error (see above)");
+    let interrupted = hooks.interruptible && shutdown.is_triggered();
+    anyhow::ensure!(code == ExitCode::SUCCESS || interrupted, "the rig stopped with an error (see above)");
     let control: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(&stats).with_context(|| format!("the control loop's stats {}", stats.display()))?,
     )?;
@@ -209,6 +263,7 @@ pub fn measure(a: &LoopArgs, out: &Path, beside: Option<Beside>) -> anyhow::Resu
         "mb_per_recorded_s": bytes as f64 / 1e6 / recorded_s.max(1e-9),
         "cpu_percent": cpu_pct,
         "load": load_report,
+        "interrupted": interrupted,
     });
     Ok(report)
 }

@@ -212,12 +212,13 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("launch_second_rig", 186, 1),
     ("launch_two_rigs", 187, 2),
     ("experiment_retrieval_droid_ci", 189, 2),
+    ("bench_soak", 191, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
 /// (`labrig experiment retrieval`: 50 and, with `--jobs`, up to seven more; `labrig bench
-/// latency`: 47.)
-pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=44, 47..=47, 50..=57, 70..=79];
+/// latency`: 47; `labrig bench soak`: 45.)
+pub const DEFAULT_DOMAINS: &[std::ops::RangeInclusive<u16>] = &[0..=0, 42..=45, 47..=47, 50..=57, 70..=79];
 
 /// franka-sim on 127.0.0.1:`port` (see scripts/franka_sim_loopback.py).
 pub fn franka_sim(port: u16, flags: &[&str]) -> Proc {

@@ -495,3 +495,70 @@ fn the_station_bench_measures_the_rig_alone_and_with_the_station() {
     assert!(load["foxglove"][0]["messages"].as_u64().unwrap() > 100, "{load}");
     assert!(r["p99_jitter_ratio"].is_number());
 }
+
+/// `labrig bench soak` at CI size (a minute): the machinery of the hour-long session
+/// benchmark, not its figures. Every process of the rig (and the station) is sampled through
+/// the run; the loop's windows come from the control loop and add up with its own count of
+/// ticks; the episodes the loop ended are the episodes recorded and inspected; the report and
+/// the picture are written; and a helper planted beside the rig, growing 300 MB an hour, is
+/// named in the verdict with about that rate.
+#[test]
+fn a_short_soak_samples_every_process_and_names_a_planted_growth() {
+    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-station"] {
+        labrig_tests::workspace_bin(p, p);
+    }
+    let domain = domain_for("bench_soak").to_string();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("soak");
+    let o = Command::new(labrig_bin())
+        .args(["bench", "soak", "--minutes", "1", "--warmup-min", "0.25", "--window-min", "0.25", "--sample-s", "3"])
+        .args(["--station", "--plant-growth-mb-per-h", "300", "--json", "--domain-id", &domain, "--out"])
+        .arg(&out)
+        .env(labrig_runtime::frames::NAMESPACE_ENV, format!("bench_soak_{}", std::process::id()))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", labrig_tests::output_text(&o));
+    let r: Value =
+        serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", labrig_tests::output_text(&o)));
+    // Every process sampled from start to end (a sample every 3 s over a minute).
+    let samples = r["samples"].as_object().unwrap();
+    for p in ["labrig-sim", "labrig-control", "labrig-recorder", "labrig-station", "labrig"] {
+        let v = samples.get(p).and_then(Value::as_array).unwrap_or_else(|| panic!("{p} not sampled: {samples:?}"));
+        assert!(v.len() >= 12, "{p}: {} samples", v.len());
+        assert!(v.iter().all(|s| s["rss_bytes"].as_u64().unwrap() > 1_000_000 && s["threads"].as_u64().unwrap() >= 1));
+        assert!(v.last().unwrap()["t_s"].as_f64().unwrap() > 50.0, "{p}: sampled to the end");
+    }
+    // The windows (15 s each) are the control loop's own: their ticks add up to the run's
+    // within the part after the last full window.
+    let windows = r["windows"].as_array().unwrap();
+    assert!(windows.len() >= 3, "{windows:?}");
+    let ticks: u64 = windows.iter().map(|w| w["ticks"].as_u64().unwrap()).sum();
+    let run_ticks = r["run"]["ticks"].as_u64().unwrap();
+    assert!(ticks <= run_ticks && run_ticks - ticks <= 20 * 16, "windows {ticks} of {run_ticks} ticks");
+    assert!(windows.iter().all(|w| w["jitter_us"][1].as_f64().unwrap() > 0.0), "{windows:?}");
+    // The episodes: what the loop ended is what was recorded, and each was inspected.
+    let ended = r["run"]["episodes"].as_u64().unwrap();
+    assert!(ended >= 3, "{}", r["run"]);
+    assert_eq!(r["episodes"]["episodes"].as_u64(), Some(ended), "{}", r["episodes"]);
+    assert_eq!(r["run"]["recorded_episodes"].as_u64(), Some(ended));
+    // The planted growth is named, at about its rate; the verdict fails on it.
+    let v = &r["verdict"];
+    let grower = v["growing"].as_array().unwrap().iter().find(|g| g[0] == "labrig");
+    let rate = grower.unwrap_or_else(|| panic!("the planted growth is not named: {v}"))[1].as_f64().unwrap();
+    assert!((200.0..400.0).contains(&rate), "planted 300 MB/h, measured {rate}");
+    assert_eq!(v["pass"], false);
+    assert!(v["failed"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().starts_with("labrig grows")), "{v}");
+    let procs = r["processes"].as_array().unwrap();
+    assert!(procs.iter().any(|p| p["name"] == "labrig-station" && p["cpu_percent"].as_f64().unwrap() > 0.0));
+    // The report and the picture.
+    let report: Value = serde_json::from_str(&std::fs::read_to_string(out.join("soak.json")).unwrap()).unwrap();
+    assert_eq!(report["verdict"], *v);
+    assert_eq!(&std::fs::read(out.join("soak.png")).unwrap()[..8], b"\x89PNG\r\n\x1a\n");
+    // A second soak into the same folder is refused (its episodes would mix).
+    let again = Command::new(labrig_bin())
+        .args(["bench", "soak", "--minutes", "1", "--warmup-min", "0", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!again.status.success() && labrig_tests::output_text(&again).contains("episodes of an earlier soak"));
+}

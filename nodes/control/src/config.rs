@@ -97,6 +97,11 @@ pub struct ControlConfig {
     /// or older than `calibration_max_age_s` (DROID's GUI warns after an hour).
     pub calibration: Option<PathBuf>,
     pub calibration_max_age_s: f64,
+    /// Append the loop's figures per window of `window_s` seconds to this file, one JSON line
+    /// each (ticks, missed and held ticks, steps with a missing or stale frame, period jitter and
+    /// camera skew percentiles): `labrig bench soak` reads them. None by default.
+    pub window_stats: Option<PathBuf>,
+    pub window_s: f64,
 }
 
 impl Default for ControlConfig {
@@ -130,6 +135,8 @@ impl Default for ControlConfig {
             remote: crate::remote::RemoteConfig::default(),
             calibration: None,
             calibration_max_age_s: labrig_episode::calibration::DEFAULT_MAX_AGE_S,
+            window_stats: None,
+            window_s: 300.0,
         }
     }
 }
@@ -155,6 +162,7 @@ impl ControlConfig {
             ("tick_timeout_s", self.tick_timeout_s),
             ("home_tolerance_rad", self.home_tolerance_rad),
             ("reset_timeout_s", self.reset_timeout_s),
+            ("window_s", self.window_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(Invalid::new(name, format!("{name} = {v} must be > 0")));

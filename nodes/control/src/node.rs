@@ -75,6 +75,18 @@ impl Pubs {
 
 /// Runs the rig loop until its episodes are done or it is shut down: the stages of each tick
 /// are numbered below.
+/// Appends one line to `path` (the loop's window figures: one short write every few minutes).
+fn append_line(path: &std::path::Path, line: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .with_context(|| format!("window_stats {}", path.display()))?;
+    writeln!(f, "{line}").with_context(|| format!("window_stats {}", path.display()))?;
+    Ok(())
+}
+
 pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summary> {
     cfg.validate()?;
     check_calibration(&cfg);
@@ -101,6 +113,11 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
             Tick::ClockStopped(why) => return Err(end_on_stopped_clock(rig, &mut out, &why).await),
         };
         rig.begin_tick(Nanos(tick_ns), Instant::now());
+        if let Some(path) = &cfg.window_stats
+            && let Some(w) = rig.take_window(Instant::now())
+        {
+            append_line(path, &w.to_string())?;
+        }
         // 2. Everything that arrived (on the sim's clock, the tick's own gripper state and
         // frames trail its arm state on their own channels: wait for them, bounded).
         subs.take_gripper(&mut rig, &shutdown).await?;

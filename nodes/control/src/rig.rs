@@ -161,6 +161,8 @@ pub struct RigLoop {
     jitter_ns: Vec<i64>,
     skew_ns: Vec<i64>,
     started: Instant,
+    /// The figures of the window under way (`window_stats`).
+    window: Window,
     /// An operator's event and its note (a Start's task instruction).
     pending_request: Option<(EpisodeEventKind, String, i64)>,
     /// What became of the newest operator request (its stamp, kind, accepted or why not):
@@ -182,6 +184,16 @@ pub struct RigLoop {
     operator_acting: bool,
     episode_takeovers: u64,
     episode_operator_steps: u64,
+}
+
+/// One window of the loop's figures (`window_stats`): its start, the summary's counts then,
+/// and its own jitter and skew samples.
+#[derive(Debug, Default)]
+struct Window {
+    began: Option<Instant>,
+    at_start: [u64; 6],
+    jitter_ns: Vec<i64>,
+    skew_ns: Vec<i64>,
 }
 
 /// For this many ticks after the loop starts (1 s at 20 Hz) an episode does not start while a
@@ -223,6 +235,7 @@ impl RigLoop {
             jitter_ns: Vec::new(),
             skew_ns: Vec::new(),
             started: Instant::now(),
+            window: Window::default(),
             pending_request: None,
             last_request: None,
             status_due: false,
@@ -328,7 +341,9 @@ impl RigLoop {
             }
         }
         if let Some(w) = self.last_tick_wall {
-            self.jitter_ns.push((wall.duration_since(w).as_nanos() as i64 - self.period.0).abs());
+            let jitter = (wall.duration_since(w).as_nanos() as i64 - self.period.0).abs();
+            self.jitter_ns.push(jitter);
+            self.window.jitter_ns.push(jitter);
         }
         let prev_ns = self.last_tick_ns.replace(tick_ns);
         self.last_tick_wall = Some(wall);
@@ -605,6 +620,19 @@ impl RigLoop {
         Ok(())
     }
 
+    /// The summary's record of the episode that just ended.
+    fn report_episode(&mut self, outcome: &str) {
+        self.summary.episodes.push(EpisodeReport {
+            episode_id: self.episode_id.clone(),
+            seed: self.episode_seed,
+            instruction: self.episode_instruction.clone(),
+            outcome: outcome.into(),
+            steps: self.episodes.steps,
+            takeovers: self.episode_takeovers,
+            operator_steps: self.episode_operator_steps,
+        });
+    }
+
     fn publish_event(&self, out: &mut dyn RigOutputs, kind: EpisodeEventKind, note: &str, t: i64) {
         let ev = EpisodeEvent {
             header: Header { stamp: Nanos(t).into(), frame_id: String::new() },
@@ -648,15 +676,7 @@ impl RigLoop {
                     Ending::Homing => "none",
                 };
                 tracing::info!(episode = %self.episode_id, steps = self.episodes.steps, outcome, "episode ended");
-                self.summary.episodes.push(EpisodeReport {
-                    episode_id: self.episode_id.clone(),
-                    seed: self.episode_seed,
-                    instruction: self.episode_instruction.clone(),
-                    outcome: outcome.into(),
-                    steps: self.episodes.steps,
-                    takeovers: self.episode_takeovers,
-                    operator_steps: self.episode_operator_steps,
-                });
+                self.report_episode(outcome);
                 self.operator_acting = false;
                 self.reset_started = tick_ns;
                 if self.cfg.reseed {
@@ -774,6 +794,7 @@ impl RigLoop {
             self.summary.steps_missing_frames += u64::from(!frames.missing.is_empty());
             self.summary.steps_stale_frames += u64::from(!frames.stale.is_empty());
             self.skew_ns.push(frames.skew_ns);
+            self.window.skew_ns.push(frames.skew_ns);
             let times = TickTimes {
                 tick_ns,
                 step_start: tick.step_start,
@@ -823,6 +844,44 @@ impl RigLoop {
         Ok(())
     }
 
+    /// The window's figures once `window_s` has passed since it began at wall time (the first
+    /// call begins the first window), and a new window begins; `None` before. The counts are
+    /// the window's own (the summary's growth over it).
+    pub fn take_window(&mut self, wall: Instant) -> Option<serde_json::Value> {
+        let window_s = self.cfg.window_s;
+        let counts = self.window_counts();
+        let Some(began) = self.window.began else {
+            self.window = Window { began: Some(wall), at_start: counts, ..Window::default() };
+            return None;
+        };
+        let length = wall.saturating_duration_since(began).as_secs_f64();
+        if length < window_s {
+            return None;
+        }
+        let mut done =
+            std::mem::replace(&mut self.window, Window { began: Some(wall), at_start: counts, ..Window::default() });
+        let d = |i: usize| counts[i] - done.at_start[i];
+        Some(json!({
+            "end_s": wall.saturating_duration_since(self.started).as_secs_f64(),
+            "seconds": length,
+            "ticks": d(0),
+            "missed_ticks": d(1),
+            "held_ticks": d(2),
+            "steps_missing_frames": d(3),
+            "steps_stale_frames": d(4),
+            "episodes": d(5),
+            "jitter_us": percentiles_us(&mut done.jitter_ns),
+            "skew_us": percentiles_us(&mut done.skew_ns),
+        }))
+    }
+
+    /// The summary's counts a window reports the growth of: ticks, missed, held, steps missing
+    /// and stale frames, episodes ended.
+    fn window_counts(&self) -> [u64; 6] {
+        let s = &self.summary;
+        [s.ticks, s.missed_ticks, s.held_ticks, s.steps_missing_frames, s.steps_stale_frames, s.episodes.len() as u64]
+    }
+
     /// The loop stops: an episode still open ends as a failure (so the recorder closes it);
     /// the run's summary.
     pub fn finish(self, out: &mut dyn RigOutputs) -> Summary {
@@ -835,6 +894,8 @@ impl RigLoop {
             let t = self.last_tick_ns.unwrap_or(0);
             let _ = self.episodes.on(EpisodeEventKind::Stop);
             self.publish_event(out, EpisodeEventKind::Stop, why, t);
+            // The recorder files it (as a failure): the summary lists it as every other.
+            self.report_episode("failure");
         }
         self.summary.jitter_us = percentiles_us(&mut self.jitter_ns);
         self.summary.skew_us = percentiles_us(&mut self.skew_ns);
@@ -1207,6 +1268,12 @@ mod tests {
         assert_eq!(out.kinds(), [EpisodeEventKind::Start, EpisodeEventKind::Stop]);
         assert_eq!(out.events[1].note, "the control loop stopped");
         assert_eq!(summary.ticks, 1);
+        // The summary lists the episode it stopped, as the recorder files it.
+        assert_eq!(summary.episodes.len(), 1);
+        assert_eq!(
+            (summary.episodes[0].outcome.as_str(), summary.episodes[0].episode_id.as_str()),
+            ("failure", out.events[1].episode_id.as_str())
+        );
     }
 
     #[test]
@@ -1282,5 +1349,31 @@ mod tests {
         assert!(rig.is_new_tick(Nanos(PERIOD - TICK_TOLERANCE_NS / 2)));
         tick(&mut rig, 3, &mut src, &mut out);
         assert_eq!(rig.summary().missed_ticks, 2);
+    }
+
+    #[test]
+    fn a_window_reports_its_own_counts_and_jitter_then_the_next_begins() {
+        let mut rig = rig(100);
+        rig.cfg.window_s = 1.0;
+        let t0 = Instant::now();
+        let at = |ms: u64| t0 + std::time::Duration::from_millis(ms);
+        assert!(rig.take_window(at(0)).is_none(), "the first call begins the first window");
+        // Ticks at 0, 50, 130 (30 ms late), 150 ms; ticks 1 and 2 skipped on the sim's clock.
+        for (k, ms) in [(0, 0), (1, 50), (4, 130), (5, 150)] {
+            rig.begin_tick(Nanos(k * PERIOD), at(ms));
+        }
+        assert!(rig.take_window(at(999)).is_none(), "not yet a second");
+        let w = rig.take_window(at(1000)).unwrap();
+        assert_eq!((w["ticks"].as_u64(), w["missed_ticks"].as_u64()), (Some(4), Some(2)), "{w}");
+        // Intervals 50, 80, 20 ms against 50: |0|, 30, 30 ms.
+        assert_eq!(w["jitter_us"][1].as_f64(), Some(30_000.0), "{w}");
+        assert_eq!(w["jitter_us"][0].as_f64(), Some(30_000.0), "{w}");
+        assert!((w["seconds"].as_f64().unwrap() - 1.0).abs() < 1e-9);
+        // The next window holds only its own ticks.
+        rig.begin_tick(Nanos(6 * PERIOD), at(1200));
+        let w = rig.take_window(at(2000)).unwrap();
+        assert_eq!((w["ticks"].as_u64(), w["missed_ticks"].as_u64()), (Some(1), Some(0)), "{w}");
+        assert_eq!(w["jitter_us"][2].as_f64(), Some(1_000_000.0), "1050 ms after the tick before, at 1200: {w}");
+        assert_eq!(rig.summary().ticks, 5, "the run's summary counts every tick");
     }
 }

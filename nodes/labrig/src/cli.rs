@@ -283,6 +283,13 @@ pub enum BenchCommand {
     /// Whether the operator station is felt: the rig's loop jitter, skew and dropped frames
     /// alone vs with the station, its page and three Foxglove clients.
     Station(crate::bench_station::StationArgs),
+    /// An operator's session, measured for an hour (or --minutes): every process's memory,
+    /// descriptors, threads and CPU every 10 s, the loop's jitter per 5-minute window, episodes
+    /// inspected; a JSON report, a picture and a verdict (growth per hour, drift, disk per day).
+    Soak(crate::bench_soak::SoakArgs),
+    /// The soak's planted-growth helper (a process that grows at a steady rate).
+    #[command(hide = true)]
+    Grow(crate::bench_soak::GrowArgs),
     /// Camera streams (ffmpeg MJPEG servers) through labrig-cameras into the loop's observation:
     /// delivered/lost frames, capture -> observation latency, skew, CPU.
     Cameras(crate::bench_cameras::CamerasBenchArgs),
@@ -425,6 +432,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Bench(BenchCommand::Loop(a)) => crate::bench_loop::run(a),
         Command::Bench(BenchCommand::Station(a)) => crate::bench_station::run(a),
+        Command::Bench(BenchCommand::Soak(a)) => crate::bench_soak::run(&a),
+        Command::Bench(BenchCommand::Grow(a)) => crate::bench_soak::grow(&a),
         Command::Bench(BenchCommand::Cameras(a)) => crate::bench_cameras::run(a),
         Command::Bench(BenchCommand::Faults(a)) => crate::bench_faults::run(a),
         Command::Bench(BenchCommand::Openpi(a)) => crate::bench_openpi::run(a),

@@ -13,6 +13,7 @@ pub mod bench_faults;
 pub mod bench_latency;
 pub mod bench_loop;
 pub mod bench_openpi;
+pub mod bench_soak;
 pub mod bench_station;
 pub mod calib_capture;
 pub mod cli;
