@@ -522,7 +522,7 @@ fn a_short_soak_samples_every_process_and_names_a_planted_growth() {
         serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", labrig_tests::output_text(&o)));
     // Every process sampled from start to end (a sample every 3 s over a minute).
     let samples = r["samples"].as_object().unwrap();
-    for p in ["labrig-sim", "labrig-control", "labrig-recorder", "labrig-station", "labrig"] {
+    for p in ["labrig-sim", "labrig-control", "labrig-recorder", "labrig-station", "labrig-grow"] {
         let v = samples.get(p).and_then(Value::as_array).unwrap_or_else(|| panic!("{p} not sampled: {samples:?}"));
         assert!(v.len() >= 12, "{p}: {} samples", v.len());
         assert!(v.iter().all(|s| s["rss_bytes"].as_u64().unwrap() > 1_000_000 && s["threads"].as_u64().unwrap() >= 1));
@@ -543,11 +543,15 @@ fn a_short_soak_samples_every_process_and_names_a_planted_growth() {
     assert_eq!(r["run"]["recorded_episodes"].as_u64(), Some(ended));
     // The planted growth is named, at about its rate; the verdict fails on it.
     let v = &r["verdict"];
-    let grower = v["growing"].as_array().unwrap().iter().find(|g| g[0] == "labrig");
+    let grower = v["growing"].as_array().unwrap().iter().find(|g| g[0] == "labrig-grow");
     let rate = grower.unwrap_or_else(|| panic!("the planted growth is not named: {v}"))[1].as_f64().unwrap();
     assert!((200.0..400.0).contains(&rate), "planted 300 MB/h, measured {rate}");
     assert_eq!(v["pass"], false);
-    assert!(v["failed"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().starts_with("labrig grows")), "{v}");
+    assert!(
+        v["failed"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().starts_with("labrig-grow grows")),
+        "{v}"
+    );
+    assert!(samples.get("labrig").is_none(), "the soak itself is not among the rig's processes");
     let procs = r["processes"].as_array().unwrap();
     assert!(procs.iter().any(|p| p["name"] == "labrig-station" && p["cpu_percent"].as_f64().unwrap() > 0.0));
     // The report and the picture.

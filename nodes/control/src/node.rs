@@ -26,7 +26,7 @@
 use crate::config::{ClockKind, ControlConfig, SourceKind, TakeoverKind};
 use crate::frames::FrameTimes;
 use crate::policy::PolicySource;
-use crate::report::{Summary, percentiles_us};
+use crate::report::{Spread, Summary};
 use crate::rig::{RigLoop, RigOutputs};
 use crate::source::RgbFrame;
 use crate::source::{ActionSource, ScriptedExpert};
@@ -141,7 +141,7 @@ pub async fn run(cfg: ControlConfig, shutdown: Shutdown) -> anyhow::Result<Summa
     let mut summary = rig.finish(&mut out);
     summary.source = source.as_ref().and_then(|s| s.stats());
     summary.clock_ticks = ticker.clock_ticks;
-    summary.tick_lateness_us = percentiles_us(&mut ticker.lateness_ns);
+    summary.tick_lateness_us = ticker.lateness_ns.percentiles_us();
     // The last events reach their readers (the recorder) before the participant goes.
     tokio::time::sleep(Duration::from_millis(1000)).await;
     Ok(summary)
@@ -419,14 +419,14 @@ struct Ticker {
     clock_ticks: u64,
     /// How late each tick began after its boundary (wall clock: the scheduled instant; sim
     /// clock: the sim's /clock message for it), ns.
-    lateness_ns: Vec<i64>,
+    lateness_ns: Spread,
 }
 
 impl Ticker {
     /// The first wall-clock tick a period from now.
     fn new(period: Nanos) -> Ticker {
         let next_wall = Instant::now() + Duration::from_nanos(period.0 as u64);
-        Ticker { period, next_wall, clock_seen: false, clock_ticks: 0, lateness_ns: Vec::new() }
+        Ticker { period, next_wall, clock_seen: false, clock_ticks: 0, lateness_ns: Spread::default() }
     }
 
     /// The next tick, the arm's newest state given to `rig`.

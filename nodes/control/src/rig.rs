@@ -18,7 +18,7 @@
 use crate::config::{ClockKind, ControlConfig, SourceKind};
 use crate::episode::{Effect, Ending, Episodes, State};
 use crate::frames::{FrameBook, FrameTimes};
-use crate::report::{EpisodeReport, Summary, action_dict, episode_uuid, percentiles_us};
+use crate::report::{EpisodeReport, Spread, Summary, action_dict, episode_uuid, percentiles_us};
 use crate::source::{ActionSource, Proposal, TickView, Verdict};
 use crate::step::{Decision, Observation, TickTimes, make_step};
 use labrig_arm::safety::{ArmView, Refusal, SafetyFilter};
@@ -158,8 +158,8 @@ pub struct RigLoop {
     reset_started: i64,
     last_tick_ns: Option<i64>,
     last_tick_wall: Option<Instant>,
-    jitter_ns: Vec<i64>,
-    skew_ns: Vec<i64>,
+    jitter_ns: Spread,
+    skew_ns: Spread,
     started: Instant,
     /// The figures of the window under way (`window_stats`).
     window: Window,
@@ -232,8 +232,8 @@ impl RigLoop {
             reset_started: 0,
             last_tick_ns: None,
             last_tick_wall: None,
-            jitter_ns: Vec::new(),
-            skew_ns: Vec::new(),
+            jitter_ns: Spread::default(),
+            skew_ns: Spread::default(),
             started: Instant::now(),
             window: Window::default(),
             pending_request: None,
@@ -897,8 +897,8 @@ impl RigLoop {
             // The recorder files it (as a failure): the summary lists it as every other.
             self.report_episode("failure");
         }
-        self.summary.jitter_us = percentiles_us(&mut self.jitter_ns);
-        self.summary.skew_us = percentiles_us(&mut self.skew_ns);
+        self.summary.jitter_us = self.jitter_ns.percentiles_us();
+        self.summary.skew_us = self.skew_ns.percentiles_us();
         self.summary.seconds = self.started.elapsed().as_secs_f64();
         self.summary
     }

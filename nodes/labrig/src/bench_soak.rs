@@ -116,8 +116,10 @@ pub struct ProcessVerdict {
     pub samples: usize,
     pub rss_first_mb: f64,
     pub rss_last_mb: f64,
-    /// Least-squares growth after the warm-up.
+    /// Least-squares growth after the warm-up, and its standard error (the samples' scatter
+    /// about the line: an allocator that gives back and takes again makes it wide).
     pub rss_mb_per_h: Option<f64>,
+    pub rss_mb_per_h_se: Option<f64>,
     pub fds_per_h: Option<f64>,
     pub threads_per_h: Option<f64>,
     pub fds_range: [u32; 2],
@@ -192,6 +194,7 @@ pub fn verdicts(samples: &BTreeMap<String, Vec<Sample>>, warmup_s: f64) -> Vec<P
                 rss_first_mb: first.proc.rss_bytes as f64 / 1e6,
                 rss_last_mb: last.proc.rss_bytes as f64 / 1e6,
                 rss_mb_per_h: growth_per_hour(&series(&|p| p.rss_bytes as f64 / 1e6), warmup_s),
+                rss_mb_per_h_se: slope_se(&series(&|p| p.rss_bytes as f64 / 1e6), warmup_s).map(|se| se * 3600.0),
                 fds_per_h: growth_per_hour(&series(&|p| f64::from(p.fds)), warmup_s),
                 threads_per_h: growth_per_hour(&series(&|p| f64::from(p.threads)), warmup_s),
                 fds_range: range(&|p| p.fds),
@@ -200,6 +203,21 @@ pub fn verdicts(samples: &BTreeMap<String, Vec<Sample>>, warmup_s: f64) -> Vec<P
             }
         })
         .collect()
+}
+
+/// The standard error of the least-squares slope through the points after `warmup_s` (per
+/// unit of x); None with fewer than three.
+pub fn slope_se(points: &[(f64, f64)], warmup_s: f64) -> Option<f64> {
+    let p: Vec<(f64, f64)> = points.iter().copied().filter(|(t, _)| *t >= warmup_s).collect();
+    let b = labrig_runtime::bench::slope(&p)?;
+    let n = p.len() as f64;
+    if p.len() < 3 {
+        return None;
+    }
+    let (mx, my) = p.iter().fold((0.0, 0.0), |(a, c), (x, y)| (a + x / n, c + y / n));
+    let sxx: f64 = p.iter().map(|(x, _)| (x - mx).powi(2)).sum();
+    let rss: f64 = p.iter().map(|(x, y)| (y - (my + b * (x - mx))).powi(2)).sum();
+    Some((rss / (n - 2.0) / sxx).sqrt())
 }
 
 /// The goals judged from the processes, the windows and the disk.
@@ -351,6 +369,8 @@ pub fn run(a: &SoakArgs) -> anyhow::Result<ExitCode> {
     let mut planted = match a.plant_growth_mb_per_h {
         Some(mb) => {
             let mut cmd = std::process::Command::new(std::env::current_exe()?);
+            // Its own name among the rig's processes (they are named by their first argument).
+            std::os::unix::process::CommandExt::arg0(&mut cmd, "labrig-grow");
             cmd.args(["bench", "grow", "--mb-per-h", &mb.to_string(), "--domain-id", &a.domain_id.to_string()])
                 .args(["--seconds", &(seconds + 60.0).to_string()]);
             labrig_launch::supervise::stop_with_launcher(&mut cmd);
@@ -366,7 +386,8 @@ pub fn run(a: &SoakArgs) -> anyhow::Result<ExitCode> {
             return;
         }
         next_sample = t + a.sample_s;
-        for (name, pid) in pids {
+        // (The soak itself carries the rig's --domain-id too.)
+        for (name, pid) in pids.iter().filter(|(_, p)| **p != std::process::id()) {
             if let Some(p) = sample_of(*pid) {
                 samples.entry(name.clone()).or_default().push(Sample { t_s: t, proc: p });
             }
@@ -445,17 +466,21 @@ fn print_report(r: &Report, out: &Path) {
     );
     println!("  (a shared 2-core machine: timings are noisy)");
     println!(
-        "  {:<22} {:>8} {:>8} {:>10} {:>9} {:>11} {:>7}",
-        "process", "RSS MB", "-> MB", "MB/h", "fds", "threads", "cpu %"
+        "  {:<22} {:>8} {:>8} {:>16} {:>9} {:>11} {:>7}",
+        "process", "RSS MB", "-> MB", "MB/h (± s.e.)", "fds", "threads", "cpu %"
     );
-    let rate = |v: Option<f64>| v.map_or("-".to_owned(), |g| format!("{g:+.2}"));
+    let rate = |v: Option<f64>, se: Option<f64>| match (v, se) {
+        (Some(g), Some(se)) => format!("{g:+.2} ±{se:.2}"),
+        (Some(g), None) => format!("{g:+.2}"),
+        _ => "-".to_owned(),
+    };
     for p in &r.processes {
         println!(
-            "  {:<22} {:>8.1} {:>8.1} {:>10} {:>4}-{:<4} {:>5}-{:<5} {:>7.1}",
+            "  {:<22} {:>8.1} {:>8.1} {:>16} {:>4}-{:<4} {:>5}-{:<5} {:>7.1}",
             p.name,
             p.rss_first_mb,
             p.rss_last_mb,
-            rate(p.rss_mb_per_h),
+            rate(p.rss_mb_per_h, p.rss_mb_per_h_se),
             p.fds_range[0],
             p.fds_range[1],
             p.threads_range[0],
@@ -602,6 +627,11 @@ mod tests {
         let by = |n: &str| procs.iter().find(|p| p.name == n).unwrap();
         assert!((by("grower").rss_mb_per_h.unwrap() - 30.0).abs() < 1e-6, "{:?}", by("grower"));
         assert!(by("labrig-recorder").rss_mb_per_h.unwrap().abs() < 1e-6);
+        // On a line the standard error is 0; scatter about it widens it.
+        assert!(by("grower").rss_mb_per_h_se.unwrap() < 1e-6);
+        let noisy: Vec<(f64, f64)> = (0..100).map(|k| (f64::from(k), if k % 2 == 0 { 1.0 } else { -1.0 })).collect();
+        let se = slope_se(&noisy, 0.0).unwrap();
+        assert!((0.003..0.004).contains(&se), "1 / sqrt(sxx = 83325): {se}");
         assert!((by("labrig-recorder").cpu_percent - 10.0).abs() < 1e-9);
         let windows = [window(100.0, 0), window(120.0, 0)];
         let disk: Vec<DiskSample> = (0..=60)
