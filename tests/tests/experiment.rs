@@ -35,21 +35,28 @@ fn retrieved(out: &Path, condition: &str) -> Vec<String> {
     m["episodes"].as_array().unwrap().iter().map(|e| e["path"].as_str().unwrap().to_owned()).collect()
 }
 
-#[test]
-fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut() {
+/// A CI-sized experiment run once (the programs built, its two demo domains), from `config`
+/// under experiments/retrieval/: its folder (kept alive by the temp dir), its domain and its
+/// JSON results.
+fn first_run(key: &str, config: &str) -> (tempfile::TempDir, std::path::PathBuf, u16, Value) {
     for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-policy", "labrig-dataset", "labrig-policies"] {
         workspace_bin(p, p);
     }
-    let (domain, count) = domains_for("experiment_retrieval_ci");
+    let (domain, count) = domains_for(key);
     assert_eq!(count, 2, "two demo rigs at once");
-    let config = repo_root().join("experiments/retrieval/ci.toml");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("exp");
-
-    let first = experiment(&config, &out, domain, &["--json"]);
+    let first = experiment(&repo_root().join("experiments/retrieval").join(config), &out, domain, &["--json"]);
     assert!(first.status.success(), "{}", output_text(&first));
     let stdout = String::from_utf8_lossy(&first.stdout);
     let results: Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    (dir, out, domain, results)
+}
+
+#[test]
+fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut() {
+    let (dir, out, domain, results) = first_run("experiment_retrieval_ci", "ci.toml");
+    let config = repo_root().join("experiments/retrieval/ci.toml");
     let conditions = results["conditions"].as_array().unwrap();
     let names: Vec<&str> = conditions.iter().map(|c| c["name"].as_str().unwrap()).collect();
     assert_eq!(names, ["target_only", "all", "camPose+objSpat", "camPose", "objSpat", "objTex"]);
@@ -222,18 +229,8 @@ fn the_retrieval_experiment_runs_every_condition_and_continues_where_it_was_cut(
 /// condition later trains only the new policy.
 #[test]
 fn the_droid_shaped_experiment_trains_every_seed_and_compares_over_them() {
-    for p in ["labrig-sim", "labrig-recorder", "labrig-control", "labrig-policy", "labrig-dataset", "labrig-policies"] {
-        workspace_bin(p, p);
-    }
-    let (domain, count) = domains_for("experiment_retrieval_droid_ci");
-    assert_eq!(count, 2, "two demo rigs at once");
+    let (dir, out, domain, results) = first_run("experiment_retrieval_droid_ci", "ci_droid.toml");
     let config = repo_root().join("experiments/retrieval/ci_droid.toml");
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("exp");
-    let first = experiment(&config, &out, domain, &["--json"]);
-    assert!(first.status.success(), "{}", output_text(&first));
-    let stdout = String::from_utf8_lossy(&first.stdout);
-    let results: Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
     assert_eq!(results["train_seeds"], serde_json::json!([0, 1]), "{results}");
     let conditions = results["conditions"].as_array().unwrap();
     let find = |n: &str| conditions.iter().find(|c| c["name"] == n).unwrap_or_else(|| panic!("{n}: {results}"));
