@@ -98,13 +98,31 @@ impl Cameras {
             // their convex hulls (MuJoCo computes them for collision anyway).
             opts.flags[mujoco_rs::mujoco_c::mjtVisFlag::mjVIS_CONVEXHULL as usize] = 1;
         }
-        let ids = CAMERAS
-            .iter()
-            .map(|&name| {
-                model.name_to_id(MjtObjBase::mjOBJ_CAMERA, name).map(|id| (name, id)).ok_or(RenderError::NoCamera(name))
-            })
-            .collect::<Result<Vec<_>, _>>()?;
+        let ids = camera_ids(model)?;
         Ok(Cameras { renderer, ids, width, height })
+    }
+
+    /// These cameras pointed at `model`, a scene rebuilt from `old`'s rig: the OpenGL context
+    /// (an EGL display, context and surface on Mesa) is kept rather than opened anew for every
+    /// scene. The scene's textures (drawn per seed) are uploaded again, its meshes when they
+    /// differ from `old`'s; a model whose assets differ in number or size gets a new MuJoCo
+    /// rendering context for itself at the next render, still in the same OpenGL context.
+    pub fn retarget(&mut self, old: &MjModel, model: &MjModel) -> Result<(), RenderError> {
+        self.ids = camera_ids(model)?;
+        if model.is_asset_compatible_with_model(old) {
+            let fail = |e: mujoco_rs::renderer::RendererError| RenderError::Context(e.to_string());
+            self.renderer.update_textures_from(model).map_err(fail)?;
+            let same_meshes = old.mesh_vert() == model.mesh_vert()
+                && old.mesh_face() == model.mesh_face()
+                && old.mesh_normal() == model.mesh_normal();
+            if !same_meshes {
+                self.renderer.update_meshes_from(model).map_err(fail)?;
+            }
+            if model.nhfield() > 0 {
+                self.renderer.update_hfields_from(model).map_err(fail)?;
+            }
+        }
+        Ok(())
     }
 
     pub fn size(&self) -> (usize, usize) {
@@ -139,4 +157,14 @@ impl Cameras {
         }
         Ok(frames)
     }
+}
+
+/// The five cameras' ids in `model`.
+fn camera_ids(model: &MjModel) -> Result<Vec<(&'static str, usize)>, RenderError> {
+    CAMERAS
+        .iter()
+        .map(|&name| {
+            model.name_to_id(MjtObjBase::mjOBJ_CAMERA, name).map(|id| (name, id)).ok_or(RenderError::NoCamera(name))
+        })
+        .collect()
 }

@@ -54,3 +54,32 @@ fn another_seed_gives_another_view() {
         assert_ne!(x.rgb, y.rgb, "camera {} identical across seeds", x.camera);
     }
 }
+
+/// A rebuilt scene that takes the last scene's cameras (the bridge does so at every episode)
+/// draws exactly what cameras opened for it alone draw: its own textures, and its own model
+/// when that model is another kind (a drawer scene after a pick-and-place one).
+#[test]
+fn cameras_carried_to_a_new_scene_draw_what_fresh_cameras_draw() {
+    let assets = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join(DEFAULT_ASSETS);
+    let drawer = SceneSpec::builtin("drawer_open").unwrap();
+    let mut last = sim(1);
+    let before = last.render_all().unwrap();
+    for (spec, seed) in
+        [(SceneSpec::default_pick_place(), 2), (drawer.clone(), 3), (SceneSpec::default_pick_place(), 5)]
+    {
+        let mut carried = Sim::new(&assets, &spec, seed, Nanos::from_millis(50)).unwrap();
+        carried.adopt_cameras(&mut last).unwrap();
+        let mut fresh = Sim::new(&assets, &spec, seed, Nanos::from_millis(50)).unwrap();
+        fresh.enable_cameras(96, 72, Meshes::Collision).unwrap();
+        let (a, b) = (carried.render_all().unwrap(), fresh.render_all().unwrap());
+        for (x, y) in a.iter().zip(&b) {
+            assert!(x.rgb == y.rgb, "camera {} of seed {seed} differs from fresh cameras'", x.camera);
+        }
+        assert!(
+            a.iter().zip(&before).any(|(x, y)| x.rgb != y.rgb),
+            "seed {seed} looks like the scene its cameras came from"
+        );
+        assert!(last.render_all().is_err(), "the scene that gave its cameras away still renders");
+        last = carried;
+    }
+}

@@ -311,20 +311,24 @@ impl BridgeConfig {
         })
     }
 
-    /// The scene with `seed`, with what calibration adds.
+    /// The scene with `seed`, with what calibration adds; its cameras are `last`'s (the
+    /// scene it replaces), their OpenGL context kept, or new ones for the first scene.
     fn sim(
         &self,
         assets: &std::path::Path,
         spec: &labrig_sim::scene::SceneSpec,
         seed: u64,
         period: Nanos,
+        last: Option<&mut Sim>,
     ) -> anyhow::Result<Sim> {
         let mut sim = match self.extras() {
             Some(x) => Sim::with_extras(assets, spec, seed, period, &x)?,
             None => Sim::new(assets, spec, seed, period)?,
         };
-        if self.cameras {
-            sim.enable_cameras(self.width, self.height, self.meshes)?;
+        match last {
+            Some(last) if self.cameras => sim.adopt_cameras(last)?,
+            None if self.cameras => sim.enable_cameras(self.width, self.height, self.meshes)?,
+            _ => {}
         }
         Ok(sim)
     }
@@ -557,7 +561,7 @@ async fn bridge(a: BridgeConfig, shutdown: Shutdown) -> anyhow::Result<()> {
     raise_priority(&a);
     let (spec, assets) = labrig_sim::resolve_scene(a.scene.as_deref(), a.assets.as_deref())?;
     let period = Nanos::from_secs_rounded(a.period_s);
-    let sim = a.sim(&assets, &spec, a.seed, period)?;
+    let sim = a.sim(&assets, &spec, a.seed, period, None)?;
     let safety = labrig_sim::safety_filter(period, None)?;
     let cfg = a.ros.clone();
     let hw = a.hardware_prefix.trim_end_matches('/');
@@ -817,7 +821,7 @@ impl<'a> Bridge<'a> {
     /// and camera poses re-published, then the new scene's first state and frames.
     fn new_scene(&mut self, seed: u64) -> anyhow::Result<()> {
         let (a, period) = (self.a, self.scene.period);
-        let mut next = a.sim(&self.scene.assets, &self.scene.spec, seed, period)?;
+        let mut next = a.sim(&self.scene.assets, &self.scene.spec, seed, period, Some(self.rig.sim_mut()))?;
         // On the wall clock's time line the rebuild's time is lost, as a real rig's.
         // The new scene starts a period on: its first state is a tick of its own.
         let now = if a.wall_clock_origin { wall_line(period) } else { 0 };
