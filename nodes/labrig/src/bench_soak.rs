@@ -120,6 +120,12 @@ pub struct ProcessVerdict {
     /// about the line: an allocator that gives back and takes again makes it wide).
     pub rss_mb_per_h: Option<f64>,
     pub rss_mb_per_h_se: Option<f64>,
+    /// The growth of the floor: the line through the lowest RSS of each run of
+    /// [`FLOOR_SAMPLES`] samples after the warm-up. The verdict's figure: memory that swings
+    /// between fixed levels (a scene built while the last one still stands, an allocator
+    /// trimming now and then) leaves it flat; a leak raises it.
+    #[serde(default)]
+    pub rss_floor_mb_per_h: Option<f64>,
     pub fds_per_h: Option<f64>,
     pub threads_per_h: Option<f64>,
     pub fds_range: [u32; 2],
@@ -195,6 +201,7 @@ pub fn verdicts(samples: &BTreeMap<String, Vec<Sample>>, warmup_s: f64) -> Vec<P
                 rss_last_mb: last.proc.rss_bytes as f64 / 1e6,
                 rss_mb_per_h: growth_per_hour(&series(&|p| p.rss_bytes as f64 / 1e6), warmup_s),
                 rss_mb_per_h_se: slope_se(&series(&|p| p.rss_bytes as f64 / 1e6), warmup_s).map(|se| se * 3600.0),
+                rss_floor_mb_per_h: floor_growth_per_hour(&series(&|p| p.rss_bytes as f64 / 1e6), warmup_s),
                 fds_per_h: growth_per_hour(&series(&|p| f64::from(p.fds)), warmup_s),
                 threads_per_h: growth_per_hour(&series(&|p| f64::from(p.threads)), warmup_s),
                 fds_range: range(&|p| p.fds),
@@ -203,6 +210,25 @@ pub fn verdicts(samples: &BTreeMap<String, Vec<Sample>>, warmup_s: f64) -> Vec<P
             }
         })
         .collect()
+}
+
+/// Samples per run whose lowest value is one point of the floor (a minute at the default 10 s).
+pub const FLOOR_SAMPLES: usize = 6;
+
+/// The growth per hour of the floor of `samples` after `warmup_s`: the least-squares line
+/// through the lowest value of each run of [`FLOOR_SAMPLES`] samples (at the run's mean time);
+/// None with fewer than two runs.
+pub fn floor_growth_per_hour(samples: &[(f64, f64)], warmup_s: f64) -> Option<f64> {
+    let after: Vec<(f64, f64)> = samples.iter().copied().filter(|(t, _)| *t >= warmup_s).collect();
+    let floor: Vec<(f64, f64)> = after
+        .chunks(FLOOR_SAMPLES)
+        .filter(|c| c.len() == FLOOR_SAMPLES)
+        .map(|c| {
+            let t = c.iter().map(|(t, _)| t).sum::<f64>() / c.len() as f64;
+            (t, c.iter().map(|(_, v)| *v).fold(f64::INFINITY, f64::min))
+        })
+        .collect();
+    labrig_runtime::bench::slope(&floor).map(|per_s| per_s * 3600.0)
 }
 
 /// The standard error of the least-squares slope through the points after `warmup_s` (per
@@ -230,7 +256,7 @@ pub fn verdict(
 ) -> Verdict {
     let growing: Vec<(String, f64)> = procs
         .iter()
-        .filter_map(|p| p.rss_mb_per_h.filter(|g| *g >= MAX_MB_PER_H).map(|g| (p.name.clone(), g)))
+        .filter_map(|p| p.rss_floor_mb_per_h.filter(|g| *g >= MAX_MB_PER_H).map(|g| (p.name.clone(), g)))
         .collect();
     // A drift is a fitted gain that adds up to a whole descriptor or thread over the hour and
     // shows in the range (a steady count fluctuating by one is not a drift).
@@ -466,8 +492,8 @@ fn print_report(r: &Report, out: &Path) {
     );
     println!("  (a shared 2-core machine: timings are noisy)");
     println!(
-        "  {:<22} {:>8} {:>8} {:>16} {:>9} {:>11} {:>7}",
-        "process", "RSS MB", "-> MB", "MB/h (± s.e.)", "fds", "threads", "cpu %"
+        "  {:<22} {:>8} {:>8} {:>16} {:>10} {:>9} {:>11} {:>7}",
+        "process", "RSS MB", "-> MB", "MB/h (± s.e.)", "floor MB/h", "fds", "threads", "cpu %"
     );
     let rate = |v: Option<f64>, se: Option<f64>| match (v, se) {
         (Some(g), Some(se)) => format!("{g:+.2} ±{se:.2}"),
@@ -476,11 +502,12 @@ fn print_report(r: &Report, out: &Path) {
     };
     for p in &r.processes {
         println!(
-            "  {:<22} {:>8.1} {:>8.1} {:>16} {:>4}-{:<4} {:>5}-{:<5} {:>7.1}",
+            "  {:<22} {:>8.1} {:>8.1} {:>16} {:>10} {:>4}-{:<4} {:>5}-{:<5} {:>7.1}",
             p.name,
             p.rss_first_mb,
             p.rss_last_mb,
             rate(p.rss_mb_per_h, p.rss_mb_per_h_se),
+            rate(p.rss_floor_mb_per_h, None),
             p.fds_range[0],
             p.fds_range[1],
             p.threads_range[0],
@@ -627,6 +654,18 @@ mod tests {
         let by = |n: &str| procs.iter().find(|p| p.name == n).unwrap();
         assert!((by("grower").rss_mb_per_h.unwrap() - 30.0).abs() < 1e-6, "{:?}", by("grower"));
         assert!(by("labrig-recorder").rss_mb_per_h.unwrap().abs() < 1e-6);
+        assert!((by("grower").rss_floor_mb_per_h.unwrap() - 30.0).abs() < 1e-6, "{:?}", by("grower"));
+        // Memory swinging between two fixed levels, more often at the high one late in the
+        // run: the mean's line rises, the floor's does not.
+        let swing: Vec<(f64, f64)> = (0..360)
+            .map(|k| {
+                let t = f64::from(k) * 10.0;
+                let high = k % FLOOR_SAMPLES as i32 != 0 && (k > 180 || k % 3 == 1);
+                (t, if high { 870.0 } else { 810.0 })
+            })
+            .collect();
+        assert!(growth_per_hour(&swing, 0.0).unwrap() > 20.0);
+        assert_eq!(floor_growth_per_hour(&swing, 0.0), Some(0.0));
         // On a line the standard error is 0; scatter about it widens it.
         assert!(by("grower").rss_mb_per_h_se.unwrap() < 1e-6);
         let noisy: Vec<(f64, f64)> = (0..100).map(|k| (f64::from(k), if k % 2 == 0 { 1.0 } else { -1.0 })).collect();
