@@ -25,6 +25,7 @@ pub mod std_srvs;
 pub mod tf2_msgs;
 mod time;
 pub mod topics;
+pub mod type_hash;
 
 pub use codec::{CDR_BE, CDR_LE, CodecError, decode, decode_payload, encode};
 pub use invalid::Invalid;
@@ -48,6 +49,7 @@ pub fn cache_dir() -> Option<std::path::PathBuf> {
 
 pub use registry::{TypeVisitor, known_types, visit_type};
 pub use time::{Nanos, builtin_interfaces};
+pub use type_hash::type_hash;
 
 /// A ROS 2 message type: its fully qualified name, its `.msg` text and its dependencies.
 pub trait RosMessage:

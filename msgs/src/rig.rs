@@ -7,6 +7,10 @@
 //! instead of silently misread fields. Bump a type's version (and keep a reader for the old one)
 //! whenever its fields change.
 //!
+//! Each type's `.msg` text is the file of the ROS 2 interface package `ros2/labrig_msgs/msg/`
+//! (included here, so the package, these types' schemas in every recording and the type
+//! hashes cannot drift apart); `colcon build` of that package gives ROS 2 nodes the same types.
+//!
 //! Conventions (DROID's): gripper 0 = open, 1 = closed; cartesian positions are xyz (m) +
 //! euler xyz (rad) in the robot base frame; cartesian velocity actions are in [-1, 1] and scale
 //! to at most 0.075 m and 0.15 rad per control step.
@@ -152,7 +156,7 @@ labrig_message!(
     ArmCommand,
     "labrig_msgs/msg/ArmCommand",
     [Header],
-    "uint8 MODE_CARTESIAN_VELOCITY=0\nuint8 MODE_CARTESIAN_POSITION=1\nuint8 MODE_CARTESIAN_POSITION_AXIS_ANGLE=2\nuint8 MODE_JOINT_VELOCITY=3\nuint8 MODE_JOINT_POSITION=4\nuint16 version\nstd_msgs/Header header\nuint8 mode\nfloat64[6] cartesian_velocity\nfloat64[6] cartesian_position\nfloat64[7] joint_velocity\nfloat64[7] joint_position\nfloat64 gripper_position\nuint64 seq\n"
+    include_str!("../../ros2/labrig_msgs/msg/ArmCommand.msg")
 );
 
 /// labrig_msgs/msg/ActionDict: DROID's recorded action dictionary, every representation of
@@ -178,7 +182,7 @@ labrig_message!(
     ActionDict,
     "labrig_msgs/msg/ActionDict",
     [],
-    "uint16 version\nfloat64[6] cartesian_velocity\nfloat64[6] cartesian_position\nfloat64[7] joint_velocity\nfloat64[7] joint_position\nfloat64 gripper_velocity\nfloat64 gripper_position\nfloat64[6] target_cartesian_position\nfloat64 target_gripper_position\n"
+    include_str!("../../ros2/labrig_msgs/msg/ActionDict.msg")
 );
 
 /// labrig_msgs/msg/RobotState on `/arm/state`: DROID's `observation/robot_state` fields plus
@@ -218,7 +222,7 @@ labrig_message!(
     RobotState,
     "labrig_msgs/msg/RobotState",
     [Header],
-    "uint8 MODE_IDLE=0\nuint8 MODE_MOVING=1\nuint8 MODE_STOPPED=2\nuint8 MODE_FAULT=3\nuint16 version\nstd_msgs/Header header\nfloat64[6] cartesian_position\nfloat64 gripper_position\nfloat64[7] joint_positions\nfloat64[7] joint_velocities\nfloat64[7] joint_torques_computed\nfloat64[7] prev_joint_torques_computed\nfloat64[7] prev_joint_torques_computed_safened\nfloat64[7] motor_torques_measured\nfloat64 prev_controller_latency_ms\nbool prev_command_successful\nuint8 mode\nstring fault\n"
+    include_str!("../../ros2/labrig_msgs/msg/RobotState.msg")
 );
 
 /// labrig_msgs/msg/GripperCommand on `/gripper/command`: all fields in 0..1.
@@ -240,7 +244,7 @@ labrig_message!(
     GripperCommand,
     "labrig_msgs/msg/GripperCommand",
     [Header],
-    "uint16 version\nstd_msgs/Header header\nfloat64 position\nfloat64 speed\nfloat64 force\n"
+    include_str!("../../ros2/labrig_msgs/msg/GripperCommand.msg")
 );
 
 /// labrig_msgs/msg/GripperState on `/gripper/state`.
@@ -268,7 +272,7 @@ labrig_message!(
     GripperState,
     "labrig_msgs/msg/GripperState",
     [Header],
-    "uint16 version\nstd_msgs/Header header\nfloat64 position\nfloat64 requested_position\nbool activated\nbool object_detected\nuint8 fault_code\nstring fault\nfloat64 current_ma\n"
+    include_str!("../../ros2/labrig_msgs/msg/GripperState.msg")
 );
 
 /// labrig_msgs/msg/TeleopState on `/teleop/state`: the controller as the teleop node sees it.
@@ -299,7 +303,7 @@ labrig_message!(
     TeleopState,
     "labrig_msgs/msg/TeleopState",
     [Header, Pose],
-    "uint16 version\nstd_msgs/Header header\nbool controller_connected\nstring hand\ngeometry_msgs/Pose controller_pose\nbool movement_enabled\nfloat64 grip\nfloat64 trigger\nfloat64[2] joystick\nbool joystick_pressed\nbool button_success\nbool button_failure\n"
+    include_str!("../../ros2/labrig_msgs/msg/TeleopState.msg")
 );
 
 /// What an [`EpisodeEvent`] announces.
@@ -351,7 +355,7 @@ labrig_message!(
     EpisodeEvent,
     "labrig_msgs/msg/EpisodeEvent",
     [Header],
-    "uint8 KIND_START=0\nuint8 KIND_STOP=1\nuint8 KIND_SUCCESS=2\nuint8 KIND_FAILURE=3\nuint8 KIND_DISCARD=4\nuint8 KIND_RESET=5\nuint16 version\nstd_msgs/Header header\nuint8 kind\nstring episode_id\nstring note\n"
+    include_str!("../../ros2/labrig_msgs/msg/EpisodeEvent.msg")
 );
 
 /// labrig_msgs/msg/ActionChunk: a policy's prediction, `horizon` actions of `action_dim` each,
@@ -407,7 +411,7 @@ labrig_message!(
     ActionChunk,
     "labrig_msgs/msg/ActionChunk",
     [Header],
-    "uint16 version\nstd_msgs/Header header\nstring policy_id\nuint64 observation_step\nuint64 first_step\nuint32 horizon\nuint32 action_dim\nfloat64[] actions\nfloat64 inference_ms\nuint64 request_id\nint64[] times_ns\n"
+    include_str!("../../ros2/labrig_msgs/msg/ActionChunk.msg")
 );
 
 /// labrig_msgs/msg/PolicyObservation: one control step as a policy sees it: the step's robot
@@ -431,7 +435,7 @@ labrig_message!(
     PolicyObservation,
     "labrig_msgs/msg/PolicyObservation",
     [Header, RobotState, crate::sensor_msgs::CompressedImage],
-    "uint16 version\nstd_msgs/Header header\nuint64 step_index\nlabrig_msgs/RobotState robot_state\nsensor_msgs/CompressedImage[] images\n"
+    include_str!("../../ros2/labrig_msgs/msg/PolicyObservation.msg")
 );
 
 /// labrig_msgs/msg/PolicyRequest: the rig loop asking the policy server for an action chunk
@@ -513,7 +517,7 @@ labrig_message!(
     PolicyRequest,
     "labrig_msgs/msg/PolicyRequest",
     [Header, PolicyObservation],
-    "uint16 version\nstd_msgs/Header header\nuint64 request_id\nstring episode_id\nstring scene\nlabrig_msgs/PolicyObservation[] observations\nuint64 seed\nint64 period_ns\nfloat64[] prefix_actions\nuint32 prefix_frozen_steps\nfloat64 guidance_max_weight\n"
+    include_str!("../../ros2/labrig_msgs/msg/PolicyRequest.msg")
 );
 
 /// labrig_msgs/msg/CameraFrameRef: which frame of one camera went into an observation.
@@ -535,7 +539,7 @@ labrig_message!(
     CameraFrameRef,
     "labrig_msgs/msg/CameraFrameRef",
     [],
-    "uint16 version\nstring camera_id\nuint64 sequence\nint64 capture_ns\nint64 arrival_ns\n"
+    include_str!("../../ros2/labrig_msgs/msg/CameraFrameRef.msg")
 );
 
 /// labrig_msgs/msg/ControlTiming: DROID's `observation/timestamp/control` keys, ns.
@@ -557,7 +561,7 @@ labrig_message!(
     ControlTiming,
     "labrig_msgs/msg/ControlTiming",
     [],
-    "uint16 version\nint64 step_start\nint64 policy_start\nint64 sleep_start\nint64 control_start\nint64 step_end\n"
+    include_str!("../../ros2/labrig_msgs/msg/ControlTiming.msg")
 );
 
 /// labrig_msgs/msg/Step on `/rig/step`: one record per control tick — the observation used,
@@ -653,7 +657,7 @@ labrig_message!(
     Step,
     "labrig_msgs/msg/Step",
     [Header, RobotState, CameraFrameRef, ControlTiming, ActionDict],
-    "uint8 SOURCE_NONE=0\nuint8 SOURCE_TELEOP=1\nuint8 SOURCE_POLICY=2\nuint8 SOURCE_SCRIPTED=3\nuint8 SOURCE_REPLAY=4\nuint16 version\nstd_msgs/Header header\nstring episode_id\nuint64 step_index\nlabrig_msgs/RobotState robot_state\nlabrig_msgs/CameraFrameRef[] cameras\nint64 camera_skew_ns\nlabrig_msgs/ControlTiming timing\nlabrig_msgs/ActionDict action\nuint8 action_source\nbool movement_enabled\nstring policy_id\nuint64 chunk_id\nuint32 chunk_row\n",
+    include_str!("../../ros2/labrig_msgs/msg/Step.msg"),
     legacy = StepV1
 );
 

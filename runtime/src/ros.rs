@@ -101,6 +101,24 @@ pub struct TopicInfo {
     pub kind: TopicKindInfo,
 }
 
+/// Another participant's publisher or subscription (see [`Ros::remote_endpoints`]).
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct EndpointInfo {
+    pub topic: TopicInfo,
+    pub kind: EndpointKind,
+    /// The participant's GUID prefix (which process it is, for telling peers apart).
+    pub participant: String,
+    /// The type hash it announced (`RIHS01_...`), if any.
+    pub type_hash: Option<String>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EndpointKind {
+    Publisher,
+    Subscription,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum TopicKindInfo {
@@ -435,6 +453,35 @@ impl Ros {
         topics.sort();
         topics.dedup();
         topics
+    }
+
+    /// The other participants' publishers and subscriptions seen on the DDS graph so far, each
+    /// with the type hash it announced (REP 2016: `typehash=RIHS01_...;` in the endpoint's
+    /// USER_DATA, as rmw implementations since Iron write it). labrig's own endpoints announce
+    /// none: RustDDS 0.15 writes no USER_DATA for local endpoints.
+    pub fn remote_endpoints(&self) -> Vec<EndpointInfo> {
+        use rustdds::RTPSEntity;
+        let own = self.participant.guid().prefix;
+        let writers = self.participant.discovered_writers().into_iter().map(|w| {
+            let t = &w.publication_topic_data;
+            (t.key, t.topic_name.clone(), t.type_name.clone(), EndpointKind::Publisher, w.user_data)
+        });
+        let readers = self.participant.discovered_readers().into_iter().map(|r| {
+            let t = &r.subscription_topic_data;
+            (t.key(), t.topic_name().clone(), t.type_name().clone(), EndpointKind::Subscription, r.user_data)
+        });
+        let mut out: Vec<EndpointInfo> = writers
+            .chain(readers)
+            .filter(|(guid, ..)| guid.prefix != own)
+            .map(|(guid, topic, ty, kind, user_data)| EndpointInfo {
+                topic: ros_topic_info(&topic, &ty),
+                kind,
+                participant: format!("{:?}", guid.prefix),
+                type_hash: labrig_msgs::type_hash::from_user_data(&user_data),
+            })
+            .collect();
+        out.sort();
+        out
     }
 
     /// Number of matched remote readers of a topic we publish, as the ROS graph reports it.

@@ -30,7 +30,10 @@ Subcommands (exit codes: 0 ok, 2 usage, 3 no loopback profile, 4 peer not found)
   listen-joint-states --topic T --count N --timeout S
                          one line per message; recv_mono_ns = time.monotonic_ns() when
                          rclpy's callback got it (for arrival rates), recv_ns = wall clock
-  listen --topic T --type TYPE --count N --timeout S    (same, any standard type)
+  listen --topic T --type TYPE --count N --timeout S    (same, any type: standard ones, and
+                         labrig_msgs' generated from ros2/labrig_msgs when LABRIG_ROS_MSGS is set)
+  drive-arm --target q1,..,q7 --seconds S     labrig_msgs/msg/ArmCommand in joint position mode
+                         to /arm/command at 20 Hz, labrig_msgs/msg/RobotState read from /arm/state
   talk-pose --topic T --count N --rate HZ
   talk-string-forever --topic T --rate HZ --max-seconds S
   serve-addtwoints --service S --max-seconds X     (std_srvs/srv/SetBool server)
@@ -372,10 +375,65 @@ def _listen(topic, cls, to_json, count, timeout):
             # Said once this reader has matched a writer (both sides of discovery done).
             if not matched and sub.get_publisher_count() > 0:
                 matched = True
-                emit({"matched": sub.get_publisher_count()})
+                emit({"matched": sub.get_publisher_count(), "type_hashes": _type_hashes(node, topic)})
             rclpy.spin_once(node, timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
     finally:
         emit({"done": True, "received": received})
+        shutdown(rclpy, node)
+    return 0
+
+
+def _type_hashes(node, topic):
+    """The type hash of each endpoint of `topic` as rclpy sees it (its own subscription's
+    from the generated type support; a peer's from discovery, invalid when it announced none)."""
+    out = []
+    for kind, infos in (("publisher", node.get_publishers_info_by_topic(topic)),
+                        ("subscription", node.get_subscriptions_info_by_topic(topic))):
+        for i in infos:
+            out.append({"kind": kind, "node": i.node_name, "type": i.topic_type,
+                        "type_hash": str(i.topic_type_hash)})
+    return out
+
+
+def cmd_drive_arm(args):
+    """A planner of one's own on the rig: labrig_msgs/msg/ArmCommand (generated type) in joint
+    position mode toward --target at --rate, reading labrig_msgs/msg/RobotState on --state;
+    one line per state read, then a summary."""
+    from labrig_msgs.msg import ArmCommand, RobotState
+    rclpy, node = make_node("drive_arm")
+    target = [float(x) for x in args.target.split(",")]
+    states = []
+    node.create_subscription(RobotState, args.state, lambda m: states.append(m), qos(100))
+    pub = node.create_publisher(ArmCommand, args.command, qos(10))
+    if not wait_for_subscribers(pub, args.wait_subscriber):
+        shutdown(rclpy, node)
+        die(4, f"no subscriber on {args.command} within {args.wait_subscriber} s")
+    emit({"ready": True, "type_hashes": _type_hashes(node, args.command)})
+    seq, first = 0, None
+    deadline = time.monotonic() + args.seconds
+    next_send = time.monotonic()
+    try:
+        while time.monotonic() < deadline:
+            if time.monotonic() >= next_send:
+                cmd = ArmCommand()
+                cmd.version = 1
+                cmd.header.stamp = node.get_clock().now().to_msg()
+                cmd.header.frame_id = "base"
+                cmd.mode = ArmCommand.MODE_JOINT_POSITION
+                cmd.joint_position = target
+                seq += 1
+                cmd.seq = seq
+                pub.publish(cmd)
+                next_send += 1.0 / args.rate
+            rclpy.spin_once(node, timeout_sec=0.005)
+            while states:
+                m = states.pop(0)
+                q = [float(x) for x in m.joint_positions]
+                first = first or q
+                emit({"state": {"version": m.version, "mode": m.mode, "joint_positions": q,
+                                "fault": m.fault, "sec": m.header.stamp.sec}})
+    finally:
+        emit({"done": True, "commands": seq})
         shutdown(rclpy, node)
     return 0
 
@@ -542,6 +600,15 @@ def main(argv=None):
     c.add_argument("--count", type=int, required=True)
     c.add_argument("--timeout", type=float, required=True)
     c.set_defaults(fn=cmd_listen)
+
+    c = sub.add_parser("drive-arm", help="labrig_msgs ArmCommand toward a joint target, reading RobotState")
+    c.add_argument("--target", required=True, help="seven joint positions, comma-separated (rad)")
+    c.add_argument("--command", default="/arm/command")
+    c.add_argument("--state", default="/arm/state")
+    c.add_argument("--rate", type=float, default=20.0)
+    c.add_argument("--seconds", type=float, required=True)
+    c.add_argument("--wait-subscriber", type=float, default=30.0)
+    c.set_defaults(fn=cmd_drive_arm)
 
     c = sub.add_parser("talk-pose")
     c.add_argument("--topic", required=True)

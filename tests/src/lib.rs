@@ -213,6 +213,8 @@ pub const TEST_DOMAINS: &[(&str, u16, u16)] = &[
     ("launch_two_rigs", 187, 2),
     ("experiment_retrieval_droid_ci", 189, 2),
     ("bench_soak", 191, 1),
+    ("ros2_interfaces_rollout", 192, 1),
+    ("ros2_interfaces_arm", 193, 1),
 ];
 
 /// The DDS domains labrig's commands use when none is given (see [`TEST_DOMAINS`]).
@@ -286,6 +288,44 @@ pub fn ros_env(cmd: &mut Command, domain: u16) {
         .env("ROS_DOMAIN_ID", domain.to_string());
 }
 
+/// Where `scripts/setup.sh` installed the colcon build of `ros2/labrig_msgs`
+/// (`LABRIG_ROS_MSGS`, else the cache's).
+pub fn ros_msgs_prefix() -> PathBuf {
+    let p = match std::env::var_os("LABRIG_ROS_MSGS") {
+        Some(p) => PathBuf::from(p),
+        None => cache_dir().join("ros2-labrig-msgs/install/labrig_msgs"),
+    };
+    assert!(
+        p.join("share/labrig_msgs/package.xml").exists(),
+        "the colcon build of ros2/labrig_msgs is missing at {}: run `bash scripts/setup.sh` first",
+        p.display()
+    );
+    p
+}
+
+/// What a Python process needs to import the generated labrig_msgs types: the package's
+/// site-packages and its libraries (the venv's own come from the ROS wheels' bootstrapper).
+pub fn labrig_msgs_env(cmd: &mut Command) {
+    let prefix = ros_msgs_prefix();
+    let site = std::fs::read_dir(prefix.join("lib"))
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.path().join("site-packages"))
+        .find(|p| p.join("labrig_msgs").exists())
+        .unwrap_or_else(|| panic!("no lib/python*/site-packages/labrig_msgs under {}", prefix.display()));
+    let join = |var: &str, first: PathBuf| match std::env::var_os(var) {
+        Some(v) if !v.is_empty() => {
+            let mut all = vec![first];
+            all.extend(std::env::split_paths(&v));
+            std::env::join_paths(all).unwrap()
+        }
+        _ => first.into_os_string(),
+    };
+    cmd.env("PYTHONPATH", join("PYTHONPATH", site))
+        .env("LD_LIBRARY_PATH", join("LD_LIBRARY_PATH", prefix.join("lib")))
+        .env("AMENT_PREFIX_PATH", join("AMENT_PREFIX_PATH", prefix));
+}
+
 /// A child process whose stdout lines arrive on a channel; killed on drop.
 pub struct Proc {
     pub child: Child,
@@ -316,6 +356,16 @@ impl Proc {
         let mut cmd = Command::new(ros_python());
         cmd.arg(repo_root().join("tests/peers/ros_peer.py")).args(args);
         ros_env(&mut cmd, domain);
+        Proc::spawn(&format!("ros_peer {}", args.first().unwrap_or(&"")), cmd)
+    }
+
+    /// The rclpy peer with labrig's own message types too: the Python types colcon generated
+    /// from `ros2/labrig_msgs` (built by `scripts/setup.sh`, [`ros_msgs_prefix`]).
+    pub fn ros_peer_with_labrig_msgs(domain: u16, args: &[&str]) -> Proc {
+        let mut cmd = Command::new(ros_python());
+        cmd.arg(repo_root().join("tests/peers/ros_peer.py")).args(args);
+        ros_env(&mut cmd, domain);
+        labrig_msgs_env(&mut cmd);
         Proc::spawn(&format!("ros_peer {}", args.first().unwrap_or(&"")), cmd)
     }
 

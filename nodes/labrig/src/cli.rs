@@ -272,6 +272,11 @@ pub enum TopicCommand {
     Echo(crate::topic::EchoArgs),
     /// Measure the publishing rate of a topic.
     Hz(crate::topic::HzArgs),
+    /// A topic's publishers and subscriptions in other processes, with the type hash each
+    /// announced and whether it is labrig's (exit code 3 when one differs).
+    Info(crate::topic::InfoArgs),
+    /// The RIHS01 type hash (REP 2011) of every message type labrig knows, as rosidl computes it.
+    Hashes(crate::topic::HashesArgs),
 }
 
 #[derive(Debug, Subcommand)]
@@ -416,6 +421,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Topic(TopicCommand::List(a)) => crate::topic::list(a),
         Command::Topic(TopicCommand::Echo(a)) => crate::topic::echo(a),
         Command::Topic(TopicCommand::Hz(a)) => crate::topic::hz(a),
+        Command::Topic(TopicCommand::Info(a)) => crate::topic::info(a),
+        Command::Topic(TopicCommand::Hashes(a)) => crate::topic::hashes(a),
         Command::Bench(BenchCommand::Shm(a)) => crate::bench::shm(a),
         Command::Bench(BenchCommand::ShmPublisher(a)) => crate::bench::shm_publisher(a),
         Command::Bench(BenchCommand::Ik { args }) => {

@@ -34,6 +34,29 @@ pub struct ListArgs {
     pub json: bool,
 }
 
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// Topic name, e.g. /rig/step.
+    pub topic: String,
+    #[command(flatten)]
+    pub ros: RosArgs,
+    /// Seconds to listen for discovery before printing.
+    #[arg(long, default_value_t = 2.0)]
+    pub wait: f64,
+    /// One JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct HashesArgs {
+    /// Only this type (pkg/msg/Name); default: every type labrig knows.
+    pub type_name: Option<String>,
+    /// One JSON object (type -> hash) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
 /// How `echo` and `hz` join ROS 2 and subscribe.
 #[derive(Debug, Args)]
 pub struct SubscribeArgs {
@@ -116,6 +139,95 @@ pub fn list(args: ListArgs) -> anyhow::Result<ExitCode> {
             }
         }
         Ok(ExitCode::SUCCESS)
+    })
+}
+
+/// The RIHS01 type hash labrig computes for a type it knows (its `.msg` text, as rosidl does).
+struct Hash;
+impl labrig_msgs::TypeVisitor for Hash {
+    type Output = String;
+    fn visit<T: labrig_msgs::RosMessage>(self) -> String {
+        labrig_msgs::type_hash::<T>()
+    }
+}
+
+/// `labrig topic hashes`: the RIHS01 type hash of every type labrig knows.
+pub fn hashes(args: HashesArgs) -> anyhow::Result<ExitCode> {
+    let names: Vec<&str> = match &args.type_name {
+        Some(t) => match labrig_msgs::known_types().iter().find(|k| **k == t.as_str()) {
+            Some(k) => vec![*k],
+            None => bail!("labrig does not know type {t} (`labrig topic hashes` lists the ones it does)"),
+        },
+        None => labrig_msgs::known_types().to_vec(),
+    };
+    let hashes: Vec<(&str, String)> =
+        names.iter().map(|n| (*n, labrig_msgs::visit_type(n, Hash).expect("a known type"))).collect();
+    if args.json {
+        let map: serde_json::Map<String, serde_json::Value> =
+            hashes.into_iter().map(|(n, h)| (n.to_owned(), h.into())).collect();
+        println!("{}", serde_json::Value::Object(map));
+    } else {
+        for (n, h) in hashes {
+            println!("{n:<36} {h}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `labrig topic info`: the topic's publishers and subscriptions in other processes, each with
+/// the type hash it announced and whether that is labrig's for the type (exit code 3 when one
+/// differs: the peer was built from another definition).
+pub fn info(args: InfoArgs) -> anyhow::Result<ExitCode> {
+    let topic = if args.topic.starts_with('/') { args.topic.clone() } else { format!("/{}", args.topic) };
+    let rt = runtime()?;
+    rt.block_on(async {
+        let ros = Ros::new(&args.ros.config()?, &format!("labrig_topic_info_{}", std::process::id()))?;
+        tokio::time::sleep(secs(args.wait, "wait")?).await;
+        let endpoints: Vec<_> = ros
+            .remote_endpoints()
+            .into_iter()
+            .filter(|e| e.topic.name == topic && e.topic.kind == TopicKindInfo::Topic)
+            .collect();
+        let mut differs = false;
+        let rows: Vec<serde_json::Value> = endpoints
+            .iter()
+            .map(|e| {
+                let labrig = labrig_msgs::visit_type(&e.topic.type_name, Hash);
+                let matches = match (&e.type_hash, &labrig) {
+                    (Some(a), Some(b)) => Some(a == b),
+                    _ => None,
+                };
+                differs |= matches == Some(false);
+                json!({"kind": e.kind, "type": e.topic.type_name, "participant": e.participant,
+                       "type_hash": e.type_hash, "labrig_type_hash": labrig, "matches": matches})
+            })
+            .collect();
+        if args.json {
+            println!("{}", json!({"topic": topic, "endpoints": rows}));
+        } else if rows.is_empty() {
+            println!("{topic}: no publisher or subscription in another process (domain {})", ros.domain_id());
+        } else {
+            println!("{topic}");
+            for r in &rows {
+                let verdict = match (r["matches"].as_bool(), r["type_hash"].as_str()) {
+                    (Some(true), _) => "= labrig's".to_owned(),
+                    (Some(false), _) => format!(
+                        "DIFFERS from labrig's {} (built from another definition of the type)",
+                        r["labrig_type_hash"].as_str().unwrap_or_default()
+                    ),
+                    (None, Some(_)) => "(a type labrig does not know)".to_owned(),
+                    (None, None) => "(no type hash announced)".to_owned(),
+                };
+                println!(
+                    "  {:<12} {} [{}] {} {verdict}",
+                    r["kind"].as_str().unwrap_or_default(),
+                    r["participant"].as_str().unwrap_or_default(),
+                    r["type"].as_str().unwrap_or_default(),
+                    r["type_hash"].as_str().unwrap_or("-"),
+                );
+            }
+        }
+        Ok(if differs { ExitCode::from(3) } else { ExitCode::SUCCESS })
     })
 }
 
