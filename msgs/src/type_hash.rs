@@ -95,18 +95,31 @@ pub fn parse_fields(type_name: &str, text: &str) -> Result<Vec<Field>, MsgSyntax
         }
         let rest = rest.split('#').next().unwrap_or_default().trim();
         let name = rest.split_whitespace().next().ok_or_else(|| err("a type without a field name"))?;
-        fields.push(Field { name: name.to_owned(), ty: parse_type(package, ty).map_err(|r| err(&r))? });
+        fields.push(Field { name: name.to_owned(), ty: parse_type(package, ty).map_err(|r| err(&r.to_string()))? });
     }
     Ok(fields)
 }
 
+/// Why a field's type does not parse.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+enum TypeSyntax {
+    #[error("an array type without its closing `]`")]
+    Unclosed,
+    #[error("array bound `{0}` is not a number")]
+    ArrayBound(String),
+    #[error("string bound `{0}` is not a number")]
+    StringBound(String),
+    #[error("unknown type `{0}`")]
+    Unknown(String),
+}
+
 /// `float64[7]`, `string<=16`, `labrig_msgs/RobotState[]`, `Header[<=3]`...
-fn parse_type(package: &str, ty: &str) -> Result<FieldType, String> {
+fn parse_type(package: &str, ty: &str) -> Result<FieldType, TypeSyntax> {
     let (element, offset, capacity) = match ty.split_once('[') {
         None => (ty, 0, 0),
         Some((element, bound)) => {
-            let bound = bound.strip_suffix(']').ok_or("an array type without its closing `]`")?;
-            let number = |s: &str| s.parse::<u64>().map_err(|_| format!("array bound `{s}` is not a number"));
+            let bound = bound.strip_suffix(']').ok_or(TypeSyntax::Unclosed)?;
+            let number = |s: &str| s.parse::<u64>().map_err(|_| TypeSyntax::ArrayBound(s.to_owned()));
             match bound {
                 "" => (element, UNBOUNDED_SEQUENCE, 0),
                 b => match b.strip_prefix("<=") {
@@ -123,9 +136,9 @@ fn parse_type(package: &str, ty: &str) -> Result<FieldType, String> {
     } else if element == "wstring" {
         (WSTRING, 0, String::new())
     } else if let Some(max) = element.strip_prefix("string<=") {
-        (BOUNDED_STRING, max.parse().map_err(|_| format!("string bound `{max}` is not a number"))?, String::new())
+        (BOUNDED_STRING, max.parse().map_err(|_| TypeSyntax::StringBound(max.to_owned()))?, String::new())
     } else if let Some(max) = element.strip_prefix("wstring<=") {
-        (BOUNDED_WSTRING, max.parse().map_err(|_| format!("wstring bound `{max}` is not a number"))?, String::new())
+        (BOUNDED_WSTRING, max.parse().map_err(|_| TypeSyntax::StringBound(max.to_owned()))?, String::new())
     } else {
         // Packages are snake_case, messages CamelCase (rosidl refuses others).
         let valid = |s: &str| !s.is_empty() && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
@@ -134,7 +147,7 @@ fn parse_type(package: &str, ty: &str) -> Result<FieldType, String> {
             [name] if message(name) => format!("{package}/msg/{name}"),
             [pkg, name] if valid(pkg) && message(name) => format!("{pkg}/msg/{name}"),
             [pkg, "msg", name] if valid(pkg) && message(name) => format!("{pkg}/msg/{name}"),
-            _ => return Err(format!("unknown type `{element}`")),
+            _ => return Err(TypeSyntax::Unknown(element.to_owned())),
         };
         (NESTED, 0, nested)
     };

@@ -150,7 +150,8 @@ fn read_independently(r: &Value) {
 
 /// The recorder SIGKILLed at an episode's start, in its middle and on its end event: the
 /// launcher restarts it, it rejoins, and every step the loop published is in the filed
-/// episode (the middle and end kills as a second part of the same episode).
+/// episode, each once (the middle kill as a second part of the same episode; the next
+/// episode's steps never in it).
 #[test]
 fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
     let keep = tempfile::tempdir().unwrap();
@@ -172,8 +173,14 @@ fn the_recorder_killed_at_start_middle_and_end_loses_no_step() {
         // itself (0.4-0.8 s on an idle machine, more under load) are lost.
         assert!(r["camera_s_lost"].as_f64().unwrap() < 2.0, "{name}: camera data lost: {r}");
         assert!(r["recover_ms"].is_number(), "{name}: the recorder came back: {r}");
-        if name != "recorder-kill-start" {
-            assert_eq!(r["parts"], 2, "{name}: continued as a second part: {r}");
+        // Killed mid-episode, it continues the episode as a second part. Killed on the end
+        // event, it does too when it is back before the next episode starts; when the next one
+        // started first (a scene rebuilds in ~50 ms), the ended episode, whole in its staging,
+        // is filed as it is: one part. Either way every step once (read_independently).
+        match name {
+            "recorder-kill-mid" => assert_eq!(r["parts"], 2, "{name}: continued as a second part: {r}"),
+            "recorder-kill-end" => assert!(r["parts"] == 1 || r["parts"] == 2, "{name}: {r}"),
+            _ => {}
         }
         read_independently(r);
     }

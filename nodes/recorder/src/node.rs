@@ -1276,6 +1276,13 @@ fn drain_topics(
                 if r.spec.topic == topics::RIG_STEP.name
                     && let Ok(step) = labrig_msgs::decode::<labrig_msgs::rig::Step>(&cdr)
                 {
+                    // A step names its episode: another episode's is never this one's, whatever
+                    // its time. (A recorder killed at an episode's end and back after the next
+                    // one started took the next episode's first steps into the one it
+                    // continued: its end event, which bounds it in time, comes after them.)
+                    if !step.episode_id.is_empty() && step.episode_id != ep.uuid {
+                        continue;
+                    }
                     ep.count_source(step.action_source);
                     if ep.writer.metadata().policy.is_none() && !step.policy_id.is_empty() {
                         ep.writer.metadata_mut().policy = Some(step.policy_id);
