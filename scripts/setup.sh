@@ -170,7 +170,7 @@ if [ ! -f "$MSGS_WS/.labrig-stamp" ] || [ "$(cat "$MSGS_WS/.labrig-stamp")" != "
     # (/opt/python/cp311-cp311/...): point them at this venv's Python and numpy.
     py_inc="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
     np_inc="$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())')"
-    grep -l '/opt/python/cp311-cp311' "$VENV"/share/*/cmake/*Export.cmake 2>/dev/null | while read -r f; do
+    { grep -l '/opt/python/cp311-cp311' "$VENV"/share/*/cmake/*Export.cmake 2>/dev/null || true; } | while read -r f; do
         sed -i -e "s|/opt/python/cp311-cp311/include/python3.11|$py_inc|g" \
             -e "s|/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include|$np_inc|g" "$f"
     done
