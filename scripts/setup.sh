@@ -163,6 +163,7 @@ MSGS_WS="$LABRIG_CACHE/ros2-labrig-msgs"
 msgs_stamp="$want_stamp|$(cd "$MSGS_SRC" && cat package.xml CMakeLists.txt msg/*.msg | sha256sum | cut -c1-16)"
 if [ ! -f "$MSGS_WS/.labrig-stamp" ] || [ "$(cat "$MSGS_WS/.labrig-stamp")" != "$msgs_stamp" ]; then
     log "building labrig_msgs with colcon into $MSGS_WS"
+    apt_install g++ make  # the generated C/C++ type support (present on this image)
     rm -rf "$MSGS_WS"
     mkdir -p "$MSGS_WS/src"
     cp -r "$MSGS_SRC" "$MSGS_WS/src/"
