@@ -163,9 +163,15 @@ fn rclpy_reads_a_rollouts_steps_and_chunks_with_the_generated_types() {
         .filter_map(|v| v.get("msg"))
         .map(|m| serde_json::from_value::<ActionChunk>(m.clone()).unwrap_or_else(|e| panic!("{e}: {m}")))
         .collect();
-    assert!(theirs.len() >= 3, "{} chunks", theirs.len());
-    assert_eq!(theirs, ours, "the chunks rclpy read are the ones labrig read");
-    for id in recorded.steps.iter().map(|s| s.chunk_id) {
+    // /policy/chunk is reliable but volatile: a chunk sent before rclpy's reader discovered
+    // the policy server (which starts with the rollout) is not resent; from rclpy's first on,
+    // it read every chunk labrig read.
+    assert!(theirs.len() >= 2 && ours.len() >= 3, "rclpy {} chunks, labrig {}", theirs.len(), ours.len());
+    let first = theirs[0].request_id;
+    let ours_from: Vec<ActionChunk> = ours.iter().filter(|c| c.request_id >= first).cloned().collect();
+    assert_eq!(theirs, ours_from, "the chunks rclpy read are the ones labrig read");
+    assert!(ours.iter().take(3).any(|c| c.request_id == first), "rclpy's first chunk is {first}: {ours:?}");
+    for id in recorded.steps.iter().map(|s| s.chunk_id).filter(|id| *id >= first) {
         assert!(theirs.iter().any(|c| c.request_id == id), "chunk {id} executed but not received");
     }
     assert!(theirs.iter().all(|c| c.actions.len() == (c.horizon * c.action_dim) as usize && c.horizon > 0));
