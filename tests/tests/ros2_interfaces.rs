@@ -177,11 +177,8 @@ fn rclpy_reads_a_rollouts_steps_and_chunks_with_the_generated_types() {
     assert!(theirs.iter().all(|c| c.actions.len() == (c.horizon * c.action_dim) as usize && c.horizon > 0));
 
     // The type hash rclpy's generated types announce is labrig's.
-    for (lines, ty) in [(&step_lines, "labrig_msgs/msg/Step"), (&chunk_lines, "labrig_msgs/msg/ActionChunk")] {
-        let o = Command::new(labrig_bin()).args(["topic", "hashes", ty]).output().unwrap();
-        let labrig = String::from_utf8_lossy(&o.stdout).split_whitespace().nth(1).unwrap().to_owned();
-        assert_eq!(own_subscription_hash(lines), labrig, "{ty}");
-    }
+    assert_eq!(own_subscription_hash(&step_lines), labrig_msgs::type_hash::<Step>(), "Step");
+    assert_eq!(own_subscription_hash(&chunk_lines), labrig_msgs::type_hash::<ActionChunk>(), "ActionChunk");
 }
 
 #[test]
@@ -236,8 +233,7 @@ fn an_rclpy_planner_drives_the_simulated_arm_with_labrig_msgs() {
     assert!(modes.contains(&1), "the arm reported MODE_MOVING: {modes:?}");
     // The franka node's subscription and rclpy's publisher agree on the type; rclpy's
     // generated type hashes as labrig hashes it.
-    let o = Command::new(labrig_bin()).args(["topic", "hashes", "labrig_msgs/msg/ArmCommand"]).output().unwrap();
-    let labrig = String::from_utf8_lossy(&o.stdout).split_whitespace().nth(1).unwrap().to_owned();
+    let labrig = labrig_msgs::type_hash::<labrig_msgs::rig::ArmCommand>();
     let own = ready["type_hashes"].as_array().unwrap().iter().find(|h| h["kind"] == "publisher").unwrap();
     assert_eq!(own["type_hash"], labrig, "{ready}");
     let endpoints = info["endpoints"].as_array().unwrap();

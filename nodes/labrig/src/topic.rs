@@ -153,15 +153,16 @@ impl labrig_msgs::TypeVisitor for Hash {
 
 /// `labrig topic hashes`: the RIHS01 type hash of every type labrig knows.
 pub fn hashes(args: HashesArgs) -> anyhow::Result<ExitCode> {
-    let names: Vec<&str> = match &args.type_name {
-        Some(t) => match labrig_msgs::known_types().iter().find(|k| **k == t.as_str()) {
-            Some(k) => vec![*k],
+    let hashes: Vec<(&str, String)> = match &args.type_name {
+        Some(t) => match labrig_msgs::visit_type(t, Hash) {
+            Some(h) => vec![(t.as_str(), h)],
             None => bail!("labrig does not know type {t} (`labrig topic hashes` lists the ones it does)"),
         },
-        None => labrig_msgs::known_types().to_vec(),
+        None => labrig_msgs::known_types()
+            .iter()
+            .map(|n| (*n, labrig_msgs::visit_type(n, Hash).expect("a known type")))
+            .collect(),
     };
-    let hashes: Vec<(&str, String)> =
-        names.iter().map(|n| (*n, labrig_msgs::visit_type(n, Hash).expect("a known type"))).collect();
     if args.json {
         let map: serde_json::Map<String, serde_json::Value> =
             hashes.into_iter().map(|(n, h)| (n.to_owned(), h.into())).collect();
